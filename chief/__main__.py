@@ -1,0 +1,76 @@
+"""``python -m chief``: the federation's chief (paper Algorithm 1)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from chief.federation import POLICIES
+from chief.service import ChiefConfig, ChiefService
+from protocol.cli import add_common, broker_from, env, setup_logging
+from protocol.tasks import TASKS
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m chief",
+        description="Chief of a federated RL run: waits for the workers, runs the rounds of Algorithm 1 (PI-weighted "
+        "gradient sharing and soft transfer), then writes summary.json, metrics.jsonl and learning_curve.png "
+        "into the run folder. Exit code 0 when the run ended normally (all solved or the episode limit), "
+        "2 on a bad option, 3 when no worker came.",
+    )
+    add_common(parser)
+    parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),
+                        help="number of workers to wait for (env FEDRL_WORKERS, default 4)")
+    parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
+                        help="task every worker learns (env FEDRL_ENV, default CartPole-v0)")
+    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
+                        help="federation policy (env FEDRL_POLICY, default weighted)")
+    parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")),
+                        help="base seed; worker i uses seed + i (env FEDRL_SEED, default 1)")
+    parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
+                        help="M, the most rounds a run may take (env FEDRL_MAX_EPISODES, default 2000)")
+    parser.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),
+                        help="seconds a round waits for a silent worker after the first submission "
+                        "(env FEDRL_ROUND_TIMEOUT, default 30)")
+    parser.add_argument("--start-timeout", type=float, default=float(env("FEDRL_START_TIMEOUT", "300")),
+                        help="seconds to wait for all workers before starting with those present "
+                        "(env FEDRL_START_TIMEOUT, default 300)")
+    parser.add_argument("--idle-timeout", type=float, default=float(env("FEDRL_IDLE_TIMEOUT", "120")),
+                        help="end the run when every unfinished worker is offline this long "
+                        "(env FEDRL_IDLE_TIMEOUT, default 120)")
+    parser.add_argument("--run-dir", type=Path, default=Path(env("FEDRL_RUN_DIR", "runs/latest")),
+                        help="folder for summary.json, metrics.jsonl, learning_curve.png "
+                        "(env FEDRL_RUN_DIR, default runs/latest)")
+    args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error("--workers must be at least 1")
+    if args.max_episodes < 1:
+        parser.error("--max-episodes must be at least 1")
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    setup_logging(args.log_level, "chief")
+    try:
+        cfg = ChiefConfig(broker=broker_from(args), run_id=args.run_id, workers=args.workers, env_id=args.env,
+                          policy=args.policy, seed=args.seed, max_episodes=args.max_episodes,
+                          round_timeout=args.round_timeout, start_timeout=args.start_timeout,
+                          idle_timeout=args.idle_timeout, run_dir=args.run_dir)
+        service = ChiefService(cfg)
+    except ValueError as err:
+        print(f"chief: {err}", file=sys.stderr)
+        return 2
+    try:
+        return service.run()
+    except ConnectionError as err:
+        print(f"chief: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

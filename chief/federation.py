@@ -1,0 +1,93 @@
+"""Federation policy as pure functions over numpy arrays (paper Section IV, made sign-safe).
+
+The paper's Eq. 8 (w_n = PI_n / sum PI) and Eq. 10 (w_T = PI / TC) assume non-negative returns. On Acrobot and
+Pendulum (negative returns) they give the worse worker the larger weight and a w_T above 1. We use each worker's
+progress on its env's own scale instead (ARCHITECTURE.md); with R_floor = 0 this is the paper's formula exactly:
+
+    progress_n = clip((PI_n - R_floor) / (TC - R_floor), 0, 1)
+    w_n        = progress_n / sum(progress)        (uniform when the sum is 0)     Eq. 8
+    g_bar      = sum_n w_n g_n                                                      Eq. 9
+    w_T        = progress_n                                                         Eq. 10
+    theta      = w_T theta + (1 - w_T) theta_bar                                    Eq. 11
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Literal
+
+import numpy as np
+
+Policy = Literal["independent", "plain", "weighted"]
+POLICIES: tuple[Policy, ...] = ("independent", "plain", "weighted")
+Arrays = Mapping[str, np.ndarray]
+
+
+def progress(pi: float, tc: float, r_floor: float) -> float:
+    """How far a worker is from the floor to the termination condition, in [0, 1]."""
+    if not tc > r_floor:
+        raise ValueError(f"termination condition {tc} must be above the return floor {r_floor}")
+    if not np.isfinite(pi):
+        raise ValueError(f"performance index must be finite, got {pi}")
+    return float(np.clip((pi - r_floor) / (tc - r_floor), 0.0, 1.0))
+
+
+def gradient_weights(pis: Mapping[str, float], tc: float, r_floor: float, policy: Policy) -> dict[str, float]:
+    """Eq. 8: each contributor's weight in the shared gradient (``plain``: uniform, the authors' earlier work)."""
+    if not pis:
+        return {}
+    ids = sorted(pis)
+    if policy == "plain":
+        return {i: 1.0 / len(ids) for i in ids}
+    if policy != "weighted":
+        raise ValueError(f"policy {policy!r} shares no gradient")
+    prog = {i: progress(pis[i], tc, r_floor) for i in ids}
+    total = sum(prog.values())
+    if total <= 0.0:
+        return {i: 1.0 / len(ids) for i in ids}
+    return {i: prog[i] / total for i in ids}
+
+
+def weighted_gradient(gradients: Mapping[str, Arrays], weights: Mapping[str, float]) -> dict[str, np.ndarray]:
+    """Eq. 9: g_bar = sum_n w_n g_n, tensor by tensor (all gradients must share names and shapes)."""
+    if not gradients:
+        raise ValueError("no gradients to aggregate")
+    ids = sorted(gradients)
+    if set(ids) != set(weights):
+        raise ValueError(f"weights given for {sorted(weights)} but gradients for {ids}")
+    names = list(gradients[ids[0]])
+    out: dict[str, np.ndarray] = {}
+    for name in names:
+        acc = np.zeros_like(np.asarray(gradients[ids[0]][name], dtype=np.float64))
+        for i in ids:
+            g = np.asarray(gradients[i][name], dtype=np.float64)
+            if g.shape != acc.shape:
+                raise ValueError(f"gradient {name} of worker {i} has shape {g.shape}, expected {acc.shape}")
+            acc += weights[i] * g
+        out[name] = acc.astype(np.float32)
+    return out
+
+
+def transfer_weight(pi: float, tc: float, r_floor: float, policy: Policy) -> float:
+    """Eq. 10: how much of its own actor a recipient keeps (``plain``: 0, a hard copy of the mature actor)."""
+    if policy == "plain":
+        return 0.0
+    if policy != "weighted":
+        raise ValueError(f"policy {policy!r} transfers no model")
+    return progress(pi, tc, r_floor)
+
+
+def blend(theta: Arrays, theta_bar: Arrays, keep: float) -> dict[str, np.ndarray]:
+    """Eq. 11: theta = w_T theta + (1 - w_T) theta_bar (the worker applies the same formula to its torch actor)."""
+    if not 0.0 <= keep <= 1.0:
+        raise ValueError(f"transfer weight must be in [0, 1], got {keep}")
+    if set(theta) != set(theta_bar):
+        raise ValueError("parameter names differ between the actor and the mature actor")
+    return {k: keep * np.asarray(theta[k]) + (1.0 - keep) * np.asarray(theta_bar[k]) for k in theta}
+
+
+def best_mature(pis: Mapping[str, float]) -> str:
+    """Several workers finished in one round: the best PI is transferred (ties: smallest id)."""
+    if not pis:
+        raise ValueError("no finished worker")
+    return min(pis, key=lambda i: (-pis[i], i))

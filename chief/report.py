@@ -1,0 +1,74 @@
+"""The run folder: ``metrics.jsonl`` (one line per worker episode and per round), ``summary.json`` and
+``learning_curve.png`` (each worker's last-10 average return against episodes, TC dotted, like the paper's Fig. 5)."""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+from typing import Any, TextIO
+
+log = logging.getLogger(__name__)
+
+
+class MetricsLog:
+    """Appends JSON lines to ``metrics.jsonl`` and keeps each worker's PI curve for the plot."""
+
+    def __init__(self, run_dir: Path) -> None:
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.path = run_dir / "metrics.jsonl"
+        self._file: TextIO = self.path.open("w", encoding="utf-8")
+        self.curves: dict[str, list[tuple[int, float]]] = {}
+
+    def episode(self, worker_id: str, episode: int, ret: float, pi: float, steps: int, t: float, kind: str) -> None:
+        self.curves.setdefault(worker_id, []).append((episode, pi))
+        self._write({"type": "episode", "worker": worker_id, "episode": episode, "return": ret, "pi": pi,
+                     "steps": steps, "t": round(t, 3), "kind": kind})
+
+    def round(self, record: dict[str, Any]) -> None:
+        self._write({"type": "round", **record})
+
+    def _write(self, record: dict[str, Any]) -> None:
+        self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:
+    path = run_dir / "summary.json"
+    path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
+    return path
+
+
+def plot_learning_curves(
+    run_dir: Path, curves: dict[str, list[tuple[int, float]]], tc: float, title: str
+) -> Path | None:
+    """Fig. 5-style plot; returns None (and logs why) when matplotlib is missing or there is nothing to draw."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        log.warning("matplotlib is not installed; skipping learning_curve.png (pip install .[learn])")
+        return None
+    if not curves:
+        log.warning("no episodes recorded; skipping learning_curve.png")
+        return None
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
+    for worker_id in sorted(curves):
+        points = sorted(curves[worker_id])
+        ax.plot([p[0] for p in points], [p[1] for p in points], label=worker_id, linewidth=1.4)
+    ax.axhline(tc, color="black", linestyle=":", linewidth=1.5, label=f"TC = {tc:g}")
+    ax.set_xlabel("episode")
+    ax.set_ylabel("average return of the last 10 episodes (PI)")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend(loc="lower right", fontsize=8)
+    fig.tight_layout()
+    path = run_dir / "learning_curve.png"
+    fig.savefig(path)
+    plt.close(fig)
+    return path

@@ -1,0 +1,87 @@
+"""msgpack codec for the pydantic messages, with validation that turns any bad payload into a DecodeError."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections import Counter
+from typing import TypeVar
+
+import msgpack
+from pydantic import ValidationError
+
+from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
+
+#: Default cap on one payload. A 3x128 actor's gradient is ~140 KB; a QUBE state ~100 B.
+MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
+
+M = TypeVar("M", bound=Message)
+
+
+class DecodeError(ValueError):
+    """A payload that is not a valid message; ``reason`` is a short category for counters."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+def encode(message: Message) -> bytes:
+    """Message -> msgpack bytes (tensors stay raw bytes)."""
+    return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
+
+
+def decode(payload: bytes, *expected: type[M], max_bytes: int = MAX_PAYLOAD_BYTES) -> M:
+    """msgpack bytes -> validated message of one of the ``expected`` types (any type when none given)."""
+    if len(payload) > max_bytes:
+        raise DecodeError("oversized", f"{len(payload)} bytes exceeds the limit of {max_bytes}")
+    try:
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=max_bytes)
+    except Exception as exc:  # msgpack raises several unrelated types on garbage
+        raise DecodeError("malformed", f"not msgpack ({type(exc).__name__}: {exc})") from None
+    if not isinstance(obj, dict):
+        raise DecodeError("malformed", f"expected a map, got {type(obj).__name__}")
+    version = obj.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise DecodeError("version", f"schema version {version!r} not supported (this build speaks {SCHEMA_VERSION})")
+    kind = obj.get("kind")
+    cls = MESSAGE_TYPES.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise DecodeError("unknown_kind", f"unknown message kind {kind!r}")
+    if expected and cls not in expected:
+        names = ", ".join(t.model_fields["kind"].default for t in expected)
+        raise DecodeError("unexpected_kind", f"got {kind!r}, expected one of: {names}")
+    try:
+        return cls.model_validate(obj)  # type: ignore[return-value]
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first.get("loc", ()))
+        raise DecodeError("invalid", f"{kind}: {where}: {first.get('msg')} ({exc.error_count()} error(s))") from None
+
+
+class RejectCounter:
+    """Counts rejected messages by reason and logs each one; thread-safe."""
+
+    def __init__(self, logger: logging.Logger) -> None:
+        self._logger = logger
+        self._lock = threading.Lock()
+        self._counts: Counter[str] = Counter()
+
+    def reject(self, topic: str, reason: str, detail: str) -> None:
+        with self._lock:
+            self._counts[reason] += 1
+            total = sum(self._counts.values())
+        self._logger.warning("rejected message on %s (%s): %s [rejects so far: %d]", topic, reason, detail, total)
+
+    def reject_error(self, topic: str, error: DecodeError) -> None:
+        self.reject(topic, error.reason, error.detail)
+
+    @property
+    def total(self) -> int:
+        with self._lock:
+            return sum(self._counts.values())
+
+    def as_dict(self) -> dict[str, int]:
+        with self._lock:
+            return dict(self._counts)

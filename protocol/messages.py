@@ -1,0 +1,208 @@
+"""Pydantic models for every message on the wire. Each carries ``schema_version`` and a ``kind`` tag.
+
+Federation (paper Algorithms 1-2): WorkerHello, WorkerStatus, WorkerUpdate (actor gradient + PI),
+MatureParams (a finished worker's actor), ChiefAggregate (Eq. 9 mean gradient), ChiefTransfer (Eq. 10-11),
+RunStart, RunStop. Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+
+from protocol.tensors import TensorDict
+
+SCHEMA_VERSION = 1
+
+#: Ids appear inside topic names, so MQTT wildcards and separators are not allowed in them.
+Ident = Annotated[str, StringConstraints(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
+Policy = Literal["independent", "plain", "weighted"]
+
+
+class Message(BaseModel):
+    """Common base: strict fields, no NaN/Inf floats, a schema version."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+    schema_version: Literal[1] = SCHEMA_VERSION
+
+
+# --- federation --------------------------------------------------------------------------------------------
+
+
+class WorkerHello(Message):
+    """A worker announces itself (repeated until the chief's RunStart names it)."""
+
+    kind: Literal["hello"] = "hello"
+    worker_id: Ident
+    env_id: str
+    actor_spec: dict[str, tuple[int, ...]]
+    host: str = ""
+    pid: int = 0
+
+
+class WorkerStatus(Message):
+    """Lifecycle of a worker; ``offline`` is also its MQTT last will."""
+
+    kind: Literal["status"] = "status"
+    worker_id: Ident
+    state: Literal["online", "training", "finished", "stopped", "offline", "error"]
+    episode: int = Field(default=0, ge=0)
+    pi: float | None = None
+    detail: str = Field(default="", max_length=2000)
+
+
+class WorkerUpdate(Message):
+    """Algorithm 2, end of an episode: the episode's actor gradient g_theta^n and the Performance Index."""
+
+    kind: Literal["update"] = "update"
+    worker_id: Ident
+    episode: int = Field(ge=1)
+    episode_return: float
+    pi: float
+    steps: int = Field(ge=0)
+    gradient: TensorDict
+    actor_loss: float | None = None
+    critic_loss: float | None = None
+    entropy: float | None = None
+
+
+class MatureParams(Message):
+    """Algorithm 2, learning finished (PI >= TC): the worker's mature actor parameters theta_n."""
+
+    kind: Literal["mature"] = "mature"
+    worker_id: Ident
+    episode: int = Field(ge=1)
+    episode_return: float
+    pi: float
+    steps: int = Field(default=0, ge=0)
+    params: TensorDict
+
+
+class ChiefAggregate(Message):
+    """Algorithm 1, no worker finished: the weighted mean gradient g_bar (Eq. 8-9), or None (no sharing)."""
+
+    kind: Literal["aggregate"] = "aggregate"
+    episode: int = Field(ge=1)
+    gradient: TensorDict | None
+    weights: dict[str, float]
+    contributors: list[str]
+
+
+class ChiefTransfer(Message):
+    """Algorithm 1, a worker finished: its actor theta_bar for the others, with each recipient's w_T (Eq. 10)."""
+
+    kind: Literal["transfer"] = "transfer"
+    episode: int = Field(ge=1)
+    source_worker: Ident
+    source_pi: float
+    params: TensorDict
+    keep_weights: dict[str, Annotated[float, Field(ge=0.0, le=1.0)]]
+    finished: list[str]
+
+
+class RunStart(Message):
+    """The chief starts (or re-announces) the run; a worker's index is its position in ``workers``.
+
+    ``first_episode`` is the open round: a worker that restarts mid-run numbers its episodes from there.
+    """
+
+    kind: Literal["run_start"] = "run_start"
+    run_id: Ident
+    env_id: str
+    policy: Policy
+    seed: int
+    max_episodes: int = Field(ge=1)
+    tc: float
+    r_floor: float
+    workers: list[str]
+    first_episode: int = Field(default=1, ge=1)
+
+
+class RunStop(Message):
+    """The run is over; workers stop."""
+
+    kind: Literal["run_stop"] = "run_stop"
+    run_id: Ident
+    reason: str
+    episodes: int = Field(ge=0)
+    all_solved: bool
+
+
+# --- QUBE-Servo 2 rigs --------------------------------------------------------------------------------------
+
+
+class QubeState(Message):
+    """One control tick of a rig: angles in rad (alpha = 0 upright), velocities in rad/s."""
+
+    kind: Literal["qube_state"] = "qube_state"
+    rig_id: Ident
+    seq: int = Field(ge=0)
+    t: float
+    theta: float
+    alpha: float
+    theta_dot: float
+    alpha_dot: float
+    episode: int = Field(default=0, ge=0)
+
+
+class QubeAction(Message):
+    """The motor command for state ``seq``: SPI counts -999..999 (10 x PWM duty %)."""
+
+    kind: Literal["qube_action"] = "qube_action"
+    rig_id: Ident
+    seq: int = Field(ge=0)
+    command: int = Field(ge=-999, le=999)
+
+
+class QubeReset(Message):
+    """Ask a rig for a new episode: swing up and hold the pendulum, then hand over."""
+
+    kind: Literal["qube_reset"] = "qube_reset"
+    rig_id: Ident
+    request_id: int = Field(ge=0)
+
+
+class QubeStatus(Message):
+    """Rig state changes: ready (after a reset), running, fault (amplifier disabled), reset failed."""
+
+    kind: Literal["qube_status"] = "qube_status"
+    rig_id: Ident
+    state: Literal["idle", "resetting", "ready", "running", "fault", "reset_failed", "offline"]
+    request_id: int = Field(default=-1, ge=-1)
+    episode: int = Field(default=0, ge=0)
+    detail: str = Field(default="", max_length=2000)
+
+
+class QubeTelemetry(Message):
+    """Loop timing of a rig over the last reporting window."""
+
+    kind: Literal["qube_telemetry"] = "qube_telemetry"
+    rig_id: Ident
+    ticks: int = Field(ge=0)
+    deadline_misses: int = Field(ge=0)
+    late_actions: int = Field(ge=0)
+    faults: int = Field(ge=0)
+    jitter_ms: dict[str, float]
+    latency_ms: dict[str, float]
+
+
+MESSAGE_TYPES: dict[str, type[Message]] = {
+    cls.model_fields["kind"].default: cls
+    for cls in (
+        WorkerHello,
+        WorkerStatus,
+        WorkerUpdate,
+        MatureParams,
+        ChiefAggregate,
+        ChiefTransfer,
+        RunStart,
+        RunStop,
+        QubeState,
+        QubeAction,
+        QubeReset,
+        QubeStatus,
+        QubeTelemetry,
+    )
+}

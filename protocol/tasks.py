@@ -1,0 +1,63 @@
+"""The tasks a federation can learn and their termination conditions, shared by the chief and the workers.
+
+TC is the termination condition on the Performance Index (mean return of the last 10 episodes); R_floor is the
+lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (ARCHITECTURE.md).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+#: PI is the mean return of this many most recent episodes (paper Section IV).
+PI_WINDOW = 10
+
+
+@dataclass(frozen=True)
+class TaskSpec:
+    env_id: str
+    tc: float
+    r_floor: float
+    max_steps: int
+    note: str = ""
+
+
+TASKS: dict[str, TaskSpec] = {
+    t.env_id: t
+    for t in (
+        TaskSpec("CartPole-v0", tc=195.0, r_floor=0.0, max_steps=200),
+        TaskSpec(
+            "MountainCarContinuous-v0",
+            tc=90.0,
+            r_floor=-99.9,
+            max_steps=999,
+            note="gym's own reward (+100 at the goal minus 0.1*a^2 per step) never exceeds 100, so the paper's "
+            "TC of 200 is unreachable; 90 is gym's reward_threshold. Floor: -0.1 * 1^2 * 999 steps.",
+        ),
+        TaskSpec("Acrobot-v1", tc=-100.0, r_floor=-500.0, max_steps=500),
+        TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, max_steps=200,
+                 note="floor: 200 steps at the largest cost pi^2 + 0.1*8^2 + 0.001*2^2 (paper Eq. 12)"),
+        TaskSpec("qube", tc=2450.0, r_floor=0.0, max_steps=2450,
+                 note="QUBE-Servo 2 balance: +1 per 7 ms step while |alpha| <= 7.5 deg (paper Section V-B-2)"),
+    )
+}
+
+
+def task(env_id: str) -> TaskSpec:
+    """The spec of a supported env id, or a ValueError listing the supported ones."""
+    try:
+        return TASKS[env_id]
+    except KeyError:
+        raise ValueError(f"unsupported env {env_id!r}; supported: {', '.join(TASKS)}") from None
+
+
+def solved(returns: list[float], tc: float) -> bool:
+    """Learning is complete when the mean of the last PI_WINDOW returns reaches TC."""
+    return len(returns) >= PI_WINDOW and performance_index(returns) >= tc
+
+
+def performance_index(returns: list[float]) -> float:
+    """PI: mean return of the last PI_WINDOW episodes (of all episodes while there are fewer)."""
+    if not returns:
+        return float("nan")
+    window = returns[-PI_WINDOW:]
+    return float(sum(window) / len(window))

@@ -1,0 +1,1 @@
+"""The embedded amqtt broker, so one machine runs a whole federation with one command."""

@@ -1,0 +1,197 @@
+"""Protocol: round trips, and every kind of bad payload rejected with a clear reason."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import topics
+from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.messages import (
+    ChiefAggregate,
+    ChiefTransfer,
+    MatureParams,
+    QubeAction,
+    QubeState,
+    RunStart,
+    WorkerHello,
+    WorkerStatus,
+    WorkerUpdate,
+)
+from protocol.mqtt import BrokerAddress
+from protocol.tensors import TensorBlob, check_spec, pack_arrays, unpack_arrays
+
+
+def grad(seed: int = 0) -> dict[str, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    return {"net.0.weight": rng.normal(size=(128, 4)).astype(np.float32), "net.0.bias": np.zeros(128, np.float32)}
+
+
+def update(**over: object) -> WorkerUpdate:
+    fields = dict(worker_id="w0", episode=3, episode_return=20.0, pi=15.5, steps=20, gradient=pack_arrays(grad()))
+    fields.update(over)
+    return WorkerUpdate(**fields)  # type: ignore[arg-type]
+
+
+def test_update_round_trip_keeps_arrays_bit_exact() -> None:
+    msg = update()
+    back = decode(encode(msg), WorkerUpdate)
+    assert back == msg
+    arrays = unpack_arrays(back.gradient)
+    for name, arr in grad().items():
+        assert arrays[name].dtype == np.float32
+        np.testing.assert_array_equal(arrays[name], arr)
+    arrays["net.0.bias"][0] = 1.0  # unpacked arrays are writable copies
+
+
+def test_tensor_bytes_are_raw_not_lists() -> None:
+    payload = encode(update())
+    # 128*4 + 128 float32 values = 2560 bytes of data; a tolist() encoding would be ~9 bytes per value.
+    assert 2560 < len(payload) < 2560 + 400
+
+
+@pytest.mark.parametrize(
+    "msg",
+    [
+        WorkerHello(worker_id="w1", env_id="CartPole-v0", actor_spec={"a": (2, 3)}),
+        WorkerStatus(worker_id="w1", state="offline"),
+        MatureParams(worker_id="w1", episode=9, episode_return=200.0, pi=196.0, params=pack_arrays(grad(1))),
+        ChiefAggregate(episode=4, gradient=None, weights={}, contributors=["w0"]),
+        ChiefAggregate(episode=4, gradient=pack_arrays(grad(2)), weights={"w0": 0.5, "w1": 0.5},
+                       contributors=["w0", "w1"]),
+        ChiefTransfer(episode=5, source_worker="w1", source_pi=196.0, params=pack_arrays(grad(3)),
+                      keep_weights={"w0": 0.4}, finished=["w1"]),
+        RunStart(run_id="r1", env_id="Acrobot-v1", policy="weighted", seed=3, max_episodes=10, tc=-100.0,
+                 r_floor=-500.0, workers=["w0", "w1"]),
+        QubeState(rig_id="rig0", seq=7, t=1.5, theta=0.1, alpha=-0.02, theta_dot=0.0, alpha_dot=1.0),
+        QubeAction(rig_id="rig0", seq=7, command=-60),
+    ],
+)
+def test_every_message_round_trips(msg: object) -> None:
+    assert decode(encode(msg)) == msg  # type: ignore[arg-type]
+
+
+def reason_of(payload: bytes, *expected: type, max_bytes: int | None = None) -> str:
+    with pytest.raises(DecodeError) as info:
+        if max_bytes is None:
+            decode(payload, *expected)
+        else:
+            decode(payload, *expected, max_bytes=max_bytes)
+    return info.value.reason
+
+
+def raw_update(**over: object) -> dict:
+    obj = update().model_dump(mode="python")
+    obj.update(over)
+    return obj
+
+
+def test_rejects_garbage_and_non_maps() -> None:
+    assert reason_of(b"\xc1\xff\x00garbage") == "malformed"
+    assert reason_of(msgpack.packb([1, 2, 3])) == "malformed"
+    assert reason_of(b"") == "malformed"
+
+
+def test_rejects_unknown_version_and_kind() -> None:
+    assert reason_of(msgpack.packb(raw_update(schema_version=2))) == "version"
+    assert reason_of(msgpack.packb(raw_update(kind="teleport"))) == "unknown_kind"
+    assert reason_of(encode(update()), ChiefAggregate) == "unexpected_kind"
+
+
+def test_rejects_oversized_payload() -> None:
+    payload = encode(update())
+    assert reason_of(payload, max_bytes=len(payload) - 1) == "oversized"
+
+
+def bad_blob(**over: object) -> dict:
+    blob = TensorBlob.from_array(np.ones((2, 3), np.float32)).model_dump(mode="python")
+    blob.update(over)
+    return blob
+
+
+@pytest.mark.parametrize(
+    "blob",
+    [
+        bad_blob(dtype="object"),  # not an allowed dtype
+        bad_blob(dtype=">f4"),  # big-endian is not what we send
+        bad_blob(shape=[3, 3]),  # shape does not match the bytes
+        bad_blob(shape=[-2, -3]),
+        bad_blob(data=b"\x00" * 5),
+        bad_blob(data=np.array([1, np.nan, 2, 3, 4, 5], np.float32).tobytes()),  # NaN gradient
+        bad_blob(data=np.array([1, np.inf, 2, 3, 4, 5], np.float32).tobytes()),
+        bad_blob(shape=[1] * 9, data=b"\x00\x00\x80\x3f"),  # too many dimensions
+    ],
+)
+def test_rejects_bad_tensors(blob: dict) -> None:
+    payload = msgpack.packb(raw_update(gradient={"net.0.weight": blob}), use_bin_type=True)
+    assert reason_of(payload) == "invalid"
+
+
+def test_rejects_nan_scalars_missing_fields_and_extra_fields() -> None:
+    assert reason_of(msgpack.packb(raw_update(pi=float("nan")), use_bin_type=True)) == "invalid"
+    obj = raw_update()
+    del obj["pi"]
+    assert reason_of(msgpack.packb(obj, use_bin_type=True)) == "invalid"
+    assert reason_of(msgpack.packb(raw_update(surprise=1), use_bin_type=True)) == "invalid"
+    assert reason_of(msgpack.packb(raw_update(worker_id="w0/#"), use_bin_type=True)) == "invalid"
+
+
+def test_error_message_names_the_field() -> None:
+    with pytest.raises(DecodeError, match="episode"):
+        decode(msgpack.packb(raw_update(episode=0), use_bin_type=True))
+
+
+def test_check_spec_names_the_difference() -> None:
+    spec = {"net.0.weight": (128, 4), "net.0.bias": (128,)}
+    check_spec(grad(), spec, "ok")
+    with pytest.raises(ValueError, match=r"net\.0\.weight has shape"):
+        check_spec(grad(), {**spec, "net.0.weight": (64, 4)}, "g")
+    with pytest.raises(ValueError, match="missing"):
+        check_spec({"net.0.bias": np.zeros(128)}, spec, "g")
+
+
+def test_reject_counter_counts_by_reason(caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    counter = RejectCounter(logging.getLogger("t"))
+    for payload in (b"\xc1", msgpack.packb(raw_update(schema_version=9))):
+        try:
+            decode(payload)
+        except DecodeError as err:
+            counter.reject_error("some/topic", err)
+    assert counter.as_dict() == {"malformed": 1, "version": 1}
+    assert counter.total == 2
+    assert "some/topic" in caplog.text
+
+
+def test_topics_and_ids() -> None:
+    assert topics.worker("r1", "w0", topics.UPDATE) == "fedrl/r1/worker/w0/update"
+    assert topics.all_workers("r1", topics.UPDATE) == "fedrl/r1/worker/+/update"
+    assert topics.worker_id_of("fedrl/r1/worker/w7/status") == "w7"
+    assert topics.chief("r1", topics.AGGREGATE) == "fedrl/r1/chief/aggregate"
+    assert topics.rig("rig0", topics.ACTION) == "qube/rig0/action"
+    for bad in ("", "a/b", "a+b", "#", "x" * 65):
+        with pytest.raises(ValueError):
+            topics.worker(bad, "w0", "x")
+
+
+def test_broker_address_parsing() -> None:
+    assert BrokerAddress.parse("mqtt://10.0.0.5:1884") == BrokerAddress("10.0.0.5", 1884)
+    assert BrokerAddress.parse("localhost").port == 1883
+    tls = BrokerAddress.parse("mqtts://u:p%40ss@broker.example:8884", ca_file="/ca.pem")
+    assert (tls.tls, tls.username, tls.password, tls.port, tls.ca_file) == (True, "u", "p@ss", 8884, "/ca.pem")
+    assert BrokerAddress.parse("mqtts://h").port == 8883
+    with pytest.raises(ValueError, match="scheme"):
+        BrokerAddress.parse("http://h:1")
+    with pytest.raises(ValueError):
+        BrokerAddress.parse("mqtt://h:notaport")
+
+
+def test_protocol_imports_no_torch_or_gymnasium() -> None:
+    code = "import protocol, protocol.mqtt, protocol.cli, protocol.tasks, sys; " \
+           "assert 'torch' not in sys.modules and 'gymnasium' not in sys.modules"
+    subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,0 +1,36 @@
+# Two commands on a fresh machine with Python 3.11 and make:  `make run`  and  `make test`.
+PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
+VENV   ?= .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+
+.PHONY: run test lint venv bench clean help
+
+help:
+	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
+	@echo "make test   - the whole test suite (creates the virtual environment first)"
+	@echo "make lint   - ruff"
+	@echo "make bench  - benchmarks into bench/results/"
+
+venv: $(STAMP)
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev]"
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/python -m deploy.run_local
+
+test: $(STAMP)
+	$(BIN)/python -m ruff check .
+	$(BIN)/python -m pytest -q
+
+lint: $(STAMP)
+	$(BIN)/python -m ruff check .
+
+bench: $(STAMP)
+	$(BIN)/python -m bench
+
+clean:
+	rm -rf $(VENV) .pytest_cache .ruff_cache

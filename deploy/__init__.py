@@ -1,0 +1,1 @@
+"""Launchers and deployment assets: local processes, Docker, Mosquitto configs, Raspberry Pi units."""

@@ -1,0 +1,192 @@
+"""``python -m deploy.run_local`` (what ``make run`` calls): a whole federation on one machine.
+
+Starts the embedded broker (unless FEDRL_BROKER points at one), the chief and N workers as separate processes
+(plus one simulated QUBE-Servo 2 rig per worker when the env is ``qube``), relays the chief's live progress,
+prints a summary table at the end and leaves summary.json, metrics.jsonl, learning_curve.png, the workers'
+mature models and every process's log in the run folder.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import IO
+
+from chief.federation import POLICIES
+from protocol.cli import env
+from protocol.mqtt import BrokerAddress
+from protocol.tasks import TASKS
+from services.broker.embedded import start_broker_process
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(
+        prog="python -m deploy.run_local",
+        description="Run a federation on this machine: embedded MQTT broker, chief and N workers as separate "
+        "processes. Every option also reads the FEDRL_* variable named in its help.",
+    )
+    parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),
+                        help="number of workers (env FEDRL_WORKERS, default 4; 3 rigs is the paper's QUBE setup)")
+    parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
+                        help="task (env FEDRL_ENV, default CartPole-v0)")
+    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
+                        help="federation policy (env FEDRL_POLICY, default weighted)")
+    parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")), help="base seed (env FEDRL_SEED)")
+    parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
+                        help="episode limit M (env FEDRL_MAX_EPISODES, default 2000)")
+    parser.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),
+                        help="seconds a round waits for a silent worker (env FEDRL_ROUND_TIMEOUT, default 30)")
+    parser.add_argument("--device-noise", type=float, default=float(env("FEDRL_DEVICE_NOISE", "1.0")),
+                        help="scale of the per-device action noise (env FEDRL_DEVICE_NOISE, default 1.0)")
+    parser.add_argument("--broker", default=env("FEDRL_BROKER", ""),
+                        help="use this broker (mqtt://host:port) instead of starting the embedded one "
+                        "(env FEDRL_BROKER)")
+    parser.add_argument("--run-id", default=env("FEDRL_RUN_ID", ""),
+                        help="run id / topic prefix (env FEDRL_RUN_ID; default: derived from the start time)")
+    parser.add_argument("--run-dir", type=Path, default=Path(p) if (p := env("FEDRL_RUN_DIR", "")) else None,
+                        help="run folder (env FEDRL_RUN_DIR; default runs/<time>-<env>-<policy>-s<seed>)")
+    args = parser.parse_args(argv)
+    if args.workers < 1:
+        parser.error("--workers must be at least 1")
+    stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    args.run_id = args.run_id or f"r{stamp}"
+    if args.run_dir is None:
+        args.run_dir = Path("runs") / f"{stamp}-{args.env}-{args.policy}-s{args.seed}"
+    return args
+
+
+class Fleet:
+    """The child processes of one run; stops them all on exit."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+        self._files: list[IO[bytes]] = []
+
+    def start(self, name: str, argv: list[str], env_vars: dict[str, str], stream: bool = False) -> subprocess.Popen:
+        out: int | IO[bytes] = subprocess.PIPE
+        if not stream:
+            fh = (self.log_dir / f"{name}.log").open("wb")
+            self._files.append(fh)
+            out = fh
+        proc = subprocess.Popen([sys.executable, *argv], stdout=out, stderr=subprocess.STDOUT,
+                                env={**os.environ, **env_vars})
+        self.procs[name] = proc
+        return proc
+
+    def add(self, name: str, proc: subprocess.Popen) -> None:
+        self.procs[name] = proc
+
+    def stop(self, grace: float = 10.0) -> None:
+        deadline = time.monotonic() + grace
+        for proc in self.procs.values():
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in self.procs.values():
+            try:
+                proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        for fh in self._files:
+            fh.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    run_dir: Path = args.run_dir
+    log_dir = run_dir / "logs"
+    log_dir.mkdir(parents=True, exist_ok=True)
+    fleet = Fleet(log_dir)
+    t0 = time.monotonic()
+    try:
+        if args.broker:
+            broker = str(BrokerAddress.from_env(args.broker))
+            print(f"using the broker at {broker}")
+        else:
+            with (log_dir / "broker.log").open("wb") as broker_log:
+                proc, port = start_broker_process(stdout=broker_log, stderr=subprocess.STDOUT)
+            fleet.add("broker", proc)
+            broker = f"mqtt://127.0.0.1:{port}"
+            print(f"embedded broker on {broker}")
+        common = {"FEDRL_BROKER": broker, "FEDRL_RUN_ID": args.run_id, "FEDRL_ENV": args.env,
+                  "PYTHONUNBUFFERED": "1"}
+        worker_ids = [f"w{i}" for i in range(args.workers)]
+        rigs = start_rigs(fleet, args, common) if args.env == "qube" else {}
+        for i, wid in enumerate(worker_ids):
+            fleet.start(f"worker-{wid}", ["-m", "worker"], {
+                **common, "FEDRL_WORKER_ID": wid, "FEDRL_DEVICE_NOISE": str(args.device_noise),
+                "FEDRL_MODEL_DIR": str(run_dir / "models"), "FEDRL_RIG_ID": rigs.get(i, ""),
+                "FEDRL_REPLY_TIMEOUT": str(max(120.0, 4 * args.round_timeout))})
+        print(f"run {args.run_id}: {args.workers} workers on {args.env}, policy {args.policy}, seed {args.seed}; "
+              f"logs in {log_dir}")
+        chief = fleet.start("chief", ["-m", "chief"], {
+            **common, "FEDRL_WORKERS": str(args.workers), "FEDRL_POLICY": args.policy, "FEDRL_SEED": str(args.seed),
+            "FEDRL_MAX_EPISODES": str(args.max_episodes), "FEDRL_ROUND_TIMEOUT": str(args.round_timeout),
+            "FEDRL_RUN_DIR": str(run_dir)}, stream=True)
+        code = relay(chief, log_dir / "chief.log", fleet)
+    except KeyboardInterrupt:
+        print("\ninterrupted; stopping every process", file=sys.stderr)
+        fleet.stop(grace=5)
+        return 130
+    finally:
+        fleet.stop()
+    wall = time.monotonic() - t0
+    summary_path = run_dir / "summary.json"
+    if not summary_path.exists():
+        print(f"the chief exited with code {code} and wrote no summary; see {log_dir}", file=sys.stderr)
+        return code or 1
+    print_summary(json.loads(summary_path.read_text()), run_dir, wall)
+    return code
+
+
+def start_rigs(fleet: Fleet, args: argparse.Namespace, common: dict[str, str]) -> dict[int, str]:
+    """One simulated QUBE-Servo 2 per worker (lockstep clock for fast training); returns worker index -> rig id."""
+    rigs = {i: f"rig{i}" for i in range(args.workers)}
+    for i, rig in rigs.items():
+        fleet.start(f"qube-sim-{rig}", ["-m", "services.qube_sim"], {
+            **common, "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(args.seed + i),
+            "FEDRL_QUBE_CLOCK": env("FEDRL_QUBE_CLOCK", "lockstep")})
+    return rigs
+
+
+def relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> int:
+    """Print the chief's progress as it comes and keep a copy; warn when a worker dies."""
+    assert chief.stdout is not None
+    reported: set[str] = set()
+    with log_path.open("wb") as log_file:
+        for line in iter(chief.stdout.readline, b""):
+            log_file.write(line)
+            log_file.flush()
+            sys.stdout.write(line.decode(errors="replace"))
+            sys.stdout.flush()
+            for name, proc in fleet.procs.items():
+                code = proc.poll()
+                if code not in (None, 0) and name not in reported:
+                    reported.add(name)
+                    print(f"!! {name} exited with code {code}; see {fleet.log_dir / (name + '.log')}", flush=True)
+    return chief.wait()
+
+
+def print_summary(summary: dict, run_dir: Path, wall: float) -> None:
+    print()
+    print(f"{'worker':<12}{'solved':<8}{'episodes':>9}{'final PI':>11}  state")
+    for w in summary["workers"]:
+        pi = "-" if w.get("final_pi") is None else f"{w['final_pi']:.1f}"
+        print(f"{w['id']:<12}{'yes' if w['solved'] else 'no':<8}{w['episodes']:>9}{pi:>11}  {w['state']}")
+    all_solved = summary.get("episodes_to_all_solved")
+    print(f"\n{summary['env']} / {summary['policy']} / seed {summary['seed']}: "
+          + (f"all workers solved by episode {all_solved}" if all_solved is not None
+             else f"not all solved ({summary['end_reason']})")
+          + f"; chief wall time {summary['wall_s']:.1f} s, launcher {wall:.1f} s")
+    print(f"results: {run_dir}/summary.json, metrics.jsonl, learning_curve.png")
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -102,6 +102,7 @@ class MqttConnection:
         self.client_id = client_id
         self.connected = threading.Event()
         self.handler_errors = 0
+        self._stopping = False
         self._subscriptions: dict[str, tuple[int, Handler]] = {}
         self._lock = threading.Lock()
         self._keepalive = keepalive
@@ -140,6 +141,7 @@ class MqttConnection:
 
     def stop(self) -> None:
         """Disconnect cleanly (no last will) and stop the network thread."""
+        self._stopping = True
         try:
             self._client.disconnect()
         finally:
@@ -199,6 +201,6 @@ class MqttConnection:
     def _on_disconnect(
         self, client: paho.Client, userdata: object, flags: object, reason: object, props: object
     ) -> None:
-        if self.connected.is_set():
+        if self.connected.is_set() and not self._stopping:
             log.warning("%s lost the broker at %s (%s); reconnecting", self.client_id, self.address, reason)
         self.connected.clear()

@@ -1,0 +1,55 @@
+"""Building a worker's environment and learner, and running one episode (the inner loop of Algorithm 2).
+
+No training happens inside an episode: between a state and its action there is only the actor's forward pass,
+which is what keeps a real rig's 7 ms deadline.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+
+from worker.envs import DeviceNoise, env_spec, make_env
+from worker.ppo import PPOLearner
+
+
+def build_learner_and_env(
+    env_id: str,
+    seed: int,
+    device_noise: float,
+    rig_id: str | None = None,
+    conn: Any = None,
+    spec_only: bool = False,
+) -> tuple[gym.Env, PPOLearner]:
+    """The env of this device and a PPO learner with the env's preset, both seeded by ``seed``.
+
+    ``rig_id`` and ``conn`` (an open MqttConnection) are for envs that drive a rig over MQTT; ``spec_only`` builds
+    a throwaway pair just to learn the actor's shape.
+    """
+    spec = env_spec(env_id)
+    noise = DeviceNoise(scale=device_noise)
+    if spec.factory is not None:  # a device reached over MQTT (the QUBE-Servo 2 rigs)
+        env = spec.factory(spec, seed, noise, rig_id=rig_id, conn=conn, probe=spec_only)  # type: ignore[call-arg]
+    else:
+        env = make_env(env_id, seed, noise)
+    learner = PPOLearner(env.observation_space, env.action_space, spec.ppo_config(), seed=seed)
+    return env, learner
+
+
+def run_episode(env: gym.Env, learner: PPOLearner, seed: int | None = None) -> tuple[float, int]:
+    """Act until the episode ends, storing every transition in the learner's trajectory memory.
+
+    Returns the episode's return and its number of steps.
+    """
+    obs, _ = env.reset(seed=seed)
+    ret, steps = 0.0, 0
+    while True:
+        action = learner.act(obs)
+        next_obs, reward, terminated, truncated, _ = env.step(action)
+        learner.remember(obs, action, float(reward), next_obs, bool(terminated), bool(truncated))
+        ret += float(reward)
+        steps += 1
+        obs = next_obs
+        if terminated or truncated:
+            return ret, steps

@@ -1,0 +1,233 @@
+"""The worker's MQTT adapter around Algorithm 2: announce, learn episode by episode, share the actor gradient and
+PI, apply the chief's answer (mean gradient through the optimizer, or the Eq. 11 blend), hand over the mature
+actor when PI >= TC. The learning itself is worker/ppo.py; the environments are worker/envs.py."""
+
+from __future__ import annotations
+
+import logging
+import os
+import queue
+import socket
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from protocol import topics
+from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.messages import (
+    ChiefAggregate,
+    ChiefTransfer,
+    MatureParams,
+    RunStart,
+    RunStop,
+    WorkerHello,
+    WorkerStatus,
+    WorkerUpdate,
+)
+from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.tasks import performance_index, solved
+from protocol.tensors import check_spec, pack_arrays, unpack_arrays
+from worker.episode import build_learner_and_env, run_episode
+
+log = logging.getLogger("worker")
+
+EXIT_OK, EXIT_ERROR, EXIT_NOT_STARTED = 0, 1, 3
+
+
+def auto_worker_id() -> str:
+    """Hostname plus a random suffix: unique even for replicas that share a hostname (host networking)."""
+    host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())[:40] or "worker"
+    return f"{host}-{uuid.uuid4().hex[:6]}"
+
+
+@dataclass
+class WorkerConfig:
+    broker: BrokerAddress
+    run_id: str = "default"
+    worker_id: str = "w0"
+    env_id: str = "CartPole-v0"
+    device_noise: float = 1.0
+    reply_timeout: float = 120.0
+    start_timeout: float = 600.0
+    model_dir: Path | None = None
+    rig_id: str | None = None
+
+
+class WorkerService:
+    """One worker process: Algorithm 2 over MQTT."""
+
+    def __init__(self, cfg: WorkerConfig) -> None:
+        topics.check_id(cfg.worker_id, "worker id")
+        topics.check_id(cfg.run_id, "run id")
+        self.cfg = cfg
+        self.rejects = RejectCounter(log)
+        self.inbox: queue.Queue[Any] = queue.Queue()
+        self.replies: dict[int, ChiefAggregate | ChiefTransfer] = {}
+        self.stop: RunStop | None = None
+        self.start_msg: RunStart | None = None
+        self.missed_replies = 0
+        will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
+        self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
+                                   will=(self._topic(topics.STATUS), will))
+
+    def _topic(self, leaf: str) -> str:
+        return topics.worker(self.cfg.run_id, self.cfg.worker_id, leaf)
+
+    def _on_chief(self, topic: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer)
+        except DecodeError as err:
+            self.rejects.reject_error(topic, err)
+            return
+        self.inbox.put(msg)
+
+    def _status(self, state: str, episode: int = 0, pi: float | None = None, detail: str = "") -> None:
+        msg = WorkerStatus(worker_id=self.cfg.worker_id, state=state, episode=episode, pi=pi, detail=detail)  # type: ignore[arg-type]
+        self.conn.publish(self._topic(topics.STATUS), encode(msg), qos=1)
+
+    # -- main ------------------------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        cfg = self.cfg
+        torch.set_num_threads(1)
+        self.conn.start()
+        self.conn.subscribe(topics.chief(cfg.run_id, "+"), self._on_chief, qos=1)
+        try:
+            start = self._join()
+            if start is None:
+                log.error("no RunStart naming %s within %.0f s", cfg.worker_id, cfg.start_timeout)
+                return EXIT_NOT_STARTED
+            return self._learn(start)
+        except Exception as exc:
+            log.exception("worker %s failed", cfg.worker_id)
+            self._status("error", detail=f"{type(exc).__name__}: {exc}")
+            return EXIT_ERROR
+        finally:
+            time.sleep(0.2)  # let the last status go out
+            self.conn.stop()
+
+    def _join(self) -> RunStart | None:
+        """Say hello every second until the chief's RunStart names this worker."""
+        cfg = self.cfg
+        _, probe = build_learner_and_env(cfg.env_id, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
+                                         spec_only=True)
+        hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env_id, actor_spec=probe.actor_spec(),
+                            host=socket.gethostname(), pid=os.getpid())
+        self.actor_spec = probe.actor_spec()
+        deadline = time.monotonic() + cfg.start_timeout
+        next_hello = 0.0
+        while time.monotonic() < deadline:
+            if time.monotonic() >= next_hello:
+                self.conn.publish(self._topic(topics.HELLO), encode(hello), qos=1)
+                next_hello = time.monotonic() + 1.0
+            try:
+                msg = self.inbox.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if isinstance(msg, RunStart) and cfg.worker_id in msg.workers:
+                if msg.env_id != cfg.env_id:
+                    raise ValueError(f"the chief runs {msg.env_id!r} but this worker was started for {cfg.env_id!r}")
+                return msg
+            if isinstance(msg, RunStop):
+                return None
+        return None
+
+    def _learn(self, start: RunStart) -> int:
+        cfg = self.cfg
+        index = start.workers.index(cfg.worker_id)
+        seed = start.seed + index
+        env, learner = build_learner_and_env(cfg.env_id, seed=seed, device_noise=cfg.device_noise,
+                                             rig_id=cfg.rig_id, conn=self.conn)
+        log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
+                 seed, cfg.env_id, start.policy, start.first_episode)
+        self._status("training", episode=start.first_episode - 1)
+        returns: list[float] = []
+        try:
+            for episode in range(start.first_episode, start.max_episodes + 1):
+                if self.stop is not None:
+                    break
+                ret, steps = run_episode(env, learner, seed=seed if episode == start.first_episode else None)
+                returns.append(ret)
+                pi = performance_index(returns)
+                if solved(returns, start.tc):  # Algorithm 2: learning finished -> send the mature actor, stop
+                    params = pack_arrays(learner.actor_parameters())
+                    self.conn.publish(self._topic(topics.UPDATE), encode(MatureParams(
+                        worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, steps=steps,
+                        params=params)), qos=1).wait_for_publish(timeout=10)
+                    self._status("finished", episode=episode, pi=pi)
+                    self._save(learner)
+                    log.info("solved at episode %d with PI %.1f", episode, pi)
+                    return EXIT_OK
+                stats = learner.update()
+                self.conn.publish(self._topic(topics.UPDATE), encode(WorkerUpdate(
+                    worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, steps=steps,
+                    gradient=pack_arrays(learner.actor_gradient()), **_loss_fields(stats))), qos=1)
+                self._apply(self._await_reply(episode), learner)
+            self._status("stopped", episode=len(returns), pi=performance_index(returns) if returns else None,
+                         detail=self.stop.reason if self.stop else "episode limit")
+            return EXIT_OK
+        finally:
+            close = getattr(env, "close", None)
+            if close is not None:
+                close()
+
+    def _await_reply(self, episode: int) -> ChiefAggregate | ChiefTransfer | None:
+        """Wait for the chief's answer to this episode's round (Algorithm 2, 'wait for a message m_c')."""
+        deadline = time.monotonic() + self.cfg.reply_timeout
+        while episode not in self.replies and self.stop is None:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                self.missed_replies += 1
+                log.warning("no answer from the chief for episode %d within %.0f s; going on alone (missed %d)",
+                            episode, self.cfg.reply_timeout, self.missed_replies)
+                return None
+            try:
+                msg = self.inbox.get(timeout=min(remaining, 0.5))
+            except queue.Empty:
+                continue
+            if isinstance(msg, RunStop):
+                self.stop = msg
+            elif isinstance(msg, (ChiefAggregate, ChiefTransfer)) and msg.episode >= episode:
+                self.replies[msg.episode] = msg
+        for old in [e for e in self.replies if e < episode]:
+            del self.replies[old]
+        return self.replies.pop(episode, None)
+
+    def _apply(self, reply: ChiefAggregate | ChiefTransfer | None, learner: Any) -> None:
+        if reply is None:
+            return
+        topic = topics.chief(self.cfg.run_id, reply.kind)
+        try:
+            if isinstance(reply, ChiefTransfer):
+                keep = reply.keep_weights.get(self.cfg.worker_id)
+                if keep is None:
+                    return
+                check_spec(reply.params, self.actor_spec, "transfer")
+                learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
+                log.info("blended in %s's mature actor (keep %.3f)", reply.source_worker, keep)
+            elif reply.gradient is not None:
+                check_spec(reply.gradient, self.actor_spec, "aggregate")
+                learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
+        except ValueError as err:
+            self.rejects.reject(topic, "wrong_shape", str(err))
+
+    def _save(self, learner: Any) -> None:
+        if self.cfg.model_dir is None:
+            return
+        self.cfg.model_dir.mkdir(parents=True, exist_ok=True)
+        path = self.cfg.model_dir / f"{self.cfg.worker_id}.pt"
+        learner.save(path)
+        log.info("saved the mature model to %s", path)
+
+
+def _loss_fields(stats: Any) -> dict[str, float | None]:
+    """Finite loss numbers from the learner's update stats (None where absent or not finite)."""
+    out: dict[str, float | None] = {}
+    for key in ("actor_loss", "critic_loss", "entropy"):
+        value = getattr(stats, key, None)
+        out[key] = float(value) if value is not None and value == value and abs(value) != float("inf") else None
+    return out

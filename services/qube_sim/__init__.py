@@ -1,0 +1,1 @@
+"""Simulated QUBE-Servo 2 rigs: physics and a simulated SPI peer."""

@@ -1,0 +1,228 @@
+"""Rotary inverted pendulum physics of the QUBE-Servo 2 (pure Python, RK4).
+
+Equations of motion: gym_brt ``qube_simulator.py`` ("From Rotary Pendulum Workbook"), see
+reference/qube-servo2.md section 2, with one correction: the motor torque is the physically consistent
+
+    tau = -km * (V + km * theta_dot) / Rm
+
+so the back-EMF brakes the arm (gym_brt's ``-km*(V - km*theta_dot)/Rm`` adds energy). A positive voltage (and
+a positive SPI motor command) drives theta negative, matching the SPI convention (theta = -encoder0 *
+2*pi/2048).
+
+State: theta (arm, rad), alpha (pendulum, rad, 0 = upright, +-pi hanging), theta_dot, alpha_dot. The
+integrator keeps alpha continuous (unwrapped) so encoder counts stay continuous; :attr:`QubeDynamics.state`
+wraps it.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, fields, replace
+
+TWO_PI = 2.0 * math.pi
+
+
+@dataclass(frozen=True)
+class QubeParams:
+    """Physical parameters, QUBE-Servo 2 User Manual Table 2.2; damping from gym_brt (not in the manual)."""
+
+    Rm: float = 8.4  # terminal resistance, ohm
+    km: float = 0.042  # back-EMF constant, V/(rad/s)
+    kt: float = 0.042  # torque constant, N m/A (= km in SI units)
+    mr: float = 0.095  # arm mass, kg
+    Lr: float = 0.085  # arm length, pivot to rod end, m
+    mp: float = 0.024  # pendulum mass, kg
+    Lp: float = 0.129  # pendulum length, m
+    Dr: float = 0.00027  # arm viscous damping, N m s/rad
+    Dp: float = 0.00005  # pendulum viscous damping, N m s/rad
+    g: float = 9.81
+    full_scale_voltage: float = 24.0  # 999 SPI counts = 100 % duty, about 24 V ([DS] p.2)
+    max_voltage: float = 15.0  # amplifier maximum, +-15 V ([UM] Table 2.2)
+
+    @property
+    def Jr(self) -> float:
+        """Arm moment of inertia, mr*Lr^2/12 as in gym_brt."""
+        return self.mr * self.Lr**2 / 12.0
+
+    @property
+    def Jp(self) -> float:
+        """Pendulum moment of inertia about its centre, mp*Lp^2/12."""
+        return self.mp * self.Lp**2 / 12.0
+
+    @classmethod
+    def varied(cls, seed: int, scale: float = 0.05, base: QubeParams | None = None) -> QubeParams:
+        """Per-rig variation, like devices from one factory: masses, lengths, damping and the motor constant
+        (km and kt together) each scaled by 1 + N(0, scale), clipped to 1 +- 3*scale. Deterministic in
+        ``seed``."""
+        base = base or cls()
+        rng = random.Random(seed)
+
+        def factor() -> float:
+            return min(1.0 + 3.0 * scale, max(1.0 - 3.0 * scale, 1.0 + rng.gauss(0.0, scale)))
+
+        changes = {name: getattr(base, name) * factor() for name in ("mr", "Lr", "mp", "Lp", "Dr", "Dp")}
+        motor = factor()
+        changes.update(km=base.km * motor, kt=base.kt * motor)
+        return replace(base, **changes)
+
+    def as_dict(self) -> dict[str, float]:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def command_to_voltage(command: float, params: QubeParams | None = None) -> float:
+    """SPI motor counts to amplifier volts: V = cmd/999 * 24, clamped to +-15 V."""
+    p = params or QubeParams()
+    v = command / 999.0 * p.full_scale_voltage
+    return max(-p.max_voltage, min(p.max_voltage, v))
+
+
+def wrap_angle(x: float) -> float:
+    """Wrap to [-pi, pi)."""
+    return (x + math.pi) % TWO_PI - math.pi
+
+
+def motor_torque(p: QubeParams, voltage: float, theta_dot: float) -> float:
+    """tau = -kt*(V + km*theta_dot)/Rm: +V drives theta negative, back-EMF brakes."""
+    return -p.kt * (voltage + p.km * theta_dot) / p.Rm
+
+
+def derivatives(
+    p: QubeParams, theta_dot: float, alpha: float, alpha_dot: float, tau: float
+) -> tuple[float, float]:
+    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2)."""
+    mp, Lp, Lr = p.mp, p.Lp, p.Lr
+    s, c = math.sin(alpha), math.cos(alpha)
+    s2 = 2.0 * s * c  # sin(2 alpha)
+    P = 4.0 * p.Jp + Lp * Lp * mp
+    Q = 4.0 * p.Jr + Lp * Lp * mp * s * s + 4.0 * Lr * Lr * mp
+    D = 4.0 * Lp * Lp * Lr * Lr * mp * mp * c * c - P * Q
+    A = -8.0 * p.Dp * alpha_dot + Lp * Lp * mp * theta_dot * theta_dot * s2 + 4.0 * Lp * p.g * mp * s
+    B = (
+        4.0 * p.Dr * theta_dot
+        + Lp * Lp * mp * alpha_dot * theta_dot * s2
+        + 2.0 * Lp * Lr * mp * alpha_dot * alpha_dot * s
+        - 4.0 * tau
+    )
+    theta_ddot = (-Lp * Lr * mp * A * c + P * B) / D
+    alpha_ddot = (2.0 * Lp * Lr * mp * B * c - 0.5 * Q * A) / D
+    return theta_ddot, alpha_ddot
+
+
+class QubeDynamics:
+    """The plant: integrate with :meth:`step`; optional hard end stops at +-``arm_limit`` rad."""
+
+    def __init__(self, params: QubeParams | None = None, arm_limit: float | None = None) -> None:
+        self.params = params or QubeParams()
+        self.arm_limit = arm_limit
+        self.theta = 0.0
+        self.alpha = math.pi
+        self.theta_dot = 0.0
+        self.alpha_dot = 0.0
+        self.time = 0.0
+        self.at_limit = 0  # -1 / +1 while the arm rests against an end stop, else 0
+
+    # -- state -----------------------------------------------------------------------------------------
+    def set_state(self, theta: float, alpha: float, theta_dot: float = 0.0, alpha_dot: float = 0.0) -> None:
+        self.theta, self.alpha, self.theta_dot, self.alpha_dot = theta, alpha, theta_dot, alpha_dot
+        self.at_limit = 0
+
+    @property
+    def state(self) -> tuple[float, float, float, float]:
+        """(theta, alpha wrapped to [-pi, pi), theta_dot, alpha_dot)."""
+        return self.theta, wrap_angle(self.alpha), self.theta_dot, self.alpha_dot
+
+    def energy(self) -> float:
+        """Mechanical energy of arm + pendulum (J), zero hanging at rest.
+
+        Mass matrix of the equations of motion: M11 = Jr + mp*Lr^2 + mp*Lp^2*sin^2(alpha)/4,
+        M12 = -mp*Lp*Lr*cos(alpha)/2, M22 = Jp + mp*Lp^2/4; potential mp*g*(Lp/2)*(1 + cos alpha).
+        """
+        p = self.params
+        s, c = math.sin(self.alpha), math.cos(self.alpha)
+        m11 = p.Jr + p.mp * p.Lr**2 + p.mp * p.Lp**2 * s * s / 4.0
+        m12 = -p.mp * p.Lp * p.Lr * c / 2.0
+        m22 = p.Jp + p.mp * p.Lp**2 / 4.0
+        td, ad = self.theta_dot, self.alpha_dot
+        kinetic = 0.5 * m11 * td * td + m12 * td * ad + 0.5 * m22 * ad * ad
+        return kinetic + p.mp * p.g * p.Lp / 2.0 * (1.0 + c)
+
+    # -- integration -----------------------------------------------------------------------------------
+    def _rates(self, x: tuple[float, float, float, float], voltage: float, motor: bool) -> tuple[float, ...]:
+        _, alpha, theta_dot, alpha_dot = x
+        tau = motor_torque(self.params, voltage, theta_dot) if motor else 0.0
+        theta_ddot, alpha_ddot = derivatives(self.params, theta_dot, alpha, alpha_dot, tau)
+        return theta_dot, alpha_dot, theta_ddot, alpha_ddot
+
+    def step(self, voltage: float, dt: float, substeps: int | None = None, amplifier_on: bool = True) -> None:
+        """Advance ``dt`` seconds holding ``voltage`` (clamped to +-max_voltage), RK4 in ``substeps`` equal
+        steps (default: steps of at most 1 ms). ``amplifier_on=False`` leaves the motor open-circuit (no
+        torque at all, no back-EMF braking), as when the amplifier is disabled."""
+        if dt <= 0:
+            return
+        p = self.params
+        voltage = max(-p.max_voltage, min(p.max_voltage, voltage))
+        n = substeps if substeps is not None else max(1, math.ceil(dt / 1e-3 - 1e-9))
+        h = dt / n
+        x = (self.theta, self.alpha, self.theta_dot, self.alpha_dot)
+        for _ in range(n):
+            k1 = self._rates(x, voltage, amplifier_on)
+            k2 = self._rates(
+                tuple(xi + 0.5 * h * ki for xi, ki in zip(x, k1, strict=True)), voltage, amplifier_on
+            )
+            k3 = self._rates(
+                tuple(xi + 0.5 * h * ki for xi, ki in zip(x, k2, strict=True)), voltage, amplifier_on
+            )
+            k4 = self._rates(tuple(xi + h * ki for xi, ki in zip(x, k3, strict=True)), voltage, amplifier_on)
+            x = tuple(
+                xi + h / 6.0 * (a + 2.0 * b + 2.0 * c + d)
+                for xi, a, b, c, d in zip(x, k1, k2, k3, k4, strict=True)
+            )
+            x = self._end_stop(x)
+        self.theta, self.alpha, self.theta_dot, self.alpha_dot = x
+        self.time += dt
+
+    def _end_stop(self, x: tuple[float, ...]) -> tuple[float, ...]:
+        """Hard stop at +-arm_limit: the arm stops dead (inelastic), the pendulum keeps its motion."""
+        limit = self.arm_limit
+        theta, alpha, theta_dot, alpha_dot = x
+        self.at_limit = 0
+        if limit is None:
+            return x
+        if theta >= limit and theta_dot >= 0.0:
+            self.at_limit = 1
+            return limit, alpha, 0.0, alpha_dot
+        if theta <= -limit and theta_dot <= 0.0:
+            self.at_limit = -1
+            return -limit, alpha, 0.0, alpha_dot
+        if abs(theta) >= limit:  # at the stop but moving away
+            self.at_limit = 1 if theta > 0 else -1
+        return x
+
+    def pressing_limit(self, voltage: float) -> bool:
+        """True while the arm rests on an end stop and ``voltage`` pushes it further into it (+V drives theta
+        negative)."""
+        return (self.at_limit > 0 and voltage < 0.0) or (self.at_limit < 0 and voltage > 0.0)
+
+
+def linearize(params: QubeParams | None = None, eps: float = 1e-6) -> tuple[list[list[float]], list[float]]:
+    """Continuous-time linearisation about upright rest: x' = A x + B V with x = (theta, alpha, theta_dot,
+    alpha_dot) and V in volts (central differences of :func:`derivatives`)."""
+    p = params or QubeParams()
+
+    def f(x: list[float], v: float) -> list[float]:
+        tau = motor_torque(p, v, x[2])
+        tdd, add = derivatives(p, x[2], x[1], x[3], tau)
+        return [x[2], x[3], tdd, add]
+
+    zero = [0.0, 0.0, 0.0, 0.0]
+    cols = []
+    for j in range(4):
+        xp, xm = list(zero), list(zero)
+        xp[j], xm[j] = eps, -eps
+        fp, fm = f(xp, 0.0), f(xm, 0.0)
+        cols.append([(a - b) / (2 * eps) for a, b in zip(fp, fm, strict=True)])
+    a_mat = [[cols[j][i] for j in range(4)] for i in range(4)]
+    fp, fm = f(zero, eps), f(zero, -eps)
+    b_vec = [(a - b) / (2 * eps) for a, b in zip(fp, fm, strict=True)]
+    return a_mat, b_vec

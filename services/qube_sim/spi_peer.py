@@ -1,0 +1,214 @@
+"""A simulated QUBE-Servo 2 behind the SPI frame: implements ``rpi_bridge.device.QubeDevice``.
+
+Each :meth:`SimulatedQube.transfer` does what the real full-duplex exchange does, in order:
+
+1. the physics runs for the time since the previous transfer with the command held (zero-order hold);
+2. the sensors are sampled into the reply (encoders quantised to 2048 counts/rev, tachometer, status,
+   current);
+3. the command frame is applied: motor word and enable bit, LEDs and encoder sets, each only if its write-mask
+   bit is set ([DS] Table 3).
+
+So, as on the rig, a command computed from one reply acts from the next transfer on. Time advances by a fixed
+``period_s`` per transfer (lockstep: deterministic), by a clock callable (real time), or only through explicit
+:meth:`SimulatedQube.advance` calls (``period_s=0``).
+
+Faults: the arm stops dead at +-``arm_limit`` (the physical end stops); a command of at least
+``stall_voltage`` pushing the arm into a stop sets "stall detected", and after ``stall_error_after_s`` "stall
+error", which disables the amplifier until a frame writes the enable bit off (Quanser's reset sequence).
+``device_id`` and ``forced_status`` can be changed to inject communication faults or an amplifier fault.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from collections.abc import Callable
+
+from rpi_bridge.frame import (
+    CURRENT_SCALE,
+    CURRENT_ZERO,
+    DEVICE_ID,
+    FRAME_LEN,
+    MASK_ENCODER0,
+    MASK_ENCODER1,
+    MASK_LED_BLUE,
+    MASK_LED_GREEN,
+    MASK_LED_RED,
+    MASK_MOTOR,
+    MASK_MOTOR_ENABLE,
+    MODE_FULL,
+    RAD_PER_COUNT,
+    STATUS_STALL_DETECTED,
+    STATUS_STALL_ERROR,
+    QubeCommand,
+    arm_rad_to_counts,
+    build_reply,
+    encode_tach,
+    parse_command,
+    pendulum_rad_to_counts,
+)
+from services.qube_sim.dynamics import QubeDynamics, QubeParams, command_to_voltage
+
+
+class SimulatedQube:
+    """Physics behind the 17-byte SPI frame (see the module docstring)."""
+
+    def __init__(
+        self,
+        params: QubeParams | None = None,
+        seed: int | None = None,
+        period_s: float | None = 0.007,
+        clock: Callable[[], float] | None = None,
+        arm_limit: float = 2.0,
+        max_substep_s: float = 1e-3,
+        stall_voltage: float = 5.0,
+        stall_error_after_s: float = 5.0,
+        max_elapsed_s: float = 1.0,
+        initial_noise: float = 0.0,
+    ) -> None:
+        self.params = params or QubeParams()
+        self.dynamics = QubeDynamics(self.params, arm_limit=arm_limit)
+        self.period_s = period_s or 0.0
+        self.clock = clock
+        self.max_substep_s = max_substep_s
+        self.stall_voltage = stall_voltage
+        self.stall_error_after_s = stall_error_after_s
+        self.max_elapsed_s = max_elapsed_s
+        self.device_id = DEVICE_ID
+        self.forced_status = 0
+        self.command = 0
+        self.enabled = False
+        self.leds = (0, 0, 0)
+        self.stall_time = 0.0
+        self.stall_detected = False
+        self.stall_error = False
+        self.transfers = 0
+        self._rng = random.Random(seed)
+        self._offsets = [0, 0]
+        self._last_clock = clock() if clock is not None else None
+        self.reset_state(noise=initial_noise)
+
+    # -- state -----------------------------------------------------------------------------------------
+    def reset_state(
+        self,
+        alpha: float = math.pi,
+        theta: float = 0.0,
+        theta_dot: float = 0.0,
+        alpha_dot: float = 0.0,
+        noise: float = 0.0,
+    ) -> None:
+        """Put the rig in a state (default: hanging at rest), plus N(0, noise^2) on each component, and
+        recalibrate the encoders as if zeroed with the arm at 0 and the pendulum hanging down."""
+
+        def jitter() -> float:
+            return self._rng.gauss(0.0, noise) if noise > 0 else 0.0
+
+        self.dynamics.set_state(
+            theta + jitter(), alpha + jitter(), theta_dot + jitter(), alpha_dot + jitter()
+        )
+        self._offsets = [0, pendulum_rad_to_counts(math.pi)]
+        self.stall_time, self.stall_detected, self.stall_error = 0.0, False, False
+
+    @property
+    def state(self) -> tuple[float, float, float, float]:
+        """True (theta, alpha wrapped, theta_dot, alpha_dot)."""
+        return self.dynamics.state
+
+    @property
+    def time(self) -> float:
+        return self.dynamics.time
+
+    @property
+    def amplifier_active(self) -> bool:
+        return self.enabled and not self.stall_error
+
+    @property
+    def voltage(self) -> float:
+        return command_to_voltage(self.command, self.params) if self.amplifier_active else 0.0
+
+    def encoder_counts(self) -> tuple[int, int]:
+        """(encoder0, encoder1) as the rig would count them now."""
+        enc0 = arm_rad_to_counts(self.dynamics.theta) - self._offsets[0]
+        enc1 = pendulum_rad_to_counts(self.dynamics.alpha) - self._offsets[1]
+        return enc0, enc1
+
+    # -- time ------------------------------------------------------------------------------------------
+    def advance(self, dt: float) -> None:
+        """Integrate ``dt`` seconds with the held command, in steps of at most ``max_substep_s``."""
+        if dt <= 0:
+            return
+        n = max(1, math.ceil(dt / self.max_substep_s - 1e-9))
+        h = dt / n
+        for _ in range(n):
+            voltage, active = self.voltage, self.amplifier_active
+            self.dynamics.step(voltage, h, substeps=1, amplifier_on=active)
+            self._update_stall(voltage if active else 0.0, h)
+
+    def _update_stall(self, voltage: float, h: float) -> None:
+        if abs(voltage) >= self.stall_voltage and self.dynamics.pressing_limit(voltage):
+            self.stall_detected = True
+            self.stall_time += h
+            if self.stall_time >= self.stall_error_after_s:
+                self.stall_error = True
+        else:
+            self.stall_detected = False
+            self.stall_time = 0.0
+
+    # -- QubeDevice ------------------------------------------------------------------------------------
+    def transfer(self, frame: bytes) -> bytes:
+        if len(frame) != FRAME_LEN:
+            raise ValueError(f"an SPI frame must be {FRAME_LEN} bytes, got {len(frame)}")
+        if self.clock is not None:
+            now = self.clock()
+            last = self._last_clock if self._last_clock is not None else now
+            self._last_clock = now
+            self.advance(min(max(0.0, now - last), self.max_elapsed_s))
+        else:
+            self.advance(self.period_s)
+        self.transfers += 1
+        if frame[0] != MODE_FULL:  # mode 0: the device id only, nothing changes ([DS] p.1)
+            return self.device_id.to_bytes(2, "big") + bytes(FRAME_LEN - 2)
+        reply = self._reply()
+        self._apply(parse_command(frame))
+        return reply
+
+    def close(self) -> None:
+        pass
+
+    def _reply(self) -> bytes:
+        d = self.dynamics
+        enc0, enc1 = self.encoder_counts()
+        status = self.forced_status & 0xFF
+        status |= STATUS_STALL_DETECTED if self.stall_detected else 0
+        status |= STATUS_STALL_ERROR if self.stall_error else 0
+        amps = (
+            (self.voltage + self.params.km * d.theta_dot) / self.params.Rm if self.amplifier_active else 0.0
+        )
+        current = max(0, min(0xFFFF, CURRENT_ZERO + round(amps * CURRENT_SCALE)))
+        return build_reply(
+            device_id=self.device_id,
+            encoder0=enc0,
+            encoder1=enc1,
+            tach=encode_tach(-d.theta_dot / RAD_PER_COUNT),  # encoder0 counts/s (theta = -counts)
+            status=status,
+            current=current,
+        )
+
+    def _apply(self, cmd: QubeCommand) -> None:
+        if cmd.writes(MASK_MOTOR):
+            self.command = cmd.motor
+        if cmd.writes(MASK_MOTOR_ENABLE):
+            self.enabled = cmd.enabled
+            if not cmd.enabled:  # disabling the amplifier clears a stall error ([QEX] resetQUBEServo)
+                self.stall_error, self.stall_time, self.stall_detected = False, 0.0, False
+        red, green, blue = self.leds
+        self.leds = (
+            cmd.leds[0] if cmd.writes(MASK_LED_RED) else red,
+            cmd.leds[1] if cmd.writes(MASK_LED_GREEN) else green,
+            cmd.leds[2] if cmd.writes(MASK_LED_BLUE) else blue,
+        )
+        enc0, enc1 = self.encoder_counts()
+        if cmd.writes(MASK_ENCODER0):
+            self._offsets[0] += enc0 - cmd.encoder0_set
+        if cmd.writes(MASK_ENCODER1):
+            self._offsets[1] += enc1 - cmd.encoder1_set

@@ -134,7 +134,11 @@ class RunStop(Message):
 
 
 class QubeState(Message):
-    """One control tick of a rig: angles in rad (alpha = 0 upright), velocities in rad/s."""
+    """One control tick of a rig: angles in rad (alpha = 0 upright), velocities in rad/s.
+
+    ``episode`` is the request id of the reset that started the episode; ``phase`` the bridge's phase
+    (rpi_bridge/control.py): a worker answers states in ``ready``/``running``; ``fallen``/``fault`` end an episode.
+    """
 
     kind: Literal["qube_state"] = "qube_state"
     rig_id: Ident
@@ -145,6 +149,7 @@ class QubeState(Message):
     theta_dot: float
     alpha_dot: float
     episode: int = Field(default=0, ge=0)
+    phase: Literal["idle", "resetting", "ready", "running", "fallen", "fault"] = "running"
 
 
 class QubeAction(Message):
@@ -169,7 +174,7 @@ class QubeStatus(Message):
 
     kind: Literal["qube_status"] = "qube_status"
     rig_id: Ident
-    state: Literal["idle", "resetting", "ready", "running", "fault", "reset_failed", "offline"]
+    state: Literal["idle", "resetting", "ready", "running", "fallen", "fault", "reset_failed", "offline"]
     request_id: int = Field(default=-1, ge=-1)
     episode: int = Field(default=0, ge=0)
     detail: str = Field(default="", max_length=2000)

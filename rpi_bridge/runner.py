@@ -1,0 +1,221 @@
+"""The bridge's clock: runs the ControlCore tick by tick, publishes each state, waits for the worker's action
+until the deadline, and reports loop timing.
+
+- Real time (the rig, or the simulator with ``lockstep=False``): ticks every ``period_s``; the action for state
+  ``seq`` is applied only if it arrives within ``deadline_s`` of that state's read. A late action is counted and
+  dropped, never applied to a later state; a miss applies the safe action.
+- Lockstep (simulator only): simulated time advances one period per tick and the next state waits for the
+  action (up to ``lockstep_stall_s`` of wall time), so training runs as fast as the worker answers.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from collections.abc import Callable
+
+from protocol import topics
+from protocol.codec import encode
+from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
+from rpi_bridge.control import ControlCore
+
+log = logging.getLogger("rpi_bridge")
+
+Publish = Callable[[str, bytes, int], object]
+
+
+class ActionSlot:
+    """A one-action mailbox for the state being answered; offers for any other state are late."""
+
+    def __init__(self, clock: Callable[[], float]) -> None:
+        self._clock = clock
+        self._cond = threading.Condition()
+        self._seq: int | None = None
+        self._deadline: float | None = None
+        self._command: int | None = None
+        self._arrived = 0.0
+        self._cancelled = False
+        self.late = 0
+
+    def open(self, seq: int, deadline: float | None) -> None:
+        """Await the action for state ``seq`` until clock time ``deadline`` (None: no deadline, lockstep)."""
+        with self._cond:
+            self._seq, self._deadline, self._command, self._cancelled = seq, deadline, None, False
+
+    def offer(self, action: QubeAction) -> bool:
+        """Network thread: accept the action if it answers the open state in time, else count it late.
+
+        The arrival time is checked against the deadline here, so a loop thread that wakes up late (a loaded
+        machine) still never applies a late action."""
+        with self._cond:
+            now = self._clock()
+            if (self._seq is None or action.seq != self._seq or self._command is not None
+                    or (self._deadline is not None and now > self._deadline)):
+                self.late += 1
+                return False
+            self._command, self._arrived = action.command, now
+            self._cond.notify()
+            return True
+
+    def cancel(self) -> None:
+        """Wake a waiting tick without an action (a reset request arrived)."""
+        with self._cond:
+            self._cancelled = True
+            self._cond.notify()
+
+    def wait(self, timeout: float) -> tuple[int | None, float]:
+        """Block until the action arrives, the slot is cancelled, or ``timeout`` s pass; then close the slot."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._command is not None or self._cancelled, timeout=max(0.0, timeout))
+            command, arrived = self._command, self._arrived
+            self._seq = None
+            return command, arrived
+
+
+def percentiles(samples: deque[float] | list[float]) -> dict[str, float]:
+    """p50 / p99 / max in milliseconds (zeros when empty)."""
+    if not samples:
+        return {"p50": 0.0, "p99": 0.0, "max": 0.0, "n": 0.0}
+    ordered = sorted(samples)
+    n = len(ordered)
+    return {"p50": round(ordered[n // 2] * 1e3, 3), "p99": round(ordered[min(n - 1, int(0.99 * n))] * 1e3, 3),
+            "max": round(ordered[-1] * 1e3, 3), "n": float(n)}
+
+
+class BridgeRunner:
+    """Owns the clock of one rig's control loop."""
+
+    def __init__(
+        self,
+        core: ControlCore,
+        rig_id: str,
+        publish: Publish,
+        deadline_s: float = 0.007,
+        lockstep: bool = False,
+        advance: Callable[[float], None] | None = None,
+        lockstep_stall_s: float = 5.0,
+        telemetry_interval_s: float = 1.0,
+        clock: Callable[[], float] = time.perf_counter,
+        window: int = 20_000,
+    ) -> None:
+        if deadline_s <= 0 or deadline_s > core.cfg.period_s:
+            raise ValueError(f"deadline {deadline_s * 1e3:.2f} ms must be in (0, period {core.cfg.period_s * 1e3} ms]")
+        topics.check_id(rig_id, "rig id")
+        self.core = core
+        self.rig_id = rig_id
+        self.publish = publish
+        self.deadline_s = deadline_s
+        self.lockstep = lockstep
+        self.advance = advance
+        self.lockstep_stall_s = lockstep_stall_s
+        self.telemetry_interval_s = telemetry_interval_s
+        self.clock = clock
+        self.slot = ActionSlot(clock)
+        self.latencies: deque[float] = deque(maxlen=window)
+        self.jitters: deque[float] = deque(maxlen=window)
+        self.overruns = 0
+        self._state_topic = topics.rig(rig_id, topics.STATE)
+        self._status_topic = topics.rig(rig_id, topics.STATUS)
+        self._telemetry_topic = topics.rig(rig_id, topics.TELEMETRY)
+        self._last_telemetry = clock()
+
+    # -- network thread --------------------------------------------------------------------------------------
+
+    def on_action(self, action: QubeAction) -> None:
+        if action.rig_id == self.rig_id:
+            self.slot.offer(action)
+
+    def on_reset(self, request_id: int) -> None:
+        self.core.request_reset(request_id)
+        self.slot.cancel()
+
+    # -- loop ------------------------------------------------------------------------------------------------
+
+    def run(self, stop: threading.Event, max_ticks: int | None = None) -> None:
+        """Tick until ``stop`` is set (or ``max_ticks``); the amplifier is disabled on the way out."""
+        period = self.core.cfg.period_s
+        next_tick = self.clock()
+        ticks = 0
+        try:
+            while not stop.is_set() and (max_ticks is None or ticks < max_ticks):
+                start = self.clock()
+                if not self.lockstep:
+                    self.jitters.append(max(0.0, start - next_tick))
+                phase = self.tick(start)
+                ticks += 1
+                if self.lockstep:
+                    if self.advance is not None:
+                        self.advance(period)
+                    if phase in ("idle", "fallen", "fault"):
+                        time.sleep(period)  # nobody is waiting: do not spin
+                    continue
+                next_tick += period
+                delay = next_tick - self.clock()
+                if delay > 0:
+                    time.sleep(delay)
+                elif delay < -period:
+                    self.overruns += 1
+                    next_tick = self.clock()
+                self._maybe_telemetry()
+        finally:
+            self.core.disable()
+            self._drain_events()
+            self._publish_status("offline" if stop.is_set() else "idle", "bridge loop stopped")
+
+    def tick(self, start: float) -> str:
+        """One period: sense, publish the state, wait for the action (until the deadline), act."""
+        core = self.core
+        before = core.phase
+        sensed = core.sense()
+        self._drain_events()
+        publish_state = sensed.awaits_action or not self.lockstep or sensed.phase != before
+        if sensed.awaits_action:
+            self.slot.open(sensed.seq, None if self.lockstep else start + self.deadline_s)
+        if publish_state:
+            state = QubeState(rig_id=self.rig_id, seq=sensed.seq, t=start, theta=sensed.theta, alpha=sensed.alpha,
+                              theta_dot=sensed.theta_dot, alpha_dot=sensed.alpha_dot, episode=sensed.episode,
+                              phase=sensed.phase)
+            published_at = self.clock()
+            self.publish(self._state_topic, encode(state), 0)
+        if sensed.awaits_action:
+            timeout = self.lockstep_stall_s if self.lockstep else start + self.deadline_s - self.clock()
+            command, arrived = self.slot.wait(timeout)
+            if command is not None:
+                self.latencies.append(arrived - published_at)
+            core.act(command)
+        return core.phase
+
+    # -- reporting -------------------------------------------------------------------------------------------
+
+    def _drain_events(self) -> None:
+        while self.core.events:
+            state, request_id, detail = self.core.events.pop(0)
+            if state == "fault":
+                log.error("rig %s fault: %s (amplifier disabled)", self.rig_id, detail)
+            elif state == "reset_failed":
+                log.warning("rig %s reset %d failed: %s", self.rig_id, request_id, detail)
+            self._publish_status(state, detail, request_id)
+
+    def _publish_status(self, state: str, detail: str = "", request_id: int = -1) -> None:
+        msg = QubeStatus(rig_id=self.rig_id, state=state, request_id=request_id, episode=self.core.episode,  # type: ignore[arg-type]
+                         detail=detail[:2000])
+        self.publish(self._status_topic, encode(msg), 1)
+
+    def telemetry(self) -> QubeTelemetry:
+        c = self.core.counters
+        return QubeTelemetry(rig_id=self.rig_id, ticks=c.ticks, deadline_misses=c.misses, late_actions=self.slot.late,
+                             faults=c.faults, jitter_ms=percentiles(self.jitters),
+                             latency_ms=percentiles(self.latencies))
+
+    def _maybe_telemetry(self) -> None:
+        now = self.clock()
+        if now - self._last_telemetry < self.telemetry_interval_s:
+            return
+        self._last_telemetry = now
+        t = self.telemetry()
+        self.publish(self._telemetry_topic, encode(t), 0)
+        log.debug("rig %s: %d ticks, %d misses, %d late, latency p50 %.2f p99 %.2f max %.2f ms, jitter p99 %.2f ms",
+                  self.rig_id, t.ticks, t.deadline_misses, t.late_actions, t.latency_ms["p50"],
+                  t.latency_ms["p99"], t.latency_ms["max"], t.jitter_ms["p99"])

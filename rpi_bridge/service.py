@@ -1,0 +1,88 @@
+"""The bridge's MQTT adapter: connects the BridgeRunner of one rig to the broker.
+
+Subscribes ``qube/<rig>/action`` (QoS 0: a late retransmission is useless) and ``qube/<rig>/reset`` (QoS 1);
+publishes ``state`` (QoS 0), ``status`` (QoS 1, last will ``offline``) and ``telemetry``. Bad payloads are logged,
+counted and dropped.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from collections.abc import Callable
+
+from protocol import topics
+from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.messages import QubeAction, QubeReset, QubeStatus
+from protocol.mqtt import BrokerAddress, MqttConnection
+from rpi_bridge.control import ControlConfig, ControlCore
+from rpi_bridge.device import QubeDevice
+from rpi_bridge.runner import BridgeRunner
+
+log = logging.getLogger("rpi_bridge")
+
+
+class BridgeService:
+    """One rig on the broker: runner + connection + subscriptions."""
+
+    def __init__(
+        self,
+        device: QubeDevice,
+        rig_id: str,
+        broker: BrokerAddress,
+        control: ControlConfig | None = None,
+        deadline_s: float = 0.007,
+        lockstep: bool = False,
+        advance: Callable[[float], None] | None = None,
+        client_prefix: str = "bridge",
+    ) -> None:
+        self.rig_id = topics.check_id(rig_id, "rig id")
+        self.rejects = RejectCounter(log)
+        will = encode(QubeStatus(rig_id=rig_id, state="offline", detail="connection lost"))
+        self.conn = MqttConnection(broker, client_id=f"{client_prefix}-{rig_id}",
+                                   will=(topics.rig(rig_id, topics.STATUS), will))
+        self.core = ControlCore(device, control)
+        self.runner = BridgeRunner(self.core, rig_id, self._publish, deadline_s=deadline_s, lockstep=lockstep,
+                                   advance=advance)
+        self.stop_event = threading.Event()
+
+    def _publish(self, topic: str, payload: bytes, qos: int) -> object:
+        return self.conn.publish(topic, payload, qos=qos)
+
+    def _on_action(self, topic: str, payload: bytes) -> None:
+        try:
+            self.runner.on_action(decode(payload, QubeAction))
+        except DecodeError as err:
+            self.rejects.reject_error(topic, err)
+
+    def _on_reset(self, topic: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, QubeReset)
+        except DecodeError as err:
+            self.rejects.reject_error(topic, err)
+            return
+        log.info("rig %s: reset %d requested", self.rig_id, msg.request_id)
+        self.runner.on_reset(msg.request_id)
+
+    def run(self, max_ticks: int | None = None) -> None:
+        """Connect, then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
+        self.conn.start()
+        self.conn.subscribe(topics.rig(self.rig_id, topics.ACTION), self._on_action, qos=0)
+        self.conn.subscribe(topics.rig(self.rig_id, topics.RESET), self._on_reset, qos=1)
+        self.conn.publish(topics.rig(self.rig_id, topics.STATUS),
+                          encode(QubeStatus(rig_id=self.rig_id, state="idle", detail="bridge up")), qos=1)
+        log.info("rig %s: control loop at %.1f ms, deadline %.1f ms, %s clock", self.rig_id,
+                 self.core.cfg.period_s * 1e3, self.runner.deadline_s * 1e3,
+                 "lockstep" if self.runner.lockstep else "real-time")
+        try:
+            self.runner.run(self.stop_event, max_ticks=max_ticks)
+        finally:
+            t = self.runner.telemetry()
+            log.info("rig %s stopped: %d ticks, %d deadline misses, %d late actions, %d faults, latency %s ms",
+                     self.rig_id, t.ticks, t.deadline_misses, t.late_actions, t.faults, t.latency_ms)
+            self.conn.stop()
+
+    def install_signal_handlers(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop_event.set())

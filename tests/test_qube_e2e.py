@@ -1,0 +1,100 @@
+"""A QUBE-Servo 2 episode end to end: simulated rig process <-> broker <-> the worker's gymnasium env."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.mqtt import BrokerAddress, MqttConnection
+from worker.qube_env import ACTIONS, MAX_RETURN, QubeLocalEnv, QubeMqttEnv
+
+
+def bang_bang(obs: np.ndarray) -> int:
+    """Index into ACTIONS from a crude LQR-signed rule on (alpha, alpha_dot, theta, theta_dot)."""
+    alpha, alpha_dot, theta, theta_dot = (float(x) for x in obs)
+    u = -(12.7 * theta - 563.3 * alpha + 13.3 * theta_dot - 39.0 * alpha_dot)
+    return 2 if u > 20 else (0 if u < -20 else 1)
+
+
+def start_rig(broker: str, rig: str, clock: str, tmp_path: Path) -> subprocess.Popen:
+    log = (tmp_path / f"{rig}.log").open("wb")
+    return subprocess.Popen([sys.executable, "-m", "services.qube_sim", "--broker", broker, "--rig-id", rig,
+                             "--clock", clock, "--seed", "4"], stdout=log, stderr=subprocess.STDOUT)
+
+
+def play(env, steps: int | None = None) -> tuple[float, bool, bool, int]:
+    obs, _ = env.reset()
+    ret, n = 0.0, 0
+    while True:
+        obs, reward, terminated, truncated, _ = env.step(bang_bang(obs))
+        ret += reward
+        n += 1
+        if terminated or truncated or (steps is not None and n >= steps):
+            return ret, terminated, truncated, n
+
+
+def test_lockstep_episode_over_the_broker_reaches_the_cap(any_broker: str, tmp_path: Path) -> None:
+    rig = start_rig(any_broker, "rigE", "lockstep", tmp_path)
+    conn = MqttConnection(BrokerAddress.parse(any_broker), client_id="qube-e2e").start()
+    try:
+        env = QubeMqttEnv(conn, "rigE", reset_timeout_s=30)
+        ret, terminated, truncated, n = play(env)
+        assert (ret, truncated, terminated, n) == (MAX_RETURN, True, False, MAX_RETURN)
+        # A second episode: the rig swings up again on request.
+        ret2, *_ = play(env, steps=100)
+        assert ret2 == 100.0
+        assert env.rejected == 0 and env.timeouts == 0
+    finally:
+        conn.stop()
+        rig.terminate()
+        rig.wait(10)
+
+
+def test_real_time_episode_meets_the_deadline(any_broker: str, tmp_path: Path) -> None:
+    rig = start_rig(any_broker, "rigR", "realtime", tmp_path)
+    conn = MqttConnection(BrokerAddress.parse(any_broker), client_id="qube-rt").start()
+    try:
+        env = QubeMqttEnv(conn, "rigR", reset_timeout_s=30)
+        ret, terminated, _, n = play(env, steps=700)  # about 5 s at 7 ms
+        assert n == 700 and ret == 700.0 and not terminated
+    finally:
+        conn.stop()
+        rig.terminate()
+        rig.wait(10)
+    log = (tmp_path / "rigR.log").read_text()
+    assert "deadline misses" in log
+
+
+def test_local_env_is_the_same_task() -> None:
+    env = QubeLocalEnv(seed=4)
+    ret, terminated, truncated, n = play(env)
+    assert (ret, truncated, n) == (MAX_RETURN, True, MAX_RETURN)
+    assert env.action_space.n == len(ACTIONS) == 3 and env.observation_space.shape == (4,)
+    # Doing nothing lets the pendulum fall: reward stops and the episode terminates.
+    env.reset()
+    total = 0.0
+    for _ in range(2000):
+        _, r, terminated, _, _ = env.step(1)
+        total += r
+        if terminated:
+            break
+    assert terminated and 0 < total < 2000
+
+
+@pytest.mark.parametrize("bad", [b"\x00junk", b""])
+def test_env_ignores_garbage_on_its_topics(amqtt_broker: str, tmp_path: Path, bad: bytes) -> None:
+    rig = start_rig(amqtt_broker, "rigG", "lockstep", tmp_path)
+    conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="qube-garbage").start()
+    try:
+        env = QubeMqttEnv(conn, "rigG", reset_timeout_s=30)
+        conn.publish("qube/rigG/state", bad, qos=1).wait_for_publish(5)
+        ret, *_ = play(env, steps=50)
+        assert ret == 50.0 and env.rejected >= 1
+    finally:
+        conn.stop()
+        rig.terminate()
+        rig.wait(10)

@@ -1,0 +1,191 @@
+"""The paper's QUBE-Servo 2 balance task (Section V-B-2) as gymnasium environments.
+
+Observation (pendulum angle, pendulum velocity, arm angle, arm velocity) in rad and rad/s, alpha = 0 upright.
+Actions {-60, 0, +60} SPI motor counts. Reward +1 per 7 ms step while |alpha| <= 7.5 deg; the episode ends when the
+pendulum leaves that band (or the rig faults) and is cut off at 2450 reward; learning is complete when the mean of
+the last 10 episodes reaches 2450 (protocol.tasks, "qube").
+
+- ``QubeMqttEnv`` drives a rig over MQTT: a real QUBE behind ``python -m rpi_bridge`` or a simulated one behind
+  ``python -m services.qube_sim``. ``reset`` asks the rig to swing the pendulum up and hold it, ``step`` answers
+  one state with one action. Nothing but the actor's forward pass happens between a state and its action.
+- ``QubeLocalEnv`` is the same task on the same physics and the same bridge control code, in process (no MQTT),
+  for fast experiments.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import queue
+import time
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+
+from protocol import topics
+from protocol.codec import DecodeError, decode, encode
+from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
+from rpi_bridge.control import ControlConfig, ControlCore, Sensed
+
+ACTIONS = (-60, 0, 60)  # SPI motor counts: turn left, stop, turn right
+BALANCE_BAND = math.radians(7.5)
+MAX_RETURN = 2450
+PERIOD_S = 0.007
+
+
+def observation(alpha: float, alpha_dot: float, theta: float, theta_dot: float) -> np.ndarray:
+    return np.array([alpha, alpha_dot, theta, theta_dot], dtype=np.float32)
+
+
+def balance_reward(alpha: float) -> float:
+    """+1 while the pendulum is within the balance band, else 0 (and the episode ends)."""
+    return 1.0 if abs(alpha) <= BALANCE_BAND else 0.0
+
+
+class _QubeTask(gym.Env):
+    """Spaces and bookkeeping shared by the two envs."""
+
+    observation_space = spaces.Box(-np.inf, np.inf, shape=(4,), dtype=np.float32)
+    action_space = spaces.Discrete(len(ACTIONS))
+
+    def __init__(self) -> None:
+        self.episode_return = 0.0
+
+    def _outcome(self, alpha: float, ended: bool) -> tuple[float, bool, bool]:
+        reward = 0.0 if ended else balance_reward(alpha)
+        terminated = ended or reward == 0.0
+        self.episode_return += reward
+        truncated = not terminated and self.episode_return >= MAX_RETURN
+        return reward, terminated, truncated
+
+
+class QubeMqttEnv(_QubeTask):
+    """One rig reached through the broker (topics qube/<rig>/...)."""
+
+    def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 2.0) -> None:
+        super().__init__()
+        self.rig_id = topics.check_id(rig_id, "rig id")
+        self.conn = conn
+        self.reset_timeout_s = reset_timeout_s
+        self.step_timeout_s = step_timeout_s
+        self.inbox: queue.Queue[QubeState | QubeStatus] = queue.Queue()
+        self.rejected = 0
+        self.timeouts = 0
+        self._request_ids = itertools.count(int(time.time() * 1000) % 1_000_000_000)
+        self._request = -1
+        self._last: QubeState | None = None
+        conn.subscribe(topics.rig(rig_id, topics.STATE), self._on_message, qos=0)
+        conn.subscribe(topics.rig(rig_id, topics.STATUS), self._on_message, qos=1)
+
+    def _on_message(self, topic: str, payload: bytes) -> None:
+        try:
+            self.inbox.put(decode(payload, QubeState, QubeStatus))
+        except DecodeError:
+            self.rejected += 1
+
+    def _next(self, deadline: float) -> QubeState | QubeStatus | None:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return None
+        try:
+            return self.inbox.get(timeout=remaining)
+        except queue.Empty:
+            return None
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        self.episode_return = 0.0
+        self._request = next(self._request_ids)
+        request = encode(QubeReset(rig_id=self.rig_id, request_id=self._request))
+        deadline = time.monotonic() + self.reset_timeout_s
+        acknowledged, next_send = False, 0.0
+        while True:
+            if not acknowledged and time.monotonic() >= next_send:  # the rig may not be listening yet: repeat
+                self.conn.publish(topics.rig(self.rig_id, topics.RESET), request, qos=1)
+                next_send = time.monotonic() + 1.0
+            msg = self._next(min(deadline, next_send) if not acknowledged else deadline)
+            if msg is None:
+                if time.monotonic() >= deadline:
+                    break
+                continue
+            if isinstance(msg, QubeStatus) and msg.request_id == self._request:
+                acknowledged = True
+                if msg.state == "reset_failed":
+                    raise RuntimeError(f"rig {self.rig_id}: reset failed: {msg.detail}")
+            if isinstance(msg, QubeState) and msg.episode == self._request and msg.phase == "ready":
+                self._last = msg
+                return observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot), {"seq": msg.seq}
+        raise TimeoutError(f"rig {self.rig_id} did not finish reset {self._request} within {self.reset_timeout_s} s "
+                           "(is the bridge or qube-sim running? FEDRL_RIG_ID must match)")
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        last = self._last
+        if last is None:
+            raise RuntimeError("call reset() first")
+        command = ACTIONS[int(action)]
+        self.conn.publish(topics.rig(self.rig_id, topics.ACTION),
+                          encode(QubeAction(rig_id=self.rig_id, seq=last.seq, command=command)), qos=0)
+        deadline = time.monotonic() + self.step_timeout_s
+        while (msg := self._next(deadline)) is not None:
+            if isinstance(msg, QubeStatus):
+                if msg.state in ("fault", "offline") and msg.episode == self._request:
+                    obs = observation(last.alpha, last.alpha_dot, last.theta, last.theta_dot)
+                    return obs, 0.0, True, False, {"ended": msg.state, "detail": msg.detail}
+                continue
+            if msg.episode != self._request or msg.seq <= last.seq:
+                continue  # a state of an earlier episode, or one already answered
+            self._last = msg
+            ended = msg.phase not in ("ready", "running")
+            reward, terminated, truncated = self._outcome(msg.alpha, ended)
+            obs = observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot)
+            return obs, reward, terminated, truncated, {"seq": msg.seq, "phase": msg.phase}
+        self.timeouts += 1
+        obs = observation(last.alpha, last.alpha_dot, last.theta, last.theta_dot)
+        return obs, 0.0, True, False, {"ended": "timeout"}
+
+
+class QubeLocalEnv(_QubeTask):
+    """The same task, rig and bridge code in process: ControlCore over a SimulatedQube on a virtual clock."""
+
+    def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000) -> None:
+        super().__init__()
+        from services.qube_sim.clock import VirtualClock
+        from services.qube_sim.dynamics import QubeParams
+        from services.qube_sim.spi_peer import SimulatedQube
+
+        params = QubeParams.varied(seed, scale=variation) if variation > 0 else QubeParams()
+        self.clock = VirtualClock()
+        self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock)
+        self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S))
+        self.reset_ticks = reset_ticks
+        self._requests = itertools.count(1)
+
+    def _sense(self) -> Sensed:
+        self.clock.advance(PERIOD_S)
+        return self.core.sense()
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        super().reset(seed=seed)
+        self.episode_return = 0.0
+        self.core.request_reset(next(self._requests))
+        for _ in range(self.reset_ticks):
+            s = self.core.sense()
+            if s.awaits_action:
+                self.core.events.clear()
+                return observation(s.alpha, s.alpha_dot, s.theta, s.theta_dot), {"seq": s.seq}
+            self.core.act(None)
+            self.clock.advance(PERIOD_S)
+            if self.core.phase in ("idle", "fault"):
+                raise RuntimeError(f"simulated rig could not reset: {self.core.events[-1:]}")
+        raise RuntimeError("simulated rig did not reset in time")
+
+    def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
+        self.core.act(ACTIONS[int(action)])
+        s = self._sense()
+        ended = s.phase not in ("ready", "running")
+        reward, terminated, truncated = self._outcome(s.alpha, ended)
+        self.core.events.clear()
+        obs = observation(s.alpha, s.alpha_dot, s.theta, s.theta_dot)
+        return obs, reward, terminated, truncated, {"phase": s.phase}

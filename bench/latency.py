@@ -1,0 +1,134 @@
+"""``python -m bench.latency``: state-to-action latency through the bridge loop and a worker, per broker.
+
+For each broker (the embedded amqtt, and Mosquitto with ``set_tcp_nodelay true`` where installed) it starts the
+broker and a simulated rig in real time (``python -m services.qube_sim --clock realtime``: the bridge's own control
+loop, 7 ms period and deadline) as separate processes, and answers the rig's states from this process the way a
+worker does: observation -> PPO actor forward pass -> action. The answers follow a balancing rule so that episodes
+last; the actor's sampled action is computed (and timed) but not sent. After ``--ticks`` answered states it reads
+the rig's own telemetry: p50/p99/max of state-publish -> action-arrival, deadline misses and late actions.
+Writes ``bench/results/latency.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import queue
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from protocol import topics
+from protocol.codec import decode
+from protocol.messages import QubeTelemetry
+from protocol.mqtt import BrokerAddress, MqttConnection
+from rpi_bridge.runner import percentiles
+from services.broker.embedded import free_port, start_broker_process, stop_process, wait_for_port
+from worker.ppo import PPOLearner
+from worker.qube_env import QubeMqttEnv
+
+RESULTS = Path("bench/results")
+
+
+def balance_action(obs: np.ndarray) -> int:
+    alpha, alpha_dot, theta, theta_dot = (float(x) for x in obs)
+    u = -(12.7 * theta - 563.3 * alpha + 13.3 * theta_dot - 39.0 * alpha_dot)
+    return 2 if u > 20 else (0 if u < -20 else 1)
+
+
+def start_mosquitto(workdir: Path) -> tuple[subprocess.Popen, int]:
+    port = free_port()
+    conf = workdir / "mosquitto-bench.conf"
+    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\npersistence false\n")
+    proc = subprocess.Popen(["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    wait_for_port("127.0.0.1", port, proc=proc)
+    return proc, port
+
+
+def measure(broker_name: str, ticks: int, workdir: Path) -> dict:
+    if broker_name == "mosquitto":
+        broker, port = start_mosquitto(workdir)
+    else:
+        broker, port = start_broker_process(stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
+    url = f"mqtt://127.0.0.1:{port}"
+    rig_id = f"bench-{broker_name}"
+    rig = subprocess.Popen([sys.executable, "-m", "services.qube_sim", "--broker", url, "--rig-id", rig_id,
+                            "--clock", "realtime", "--log-level", "WARNING"])
+    conn = MqttConnection(BrokerAddress.parse(url), client_id="bench-worker").start()
+    telemetry: queue.Queue[QubeTelemetry] = queue.Queue()
+    conn.subscribe(topics.rig(rig_id, topics.TELEMETRY), lambda t, p: telemetry.put(decode(p, QubeTelemetry)), qos=0)
+    try:
+        env = QubeMqttEnv(conn, rig_id, reset_timeout_s=60)
+        learner = PPOLearner(env.observation_space, env.action_space, seed=0)
+        compute: list[float] = []
+        answered, episodes, t0 = 0, 0, time.monotonic()
+        while answered < ticks:
+            obs, _ = env.reset()
+            episodes += 1
+            while answered < ticks:
+                c0 = time.perf_counter()
+                learner.act(obs)  # the worker's forward pass, timed
+                action = balance_action(obs)
+                compute.append(time.perf_counter() - c0)
+                obs, _, terminated, truncated, _ = env.step(action)
+                answered += 1
+                if terminated or truncated:
+                    break
+        wall = time.monotonic() - t0
+        time.sleep(1.5)  # one more telemetry report from the rig
+        last = None
+        while not telemetry.empty():
+            last = telemetry.get()
+    finally:
+        conn.stop()
+        rig.terminate()
+        rig.wait(10)
+        stop_process(broker)
+    if last is None:
+        raise RuntimeError(f"no telemetry from the rig over {broker_name}")
+    answered_ticks = last.latency_ms["n"] + last.deadline_misses
+    return {
+        "broker": broker_name,
+        "ticks_answered": answered,
+        "episodes": episodes,
+        "wall_s": round(wall, 1),
+        "latency_ms": last.latency_ms,
+        "tick_jitter_ms": last.jitter_ms,
+        "deadline_misses": last.deadline_misses,
+        "late_actions": last.late_actions,
+        "miss_rate": round(last.deadline_misses / answered_ticks, 6) if answered_ticks else None,
+        "env_timeouts": env.timeouts,
+        "worker_forward_pass_ms": percentiles(compute),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.latency", description=__doc__.splitlines()[0])
+    parser.add_argument("--ticks", type=int, default=10_000, help="answered states per broker (default 10000)")
+    parser.add_argument("--brokers", nargs="+", default=["amqtt", "mosquitto"], choices=("amqtt", "mosquitto"))
+    parser.add_argument("--out", type=Path, default=RESULTS / "latency.json")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    results = []
+    for name in args.brokers:
+        if name == "mosquitto" and subprocess.run(["which", "mosquitto"], capture_output=True).returncode != 0:
+            print("mosquitto not installed; skipping it", file=sys.stderr)
+            continue
+        result = measure(name, args.ticks, args.out.parent)
+        print(json.dumps(result), flush=True)
+        results.append(result)
+    report = {"period_ms": 7.0, "deadline_ms": 7.0, "ticks_per_broker": args.ticks, "machine": platform.platform(),
+              "cpus": __import__("os").cpu_count(), "results": results}
+    args.out.write_text(json.dumps(report, indent=2) + "\n")
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,568 @@
+"""Actor-Critic PPO as the paper's workers run it (Section III, Eq. 1-7; Algorithm 2's inner loop).
+
+Read it top to bottom: the configuration (Section V-A), the networks (separate actor and critic MLPs), the
+pure math (GAE Eq. 2, critic loss Eq. 3, clipped surrogate Eq. 6) and the learner, which owns the trajectory
+memory, the two Adam optimizers (Eq. 4 and 7) and the hooks the federation needs:
+
+- ``actor_gradient()``: the episode's actor gradient g_theta^n sent to the chief (Algorithm 2),
+- ``apply_gradient(g_bar)``: one actor-optimizer step with the chief's weighted mean gradient (Eq. 9),
+- ``blend_actor(theta_bar, w_T)``: the soft transfer of a mature actor, Eq. 11.
+
+Randomness (network init, action sampling, mini-batch draws) comes from the learner's own seed, so a run is
+reproducible given the seed and the environment, and the learner never touches the global RNGs.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from collections import deque
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from torch import nn
+
+VALUE_LOSSES = ("l1", "huber", "mse")
+ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
+
+
+# ----------------------------------------------------------------------------------------------------
+# Configuration
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PPOConfig:
+    """Hyper-parameters; the defaults are the paper's (Section V-A) where it gives one.
+
+    Paper: actor and critic are separate MLPs with three hidden layers of 128 units, Adam with learning rate
+    1e-3 for both, a trajectory memory of 400 transitions (FIFO: when full, the oldest transition drops out),
+    mini-batch size U = 128, K = 10 optimisation steps per episode, GAE parameter lambda = 0.99.
+
+    Not given by the paper (our choices, from the authors' code and CleanRL): gamma 0.99, entropy coefficient
+    0.01, tanh activation, orthogonal init, advantage normalisation per mini-batch.
+
+    The paper prints a clipping parameter of 0.9. That cannot be a PPO clip range: the ratio would be allowed
+    to move in [0.1, 1.9], which is almost no trust region. The authors' code used 0.2 (0.1 in their CartPole
+    sample), as does the PPO paper, so 0.2 is the default here.
+    """
+
+    hidden_sizes: tuple[int, ...] = (128, 128, 128)
+    activation: str = "tanh"  # one of ACTIVATIONS
+    ortho_init: bool = True  # orthogonal weights (gain sqrt 2; policy head 0.01, value head 1), zero biases
+    actor_lr: float = 1e-3  # eta_theta, Eq. 7
+    critic_lr: float = 1e-3  # eta_mu, Eq. 4
+    memory_size: int = 400  # trajectory memory, FIFO across episodes
+    batch_size: int = 128  # U
+    update_epochs: int = 10  # K: critic + actor steps per episode
+    gamma: float = 0.99
+    gae_lambda: float = 0.99  # the paper's "GAE parameter"
+    clip_epsilon: float = 0.2  # epsilon of Eq. 6 (the paper's printed 0.9 is not a clip range, see above)
+    entropy_coef: float = 0.01
+    value_loss: str = "l1"  # "l1" = Eq. 3 (absolute TD error); "huber" or "mse" as alternatives
+    normalize_advantages: bool = True  # per mini-batch
+    max_grad_norm: float | None = None  # clip each network's gradient norm; None disables
+    log_std_init: float = 0.0  # initial log standard deviation of the Gaussian policy (Box actions)
+    normalize_obs: bool = False  # running mean/std of the observations
+    reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
+
+    def __post_init__(self) -> None:
+        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
+        problems = []
+        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
+            problems.append("hidden_sizes must be non-empty positive integers")
+        if self.activation not in ACTIVATIONS:
+            problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
+        if self.value_loss not in VALUE_LOSSES:
+            problems.append(f"value_loss must be one of {VALUE_LOSSES}")
+        for name in ("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"):
+            if not getattr(self, name) > 0:
+                problems.append(f"{name} must be > 0")
+        for name in ("memory_size", "batch_size", "update_epochs"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1")
+        for name in ("gamma", "gae_lambda"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                problems.append(f"{name} must be in [0, 1]")
+        if self.entropy_coef < 0:
+            problems.append("entropy_coef must be >= 0")
+        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
+            problems.append("max_grad_norm must be > 0 or None")
+        if problems:
+            raise ValueError("invalid PPOConfig: " + "; ".join(problems))
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> PPOConfig:
+        """Build from ``asdict(config)``; unknown keys are an error."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown PPOConfig keys: {sorted(unknown)}")
+        return cls(**dict(values))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Networks
+# ----------------------------------------------------------------------------------------------------
+
+
+def mlp(
+    in_dim: int, hidden: tuple[int, ...], out_dim: int, activation: str, ortho: bool, out_gain: float
+) -> nn.Sequential:
+    """Linear-activation stack; orthogonal init (CleanRL style) when ``ortho``."""
+    layers: list[nn.Module] = []
+    sizes = (in_dim, *hidden)
+    for a, b in itertools.pairwise(sizes):
+        layers += [_linear(a, b, ortho, math.sqrt(2.0)), ACTIVATIONS[activation]()]
+    layers.append(_linear(sizes[-1], out_dim, ortho, out_gain))
+    return nn.Sequential(*layers)
+
+
+def _linear(in_dim: int, out_dim: int, ortho: bool, gain: float) -> nn.Linear:
+    layer = nn.Linear(in_dim, out_dim)
+    if ortho:
+        nn.init.orthogonal_(layer.weight, gain)
+        nn.init.zeros_(layer.bias)
+    return layer
+
+
+class Actor(nn.Module):
+    """pi_theta(a|s): Categorical over logits for Discrete spaces, diagonal Gaussian for Box spaces.
+
+    The Gaussian's log standard deviation is a state-independent parameter (``log_std``), shared with the
+    chief like every other actor parameter. Samples are raw (unclipped); the environment clips Box actions.
+    """
+
+    def __init__(self, obs_dim: int, action_space: spaces.Space, config: PPOConfig) -> None:
+        super().__init__()
+        if isinstance(action_space, spaces.Discrete):
+            self.discrete = True
+            self.action_shape: tuple[int, ...] = ()
+            out_dim = int(action_space.n)
+        elif isinstance(action_space, spaces.Box):
+            self.discrete = False
+            self.action_shape = tuple(action_space.shape)
+            out_dim = int(np.prod(self.action_shape))
+        else:
+            raise ValueError(f"unsupported action space {action_space!r}: use Discrete or Box")
+        cfg = config
+        self.net = mlp(obs_dim, cfg.hidden_sizes, out_dim, cfg.activation, cfg.ortho_init, out_gain=0.01)
+        if not self.discrete:
+            self.log_std = nn.Parameter(torch.full((out_dim,), float(config.log_std_init)))
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Logits (Discrete) or the Gaussian mean (Box), shape (batch, out_dim)."""
+        return self.net(obs)
+
+    def distribution(self, obs: torch.Tensor) -> torch.distributions.Distribution:
+        out = self(obs)
+        if self.discrete:
+            return torch.distributions.Categorical(logits=out)
+        std = self.log_std.exp().expand_as(out)
+        return torch.distributions.Independent(torch.distributions.Normal(out, std), 1)
+
+    def sample(self, obs: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Draw actions with ``generator`` (torch.distributions' own sample() cannot take one)."""
+        out = self(obs)
+        if self.discrete:
+            return torch.multinomial(torch.softmax(out, dim=-1), 1, generator=generator).squeeze(-1)
+        noise = torch.randn(out.shape, generator=generator, dtype=out.dtype)
+        return out + self.log_std.exp() * noise
+
+    def greedy(self, obs: torch.Tensor) -> torch.Tensor:
+        """The most likely action: arg-max logit, or the Gaussian mean."""
+        out = self(obs)
+        return out.argmax(dim=-1) if self.discrete else out
+
+    def log_prob_entropy(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """log pi_theta(a_t|s_t) and the policy entropy per sample."""
+        dist = self.distribution(obs)
+        return dist.log_prob(actions), dist.entropy()
+
+
+class Critic(nn.Module):
+    """V_mu(s): a separate MLP with a single output (Section V-A)."""
+
+    def __init__(self, obs_dim: int, config: PPOConfig) -> None:
+        super().__init__()
+        self.net = mlp(obs_dim, config.hidden_sizes, 1, config.activation, config.ortho_init, out_gain=1.0)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        return self.net(obs).squeeze(-1)
+
+
+class RunningObsNorm(nn.Module):
+    """Running mean and variance of observations (parallel-variance update); ``normalize`` clips to +-10."""
+
+    def __init__(self, shape: tuple[int, ...], clip: float = 10.0) -> None:
+        super().__init__()
+        self.clip = clip
+        self.register_buffer("mean", torch.zeros(shape, dtype=torch.float64))
+        self.register_buffer("var", torch.ones(shape, dtype=torch.float64))
+        self.register_buffer("count", torch.tensor(1e-4, dtype=torch.float64))
+
+    def update(self, batch: torch.Tensor) -> None:
+        batch = batch.to(torch.float64).reshape(-1, *self.mean.shape)
+        n = batch.shape[0]
+        b_mean, b_var = batch.mean(0), batch.var(0, unbiased=False)
+        delta, total = b_mean - self.mean, self.count + n
+        m2 = self.var * self.count + b_var * n + delta.square() * self.count * n / total
+        self.mean += delta * n / total
+        self.var.copy_(m2 / total)
+        self.count.copy_(total)
+
+    def normalize(self, obs: torch.Tensor) -> torch.Tensor:
+        z = (obs.to(torch.float64) - self.mean) / torch.sqrt(self.var + 1e-8)
+        return z.clamp(-self.clip, self.clip).to(torch.float32)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The math of Section III as pure functions
+# ----------------------------------------------------------------------------------------------------
+
+
+def compute_gae(
+    rewards: np.ndarray,
+    values: np.ndarray,
+    next_values: np.ndarray,
+    terminated: np.ndarray,
+    episode_end: np.ndarray,
+    gamma: float,
+    lam: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Generalised advantage estimates, Eq. 2, over a time-ordered memory; returns (advantages, returns).
+
+    delta_t = r_t + gamma * V(s_{t+1}) * (1 - terminated_t) - V(s_t)
+    A_t     = delta_t + gamma * lam * (1 - end_t) * A_{t+1}
+    returns = A_t + V(s_t)          (the lambda-return; with lam = 0 it is Eq. 3's TD target r + gamma V(s'))
+
+    ``terminated``: the episode ended in a terminal state, so the value after it is 0. ``episode_end``: the
+    recursion stops after t (termination, truncation, or the memory is not contiguous after t, e.g. its last
+    entry). On truncation the value of s_{t+1} is still bootstrapped through ``next_values``. Eq. 2 writes the
+    sum up to the mini-batch end U; we sum to the end of each episode in the memory, which is the GAE of [32].
+    """
+    r = np.asarray(rewards, dtype=np.float64)
+    v = np.asarray(values, dtype=np.float64)
+    v_next = np.asarray(next_values, dtype=np.float64)
+    term = np.asarray(terminated, dtype=bool)
+    end = np.asarray(episode_end, dtype=bool) | term
+    if not r.shape == v.shape == v_next.shape == term.shape == end.shape or r.ndim != 1:
+        raise ValueError("compute_gae: all inputs must be 1-D arrays of the same length")
+    deltas = r + gamma * v_next * (~term) - v
+    advantages = np.zeros_like(r)
+    running = 0.0
+    for t in reversed(range(len(r))):
+        running = deltas[t] + gamma * lam * (0.0 if end[t] else running)
+        advantages[t] = running
+    return advantages, advantages + v
+
+
+def clipped_surrogate_loss(
+    new_logp: torch.Tensor, old_logp: torch.Tensor, advantages: torch.Tensor, clip: float
+) -> torch.Tensor:
+    """-L^CLIP, Eq. 6, as the loss to minimise (Eq. 7).
+
+    r_t = pi_theta(a|s) / pi_theta_old(a|s);  L^CLIP = mean(min(r_t A_t, clip(r_t, 1-eps, 1+eps) A_t)).
+    """
+    ratio = torch.exp(new_logp - old_logp)
+    unclipped = ratio * advantages
+    clipped = torch.clamp(ratio, 1.0 - clip, 1.0 + clip) * advantages
+    return -torch.min(unclipped, clipped).mean()
+
+
+def value_loss(values: torch.Tensor, targets: torch.Tensor, kind: str = "l1") -> torch.Tensor:
+    """L^V, Eq. 3: mean |V_target - V_mu(s)| ("l1"); "huber" (smooth L1, delta 1) and "mse" as options."""
+    if kind == "l1":
+        return (targets - values).abs().mean()
+    if kind == "huber":
+        return nn.functional.smooth_l1_loss(values, targets)
+    if kind == "mse":
+        return (targets - values).square().mean()
+    raise ValueError(f"value loss must be one of {VALUE_LOSSES}, not {kind!r}")
+
+
+# ----------------------------------------------------------------------------------------------------
+# The learner
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class UpdateStats:
+    """Means over the K mini-batch steps of one ``update()``."""
+
+    actor_loss: float  # -L^CLIP - entropy_coef * entropy
+    critic_loss: float  # L^V (Eq. 3, or the configured alternative)
+    entropy: float
+    approx_kl: float  # mean (r - 1) - log r, an estimate of KL(pi_old || pi)
+    clip_fraction: float  # share of samples whose ratio left [1-eps, 1+eps]
+    memory_size: int
+    skipped_steps: int = 0  # critic/actor steps skipped because the loss or gradient was not finite
+
+
+class PPOLearner:
+    """One worker's Actor-Critic PPO: acting, the trajectory memory, Algorithm 2's update, federation hooks.
+
+    ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the
+    global RNGs are left alone), so the same seed and the same transitions give the same parameters.
+    """
+
+    def __init__(
+        self,
+        obs_space: spaces.Space,
+        action_space: spaces.Space,
+        config: PPOConfig | None = None,
+        seed: int = 0,
+    ) -> None:
+        if not isinstance(obs_space, spaces.Box):
+            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
+        self.config = config if config is not None else PPOConfig()
+        self.obs_space, self.action_space = obs_space, action_space
+        self.obs_shape = tuple(obs_space.shape)
+        obs_dim = int(np.prod(self.obs_shape))
+        with torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
+            torch.manual_seed(seed)
+            self.actor = Actor(obs_dim, action_space, self.config)
+            self.critic = Critic(obs_dim, self.config)
+        self.obs_norm = RunningObsNorm(self.obs_shape)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=self.config.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.config.critic_lr)
+        self.generator = torch.Generator().manual_seed(seed + 1_000_003)
+        # trajectory memory: (s_t, a_t, r_{t+1}, s_{t+1}, terminated, truncated), oldest first
+        self.memory: deque[tuple[np.ndarray, Any, float, np.ndarray, bool, bool]] = deque(
+            maxlen=self.config.memory_size
+        )
+        self._episode_gradient: dict[str, np.ndarray] | None = None
+
+    # -- acting --------------------------------------------------------------------------------------------
+
+    def _obs_tensor(self, obs: Any) -> torch.Tensor:
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
+        if self.config.normalize_obs:
+            x = self.obs_norm.normalize(x)
+        return x.flatten(1)
+
+    def _to_env(self, action: torch.Tensor) -> Any:
+        if self.actor.discrete:
+            return np.int64(action.item())
+        return action.reshape(self.actor.action_shape).numpy().astype(np.float32)
+
+    @torch.no_grad()
+    def act(self, obs: Any) -> Any:
+        """Sample a_t ~ pi_theta(.|s_t): a numpy int (Discrete) or a raw float32 array (Box, not clipped)."""
+        return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator)[0])
+
+    @torch.no_grad()
+    def act_greedy(self, obs: Any) -> Any:
+        """The deterministic action (arg-max or Gaussian mean), for evaluation."""
+        return self._to_env(self.actor.greedy(self._obs_tensor(obs))[0])
+
+    def remember(
+        self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool, truncated: bool
+    ) -> None:
+        """Store <s_t, a_t, r_{t+1}, s_{t+1}> (plus the episode flags) in the FIFO trajectory memory."""
+        obs_arr = np.asarray(obs, dtype=np.float32).reshape(self.obs_shape).copy()
+        next_arr = np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape).copy()
+        stored = int(action) if self.actor.discrete else np.asarray(action, dtype=np.float32).copy()
+        self.memory.append((obs_arr, stored, float(reward), next_arr, bool(terminated), bool(truncated)))
+        if self.config.normalize_obs:
+            self.obs_norm.update(torch.from_numpy(obs_arr))
+
+    # -- Algorithm 2: the update after an episode ---------------------------------------------------------
+
+    def update(self) -> UpdateStats:
+        """theta_old <- theta, then K times: a random mini-batch of U from memory, a critic step (Eq. 3-4)
+        and an actor step (Eq. 6-7). Also records the episode's actor gradient (see ``actor_gradient``)."""
+        cfg = self.config
+        n = len(self.memory)
+        if n == 0:
+            raise ValueError("update() needs transitions in the memory: call remember() first")
+        obs_np, actions_list, rewards_list, next_np, term_list, trunc_list = zip(*self.memory, strict=True)
+        obs = self._obs_tensor(np.stack(obs_np))
+        next_obs = self._obs_tensor(np.stack(next_np))
+        if self.actor.discrete:
+            actions = torch.as_tensor(actions_list, dtype=torch.int64)
+        else:
+            actions = torch.as_tensor(np.stack(actions_list)).reshape(n, -1)
+        terminated = np.asarray(term_list, dtype=bool)
+        episode_end = terminated | np.asarray(trunc_list, dtype=bool)
+        if n > 1:  # a gap between consecutive transitions (an episode cut short by the caller) also ends one
+            gap = np.stack(next_np[:-1]).reshape(n - 1, -1) != np.stack(obs_np[1:]).reshape(n - 1, -1)
+            episode_end[:-1] |= gap.any(axis=1)
+        episode_end[-1] = True  # nothing follows the newest transition yet
+
+        # theta_old <- theta: log-probs and values of the whole memory under the current networks
+        with torch.no_grad():
+            old_logp, _ = self.actor.log_prob_entropy(obs, actions)
+            values = self.critic(obs).numpy()
+            next_values = self.critic(next_obs).numpy()
+        rewards = np.asarray(rewards_list, dtype=np.float64) * cfg.reward_scale
+        adv_np, ret_np = compute_gae(
+            rewards, values, next_values, terminated, episode_end, cfg.gamma, cfg.gae_lambda
+        )
+        advantages = torch.as_tensor(adv_np, dtype=torch.float32)
+        returns = torch.as_tensor(ret_np, dtype=torch.float32)
+
+        grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
+        totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"), 0.0)
+        actor_steps, skipped = 0, 0
+        for _ in range(cfg.update_epochs):
+            idx = torch.randperm(n, generator=self.generator)[: cfg.batch_size]
+
+            # critic: mu <- mu - eta_mu * grad L^V (Eq. 3-4)
+            critic_loss = value_loss(self.critic(obs[idx]), returns[idx], cfg.value_loss)
+            skipped += not self._optimizer_step(critic_loss, self.critic, self.critic_optimizer)
+
+            # actor: theta <- theta - eta_theta * grad(-L^CLIP) (Eq. 6-7), with an entropy bonus
+            new_logp, entropy = self.actor.log_prob_entropy(obs[idx], actions[idx])
+            adv = advantages[idx]
+            if cfg.normalize_advantages and len(idx) > 1:
+                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+            surrogate = clipped_surrogate_loss(new_logp, old_logp[idx], adv, cfg.clip_epsilon)
+            actor_loss = surrogate - cfg.entropy_coef * entropy.mean()
+            if self._optimizer_step(actor_loss, self.actor, self.actor_optimizer):
+                actor_steps += 1
+                for name, p in self.actor.named_parameters():
+                    if p.grad is not None:
+                        grad_sum[name] += p.grad
+            else:
+                skipped += 1
+
+            with torch.no_grad():
+                log_ratio = new_logp - old_logp[idx]
+                ratio = log_ratio.exp()
+                totals["approx_kl"] += float(((ratio - 1) - log_ratio).mean())
+                totals["clip_fraction"] += float(((ratio - 1).abs() > cfg.clip_epsilon).float().mean())
+            totals["actor_loss"] += actor_loss.item()
+            totals["critic_loss"] += critic_loss.item()
+            totals["entropy"] += entropy.mean().item()
+
+        # The gradient shared with the chief: the mean of the K actor mini-batch gradients of this episode
+        # (as applied, i.e. after clipping). The paper says "the last gradient"; the mean over the episode
+        # estimates the same direction with less mini-batch noise.
+        self._episode_gradient = {
+            name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True)
+            for name, g in grad_sum.items()
+        }
+        k = float(cfg.update_epochs)
+        means = {key: value / k for key, value in totals.items()}
+        return UpdateStats(**means, memory_size=n, skipped_steps=skipped)
+
+    def _optimizer_step(self, loss: torch.Tensor, net: nn.Module, optimizer: torch.optim.Optimizer) -> bool:
+        """Backward, optional gradient-norm clipping, one optimizer step. A non-finite loss or gradient skips
+        the step (returns False), so a numerical blow-up never reaches the parameters or the chief."""
+        optimizer.zero_grad()
+        if not torch.isfinite(loss):
+            return False
+        loss.backward()
+        if self.config.max_grad_norm is not None:
+            nn.utils.clip_grad_norm_(net.parameters(), self.config.max_grad_norm)
+        if not all(bool(torch.isfinite(p.grad).all()) for p in net.parameters() if p.grad is not None):
+            optimizer.zero_grad()
+            return False
+        optimizer.step()
+        return True
+
+    # -- federation hooks ---------------------------------------------------------------------------------
+
+    def actor_spec(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of the actor's parameters (``actor.named_parameters()`` order)."""
+        return {name: tuple(p.shape) for name, p in self.actor.named_parameters()}
+
+    def actor_parameters(self) -> dict[str, np.ndarray]:
+        """A float32 copy of theta."""
+        return {
+            name: p.detach().numpy().astype(np.float32, copy=True)
+            for name, p in self.actor.named_parameters()
+        }
+
+    def actor_gradient(self) -> dict[str, np.ndarray]:
+        """g_theta^n of the last ``update()``: the mean of its K actor mini-batch gradients (float32)."""
+        if self._episode_gradient is None:
+            raise RuntimeError("no actor gradient yet: call update() first")
+        return {name: g.copy() for name, g in self._episode_gradient.items()}
+
+    def _checked(self, arrays: Mapping[str, Any], what: str) -> dict[str, torch.Tensor]:
+        """``arrays`` as float32 tensors if they match the actor exactly (names, shapes, finite values);
+        ValueError otherwise."""
+        if not isinstance(arrays, Mapping):
+            raise ValueError(f"{what}: expected a mapping of name to array, not {type(arrays).__name__}")
+        spec = self.actor_spec()
+        missing, extra = sorted(set(spec) - set(arrays)), sorted(set(arrays) - set(spec))
+        if missing or extra:
+            raise ValueError(f"{what}: names do not match the actor (missing {missing}, unexpected {extra})")
+        out = {}
+        for name, shape in spec.items():
+            try:
+                arr = np.asarray(arrays[name], dtype=np.float32)
+            except (TypeError, ValueError) as err:
+                raise ValueError(f"{what}: {name} is not a numeric array ({err})") from None
+            if arr.shape != shape:
+                raise ValueError(f"{what}: {name} has shape {arr.shape}, the actor's is {shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"{what}: {name} has non-finite values")
+            out[name] = torch.from_numpy(arr.copy())
+        return out
+
+    def apply_gradient(self, grad: Mapping[str, Any]) -> None:
+        """Algorithm 2, "update pi_theta with the received g_bar": set the actor's .grad to ``grad`` and take
+        one actor-optimizer (Adam) step. Validates everything first; on ValueError nothing changed."""
+        checked = self._checked(grad, "gradient")
+        self.actor_optimizer.zero_grad()
+        for name, p in self.actor.named_parameters():
+            p.grad = checked[name].clone()
+        self.actor_optimizer.step()
+        self.actor_optimizer.zero_grad()
+
+    @torch.no_grad()
+    def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None:
+        """Eq. 11 in place: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1].
+
+        Only the actor is blended (the critic and, with ``normalize_obs``, the observation statistics stay the
+        worker's own). Validates everything first; on ValueError nothing changed."""
+        w = float(keep_weight)
+        if not (math.isfinite(w) and 0.0 <= w <= 1.0):
+            raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
+        checked = self._checked(params, "transfer")
+        for name, p in self.actor.named_parameters():
+            p.mul_(w).add_(checked[name], alpha=1.0 - w)
+
+    # -- persistence ----------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks, optimizers, observation statistics, RNG state and config (the memory is not included)."""
+        return {
+            "config": asdict(self.config),
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "obs_norm": self.obs_norm.state_dict(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore ``state_dict()`` output; the network architecture must match this learner's."""
+        config = PPOConfig.from_dict(state["config"])
+        arch = ("hidden_sizes", "activation")
+        if any(getattr(config, a) != getattr(self.config, a) for a in arch):
+            raise ValueError(f"checkpoint architecture {[getattr(config, a) for a in arch]} does not match "
+                             f"{[getattr(self.config, a) for a in arch]}")
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.obs_norm.load_state_dict(state["obs_norm"])
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.generator.set_state(state["generator"])
+        self.config = config
+        self.memory = deque(self.memory, maxlen=config.memory_size)
+
+    def save(self, path: str | Path) -> None:
+        torch.save(self.state_dict(), Path(path))
+
+    def load(self, path: str | Path) -> None:
+        self.load_state_dict(torch.load(Path(path), weights_only=True))

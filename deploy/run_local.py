@@ -1,9 +1,9 @@
 """``python -m deploy.run_local`` (what ``make run`` calls): a whole federation on one machine.
 
 Starts the embedded broker (unless FEDRL_BROKER points at one), the chief and N workers as separate processes
-(plus one simulated QUBE-Servo 2 rig per worker when the env is ``qube``), relays the chief's live progress,
-prints a summary table at the end and leaves summary.json, metrics.jsonl, learning_curve.png, the workers'
-mature models and every process's log in the run folder.
+(plus one simulated QUBE-Servo 2 rig per worker, lockstep clock, when the env is ``qube``), relays the chief's
+live progress, prints a summary table at the end and leaves summary.json, metrics.jsonl, learning_curve.png,
+the workers' mature models and every process's log in the run folder.
 """
 
 from __future__ import annotations
@@ -31,8 +31,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         description="Run a federation on this machine: embedded MQTT broker, chief and N workers as separate "
         "processes. Every option also reads the FEDRL_* variable named in its help.",
     )
-    parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),
-                        help="number of workers (env FEDRL_WORKERS, default 4; 3 rigs is the paper's QUBE setup)")
+    parser.add_argument("--workers", type=int, default=int(w) if (w := env("FEDRL_WORKERS", "")) else None,
+                        help="number of workers (env FEDRL_WORKERS; default 4, or 3 for qube as in the paper)")
     parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
                         help="task (env FEDRL_ENV, default CartPole-v0)")
     parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
@@ -52,6 +52,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--run-dir", type=Path, default=Path(p) if (p := env("FEDRL_RUN_DIR", "")) else None,
                         help="run folder (env FEDRL_RUN_DIR; default runs/<time>-<env>-<policy>-s<seed>)")
     args = parser.parse_args(argv)
+    if args.workers is None:
+        args.workers = 3 if args.env == "qube" else 4
     if args.workers < 1:
         parser.error("--workers must be at least 1")
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")

@@ -37,7 +37,10 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, max_steps=200,
                  note="floor: 200 steps at the largest cost pi^2 + 0.1*8^2 + 0.001*2^2 (paper Eq. 12)"),
         TaskSpec("qube", tc=2450.0, r_floor=0.0, max_steps=2450,
-                 note="QUBE-Servo 2 balance: +1 per 7 ms step while |alpha| <= 7.5 deg (paper Section V-B-2)"),
+                 note="QUBE-Servo 2 balance: +1 per 7 ms step while |alpha| <= 7.5 deg (paper Section V-B-2), "
+                 "on a rig reached over MQTT (a real one behind rpi_bridge, or services.qube_sim)"),
+        TaskSpec("qube-local", tc=2450.0, r_floor=0.0, max_steps=2450,
+                 note="the same balance task on the simulated rig in the worker's own process (no MQTT)"),
     )
 }
 

@@ -29,10 +29,8 @@ def build_learner_and_env(
     """
     spec = env_spec(env_id)
     noise = DeviceNoise(scale=device_noise)
-    if spec.factory is not None:  # a device reached over MQTT (the QUBE-Servo 2 rigs)
-        env = spec.factory(spec, seed, noise, rig_id=rig_id, conn=conn, probe=spec_only)  # type: ignore[call-arg]
-    else:
-        env = make_env(env_id, seed, noise)
+    extra = {"rig_id": rig_id, "conn": conn, "probe": spec_only} if spec.factory is not None else {}
+    env = make_env(env_id, seed, noise, **extra)
     learner = PPOLearner(env.observation_space, env.action_space, spec.ppo_config(), seed=seed)
     return env, learner
 

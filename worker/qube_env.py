@@ -189,3 +189,22 @@ class QubeLocalEnv(_QubeTask):
         self.core.events.clear()
         obs = observation(s.alpha, s.alpha_dot, s.theta, s.theta_dot)
         return obs, reward, terminated, truncated, {"phase": s.phase}
+
+
+def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, conn: Any = None,
+                  probe: bool = False) -> gym.Env:
+    """Factory for the ``qube`` task: the rig ``rig_id`` over the worker's MQTT connection.
+
+    Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed; real rigs
+    differ anyway), so the paper's simulated action noise is not added here.
+    """
+    if probe:
+        return _QubeTask()
+    if conn is None or not rig_id:
+        raise ValueError("env 'qube' drives a rig over MQTT: give the worker --rig-id (FEDRL_RIG_ID)")
+    return QubeMqttEnv(conn, rig_id)
+
+
+def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, **_: Any) -> gym.Env:
+    """Factory for the ``qube-local`` task: a simulated rig inside the worker, its physics drawn from ``seed``."""
+    return _QubeTask() if probe else QubeLocalEnv(seed=seed)

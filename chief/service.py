@@ -67,6 +67,7 @@ class ChiefService:
         self.metrics = MetricsLog(cfg.run_dir)
         self.t0 = time.monotonic()
         self._last_progress = 0.0
+        self._last_line, self._last_printed = "", 0.0
 
     # -- network thread: decode, validate, enqueue -------------------------------------------------------------
 
@@ -236,7 +237,11 @@ class ChiefService:
                 cells.append(f"{w} solved@{rec.solved_episode} PI {pi}")
             else:
                 cells.append(f"{w} ep {rec.last_episode} PI {pi}{'' if rec.state == 'active' else ' ' + rec.state}")
-        print(f"[{now - self.t0:7.1f}s] round {keeper.episode:4d} | " + " | ".join(cells), flush=True)
+        line = f"round {keeper.episode:4d} | " + " | ".join(cells)
+        if line == self._last_line and not force and now - self._last_printed < 15.0:
+            return  # nothing changed: stay quiet (but say something at least every 15 s)
+        self._last_line, self._last_printed = line, now
+        print(f"[{now - self.t0:7.1f}s] {line}", flush=True)
 
     def _finish(self) -> None:
         keeper = self.keeper

@@ -28,7 +28,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
                         help="federation policy (env FEDRL_POLICY, default weighted)")
     parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")),
-                        help="base seed; worker i uses seed + i (env FEDRL_SEED, default 1)")
+                        help="base seed; worker i uses seed*1000 + i (env FEDRL_SEED, default 1)")
     parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
                         help="M, the most rounds a run may take (env FEDRL_MAX_EPISODES, default 2000)")
     parser.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),

@@ -21,7 +21,7 @@ from typing import IO
 from chief.federation import POLICIES
 from protocol.cli import env
 from protocol.mqtt import BrokerAddress
-from protocol.tasks import TASKS
+from protocol.tasks import TASKS, worker_seed
 from services.broker.embedded import start_broker_process
 
 
@@ -153,7 +153,7 @@ def start_rigs(fleet: Fleet, args: argparse.Namespace, common: dict[str, str]) -
     rigs = {i: f"rig{i}" for i in range(args.workers)}
     for i, rig in rigs.items():
         fleet.start(f"qube-sim-{rig}", ["-m", "services.qube_sim"], {
-            **common, "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(args.seed + i),
+            **common, "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(worker_seed(args.seed, i)),
             "FEDRL_QUBE_CLOCK": env("FEDRL_QUBE_CLOCK", "lockstep")})
     return rigs
 

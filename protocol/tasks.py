@@ -64,3 +64,11 @@ def performance_index(returns: list[float]) -> float:
         return float("nan")
     window = returns[-PI_WINDOW:]
     return float(sum(window) / len(window))
+
+
+def worker_seed(base_seed: int, index: int) -> int:
+    """Seed of worker ``index`` (its network, sampling, env and device noise; also its simulated rig's physics).
+
+    Spaced by 1000 so that runs with base seeds 1, 2, 3 ... share no worker seed (up to 1000 workers).
+    """
+    return base_seed * 1000 + index

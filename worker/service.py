@@ -29,7 +29,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.tasks import performance_index, solved
+from protocol.tasks import performance_index, solved, worker_seed
 from protocol.tensors import check_spec, pack_arrays, unpack_arrays
 from worker.episode import build_learner_and_env, run_episode
 
@@ -139,7 +139,7 @@ class WorkerService:
     def _learn(self, start: RunStart) -> int:
         cfg = self.cfg
         index = start.workers.index(cfg.worker_id)
-        seed = start.seed + index
+        seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env_id, seed=seed, device_noise=cfg.device_noise,
                                              rig_id=cfg.rig_id, conn=self.conn)
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from chief.federation import POLICIES
 from chief.service import ChiefConfig, ChiefService
-from protocol.cli import add_common, broker_from, env, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
 from protocol.tasks import TASKS
 
 
@@ -43,7 +43,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--run-dir", type=Path, default=Path(env("FEDRL_RUN_DIR", "runs/latest")),
                         help="folder for summary.json, metrics.jsonl, learning_curve.png "
                         "(env FEDRL_RUN_DIR, default runs/latest)")
-    args = parser.parse_args(argv)
+    args = parse_checked(parser, argv)
     if args.workers < 1:
         parser.error("--workers must be at least 1")
     if args.max_episodes < 1:

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import IO
 
 from chief.federation import POLICIES
-from protocol.cli import env
+from protocol.cli import env, parse_checked
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import TASKS, worker_seed
 from services.broker.embedded import start_broker_process
@@ -51,7 +51,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="run id / topic prefix (env FEDRL_RUN_ID; default: derived from the start time)")
     parser.add_argument("--run-dir", type=Path, default=Path(p) if (p := env("FEDRL_RUN_DIR", "")) else None,
                         help="run folder (env FEDRL_RUN_DIR; default runs/<time>-<env>-<policy>-s<seed>)")
-    args = parser.parse_args(argv)
+    args = parse_checked(parser, argv)
     if args.workers is None:
         args.workers = 3 if args.env == "qube" else 4
     if args.workers < 1:

@@ -34,3 +34,16 @@ def broker_from(args: argparse.Namespace) -> BrokerAddress:
 def setup_logging(level: str, name: str) -> None:
     logging.basicConfig(level=level.upper(), format=f"%(asctime)s {name} %(levelname)s %(message)s")
     logging.getLogger("paho").setLevel(logging.WARNING)
+
+
+def parse_checked(parser: argparse.ArgumentParser, argv: list[str] | None = None) -> argparse.Namespace:
+    """``parse_args`` that also checks values taken from FEDRL_* variables against the options' choices
+    (argparse checks only what is typed on the command line)."""
+    args = parser.parse_args(argv)
+    for action in parser._actions:
+        value = getattr(args, action.dest, None)
+        if action.choices is not None and value is not None and value not in action.choices:
+            options = ", ".join(str(c) for c in action.choices)
+            parser.error(f"argument {'/'.join(action.option_strings)}: invalid choice {value!r} "
+                         f"(from the environment?); choose from {options}")
+    return args

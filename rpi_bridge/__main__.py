@@ -8,7 +8,7 @@ import os
 import sys
 from pathlib import Path
 
-from protocol.cli import add_common, broker_from, env, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
 from rpi_bridge.control import ControlConfig
 
 
@@ -76,7 +76,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="SPI mode (env FEDRL_SPI_MODE, default 2 as the data sheet requires)")
     parser.add_argument("--spi-speed-hz", type=int, default=int(env("FEDRL_SPI_SPEED_HZ", "1000000")),
                         help="SPI clock (env FEDRL_SPI_SPEED_HZ, default 1 MHz)")
-    return parser.parse_args(argv)
+    return parse_checked(parser, argv)
 
 
 def main(argv: list[str] | None = None) -> int:

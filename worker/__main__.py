@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from protocol.cli import add_common, broker_from, env, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
 from protocol.tasks import TASKS
 from worker.service import WorkerConfig, WorkerService, auto_worker_id
 
@@ -36,7 +36,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="seconds to wait for the chief to start the run (env FEDRL_START_TIMEOUT, default 600)")
     parser.add_argument("--model-dir", type=Path, default=Path(p) if (p := env("FEDRL_MODEL_DIR", "")) else None,
                         help="save the mature model here as <id>.pt (env FEDRL_MODEL_DIR; default: not saved)")
-    args = parser.parse_args(argv)
+    args = parse_checked(parser, argv)
     if args.device_noise < 0:
         parser.error("--device-noise must be >= 0")
     if args.id == "auto":

@@ -10,7 +10,7 @@ import argparse
 import sys
 import time
 
-from protocol.cli import add_common, broker_from, env, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
 from rpi_bridge.__main__ import add_loop_options, control_config
 from rpi_bridge.service import BridgeService
 from services.qube_sim.clock import VirtualClock
@@ -34,7 +34,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--variation", type=float, default=float(env("FEDRL_QUBE_VARIATION", "0.05")),
                         help="relative spread of masses, lengths, damping and motor gain between rigs "
                         "(env FEDRL_QUBE_VARIATION, default 0.05; 0 = nominal parameters)")
-    return parser.parse_args(argv)
+    return parse_checked(parser, argv)
 
 
 def build_sim_service(args: argparse.Namespace) -> BridgeService:

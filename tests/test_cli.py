@@ -1,0 +1,37 @@
+"""Every process has --help, and a bad value from an environment variable is a clear error, not a traceback."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+MODULES = ["services.broker", "chief", "worker", "rpi_bridge", "services.qube_sim", "deploy.run_local",
+           "deploy.docker", "bench.policies", "bench.latency"]
+
+
+@pytest.mark.parametrize("module", MODULES)
+def test_help(module: str) -> None:
+    out = subprocess.run([sys.executable, "-m", module, "--help"], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("usage:")
+
+
+@pytest.mark.parametrize(
+    ("module", "var", "value", "message"),
+    [
+        ("chief", "FEDRL_POLICY", "fedavg", "invalid choice 'fedavg'"),
+        ("worker", "FEDRL_ENV", "Breakout", "invalid choice 'Breakout'"),
+        ("deploy.run_local", "FEDRL_ENV", "Breakout", "invalid choice 'Breakout'"),
+        ("services.qube_sim", "FEDRL_QUBE_CLOCK", "sundial", "invalid choice 'sundial'"),
+        ("chief", "FEDRL_WORKERS", "0", "--workers must be at least 1"),
+        ("rpi_bridge", "FEDRL_DEADLINE_MS", "9", "must be in (0, --period-ms"),
+    ],
+)
+def test_bad_settings_are_clear_errors(module: str, var: str, value: str, message: str) -> None:
+    out = subprocess.run([sys.executable, "-m", module], capture_output=True, text=True, timeout=60,
+                         env={**os.environ, var: value})
+    assert out.returncode == 2
+    assert message in out.stderr and "Traceback" not in out.stderr

@@ -4,19 +4,21 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint venv bench clean help
+.PHONY: run test lint venv bench clean help test-docker docker-dev
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
 	@echo "make test   - the whole test suite (creates the virtual environment first)"
 	@echo "make lint   - ruff"
 	@echo "make bench  - benchmarks into bench/results/"
+	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
+	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
 
 venv: $(STAMP)
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev,deploy]"
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -34,3 +36,11 @@ bench: $(STAMP)
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
+
+# Containerised end-to-end tests: compose up + python -m deploy.docker, 2-worker CartPole (needs Docker + Compose).
+test-docker: $(STAMP)
+	$(BIN)/python -m pytest -m docker -q -s
+
+# Machines without registry access (root): engine, local base/Mosquitto images, CPU torch wheel (deploy/dev/).
+docker-dev:
+	deploy/dev/prepare.sh

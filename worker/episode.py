@@ -18,11 +18,13 @@ def build_learner_and_env(
     env_id: str,
     seed: int,
     device_noise: float,
+    init_seed: int | None = None,
     rig_id: str | None = None,
     conn: Any = None,
     spec_only: bool = False,
 ) -> tuple[gym.Env, PPOLearner]:
-    """The env of this device and a PPO learner with the env's preset, both seeded by ``seed``.
+    """The env of this device and a PPO learner with the env's preset, both seeded by ``seed``
+    (``init_seed``: the networks' initial weights, shared by the workers of a run).
 
     ``rig_id`` and ``conn`` (an open MqttConnection) are for envs that drive a rig over MQTT; ``spec_only`` builds
     a throwaway pair just to learn the actor's shape.
@@ -31,7 +33,7 @@ def build_learner_and_env(
     noise = DeviceNoise(scale=device_noise)
     extra = {"rig_id": rig_id, "conn": conn, "probe": spec_only} if spec.factory is not None else {}
     env = make_env(env_id, seed, noise, **extra)
-    learner = PPOLearner(env.observation_space, env.action_space, spec.ppo_config(), seed=seed)
+    learner = PPOLearner(env.observation_space, env.action_space, spec.ppo_config(), seed=seed, init_seed=init_seed)
     return env, learner
 
 

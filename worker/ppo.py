@@ -309,6 +309,9 @@ class PPOLearner:
 
     ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the
     global RNGs are left alone), so the same seed and the same transitions give the same parameters.
+    ``init_seed``, when given, seeds only the network init: federated workers share it, so that they start from
+    the same networks (as clients of federated learning start from one global model) and the shared gradient
+    (Eq. 9) and the parameter blend (Eq. 11) act on aligned parameters.
     """
 
     def __init__(
@@ -317,6 +320,7 @@ class PPOLearner:
         action_space: spaces.Space,
         config: PPOConfig | None = None,
         seed: int = 0,
+        init_seed: int | None = None,
     ) -> None:
         if not isinstance(obs_space, spaces.Box):
             raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
@@ -325,7 +329,7 @@ class PPOLearner:
         self.obs_shape = tuple(obs_space.shape)
         obs_dim = int(np.prod(self.obs_shape))
         with torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
-            torch.manual_seed(seed)
+            torch.manual_seed(seed if init_seed is None else init_seed)
             self.actor = Actor(obs_dim, action_space, self.config)
             self.critic = Critic(obs_dim, self.config)
         self.obs_norm = RunningObsNorm(self.obs_shape)

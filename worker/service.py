@@ -141,7 +141,7 @@ class WorkerService:
         index = start.workers.index(cfg.worker_id)
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env_id, seed=seed, device_noise=cfg.device_noise,
-                                             rig_id=cfg.rig_id, conn=self.conn)
+                                             init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn)
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env_id, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)

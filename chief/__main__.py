@@ -8,7 +8,7 @@ from pathlib import Path
 
 from chief.federation import POLICIES
 from chief.service import ChiefConfig, ChiefService
-from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, run_service, setup_logging
 from protocol.tasks import TASKS
 
 
@@ -54,22 +54,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     setup_logging(args.log_level, "chief")
-    try:
-        cfg = ChiefConfig(broker=broker_from(args), run_id=args.run_id, workers=args.workers, env_id=args.env,
-                          policy=args.policy, seed=args.seed, max_episodes=args.max_episodes,
-                          round_timeout=args.round_timeout, start_timeout=args.start_timeout,
-                          idle_timeout=args.idle_timeout, run_dir=args.run_dir)
-        service = ChiefService(cfg)
-    except ValueError as err:
-        print(f"chief: {err}", file=sys.stderr)
-        return 2
-    try:
-        return service.run()
-    except ConnectionError as err:
-        print(f"chief: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
+
+    def build() -> ChiefService:
+        return ChiefService(ChiefConfig(
+            broker=broker_from(args), run_id=args.run_id, workers=args.workers, env_id=args.env,
+            policy=args.policy, seed=args.seed, max_episodes=args.max_episodes, round_timeout=args.round_timeout,
+            start_timeout=args.start_timeout, idle_timeout=args.idle_timeout, run_dir=args.run_dir))
+
+    return run_service("chief", build)
 
 
 if __name__ == "__main__":

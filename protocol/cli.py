@@ -5,6 +5,9 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
+from collections.abc import Callable
+from typing import Any
 
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 
@@ -47,3 +50,21 @@ def parse_checked(parser: argparse.ArgumentParser, argv: list[str] | None = None
             parser.error(f"argument {'/'.join(action.option_strings)}: invalid choice {value!r} "
                          f"(from the environment?); choose from {options}")
     return args
+
+
+def run_service(name: str, build: Callable[[], Any]) -> int:
+    """Build a service and run it, turning the expected failures into exit codes with one clear line:
+    2 for a bad setting (ValueError while building), 1 for an unreachable broker, 130 for Ctrl-C."""
+    try:
+        service = build()
+    except ValueError as err:
+        print(f"{name}: {err}", file=sys.stderr)
+        return 2
+    try:
+        code = service.run()
+    except ConnectionError as err:
+        print(f"{name}: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    return 0 if code is None else int(code)

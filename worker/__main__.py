@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, run_service, setup_logging
 from protocol.tasks import TASKS
 from worker.service import WorkerConfig, WorkerService, auto_worker_id
 
@@ -47,21 +47,14 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     setup_logging(args.log_level, f"worker[{args.id}]")
-    try:
-        cfg = WorkerConfig(broker=broker_from(args), run_id=args.run_id, worker_id=args.id, env_id=args.env,
-                           device_noise=args.device_noise, reply_timeout=args.reply_timeout,
-                           start_timeout=args.start_timeout, model_dir=args.model_dir, rig_id=args.rig_id)
-        service = WorkerService(cfg)
-    except ValueError as err:
-        print(f"worker: {err}", file=sys.stderr)
-        return 2
-    try:
-        return service.run()
-    except ConnectionError as err:
-        print(f"worker: {err}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        return 130
+
+    def build() -> WorkerService:
+        return WorkerService(WorkerConfig(
+            broker=broker_from(args), run_id=args.run_id, worker_id=args.id, env_id=args.env,
+            device_noise=args.device_noise, reply_timeout=args.reply_timeout, start_timeout=args.start_timeout,
+            model_dir=args.model_dir, rig_id=args.rig_id))
+
+    return run_service("worker", build)
 
 
 if __name__ == "__main__":

@@ -10,7 +10,7 @@ import argparse
 import sys
 import time
 
-from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
+from protocol.cli import add_common, broker_from, env, parse_checked, run_service, setup_logging
 from rpi_bridge.__main__ import add_loop_options, control_config
 from rpi_bridge.service import BridgeService
 from services.qube_sim.clock import VirtualClock
@@ -52,20 +52,15 @@ def build_sim_service(args: argparse.Namespace) -> BridgeService:
 
 
 def main(argv: list[str] | None = None) -> int:
-    try:
-        args = parse_args(argv)
-        service = build_sim_service(args)
-    except ValueError as err:
-        print(f"qube_sim: {err}", file=sys.stderr)
-        return 2
+    args = parse_args(argv)
     setup_logging(args.log_level, f"qube-sim[{args.rig_id}]")
-    service.install_signal_handlers()
-    try:
-        service.run()
-    except ConnectionError as err:
-        print(f"qube_sim: {err}", file=sys.stderr)
-        return 1
-    return 0
+
+    def build() -> BridgeService:
+        service = build_sim_service(args)
+        service.install_signal_handlers()
+        return service
+
+    return run_service("qube_sim", build)
 
 
 if __name__ == "__main__":

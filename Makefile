@@ -39,7 +39,7 @@ clean:
 
 # Containerised end-to-end tests: compose up + python -m deploy.docker, 2-worker CartPole (needs Docker + Compose).
 test-docker: $(STAMP)
-	$(BIN)/python -m pytest -m docker -q -s
+	FEDRL_REQUIRE_DOCKER=1 $(BIN)/python -m pytest -m docker -q -s
 
 # Machines without registry access (root): engine, local base/Mosquitto images, CPU torch wheel (deploy/dev/).
 docker-dev:

@@ -120,6 +120,7 @@ class BridgeRunner:
         self._status_topic = topics.rig(rig_id, topics.STATUS)
         self._telemetry_topic = topics.rig(rig_id, topics.TELEMETRY)
         self._last_telemetry = clock()
+        self._reports = 0
 
     # -- network thread --------------------------------------------------------------------------------------
 
@@ -216,6 +217,8 @@ class BridgeRunner:
         self._last_telemetry = now
         t = self.telemetry()
         self.publish(self._telemetry_topic, encode(t), 0)
-        log.debug("rig %s: %d ticks, %d misses, %d late, latency p50 %.2f p99 %.2f max %.2f ms, jitter p99 %.2f ms",
-                  self.rig_id, t.ticks, t.deadline_misses, t.late_actions, t.latency_ms["p50"],
+        self._reports += 1
+        level = logging.INFO if self._reports % 10 == 0 else logging.DEBUG  # the log gets one line per 10 reports
+        log.log(level, "rig %s: %d ticks, %d misses, %d late, latency p50 %.2f p99 %.2f max %.2f ms, "
+                "jitter p99 %.2f ms", self.rig_id, t.ticks, t.deadline_misses, t.late_actions, t.latency_ms["p50"],
                   t.latency_ms["p99"], t.latency_ms["max"], t.jitter_ms["p99"])

@@ -98,3 +98,14 @@ def test_env_ignores_garbage_on_its_topics(amqtt_broker: str, tmp_path: Path, ba
         conn.stop()
         rig.terminate()
         rig.wait(10)
+
+
+def test_local_env_retries_a_failed_swing_up_then_gives_up() -> None:
+    from rpi_bridge.control import ControlConfig, ControlCore
+    from rpi_bridge.reset import ResetConfig
+
+    env = QubeLocalEnv(seed=4)
+    env.core = ControlCore(env.device, ControlConfig(reset=ResetConfig(timeout_s=0.05)))  # no swing-up can succeed
+    with pytest.raises(RuntimeError, match="could not reset"):
+        env.reset()
+    assert sum(1 for e in env.core.events if e[0] == "reset_failed") == 5

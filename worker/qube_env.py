@@ -44,6 +44,10 @@ def balance_reward(alpha: float) -> float:
     return 1.0 if abs(alpha) <= BALANCE_BAND else 0.0
 
 
+class ResetFailed(RuntimeError):
+    """The rig reported that one swing-up attempt did not succeed."""
+
+
 class _QubeTask(gym.Env):
     """Spaces and bookkeeping shared by the two envs."""
 
@@ -64,8 +68,12 @@ class _QubeTask(gym.Env):
 class QubeMqttEnv(_QubeTask):
     """One rig reached through the broker (topics qube/<rig>/...)."""
 
-    def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 2.0) -> None:
+    def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 2.0,
+                 reset_attempts: int = 5, settle_s: float = 3.0) -> None:
         super().__init__()
+        self.reset_attempts = reset_attempts
+        self.settle_s = settle_s
+        self.failed_resets = 0
         self.rig_id = topics.check_id(rig_id, "rig id")
         self.conn = conn
         self.reset_timeout_s = reset_timeout_s
@@ -95,7 +103,20 @@ class QubeMqttEnv(_QubeTask):
             return None
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        """Ask the rig for a new episode. A swing-up that fails (it happens, from a messy fall) is retried after
+        the pendulum has had time to settle; ``reset_attempts`` failures in a row raise RuntimeError."""
         super().reset(seed=seed)
+        for attempt in range(1, self.reset_attempts + 1):
+            try:
+                return self._reset_once()
+            except ResetFailed as err:
+                self.failed_resets += 1
+                if attempt == self.reset_attempts:
+                    raise RuntimeError(f"{err} ({attempt} attempts in a row)") from None
+                time.sleep(self.settle_s)
+        raise AssertionError("unreachable")
+
+    def _reset_once(self) -> tuple[np.ndarray, dict]:
         self.episode_return = 0.0
         self._request = next(self._request_ids)
         request = encode(QubeReset(rig_id=self.rig_id, request_id=self._request))
@@ -113,7 +134,7 @@ class QubeMqttEnv(_QubeTask):
             if isinstance(msg, QubeStatus) and msg.request_id == self._request:
                 acknowledged = True
                 if msg.state == "reset_failed":
-                    raise RuntimeError(f"rig {self.rig_id}: reset failed: {msg.detail}")
+                    raise ResetFailed(f"rig {self.rig_id}: reset failed: {msg.detail}")
             if isinstance(msg, QubeState) and msg.episode == self._request and msg.phase == "ready":
                 self._last = msg
                 return observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot), {"seq": msg.seq}
@@ -168,6 +189,18 @@ class QubeLocalEnv(_QubeTask):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
+        for attempt in range(1, 6):  # as over MQTT: a failed swing-up is retried after the pendulum settles
+            try:
+                return self._reset_once()
+            except ResetFailed:
+                if attempt == 5:
+                    raise
+                for _ in range(round(3.0 / PERIOD_S)):
+                    self._sense()
+                    self.core.act(None)
+        raise AssertionError("unreachable")
+
+    def _reset_once(self) -> tuple[np.ndarray, dict]:
         self.episode_return = 0.0
         self.core.request_reset(next(self._requests))
         for _ in range(self.reset_ticks):
@@ -178,8 +211,8 @@ class QubeLocalEnv(_QubeTask):
             self.core.act(None)
             self.clock.advance(PERIOD_S)
             if self.core.phase in ("idle", "fault"):
-                raise RuntimeError(f"simulated rig could not reset: {self.core.events[-1:]}")
-        raise RuntimeError("simulated rig did not reset in time")
+                raise ResetFailed(f"simulated rig could not reset: {self.core.events[-1:]}")
+        raise ResetFailed("simulated rig did not reset in time")
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
         self.core.act(ACTIONS[int(action)])

@@ -272,3 +272,22 @@ def test_short_learning_run_cartpole_reaches_tc() -> None:
     """The paper's configuration learns CartPole-v0 (PI >= 195) quickly; seed 1 takes 27 episodes."""
     returns = train("CartPole-v0", seed=1, max_episodes=150)
     assert len(returns) < 150 and np.mean(returns[-10:]) >= 195
+
+
+def test_init_seed_gives_federated_workers_the_same_networks_but_their_own_sampling() -> None:
+    a = PPOLearner(CARTPOLE_OBS, spaces.Discrete(2), seed=1000, init_seed=1)
+    b = PPOLearner(CARTPOLE_OBS, spaces.Discrete(2), seed=1001, init_seed=1)
+    assert_same(actor_state(a), actor_state(b))
+    obs = np.zeros(4, np.float32)
+    assert [int(a.act(obs)) for _ in range(40)] != [int(b.act(obs)) for _ in range(40)]
+
+
+def test_obs_scale_multiplies_the_input_and_is_validated() -> None:
+    scaled = PPOLearner(CARTPOLE_OBS, spaces.Discrete(2), PPOConfig(obs_scale=(2.0, 1.0, 1.0, 0.5)), seed=3)
+    plain = PPOLearner(CARTPOLE_OBS, spaces.Discrete(2), seed=3)
+    obs = np.array([0.1, 0.2, 0.3, 0.4], np.float32)
+    torch.testing.assert_close(scaled._obs_tensor(obs), plain._obs_tensor(obs * np.array([2.0, 1.0, 1.0, 0.5])))
+    with pytest.raises(ValueError, match="obs_scale has 3 entries"):
+        PPOLearner(CARTPOLE_OBS, spaces.Discrete(2), PPOConfig(obs_scale=(1.0, 1.0, 1.0)))
+    with pytest.raises(ValueError, match="obs_scale"):
+        PPOConfig(obs_scale=(1.0, 0.0))

@@ -68,12 +68,19 @@ class PPOConfig:
     normalize_advantages: bool = True  # per mini-batch
     max_grad_norm: float | None = None  # clip each network's gradient norm; None disables
     log_std_init: float = 0.0  # initial log standard deviation of the Gaussian policy (Box actions)
-    normalize_obs: bool = False  # running mean/std of the observations
+    normalize_obs: bool = False  # running mean/std of the observations (per worker: see obs_scale)
+    # Fixed per-dimension input scale, the same on every worker. Unlike the running statistics of normalize_obs,
+    # which differ between workers, it keeps a transferred actor (Eq. 11) meaningful on its recipient.
+    obs_scale: tuple[float, ...] | None = None
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
 
     def __post_init__(self) -> None:
         self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
+        if self.obs_scale is not None:
+            self.obs_scale = tuple(float(x) for x in self.obs_scale)
         problems = []
+        if self.obs_scale is not None and not all(x > 0 and x < float("inf") for x in self.obs_scale):
+            problems.append("obs_scale entries must be finite and > 0")
         if not self.hidden_sizes or min(self.hidden_sizes) < 1:
             problems.append("hidden_sizes must be non-empty positive integers")
         if self.activation not in ACTIVATIONS:
@@ -333,6 +340,11 @@ class PPOLearner:
             self.actor = Actor(obs_dim, action_space, self.config)
             self.critic = Critic(obs_dim, self.config)
         self.obs_norm = RunningObsNorm(self.obs_shape)
+        if self.config.obs_scale is not None:
+            if len(self.config.obs_scale) != int(np.prod(self.obs_shape)):
+                raise ValueError(f"obs_scale has {len(self.config.obs_scale)} entries for observations of shape "
+                                 f"{self.obs_shape}")
+            self._obs_scale = torch.tensor(self.config.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=self.config.actor_lr)
         self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.config.critic_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
@@ -346,6 +358,8 @@ class PPOLearner:
 
     def _obs_tensor(self, obs: Any) -> torch.Tensor:
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
+        if self.config.obs_scale is not None:
+            x = x * self._obs_scale
         if self.config.normalize_obs:
             x = self.obs_norm.normalize(x)
         return x.flatten(1)

@@ -326,7 +326,8 @@ def test_spidev_missing_gives_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> 
 
 def test_bridge_imports_stay_light() -> None:
     code = (
-        "import sys, rpi_bridge, rpi_bridge.frame, rpi_bridge.velocity, rpi_bridge.device, rpi_bridge.reset; "
+        "import sys, rpi_bridge, rpi_bridge.frame, rpi_bridge.velocity, rpi_bridge.device, rpi_bridge.reset, "
+        "rpi_bridge.control, rpi_bridge.runner, rpi_bridge.service, rpi_bridge.__main__; "
         "assert 'torch' not in sys.modules and 'gymnasium' not in sys.modules, 'heavy import'; "
         "assert 'spidev' not in sys.modules"
     )

@@ -6,10 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from chief.federation import POLICIES
 from chief.service import ChiefConfig, ChiefService
-from protocol.cli import add_common, broker_from, env, parse_checked, run_service, setup_logging
-from protocol.tasks import TASKS
+from protocol.cli import add_common, add_run_options, broker_from, env, parse_checked, run_service, setup_logging
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -23,17 +21,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add_common(parser)
     parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),
                         help="number of workers to wait for (env FEDRL_WORKERS, default 4)")
-    parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
-                        help="task every worker learns (env FEDRL_ENV, default CartPole-v0)")
-    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
-                        help="federation policy (env FEDRL_POLICY, default weighted)")
-    parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")),
-                        help="base seed; worker i uses seed*1000 + i (env FEDRL_SEED, default 1)")
-    parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
-                        help="M, the most rounds a run may take (env FEDRL_MAX_EPISODES, default 2000)")
-    parser.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),
-                        help="seconds a round waits for a silent worker after the first submission "
-                        "(env FEDRL_ROUND_TIMEOUT, default 30)")
+    add_run_options(parser)
     parser.add_argument("--start-timeout", type=float, default=float(env("FEDRL_START_TIMEOUT", "300")),
                         help="seconds to wait for all workers before starting with those present "
                         "(env FEDRL_START_TIMEOUT, default 300)")

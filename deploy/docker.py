@@ -29,13 +29,11 @@ import docker
 import requests
 from docker.errors import APIError, BuildError, DockerException, NotFound
 
-from chief.federation import POLICIES
-from protocol.cli import env, parse_checked
-from protocol.tasks import TASKS, worker_seed
+from protocol.cli import add_device_noise, add_run_options, env, parse_checked
+from protocol.tasks import worker_seed
 
 ROOT = Path(__file__).resolve().parent.parent
 MOSQUITTO_DIR = ROOT / "deploy" / "mosquitto"
-ENVS = tuple(TASKS)
 LABEL = "org.fedrl.launcher"
 
 
@@ -48,16 +46,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--workers", type=int, nargs="+", default=[int(env("FEDRL_WORKERS", "4"))],
                    help="worker count(s); several make a sweep, one run each (env FEDRL_WORKERS, default 4)")
-    p.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=ENVS, help="task (env FEDRL_ENV)")
-    p.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
-                   help="federation policy (env FEDRL_POLICY, default weighted)")
-    p.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")), help="base seed (env FEDRL_SEED)")
-    p.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
-                   help="episode limit (env FEDRL_MAX_EPISODES, default 2000)")
-    p.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),
-                   help="seconds a round waits for a silent worker (env FEDRL_ROUND_TIMEOUT, default 30)")
-    p.add_argument("--device-noise", type=float, default=float(env("FEDRL_DEVICE_NOISE", "1.0")),
-                   help="per-device action noise scale (env FEDRL_DEVICE_NOISE, default 1.0)")
+    add_run_options(p)
+    add_device_noise(p)
     p.add_argument("--out", type=Path, default=Path("runs/docker"),
                    help="folder that receives one run folder per run (default runs/docker)")
     p.add_argument("--network", choices=("bridge", "host"), default=env("FEDRL_DOCKER_NETWORK", "bridge"),

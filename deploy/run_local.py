@@ -18,10 +18,9 @@ import time
 from pathlib import Path
 from typing import IO
 
-from chief.federation import POLICIES
-from protocol.cli import env, parse_checked
+from protocol.cli import add_device_noise, add_run_options, env, parse_checked
 from protocol.mqtt import BrokerAddress
-from protocol.tasks import TASKS, worker_seed
+from protocol.tasks import worker_seed
 from services.broker.embedded import start_broker_process
 
 
@@ -33,17 +32,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--workers", type=int, default=int(w) if (w := env("FEDRL_WORKERS", "")) else None,
                         help="number of workers (env FEDRL_WORKERS; default 4, or 3 for qube as in the paper)")
-    parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
-                        help="task (env FEDRL_ENV, default CartPole-v0)")
-    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=POLICIES,
-                        help="federation policy (env FEDRL_POLICY, default weighted)")
-    parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")), help="base seed (env FEDRL_SEED)")
-    parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
-                        help="episode limit M (env FEDRL_MAX_EPISODES, default 2000)")
-    parser.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),
-                        help="seconds a round waits for a silent worker (env FEDRL_ROUND_TIMEOUT, default 30)")
-    parser.add_argument("--device-noise", type=float, default=float(env("FEDRL_DEVICE_NOISE", "1.0")),
-                        help="scale of the per-device action noise (env FEDRL_DEVICE_NOISE, default 1.0)")
+    add_run_options(parser)
+    add_device_noise(parser)
     parser.add_argument("--broker", default=env("FEDRL_BROKER", ""),
                         help="use this broker (mqtt://host:port) instead of starting the embedded one "
                         "(env FEDRL_BROKER)")

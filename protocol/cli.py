@@ -7,7 +7,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable
-from typing import Any
+from typing import Any, get_args
 
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 
@@ -68,3 +68,27 @@ def run_service(name: str, build: Callable[[], Any]) -> int:
     except KeyboardInterrupt:
         return 130
     return 0 if code is None else int(code)
+
+
+def add_run_options(parser: argparse.ArgumentParser) -> None:
+    """--env, --policy, --seed, --max-episodes, --round-timeout: what a run is, for the chief and the launchers."""
+    from protocol.messages import Policy
+    from protocol.tasks import TASKS
+
+    parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
+                        help="task every worker learns (env FEDRL_ENV, default CartPole-v0)")
+    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=get_args(Policy),
+                        help="federation policy (env FEDRL_POLICY, default weighted)")
+    parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")),
+                        help="base seed; worker i uses seed*1000 + i (env FEDRL_SEED, default 1)")
+    parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),
+                        help="M, the most rounds a run may take (env FEDRL_MAX_EPISODES, default 2000)")
+    parser.add_argument("--round-timeout", type=float, default=float(env("FEDRL_ROUND_TIMEOUT", "30")),
+                        help="seconds a round waits for a silent worker after the first submission "
+                        "(env FEDRL_ROUND_TIMEOUT, default 30)")
+
+
+def add_device_noise(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--device-noise", type=float, default=float(env("FEDRL_DEVICE_NOISE", "1.0")),
+                        help="scale of the per-device action noise N(0.002, 0.0005) of the paper; 0 turns it off "
+                        "(env FEDRL_DEVICE_NOISE, default 1.0)")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from protocol.cli import add_common, broker_from, env, parse_checked, run_service, setup_logging
+from protocol.cli import add_common, add_device_noise, broker_from, env, parse_checked, run_service, setup_logging
 from protocol.tasks import TASKS
 from worker.service import WorkerConfig, WorkerService, auto_worker_id
 
@@ -24,9 +24,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         "random suffix)")
     parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
                         help="task to learn; must match the chief's (env FEDRL_ENV, default CartPole-v0)")
-    parser.add_argument("--device-noise", type=float, default=float(env("FEDRL_DEVICE_NOISE", "1.0")),
-                        help="scale of the per-device action noise N(0.002, 0.0005) of the paper; 0 turns it off "
-                        "(env FEDRL_DEVICE_NOISE, default 1.0)")
+    add_device_noise(parser)
     parser.add_argument("--rig-id", default=env("FEDRL_RIG_ID", "") or None,
                         help="QUBE-Servo 2 rig to drive when --env qube (env FEDRL_RIG_ID)")
     parser.add_argument("--reply-timeout", type=float, default=float(env("FEDRL_REPLY_TIMEOUT", "120")),

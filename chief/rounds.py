@@ -97,6 +97,7 @@ class RoundKeeper:
         self.workers = {w: WorkerRecord(w) for w in sorted(workers)}
         self.episode = 1
         self.pending: dict[str, Submission] = {}
+        self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
         self.round_opened_at: float | None = None  # time of the round's first submission
         self.stale = 0
         self.done_reason: str | None = None
@@ -111,8 +112,9 @@ class RoundKeeper:
         return [w for w, r in self.workers.items() if r.state in states]
 
     def waiting_for(self) -> list[str]:
-        """Active workers whose submission for the current round is still missing."""
-        return [w for w in self.ids_in("active") if w not in self.pending]
+        """Active workers whose submission for the current round is still missing (not those already past it)."""
+        return [w for w in self.ids_in("active")
+                if w not in self.pending and self.workers[w].last_episode <= self.episode]
 
     # -- events ----------------------------------------------------------------------------------------------
 
@@ -126,18 +128,40 @@ class RoundKeeper:
             return []
         rec.pi = sub.pi
         rec.last_episode = max(rec.last_episode, sub.episode)
-        if sub.episode != self.episode:
-            # A late answer to a closed round (or a worker ahead of the chief): its PI is noted, the rest dropped.
+        if sub.episode < self.episode:
+            # A late answer to a closed round: its PI is noted, the rest dropped.
             self.stale += 1
             log.info("stale submission from %s for episode %d (round %d)", sub.worker_id, sub.episode, self.episode)
             return []
         if rec.state in ("lagging", "offline"):
             log.info("worker %s is back (state was %s)", sub.worker_id, rec.state)
             rec.state = "active"
+        if sub.episode > self.episode:
+            # The worker went on without an answer (e.g. the chief missed its submissions while the broker
+            # restarted): keep this for its round, and stop waiting for the worker in the rounds it skipped.
+            self.ahead.setdefault(sub.episode, {})[sub.worker_id] = sub
+            if self.round_opened_at is None:
+                self.round_opened_at = now
+            return self._maybe_close(now)
         self.pending[sub.worker_id] = sub
         if self.round_opened_at is None:
             self.round_opened_at = now
         return self._maybe_close(now)
+
+    def mark_finished(self, worker_id: str, episode: int, pi: float, now: float) -> list[RoundOutcome]:
+        """A worker says it solved the task but its mature actor never arrived: it leaves without a transfer."""
+        rec = self.workers.get(worker_id)
+        if rec is None or rec.state == "finished":
+            return []
+        rec.state, rec.solved_episode, rec.pi = "finished", episode, pi
+        rec.last_episode = max(rec.last_episode, episode)
+        self.pending.pop(worker_id, None)
+        for subs in self.ahead.values():
+            subs.pop(worker_id, None)
+        outcomes = self._maybe_close(now)
+        if not outcomes and not self.done and not self.ids_in("active", "lagging", "offline"):
+            self.done_reason = "all workers solved"
+        return outcomes
 
     def mark_offline(self, worker_id: str, now: float) -> list[RoundOutcome]:
         """A worker's last will arrived: stop waiting for it."""
@@ -158,9 +182,11 @@ class RoundKeeper:
         for w in silent:
             self.workers[w].state = "lagging"
         log.warning("round %d timed out after %.1f s waiting for %s", self.episode, self.round_timeout, silent)
-        outcomes = self._close()
-        outcomes[0].timed_out = silent
-        return outcomes
+        first = self._close()
+        first[0].timed_out = silent
+        self.pending = self.ahead.pop(self.episode, {})
+        self.round_opened_at = now if (self.pending or self.ahead) else None
+        return first + self._maybe_close(now)
 
     def abort(self, reason: str) -> None:
         """End the run early (e.g. every worker stayed offline past the service's idle limit)."""
@@ -170,11 +196,13 @@ class RoundKeeper:
     # -- internals -------------------------------------------------------------------------------------------
 
     def _maybe_close(self, now: float) -> list[RoundOutcome]:
-        if self.done:
-            return []
-        if self.pending and not self.waiting_for():
-            return self._close()
-        return []
+        outcomes: list[RoundOutcome] = []
+        while not self.done and (self.pending or self.ahead) and not self.waiting_for():
+            outcomes += self._close()
+            self.pending = self.ahead.pop(self.episode, {})
+            if self.pending or self.ahead:
+                self.round_opened_at = now
+        return outcomes
 
     def _close(self) -> list[RoundOutcome]:
         subs = self.pending

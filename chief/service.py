@@ -183,9 +183,14 @@ class ChiefService:
                                 "not part of this run")
             return []
         if kind == "status":
-            if msg.state in ("offline", "error"):
+            if msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
                 return keeper.mark_offline(msg.worker_id, now)
+            if msg.state == "finished" and keeper.workers[msg.worker_id].state != "finished":
+                # Its mature actor was lost (e.g. the broker restarted as it was sent): it leaves without a transfer.
+                log.warning("worker %s finished at episode %d but its mature actor never arrived", msg.worker_id,
+                            msg.episode)
+                return keeper.mark_finished(msg.worker_id, msg.episode, msg.pi or self.spec.tc, now)
             return []
         tensors = msg.gradient if kind == "update" else msg.params
         try:

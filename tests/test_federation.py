@@ -195,3 +195,32 @@ def test_unknown_worker_and_bad_config_raise() -> None:
         keeper([])
     with pytest.raises(ValueError):
         keeper(["w0"], policy="fedavg")
+
+
+def test_workers_that_went_on_without_an_answer_are_resynchronised() -> None:
+    # Both submissions for round 1 were lost (say, a broker restart); the workers timed out and went on.
+    k = keeper(["w0", "w1"], timeout=10.0)
+    assert k.submit(sub("w0", 2, 50.0, 1.0), now=0.0) == []  # w0 is past round 1; w1 is still awaited there
+    assert k.episode == 1 and k.waiting_for() == ["w1"]
+    outs = k.submit(sub("w1", 2, 150.0, 3.0), now=0.1)
+    # Round 1 closes empty (nobody is waiting for it), round 2 closes with both submissions.
+    assert [(o.episode, o.contributors) for o in outs] == [(1, []), (2, ["w0", "w1"])]
+    assert outs[1].weights == pytest.approx({"w0": 0.25, "w1": 0.75})
+    assert k.episode == 3 and k.stale == 0
+
+
+def test_a_worker_ahead_does_not_block_the_round_timeout() -> None:
+    k = keeper(["w0", "w1", "w2"], timeout=5.0)
+    k.submit(sub("w0", 1, 10.0), now=0.0)
+    k.submit(sub("w1", 2, 10.0), now=0.5)  # w1 skipped round 1
+    [out1, *rest] = k.tick(now=5.0)  # w2 is silent
+    assert out1.episode == 1 and out1.timed_out == ["w2"] and out1.contributors == ["w0"]
+    assert rest == [] and k.episode == 2 and set(k.pending) == {"w1"}
+
+
+def test_finished_status_without_mature_params_ends_the_worker() -> None:
+    k = keeper(["w0", "w1"])
+    k.submit(sub("w0", 1, 196.0, mature=True), now=0.0)
+    k.submit(sub("w1", 1, 20.0), now=0.0)
+    assert k.mark_finished("w1", 5, 197.0, now=1.0) == []
+    assert k.done and k.workers["w1"].solved_episode == 5

@@ -17,6 +17,7 @@ import platform
 import queue
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -120,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
         if name == "mosquitto" and subprocess.run(["which", "mosquitto"], capture_output=True).returncode != 0:
             print("mosquitto not installed; skipping it", file=sys.stderr)
             continue
-        result = measure(name, args.ticks, args.out.parent)
+        with tempfile.TemporaryDirectory() as workdir:  # the Mosquitto config lives only as long as the run
+            result = measure(name, args.ticks, Path(workdir))
         print(json.dumps(result), flush=True)
         results.append(result)
     report = {"period_ms": 7.0, "deadline_ms": 7.0, "ticks_per_broker": args.ticks, "machine": platform.platform(),

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 from rpi_bridge.device import QubeDevice
-from rpi_bridge.frame import build_command, parse_reply
+from rpi_bridge.frame import build_command, clamp_command, parse_reply
 from rpi_bridge.reset import ResetConfig, ResetController
 from rpi_bridge.velocity import VelocityFilter
 
@@ -181,8 +181,7 @@ class ControlCore:
                 self._hold_command = self.cfg.safe_command
                 self._send(self._hold_command)
             return self._hold_command  # ready: the reset controller keeps holding
-        limit = self.cfg.max_command
-        command = max(-limit, min(limit, int(command)))
+        command = clamp_command(command, self.cfg.max_command)
         self.phase = "running"
         self._since_action = 0.0
         self._hold_command = command

@@ -30,7 +30,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from rpi_bridge.velocity import VelocityFilter
+from rpi_bridge.frame import clamp_command
+from rpi_bridge.velocity import VelocityFilter, wrap_angle
 
 # Discrete LQR at T = 7 ms for x = (theta, alpha, theta_dot, alpha_dot), u in SPI counts (1 count = 24/999 V),
 # on the linearised gym_brt plant with braking back-EMF (services.qube_sim.dynamics.linearize, nominal
@@ -128,15 +129,6 @@ class ResetConfig:
     model: PlantModel = field(default_factory=PlantModel)
 
 
-def wrap_angle(x: float) -> float:
-    """Wrap to [-pi, pi)."""
-    return (x + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _clip(x: float, limit: float) -> int:
-    return round(max(-limit, min(limit, x)))
-
-
 class ResetController:
     """Swing-up, catch and hold; call :meth:`step` every control tick."""
 
@@ -170,7 +162,7 @@ class ResetController:
             if pump * theta > 0.0:
                 accel -= pump
             accel -= math.copysign(cfg.arm_barrier * excess, theta)
-        return _clip(model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command_swing)
+        return clamp_command(model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command_swing)
 
     def hold_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
         """Linear state feedback -K.x around upright (arm error clipped to ``theta_error_limit``)."""
@@ -178,7 +170,7 @@ class ResetController:
         k_theta, k_alpha, k_theta_dot, k_alpha_dot = cfg.gains
         theta_err = max(-cfg.theta_error_limit, min(cfg.theta_error_limit, theta))
         u = -(k_theta * theta_err + k_alpha * alpha + k_theta_dot * theta_dot + k_alpha_dot * alpha_dot)
-        return _clip(u, cfg.max_command_hold)
+        return clamp_command(u, cfg.max_command_hold)
 
     def step(self, state: tuple[float, float, float, float], dt: float) -> tuple[int, str]:
         """One tick: ``state`` = (theta, alpha, theta_dot, alpha_dot), ``dt`` = time since the last tick (>

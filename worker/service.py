@@ -5,6 +5,7 @@ actor when PI >= TC. The learning itself is worker/ppo.py; the environments are 
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import socket
@@ -229,5 +230,5 @@ def _loss_fields(stats: Any) -> dict[str, float | None]:
     out: dict[str, float | None] = {}
     for key in ("actor_loss", "critic_loss", "entropy"):
         value = getattr(stats, key, None)
-        out[key] = float(value) if value is not None and value == value and abs(value) != float("inf") else None
+        out[key] = float(value) if value is not None and math.isfinite(value) else None
     return out

@@ -20,7 +20,7 @@ import math
 import random
 from dataclasses import dataclass, fields, replace
 
-TWO_PI = 2.0 * math.pi
+from rpi_bridge.velocity import wrap_angle
 
 
 @dataclass(frozen=True)
@@ -75,11 +75,6 @@ def command_to_voltage(command: float, params: QubeParams | None = None) -> floa
     p = params or QubeParams()
     v = command / 999.0 * p.full_scale_voltage
     return max(-p.max_voltage, min(p.max_voltage, v))
-
-
-def wrap_angle(x: float) -> float:
-    """Wrap to [-pi, pi)."""
-    return (x + math.pi) % TWO_PI - math.pi
 
 
 def motor_torque(p: QubeParams, voltage: float, theta_dot: float) -> float:

@@ -6,8 +6,8 @@ import argparse
 import logging
 import os
 import sys
-from collections.abc import Callable
-from typing import Any, get_args
+from collections.abc import Callable, Sequence
+from typing import Any
 
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 
@@ -70,15 +70,19 @@ def run_service(name: str, build: Callable[[], Any]) -> int:
     return 0 if code is None else int(code)
 
 
-def add_run_options(parser: argparse.ArgumentParser) -> None:
-    """--env, --policy, --seed, --max-episodes, --round-timeout: what a run is, for the chief and the launchers."""
-    from protocol.messages import Policy
+def add_run_options(parser: argparse.ArgumentParser, policies: Sequence[str]) -> None:
+    """--env, --policy, --seed, --max-episodes, --round-timeout: what a run is, for the chief and the launchers.
+
+    ``policies`` are the federation strategies' names (``chief.strategies.names()``: the chief's registry, which
+    this package may not import).
+    """
     from protocol.tasks import TASKS
 
     parser.add_argument("--env", default=env("FEDRL_ENV", "CartPole-v0"), choices=sorted(TASKS),
                         help="task every worker learns (env FEDRL_ENV, default CartPole-v0)")
-    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=get_args(Policy),
-                        help="federation policy (env FEDRL_POLICY, default weighted)")
+    parser.add_argument("--policy", default=env("FEDRL_POLICY", "weighted"), choices=list(policies),
+                        help=f"federation policy: {', '.join(policies)} (env FEDRL_POLICY, default weighted; "
+                        "python -m chief.strategies describes them)")
     parser.add_argument("--seed", type=int, default=int(env("FEDRL_SEED", "1")),
                         help="base seed; worker i uses seed*1000 + i (env FEDRL_SEED, default 1)")
     parser.add_argument("--max-episodes", type=int, default=int(env("FEDRL_MAX_EPISODES", "2000")),

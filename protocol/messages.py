@@ -2,7 +2,8 @@
 
 Federation (paper Algorithms 1-2): WorkerHello, WorkerStatus, WorkerUpdate (actor gradient + PI),
 MatureParams (a finished worker's actor), ChiefAggregate (Eq. 9 mean gradient), ChiefTransfer (Eq. 10-11),
-RunStart, RunStop. Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
+ChiefAck (the chief holds a worker's mature actor, or refuses it), RunStart, RunStop.
+Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
 """
 
 from __future__ import annotations
@@ -11,19 +12,28 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
+from protocol.tasks import PI_WINDOW
 from protocol.tensors import TensorDict
 
 SCHEMA_VERSION = 1
 
 #: Ids appear inside topic names, so MQTT wildcards and separators are not allowed in them.
 Ident = Annotated[str, StringConstraints(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]
-Policy = Literal["independent", "plain", "weighted"]
+#: A federation strategy's name. Which names exist is the chief's registry (chief/strategies/), not the wire's:
+#: workers only apply what the chief sends, whatever the strategy.
+PolicyName = Annotated[str, StringConstraints(min_length=1, max_length=32, pattern=r"^[a-z][a-z0-9_-]*$")]
+#: PI is the mean of at most this many recent returns (protocol.tasks.PI_WINDOW).
+RecentReturns = Annotated[list[float], Field(min_length=1, max_length=PI_WINDOW)]
 
 
-class Message(BaseModel):
-    """Common base: strict fields, no NaN/Inf floats, a schema version."""
+class Strict(BaseModel):
+    """Unknown fields are errors, floats must be finite, values are immutable."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, frozen=True)
+
+
+class Message(Strict):
+    """Common base of every payload: strict fields and a schema version."""
 
     schema_version: Literal[1] = SCHEMA_VERSION
 
@@ -53,31 +63,55 @@ class WorkerStatus(Message):
     detail: str = Field(default="", max_length=2000)
 
 
+class Receipt(Strict):
+    """What a worker did with the chief's answer to round ``round``: applied an aggregate or a transfer (with the
+    answer's tensor digest and, for a transfer, the keep weight it used), or ``missed`` it (no answer in time).
+
+    Every submission carries the receipt of the round before it, so the chief's records show what reached whom.
+    """
+
+    round: int = Field(ge=1)
+    applied: Literal["aggregate", "transfer", "missed"]
+    digest: str = Field(default="", max_length=64)
+    keep: float | None = Field(default=None, ge=0.0, le=1.0)
+
+
 class WorkerUpdate(Message):
-    """Algorithm 2, end of an episode: the episode's actor gradient g_theta^n and the Performance Index."""
+    """Algorithm 2, end of an episode: the episode's actor gradient g_theta^n and the Performance Index.
+
+    ``recent_returns`` are the returns PI is the mean of (oldest first, this episode's last), so the chief can
+    check PI against the returns it was told before.
+    """
 
     kind: Literal["update"] = "update"
     worker_id: Ident
     episode: int = Field(ge=1)
     episode_return: float
     pi: float
+    recent_returns: RecentReturns
     steps: int = Field(ge=0)
     gradient: TensorDict
+    receipt: Receipt | None = None
     actor_loss: float | None = None
     critic_loss: float | None = None
     entropy: float | None = None
 
 
 class MatureParams(Message):
-    """Algorithm 2, learning finished (PI >= TC): the worker's mature actor parameters theta_n."""
+    """Algorithm 2, learning finished (PI >= TC over PI_WINDOW episodes): the worker's mature actor theta_n.
+
+    This is the worker's finish. It sends it again until a ChiefAck for this episode arrives.
+    """
 
     kind: Literal["mature"] = "mature"
     worker_id: Ident
     episode: int = Field(ge=1)
     episode_return: float
     pi: float
+    recent_returns: RecentReturns
     steps: int = Field(default=0, ge=0)
     params: TensorDict
+    receipt: Receipt | None = None
 
 
 class ChiefAggregate(Message):
@@ -102,6 +136,18 @@ class ChiefTransfer(Message):
     finished: list[str]
 
 
+class ChiefAck(Message):
+    """The chief's answer to a MatureParams: ``accepted`` (it holds the actor and counts the worker as finished at
+    ``episode``; repeated for a repeated MatureParams) or refused with the reason (the worker then goes on learning).
+    """
+
+    kind: Literal["ack"] = "ack"
+    worker_id: Ident
+    episode: int = Field(ge=1)
+    accepted: bool
+    reason: str = Field(default="", max_length=2000)
+
+
 class RunStart(Message):
     """The chief starts (or re-announces) the run; a worker's index is its position in ``workers``.
 
@@ -111,7 +157,7 @@ class RunStart(Message):
     kind: Literal["run_start"] = "run_start"
     run_id: Ident
     env_id: str
-    policy: Policy
+    policy: PolicyName
     seed: int
     max_episodes: int = Field(ge=1)
     tc: float
@@ -202,6 +248,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         MatureParams,
         ChiefAggregate,
         ChiefTransfer,
+        ChiefAck,
         RunStart,
         RunStop,
         QubeState,

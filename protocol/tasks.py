@@ -1,7 +1,8 @@
 """The tasks a federation can learn and their termination conditions, shared by the chief and the workers.
 
 TC is the termination condition on the Performance Index (mean return of the last 10 episodes); R_floor is the
-lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (ARCHITECTURE.md).
+lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (ARCHITECTURE.md); R_ceiling the
+highest, above which a reported return is a lie the chief refuses.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ class TaskSpec:
     env_id: str
     tc: float
     r_floor: float
+    r_ceiling: float
     max_steps: int
     note: str = ""
 
@@ -24,22 +26,23 @@ class TaskSpec:
 TASKS: dict[str, TaskSpec] = {
     t.env_id: t
     for t in (
-        TaskSpec("CartPole-v0", tc=195.0, r_floor=0.0, max_steps=200),
+        TaskSpec("CartPole-v0", tc=195.0, r_floor=0.0, r_ceiling=200.0, max_steps=200),
         TaskSpec(
             "MountainCarContinuous-v0",
             tc=90.0,
             r_floor=-99.9,
+            r_ceiling=100.0,
             max_steps=999,
             note="gym's own reward (+100 at the goal minus 0.1*a^2 per step) never exceeds 100, so the paper's "
             "TC of 200 is unreachable; 90 is gym's reward_threshold. Floor: -0.1 * 1^2 * 999 steps.",
         ),
-        TaskSpec("Acrobot-v1", tc=-100.0, r_floor=-500.0, max_steps=500),
-        TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, max_steps=200,
+        TaskSpec("Acrobot-v1", tc=-100.0, r_floor=-500.0, r_ceiling=0.0, max_steps=500),
+        TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, r_ceiling=0.0, max_steps=200,
                  note="floor: 200 steps at the largest cost pi^2 + 0.1*8^2 + 0.001*2^2 (paper Eq. 12)"),
-        TaskSpec("qube", tc=2450.0, r_floor=0.0, max_steps=2450,
+        TaskSpec("qube", tc=2450.0, r_floor=0.0, r_ceiling=2450.0, max_steps=2450,
                  note="QUBE-Servo 2 balance: +1 per 7 ms step while |alpha| <= 7.5 deg (paper Section V-B-2), "
                  "on a rig reached over MQTT (a real one behind rpi_bridge, or services.qube_sim)"),
-        TaskSpec("qube-local", tc=2450.0, r_floor=0.0, max_steps=2450,
+        TaskSpec("qube-local", tc=2450.0, r_floor=0.0, r_ceiling=2450.0, max_steps=2450,
                  note="the same balance task on the simulated rig in the worker's own process (no MQTT)"),
     )
 }

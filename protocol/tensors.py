@@ -5,6 +5,7 @@ Decoding validates dtype, shape, byte count and finiteness so a malformed or poi
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Mapping
 
 import numpy as np
@@ -82,3 +83,15 @@ def check_spec(arrays: Mapping[str, object], expected: Mapping[str, tuple[int, .
     for name, shape in expected.items():
         if got[name] != tuple(shape):
             raise ValueError(f"{what}: {name} has shape {got[name]}, expected {tuple(shape)}")
+
+
+def digest(arrays: Mapping[str, np.ndarray] | Mapping[str, TensorBlob]) -> str:
+    """A short fingerprint of named tensors (names, dtypes, shapes and bytes as they travel), for receipts and
+    audits: the same tensors give the same digest on the chief and on every worker."""
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = arrays[name]
+        blob = a if isinstance(a, TensorBlob) else TensorBlob.from_array(np.asarray(a))
+        h.update(f"{name}|{blob.dtype}|{blob.shape}|".encode())
+        h.update(blob.data)
+    return h.hexdigest()[:16]

@@ -10,6 +10,7 @@ Federation topics live under ``fedrl/<run>/``; rig topics under ``qube/<rig>/``:
 | ``fedrl/<run>/chief/start`` | chief | RunStart |
 | ``fedrl/<run>/chief/aggregate`` | chief | ChiefAggregate |
 | ``fedrl/<run>/chief/transfer`` | chief | ChiefTransfer |
+| ``fedrl/<run>/chief/ack`` | chief | ChiefAck |
 | ``fedrl/<run>/chief/stop`` | chief | RunStop |
 | ``qube/<rig>/state`` | bridge / qube-sim | QubeState |
 | ``qube/<rig>/action`` | worker | QubeAction |
@@ -60,5 +61,5 @@ def rig(rig_id: str, leaf: str) -> str:
 
 
 HELLO, STATUS, UPDATE = "hello", "status", "update"
-START, AGGREGATE, TRANSFER, STOP = "start", "aggregate", "transfer", "stop"
+START, AGGREGATE, TRANSFER, ACK, STOP = "start", "aggregate", "transfer", "ack", "stop"
 STATE, ACTION, RESET, TELEMETRY = "state", "action", "reset", "telemetry"

@@ -12,18 +12,20 @@ import pytest
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
     MatureParams,
     QubeAction,
     QubeState,
+    Receipt,
     RunStart,
     WorkerHello,
     WorkerStatus,
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress
-from protocol.tensors import TensorBlob, check_spec, pack_arrays, unpack_arrays
+from protocol.tensors import TensorBlob, check_spec, digest, pack_arrays, unpack_arrays
 
 
 def grad(seed: int = 0) -> dict[str, np.ndarray]:
@@ -32,7 +34,8 @@ def grad(seed: int = 0) -> dict[str, np.ndarray]:
 
 
 def update(**over: object) -> WorkerUpdate:
-    fields = dict(worker_id="w0", episode=3, episode_return=20.0, pi=15.5, steps=20, gradient=pack_arrays(grad()))
+    fields = dict(worker_id="w0", episode=3, episode_return=20.0, pi=15.5, recent_returns=[11.0, 20.0], steps=20,
+                  gradient=pack_arrays(grad()))
     fields.update(over)
     return WorkerUpdate(**fields)  # type: ignore[arg-type]
 
@@ -59,7 +62,10 @@ def test_tensor_bytes_are_raw_not_lists() -> None:
     [
         WorkerHello(worker_id="w1", env_id="CartPole-v0", actor_spec={"a": (2, 3)}),
         WorkerStatus(worker_id="w1", state="offline"),
-        MatureParams(worker_id="w1", episode=9, episode_return=200.0, pi=196.0, params=pack_arrays(grad(1))),
+        MatureParams(worker_id="w1", episode=9, episode_return=200.0, pi=196.0, recent_returns=[196.0] * 10,
+                     params=pack_arrays(grad(1)), receipt=Receipt(round=8, applied="transfer", digest="ab", keep=0.5)),
+        update(receipt=Receipt(round=2, applied="missed")),
+        ChiefAck(worker_id="w1", episode=9, accepted=False, reason="not_mature: PI 10"),
         ChiefAggregate(episode=4, gradient=None, weights={}, contributors=["w0"]),
         ChiefAggregate(episode=4, gradient=pack_arrays(grad(2)), weights={"w0": 0.5, "w1": 0.5},
                        contributors=["w0", "w1"]),
@@ -195,3 +201,25 @@ def test_protocol_imports_no_torch_or_gymnasium() -> None:
     code = "import protocol, protocol.mqtt, protocol.cli, protocol.tasks, sys; " \
            "assert 'torch' not in sys.modules and 'gymnasium' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_digest_is_the_same_for_arrays_and_their_blobs() -> None:
+    arrays = grad(4)
+    assert digest(arrays) == digest(pack_arrays(arrays)) == digest(decode(encode(update(gradient=pack_arrays(
+        arrays))), WorkerUpdate).gradient)
+    changed = {**arrays, "net.0.bias": arrays["net.0.bias"] + 1e-7}
+    assert digest(changed) != digest(arrays) and len(digest(arrays)) == 16
+
+
+def test_recent_returns_are_bounded_by_the_pi_window() -> None:
+    assert reason_of(msgpack.packb(raw_update(recent_returns=[1.0] * 11), use_bin_type=True)) == "invalid"
+    assert reason_of(msgpack.packb(raw_update(recent_returns=[]), use_bin_type=True)) == "invalid"
+
+
+def test_the_wire_contract_document_is_up_to_date() -> None:
+    from protocol import contract
+
+    assert contract.DOC.read_text(encoding="utf-8") == contract.markdown(), (
+        "docs/wire-contract.md is out of date: python -m protocol.contract --write")
+    kinds = {p.model_fields["kind"].default for r in contract.ROUTES for p in r.payloads}
+    assert kinds == set(contract.MESSAGE_TYPES), "every message kind has a topic in the contract"

@@ -1,4 +1,4 @@
-"""Federation policy as pure functions over numpy arrays (paper Section IV, made sign-safe).
+"""The federation math every strategy shares, as pure functions over numpy arrays (paper Section IV, sign-safe).
 
 The paper's Eq. 8 (w_n = PI_n / sum PI) and Eq. 10 (w_T = PI / TC) assume non-negative returns. On Acrobot and
 Pendulum (negative returns) they give the worse worker the larger weight and a w_T above 1. We use each worker's
@@ -9,17 +9,16 @@ progress on its env's own scale instead (ARCHITECTURE.md); with R_floor = 0 this
     g_bar      = sum_n w_n g_n                                                      Eq. 9
     w_T        = progress_n                                                         Eq. 10
     theta      = w_T theta + (1 - w_T) theta_bar                                    Eq. 11
+
+Which weights a round uses is the strategy's decision (chief/strategies/); ``weighted`` is the formula above.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Literal
 
 import numpy as np
 
-Policy = Literal["independent", "plain", "weighted"]
-POLICIES: tuple[Policy, ...] = ("independent", "plain", "weighted")
 Arrays = Mapping[str, np.ndarray]
 
 
@@ -32,24 +31,8 @@ def progress(pi: float, tc: float, r_floor: float) -> float:
     return float(np.clip((pi - r_floor) / (tc - r_floor), 0.0, 1.0))
 
 
-def gradient_weights(pis: Mapping[str, float], tc: float, r_floor: float, policy: Policy) -> dict[str, float]:
-    """Eq. 8: each contributor's weight in the shared gradient (``plain``: uniform, the authors' earlier work)."""
-    if not pis:
-        return {}
-    ids = sorted(pis)
-    if policy == "plain":
-        return {i: 1.0 / len(ids) for i in ids}
-    if policy != "weighted":
-        raise ValueError(f"policy {policy!r} shares no gradient")
-    prog = {i: progress(pis[i], tc, r_floor) for i in ids}
-    total = sum(prog.values())
-    if total <= 0.0:
-        return {i: 1.0 / len(ids) for i in ids}
-    return {i: prog[i] / total for i in ids}
-
-
-def weighted_gradient(gradients: Mapping[str, Arrays], weights: Mapping[str, float]) -> dict[str, np.ndarray]:
-    """Eq. 9: g_bar = sum_n w_n g_n, tensor by tensor (all gradients must share names and shapes)."""
+def weighted_sum(gradients: Mapping[str, Arrays], weights: Mapping[str, float]) -> dict[str, np.ndarray]:
+    """Eq. 9: g_bar = sum_n w_n g_n, tensor by tensor in float64 (all gradients must share names and shapes)."""
     if not gradients:
         raise ValueError("no gradients to aggregate")
     ids = sorted(gradients)
@@ -66,15 +49,6 @@ def weighted_gradient(gradients: Mapping[str, Arrays], weights: Mapping[str, flo
             acc += weights[i] * g
         out[name] = acc.astype(np.float32)
     return out
-
-
-def transfer_weight(pi: float, tc: float, r_floor: float, policy: Policy) -> float:
-    """Eq. 10: how much of its own actor a recipient keeps (``plain``: 0, a hard copy of the mature actor)."""
-    if policy == "plain":
-        return 0.0
-    if policy != "weighted":
-        raise ValueError(f"policy {policy!r} transfers no model")
-    return progress(pi, tc, r_floor)
 
 
 def blend(theta: Arrays, theta_bar: Arrays, keep: float) -> dict[str, np.ndarray]:

@@ -1,0 +1,73 @@
+"""What a federation strategy is: its decisions as pure functions over numpy arrays, plus what it promises.
+
+A strategy decides two things of Algorithm 1 (paper Section IV):
+
+- ``aggregate(gradients, progress)``: the round's shared gradient g_bar from the contributors' actor gradients, and
+  the contribution weight of each (Eq. 8-9 for the linear rules; ``None`` for a rule that is not a weighted sum);
+- ``keep_weight(progress)``: w_T, how much of its own actor a recipient keeps when a mature actor arrives (Eq. 10);
+  ``None`` when the strategy transfers nothing.
+
+``progress`` is each worker's sign-safe progress in [0, 1] (chief/federation.py), computed by the round state
+machine from the PIs it accepted. One module per strategy in this package registers one ``Strategy``; nothing else
+in the code base names strategies (the CLI choices, RunStart's validation and the README table come from here).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+Arrays = Mapping[str, np.ndarray]
+
+
+@dataclass(frozen=True)
+class Aggregate:
+    """One round's shared gradient and, for weighted sums, each contributor's weight (summing to 1)."""
+
+    gradient: dict[str, np.ndarray] | None
+    weights: dict[str, float] | None
+
+
+@dataclass(frozen=True)
+class Strategy:
+    """A federation strategy: pure decisions plus the facts the docs and the audit need."""
+
+    name: str
+    summary: str
+    aggregate: Callable[[Mapping[str, Arrays], Mapping[str, float]], Aggregate]
+    keep_weight: Callable[[float], float | None]
+    #: How many of n workers may send arbitrary gradients without taking over a coordinate of g_bar.
+    tolerates: Callable[[int], int]
+    #: One line on what it tolerates and what it does not, for the README table.
+    robustness: str
+
+    @property
+    def shares(self) -> bool:
+        """Whether rounds share anything at all (False: workers learn alone)."""
+        return self.keep_weight(0.0) is not None
+
+
+def no_gradient(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:
+    """Nothing is shared (the ``independent`` baseline)."""
+    return Aggregate(gradient=None, weights=None)
+
+
+def coordinatewise(gradients: Mapping[str, Arrays], rule: Callable[[np.ndarray], np.ndarray]) -> dict[str, np.ndarray]:
+    """Apply ``rule`` (stacked contributions, axis 0 = worker -> one array) to each named tensor.
+
+    Contributions are stacked in float64 in sorted worker order; the result is float32 like every actor tensor.
+    """
+    if not gradients:
+        raise ValueError("no gradients to aggregate")
+    ids = sorted(gradients)
+    names = sorted(gradients[ids[0]])
+    out: dict[str, np.ndarray] = {}
+    for name in names:
+        shapes = {np.shape(gradients[i][name]) for i in ids}
+        if len(shapes) != 1:
+            raise ValueError(f"gradient {name} has different shapes across workers: {sorted(shapes)}")
+        stack = np.stack([np.asarray(gradients[i][name], dtype=np.float64) for i in ids])
+        out[name] = rule(stack).astype(np.float32)
+    return out

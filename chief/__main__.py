@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from chief import strategies
 from chief.service import ChiefConfig, ChiefService
 from protocol.cli import add_common, add_run_options, broker_from, env, parse_checked, run_service, setup_logging
 
@@ -21,7 +22,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     add_common(parser)
     parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),
                         help="number of workers to wait for (env FEDRL_WORKERS, default 4)")
-    add_run_options(parser)
+    add_run_options(parser, strategies.names())
     parser.add_argument("--start-timeout", type=float, default=float(env("FEDRL_START_TIMEOUT", "300")),
                         help="seconds to wait for all workers before starting with those present "
                         "(env FEDRL_START_TIMEOUT, default 300)")

@@ -1,5 +1,6 @@
-"""The run folder: ``metrics.jsonl`` (one line per worker episode and per round), ``summary.json`` and
-``learning_curve.png`` (each worker's last-10 average return against episodes, TC dotted, like the paper's Fig. 5)."""
+"""The run folder: ``metrics.jsonl`` (one line per accepted worker episode and per round: the records
+``python -m chief.audit`` re-checks), ``summary.json`` and ``learning_curve.png`` (each worker's last-10 average
+return against episodes, TC dotted, like the paper's Fig. 5)."""
 
 from __future__ import annotations
 
@@ -7,6 +8,8 @@ import json
 import logging
 from pathlib import Path
 from typing import Any, TextIO
+
+from chief.rounds import RoundKeeper
 
 log = logging.getLogger(__name__)
 
@@ -20,10 +23,10 @@ class MetricsLog:
         self._file: TextIO = self.path.open("w", encoding="utf-8")
         self.curves: dict[str, list[tuple[int, float]]] = {}
 
-    def episode(self, worker_id: str, episode: int, ret: float, pi: float, steps: int, t: float, kind: str) -> None:
-        self.curves.setdefault(worker_id, []).append((episode, pi))
-        self._write({"type": "episode", "worker": worker_id, "episode": episode, "return": ret, "pi": pi,
-                     "steps": steps, "t": round(t, 3), "kind": kind})
+    def episode(self, record: dict[str, Any]) -> None:
+        """An accepted submission (``type: episode``); only what the chief counted is written."""
+        self.curves.setdefault(record["worker"], []).append((record["episode"], record["pi"]))
+        self._write(record)
 
     def round(self, record: dict[str, Any]) -> None:
         self._write({"type": "round", **record})
@@ -34,6 +37,36 @@ class MetricsLog:
 
     def close(self) -> None:
         self._file.close()
+
+
+def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]:
+    """summary.json: the task, the strategy, each worker's result (episodes and env steps until it solved, or so
+    far), the last worker's episodes and steps, and ``meta`` (run id, seed, wall time, broker, reject counts)."""
+    workers = []
+    for index, (w, rec) in enumerate(keeper.workers.items()):
+        solved = rec.state == "finished"
+        workers.append({"id": w, "index": index, "solved": solved,
+                        "episodes": rec.solved_episode if solved else rec.last_episode,
+                        "steps": rec.steps_at_solve if solved else rec.steps,
+                        "final_pi": rec.pi, "state": rec.state})
+    all_solved = all(w["solved"] for w in workers)
+    last = max(workers, key=lambda x: (x["episodes"], x["steps"]))
+    return {
+        "run_id": meta.pop("run_id", ""),
+        "env": keeper.task.env_id,
+        "policy": keeper.policy,
+        "seed": meta.pop("seed", None),
+        "tc": keeper.tc,
+        "r_floor": keeper.r_floor,
+        "max_episodes": keeper.max_episodes,
+        "workers": workers,
+        "episodes_to_all_solved": last["episodes"] if all_solved else None,
+        "steps_of_last_worker": last["steps"] if all_solved else None,
+        "total_steps": sum(rec.steps for rec in keeper.workers.values()),
+        "rounds": keeper.episode - 1,
+        "end_reason": reason,
+        **meta,
+    }
 
 
 def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:

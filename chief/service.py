@@ -1,5 +1,6 @@
-"""The chief's MQTT adapter: decode and validate what workers send, feed the RoundKeeper, publish its outcomes,
-print live progress and write the run folder. All federation decisions live in rounds.py / federation.py."""
+"""The chief's MQTT adapter: decode what workers send, hand it to the Roster and the RoundKeeper, publish their
+answers, print live progress and write the run folder. It decides nothing: admission is roster.py's, every
+federation decision rounds.py's and the strategies'."""
 
 from __future__ import annotations
 
@@ -11,15 +12,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chief.report import MetricsLog, plot_learning_curves, write_summary
-from chief.rounds import RoundKeeper, RoundOutcome, Submission
+from chief import strategies
+from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
+from chief.roster import Roster
+from chief.rounds import RoundKeeper, RoundOutcome, Submission, Verdict
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
     MatureParams,
-    Policy,
     RunStart,
     RunStop,
     WorkerHello,
@@ -28,7 +31,7 @@ from protocol.messages import (
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import task
-from protocol.tensors import check_spec, pack_arrays, unpack_arrays
+from protocol.tensors import pack_arrays, unpack_arrays
 
 log = logging.getLogger("chief")
 
@@ -41,7 +44,7 @@ class ChiefConfig:
     run_id: str = "default"
     workers: int = 4
     env_id: str = "CartPole-v0"
-    policy: Policy = "weighted"
+    policy: str = "weighted"
     seed: int = 1
     max_episodes: int = 2000
     round_timeout: float = 30.0
@@ -57,11 +60,11 @@ class ChiefService:
     def __init__(self, cfg: ChiefConfig) -> None:
         self.cfg = cfg
         self.spec = task(cfg.env_id)
+        strategies.get(cfg.policy)  # a ValueError (exit 2) for an unknown policy before anything starts
         topics.check_id(cfg.run_id, "run id")
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
-        self.hellos: dict[str, WorkerHello] = {}
-        self.actor_spec: dict[str, tuple[int, ...]] | None = None
+        self.roster = Roster(cfg.env_id)
         self.keeper: RoundKeeper | None = None
         self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-chief")
         self.metrics = MetricsLog(cfg.run_dir)
@@ -98,8 +101,8 @@ class ChiefService:
             if not workers:
                 log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
                 return EXIT_NO_WORKERS
-            self.keeper = RoundKeeper(workers, cfg.policy, self.spec.tc, self.spec.r_floor, cfg.max_episodes,
-                                      cfg.round_timeout)
+            self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
+                                      actor_spec=self.roster.actor_spec)
             self._announce()
             self._federate()
             self._finish()
@@ -110,31 +113,28 @@ class ChiefService:
 
     def _gather_workers(self) -> list[str]:
         deadline = time.monotonic() + self.cfg.start_timeout
-        while len(self.hellos) < self.cfg.workers and time.monotonic() < deadline:
+        while len(self.roster.workers) < self.cfg.workers and time.monotonic() < deadline:
             try:
                 kind, msg = self.events.get(timeout=0.2)
             except queue.Empty:
                 continue
             if kind == "hello":
                 self._register(msg)
-        if 0 < len(self.hellos) < self.cfg.workers:
-            log.warning("only %d of %d workers arrived within %.0f s; starting with them", len(self.hellos),
+        if 0 < len(self.roster.workers) < self.cfg.workers:
+            log.warning("only %d of %d workers arrived within %.0f s; starting with them", len(self.roster.workers),
                         self.cfg.workers, self.cfg.start_timeout)
-        return sorted(self.hellos)
+        self.roster.started = True
+        return self.roster.workers
 
-    def _register(self, hello: WorkerHello) -> None:
-        topic = topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO)
-        if hello.env_id != self.cfg.env_id:
-            self.rejects.reject(topic, "wrong_env", f"worker runs {hello.env_id!r}, this run is {self.cfg.env_id!r}")
-            return
-        if self.actor_spec is None:
-            self.actor_spec = dict(hello.actor_spec)
-        elif dict(hello.actor_spec) != self.actor_spec:
-            self.rejects.reject(topic, "wrong_model", "actor shape differs from the other workers'")
-            return
-        if hello.worker_id not in self.hellos:
+    def _register(self, hello: WorkerHello) -> bool:
+        new = hello.worker_id not in self.roster.hosts
+        refused = self.roster.offer(hello.worker_id, hello.env_id, dict(hello.actor_spec), hello.host)
+        if refused is not None:
+            self.rejects.reject(topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO), *refused)
+            return False
+        if new:
             log.info("worker %s joined from %s (pid %d)", hello.worker_id, hello.host or "?", hello.pid)
-        self.hellos[hello.worker_id] = hello
+        return True
 
     def _announce(self) -> None:
         assert self.keeper is not None
@@ -171,12 +171,8 @@ class ChiefService:
         assert keeper is not None
         now = time.monotonic()
         if kind == "hello":
-            if msg.worker_id in keeper.workers:
-                self._register(msg)
+            if self._register(msg):
                 self._announce()  # a restarted worker learns the run and the open round
-            else:
-                self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, topics.HELLO), "late_worker",
-                                    "the run has started without this worker")
             return []
         if msg.worker_id not in keeper.workers:
             self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, kind), "unknown_worker",
@@ -185,25 +181,32 @@ class ChiefService:
         if kind == "status":
             if msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
-                return keeper.mark_offline(msg.worker_id, now)
-            if msg.state == "finished" and keeper.workers[msg.worker_id].state != "finished":
-                # Its mature actor was lost (e.g. the broker restarted as it was sent): it leaves without a transfer.
-                log.warning("worker %s finished at episode %d but its mature actor never arrived", msg.worker_id,
-                            msg.episode)
-                return keeper.mark_finished(msg.worker_id, msg.episode, msg.pi or self.spec.tc, now)
-            return []
-        tensors = msg.gradient if kind == "update" else msg.params
-        try:
-            check_spec(tensors, self.actor_spec or {}, f"{kind} from {msg.worker_id}")
-        except ValueError as err:
-            self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, topics.UPDATE), "wrong_shape", str(err))
-            return []
-        arrays = unpack_arrays(tensors)
-        sub = Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return,
-                         gradient=arrays if kind == "update" else None, params=arrays if kind == "mature" else None)
-        self.metrics.episode(msg.worker_id, msg.episode, msg.episode_return, msg.pi, msg.steps,
-                             now - self.t0, kind)
-        return keeper.submit(sub, now)
+            return keeper.note_status(msg.worker_id, msg.state, now)
+        verdict = keeper.submit(self._submission(kind, msg), now)
+        self._answer(verdict, now)
+        return verdict.outcomes
+
+    @staticmethod
+    def _submission(kind: str, msg: WorkerUpdate | MatureParams) -> Submission:
+        arrays = unpack_arrays(msg.gradient if isinstance(msg, WorkerUpdate) else msg.params)
+        return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return,
+                          recent_returns=tuple(msg.recent_returns), steps=msg.steps,
+                          gradient=arrays if kind == "update" else None, params=arrays if kind == "mature" else None,
+                          receipt=msg.receipt.model_dump() if msg.receipt is not None else None)
+
+    def _answer(self, verdict: Verdict, now: float) -> None:
+        """Record what was accepted, count what was not, and acknowledge mature actors."""
+        sub = verdict.submission
+        assert sub is not None
+        topic = topics.worker(self.cfg.run_id, sub.worker_id, topics.UPDATE)
+        if verdict.status == "accepted":
+            self.metrics.episode(verdict.record(now - self.t0))
+        else:
+            self.rejects.reject(topic, verdict.reason, f"{sub.kind} for episode {sub.episode}: {verdict.detail}")
+        if verdict.ack is not None:
+            ack = verdict.ack
+            self.conn.publish(topics.chief(self.cfg.run_id, topics.ACK), encode(ChiefAck(
+                worker_id=ack.worker_id, episode=ack.episode, accepted=ack.accepted, reason=ack.reason)), qos=1)
 
     def _publish(self, outcome: RoundOutcome) -> None:
         run = self.cfg.run_id
@@ -213,21 +216,19 @@ class ChiefService:
                 episode=outcome.episode, source_worker=outcome.source_worker, source_pi=float(outcome.source_pi or 0),
                 params=pack_arrays(outcome.params), keep_weights=outcome.keep_weights, finished=outcome.finished)
             topic = topics.chief(run, topics.TRANSFER)
-            log.info("round %d: %s finished (PI %.1f); transferring its actor to %s", outcome.episode,
-                     ", ".join(outcome.finished), outcome.source_pi or 0, sorted(outcome.keep_weights))
+            log.info("round %d: %s finished (PI %.1f); transferring %s's actor to %s", outcome.episode,
+                     ", ".join(outcome.finished), outcome.source_pi or 0, outcome.source_worker,
+                     ", ".join(f"{w} (keep {k:.3f})" for w, k in outcome.keep_weights.items()))
         else:
             msg = ChiefAggregate(episode=outcome.episode,
                                  gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
                                  weights=outcome.weights, contributors=outcome.contributors)
             topic = topics.chief(run, topics.AGGREGATE)
             if outcome.finished:
-                log.info("round %d: %s finished (no transfer under %s)", outcome.episode,
-                         ", ".join(outcome.finished), self.cfg.policy)
+                log.info("round %d: %s finished (no transfer: %s)", outcome.episode, ", ".join(outcome.finished),
+                         "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
         self.conn.publish(topic, encode(msg), qos=1)
-        self.metrics.round({"round": outcome.episode, "kind": outcome.kind, "contributors": outcome.contributors,
-                            "weights": outcome.weights, "keep_weights": outcome.keep_weights,
-                            "finished": outcome.finished, "source": outcome.source_worker,
-                            "timed_out": outcome.timed_out, "t": round(time.monotonic() - self.t0, 3)})
+        self.metrics.round({**outcome.record(), "t": round(time.monotonic() - self.t0, 3)})
 
     def _progress(self, now: float, force: bool = False) -> None:
         if not force and now - self._last_progress < self.cfg.progress_interval:
@@ -267,27 +268,7 @@ class ChiefService:
     def summary(self, reason: str, all_solved: bool, rounds: int) -> dict[str, Any]:
         keeper = self.keeper
         assert keeper is not None
-        workers = []
-        for index, (w, rec) in enumerate(keeper.workers.items()):
-            solved = rec.state == "finished"
-            workers.append({"id": w, "index": index, "solved": solved,
-                            "episodes": rec.solved_episode if solved else rec.last_episode,
-                            "final_pi": rec.pi, "state": rec.state})
-        return {
-            "run_id": self.cfg.run_id,
-            "env": self.cfg.env_id,
-            "policy": self.cfg.policy,
-            "seed": self.cfg.seed,
-            "tc": self.spec.tc,
-            "r_floor": self.spec.r_floor,
-            "max_episodes": self.cfg.max_episodes,
-            "workers": workers,
-            "episodes_to_all_solved": max(w["episodes"] for w in workers) if all_solved else None,
-            "rounds": rounds,
-            "end_reason": reason,
-            "wall_s": round(time.monotonic() - self.t0, 2),
-            "finished_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-            "broker": str(self.cfg.broker),
-            "rejected_messages": self.rejects.as_dict(),
-            "stale_submissions": keeper.stale,
-        }
+        return run_summary(keeper, reason, run_id=self.cfg.run_id, seed=self.cfg.seed,
+                           wall_s=round(time.monotonic() - self.t0, 2),
+                           finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+                           broker=str(self.cfg.broker), rejected_messages=self.rejects.as_dict())

@@ -13,12 +13,15 @@ import msgpack
 import numpy as np
 import pytest
 
+from chief.audit import audit
 from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import (
+    ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
     MatureParams,
+    Receipt,
     RunStart,
     RunStop,
     WorkerHello,
@@ -26,7 +29,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.tensors import pack_arrays, unpack_arrays
+from protocol.tensors import digest, pack_arrays, unpack_arrays
 
 RUN = "t1"
 SPEC = {"w": (2,)}
@@ -71,14 +74,42 @@ class ScriptedWorkers:
                 return msg
 
 
-def update(worker: str, episode: int, pi: float, grad: list[float]) -> WorkerUpdate:
-    return WorkerUpdate(worker_id=worker, episode=episode, episode_return=pi, pi=pi, steps=10,
-                        gradient=pack_arrays({"w": np.array(grad, np.float32)}))
+HISTORY: dict[str, list[float]] = {}
 
 
-def mature(worker: str, episode: int, pi: float, params: list[float]) -> MatureParams:
-    return MatureParams(worker_id=worker, episode=episode, episode_return=pi, pi=pi,
-                        params=pack_arrays({"w": np.array(params, np.float32)}))
+def _recent(worker: str, episode: int, ret: float) -> tuple[list[float], float]:
+    """The worker's returns so far (as a real worker keeps them), its recent window and PI."""
+    history = HISTORY.setdefault(worker, [])
+    if episode == 1:
+        history.clear()
+    history.append(ret)
+    recent = history[-10:]
+    return recent, sum(recent) / len(recent)
+
+
+def receipt(answer: ChiefAggregate | ChiefTransfer | None, worker: str) -> Receipt | None:
+    """What a real worker reports having applied."""
+    if answer is None:
+        return None
+    if isinstance(answer, ChiefTransfer):
+        return Receipt(round=answer.episode, applied="transfer", digest=digest(answer.params),
+                       keep=answer.keep_weights.get(worker))
+    return Receipt(round=answer.episode, applied="aggregate",
+                   digest=digest(answer.gradient) if answer.gradient is not None else "")
+
+
+def update(worker: str, episode: int, ret: float, grad: list[float], after: object = None) -> WorkerUpdate:
+    recent, pi = _recent(worker, episode, ret)
+    return WorkerUpdate(worker_id=worker, episode=episode, episode_return=ret, pi=pi, recent_returns=recent,
+                        steps=10, gradient=pack_arrays({"w": np.array(grad, np.float32)}),
+                        receipt=receipt(after, worker))  # type: ignore[arg-type]
+
+
+def mature(worker: str, episode: int, ret: float, params: list[float], after: object = None) -> MatureParams:
+    recent, pi = _recent(worker, episode, ret)
+    return MatureParams(worker_id=worker, episode=episode, episode_return=ret, pi=pi, recent_returns=recent,
+                        steps=10, params=pack_arrays({"w": np.array(params, np.float32)}),
+                        receipt=receipt(after, worker))  # type: ignore[arg-type]
 
 
 def test_chief_federates_rejects_bad_input_and_reports(any_broker: str, tmp_path: Path) -> None:
@@ -100,21 +131,47 @@ def test_chief_federates_rejects_bad_input_and_reports(any_broker: str, tmp_path
         # Round 1: Eq. 8-9 with PIs 50 and 150 -> weights 0.25 / 0.75.
         fake.send("w0", update("w0", 1, 50.0, [1.0, 2.0]))
         fake.send("w1", update("w1", 1, 150.0, [3.0, -2.0]))
-        agg = fake.expect(ChiefAggregate)
-        assert agg.episode == 1 and agg.weights == pytest.approx({"w0": 0.25, "w1": 0.75})
-        np.testing.assert_allclose(unpack_arrays(agg.gradient)["w"], [2.5, -1.0])
+        answer = fake.expect(ChiefAggregate)
+        assert answer.episode == 1 and answer.weights == pytest.approx({"w0": 0.25, "w1": 0.75})
+        np.testing.assert_allclose(unpack_arrays(answer.gradient)["w"], [2.5, -1.0])
 
-        # Round 2: w1 finishes, w0 gets its actor with w_T = 97.5 / 195 = 0.5.
-        fake.send("w0", update("w0", 2, 97.5, [1.0, 1.0]))
-        fake.send("w1", mature("w1", 2, 196.0, [4.0, 4.0]))
-        tr = fake.expect(ChiefTransfer)
-        assert tr.source_worker == "w1" and tr.keep_weights == pytest.approx({"w0": 0.5})
-        np.testing.assert_array_equal(unpack_arrays(tr.params)["w"], [4.0, 4.0])
+        # Rounds 2-9: w0 ends at PI 97.5, w1 at the top; a repeated update is not counted twice.
+        for e in range(2, 10):
+            mine = update("w0", e, 145.0 if e == 2 else 97.5, [1.0, 1.0], after=answer)
+            fake.send("w0", mine)
+            if e == 2:
+                fake.send("w0", mine)  # duplicate
+            fake.send("w1", update("w1", e, 200.0, [1.0, 1.0], after=answer))
+            answer = fake.expect(ChiefAggregate)
+            assert answer.episode == e
+        # A PI 10 claimed mature is refused, and acknowledged as refused.
+        liar = MatureParams(worker_id="w0", episode=10, episode_return=10.0, pi=10.0, recent_returns=[10.0],
+                            params=pack_arrays({"w": np.array([0.0, 0.0], np.float32)}))
+        fake.send("w0", liar)
+        nack = fake.expect(ChiefAck)
+        assert nack.worker_id == "w0" and not nack.accepted and "not_mature" in nack.reason
 
-        # Round 3: w0 finishes too; the run ends.
-        fake.send("w0", mature("w0", 3, 199.0, [5.0, 5.0]))
+        # Round 10: w1 finishes (PI 195 over 10 episodes) and says so at once: its pending actor must survive.
+        finish = mature("w1", 10, 200.0, [4.0, 4.0], after=answer)
+        fake.send("w1", finish)
+        fake.send("w1", WorkerStatus(worker_id="w1", state="finished", episode=10, pi=195.0), topics.STATUS)
+        ack = fake.expect(ChiefAck)
+        assert (ack.worker_id, ack.episode, ack.accepted) == ("w1", 10, True)
+        fake.send("w0", update("w0", 10, 97.5, [1.0, 1.0], after=answer))
+        answer = fake.expect(ChiefTransfer)
+        assert answer.episode == 10 and answer.source_worker == "w1"
+        assert answer.keep_weights == pytest.approx({"w0": 0.5})  # Eq. 10: 97.5 / 195
+        np.testing.assert_array_equal(unpack_arrays(answer.params)["w"], [4.0, 4.0])
+        fake.send("w1", finish)  # sent again (say the ack was lost): acknowledged again, counted once
+        assert fake.expect(ChiefAck).accepted
+
+        # w0 finishes after ten episodes of 200; the run ends.
+        for e in range(11, 20):
+            fake.send("w0", update("w0", e, 200.0, [1.0, 1.0], after=answer))
+            answer = fake.expect(ChiefAggregate)
+        fake.send("w0", mature("w0", 20, 200.0, [5.0, 5.0], after=answer))
         stop = fake.expect(RunStop)
-        assert stop.all_solved and stop.episodes == 3
+        assert stop.all_solved and stop.episodes == 20
         assert chief.wait(timeout=20) == 0
     finally:
         fake.conn.stop()
@@ -122,13 +179,15 @@ def test_chief_federates_rejects_bad_input_and_reports(any_broker: str, tmp_path
             chief.kill()
     out = chief.stdout.read() if chief.stdout else ""
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert summary["episodes_to_all_solved"] == 3
-    assert [(w["id"], w["solved"], w["episodes"]) for w in summary["workers"]] == [("w0", True, 3), ("w1", True, 2)]
+    assert summary["episodes_to_all_solved"] == 20
+    assert [(w["id"], w["solved"], w["episodes"]) for w in summary["workers"]] == [("w0", True, 20), ("w1", True, 10)]
     assert summary["rejected_messages"] == {"malformed": 1, "version": 1, "invalid": 1, "wrong_shape": 1,
-                                            "spoofed": 1}, out
+                                            "spoofed": 1, "duplicate": 2, "not_mature": 1}, out
     lines = [json.loads(x) for x in (tmp_path / "run" / "metrics.jsonl").read_text().splitlines()]
-    assert sum(1 for x in lines if x["type"] == "episode") == 5
+    assert sum(1 for x in lines if x["type"] == "episode") == 30  # only what was counted
     assert (tmp_path / "run" / "learning_curve.png").stat().st_size > 1000
+    report = audit(tmp_path / "run")
+    assert report.transfers == 1 and report.receipts == 28
 
 
 def test_chief_goes_on_without_a_silent_worker(amqtt_broker: str, tmp_path: Path) -> None:
@@ -142,13 +201,16 @@ def test_chief_goes_on_without_a_silent_worker(amqtt_broker: str, tmp_path: Path
         assert agg.contributors == ["w0", "w1"]
         # w1 dies: its last will (here sent by hand) takes it out of the round at once.
         fake.send("w1", WorkerStatus(worker_id="w1", state="offline"), topics.STATUS)
-        fake.send("w0", update("w0", 2, 10.0, [1.0, 1.0]))
-        agg2 = fake.expect(ChiefAggregate, timeout=10)
-        assert agg2.episode == 2 and agg2.contributors == ["w0"]
-        # The lagging w2 and the returning w1 submit for the open round, so it waits for them again.
-        fake.send("w2", mature("w2", 3, 196.0, [1.0, 1.0]))
-        fake.send("w1", mature("w1", 3, 197.0, [1.0, 1.0]))
-        fake.send("w0", mature("w0", 3, 198.0, [1.0, 1.0]))
+        for e in range(2, 11):
+            fake.send("w0", update("w0", e, 200.0, [1.0, 1.0]))
+            agg = fake.expect(ChiefAggregate, timeout=10)
+            assert agg.episode == e and agg.contributors == ["w0"]
+        # The lagging w2 and the returning w1 submit for the open round, so it waits for them again. (Their
+        # episodes 2-10 never reached the chief; their mature PIs cover episodes 2-11.)
+        HISTORY["w1"], HISTORY["w2"] = [10.0] + [200.0] * 9, [200.0] * 9
+        fake.send("w2", mature("w2", 11, 200.0, [1.0, 1.0]))
+        fake.send("w1", mature("w1", 11, 200.0, [1.0, 1.0]))
+        fake.send("w0", mature("w0", 11, 200.0, [1.0, 1.0]))
         assert fake.expect(RunStop, timeout=10).all_solved
         assert chief.wait(timeout=20) == 0
     finally:
@@ -156,4 +218,4 @@ def test_chief_goes_on_without_a_silent_worker(amqtt_broker: str, tmp_path: Path
         if chief.poll() is None:
             chief.kill()
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
-    assert summary["episodes_to_all_solved"] == 3
+    assert summary["episodes_to_all_solved"] == 11

@@ -1,0 +1,37 @@
+"""Who takes part in a run: the chief admits workers by their hello (pure code, no MQTT).
+
+A worker is admitted when it runs the run's env and its actor has the same tensor names and shapes as the first
+admitted worker's (Eq. 9 and Eq. 11 need aligned parameters). Once the run has started, only its workers may
+say hello again (a restarted worker, which then learns the open round from the re-announced RunStart).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Roster:
+    env_id: str
+    started: bool = False
+    actor_spec: dict[str, tuple[int, ...]] | None = None
+    hosts: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def workers(self) -> list[str]:
+        return sorted(self.hosts)
+
+    def offer(self, worker_id: str, env_id: str, actor_spec: dict[str, tuple[int, ...]],
+              host: str = "") -> tuple[str, str] | None:
+        """Admit (or re-admit) a worker; returns (reason, detail) when it is turned away."""
+        if self.started and worker_id not in self.hosts:
+            return "late_worker", "the run has started without this worker"
+        if env_id != self.env_id:
+            return "wrong_env", f"worker runs {env_id!r}, this run is {self.env_id!r}"
+        spec = {k: tuple(v) for k, v in actor_spec.items()}
+        if self.actor_spec is None:
+            self.actor_spec = spec
+        elif spec != self.actor_spec:
+            return "wrong_model", "actor shape differs from the other workers'"
+        self.hosts[worker_id] = host
+        return None

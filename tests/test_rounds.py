@@ -1,0 +1,304 @@
+"""Algorithm 1's round state machine: rounds, the finish path, and what a worker's word is (not) taken for."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from chief.rounds import AHEAD_WINDOW, RoundKeeper, Submission, Verdict
+from protocol.tasks import PI_WINDOW, performance_index, task
+
+CARTPOLE = task("CartPole-v0")
+SPEC = {"g": (1,)}
+
+
+class Fake:
+    """One honest worker's submissions: its returns so far decide recent_returns and PI, as worker/service.py does."""
+
+    def __init__(self, worker_id: str) -> None:
+        self.id = worker_id
+        self.returns: list[float] = []
+
+    def sub(self, episode: int, ret: float, gv: float = 1.0, mature: bool = False) -> Submission:
+        self.returns.append(ret)
+        recent = tuple(self.returns[-PI_WINDOW:])
+        tensors = {"g": np.array([gv], np.float32)}
+        return Submission(self.id, episode, performance_index(self.returns), ret, recent_returns=recent, steps=int(ret),
+                          gradient=None if mature else tensors, params=tensors if mature else None)
+
+
+def keeper(workers: list[str], policy: str = "weighted", max_episodes: int = 100, timeout: float = 10.0
+           ) -> RoundKeeper:
+    return RoundKeeper(workers, policy, CARTPOLE, max_episodes=max_episodes, round_timeout=timeout, actor_spec=SPEC)
+
+
+def fakes(*ids: str) -> dict[str, Fake]:
+    return {i: Fake(i) for i in ids}
+
+
+def outcomes(v: Verdict) -> list:
+    assert v.status == "accepted", (v.reason, v.detail)
+    return v.outcomes
+
+
+def mature_after(f: Fake, first: int, k: RoundKeeper, now: float = 0.0, ret: float = 200.0) -> Submission:
+    """Feed ``f`` honest updates of ``ret`` until it can hand over a mature actor (the caller submits that)."""
+    episode = first
+    while len(f.returns) < PI_WINDOW - 1:
+        k.submit(f.sub(episode, ret), now)
+        episode += 1
+    return f.sub(episode, ret, mature=True)
+
+
+def test_round_closes_when_all_have_submitted() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    assert outcomes(k.submit(w["w0"].sub(1, 50.0, 1.0), now=0.0)) == []
+    assert k.waiting_for() == ["w1"]
+    [out] = outcomes(k.submit(w["w1"].sub(1, 150.0, 3.0), now=0.1))
+    assert (out.kind, out.episode, out.contributors) == ("aggregate", 1, ["w0", "w1"])
+    assert out.pis == {"w0": 50.0, "w1": 150.0} and out.strategy == "weighted"
+    assert out.weights == pytest.approx({"w0": 0.25, "w1": 0.75})  # Eq. 8
+    np.testing.assert_allclose(out.gradient["g"], [0.25 + 2.25])  # Eq. 9
+    assert k.episode == 2 and not k.done
+
+
+def test_a_finished_status_never_drops_the_pending_mature_actor() -> None:
+    """The race the review found: MatureParams is pending in the open round when the `finished` status arrives."""
+    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+    for e in range(1, PI_WINDOW):
+        for f in w.values():
+            k.submit(f.sub(e, 100.0 if f.id != "w0" else 200.0), now=0.0)
+    verdict = k.submit(w["w0"].sub(PI_WINDOW, 200.0, gv=7.0, mature=True), now=1.0)
+    assert verdict.status == "accepted" and verdict.ack is not None and verdict.ack.accepted
+    assert k.note_status("w0", "finished", now=1.1) == []  # only news
+    assert k.note_status("w0", "offline", now=1.2) == []  # gone, but its mature actor still counts
+    k.submit(w["w1"].sub(PI_WINDOW, 100.0), now=1.3)
+    [out] = outcomes(k.submit(w["w2"].sub(PI_WINDOW, 100.0), now=1.4))
+    assert out.kind == "transfer" and out.source_worker == "w0" and out.finished == ["w0"]
+    np.testing.assert_array_equal(out.params["g"], [7.0])
+    assert out.keep_weights == pytest.approx({"w1": 100 / 195, "w2": 100 / 195})  # Eq. 10 of each recipient's PI
+    assert out.recipient_pis == {"w1": 100.0, "w2": 100.0}
+    assert k.workers["w0"].state == "finished" and k.workers["w0"].solved_episode == PI_WINDOW
+
+
+def test_a_repeated_mature_actor_is_acknowledged_again_and_counted_once() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    m = mature_after(w["w0"], 1, k)
+    for e in range(1, PI_WINDOW):
+        k.submit(w["w1"].sub(e, 20.0), now=0.0)
+    assert k.submit(m, now=1.0).status == "accepted"
+    again = k.submit(m, now=2.0)  # the worker missed the first ack and sent it again
+    assert again.status == "duplicate" and again.ack is not None and again.ack.accepted and again.outcomes == []
+    [out] = outcomes(k.submit(w["w1"].sub(PI_WINDOW, 20.0), now=3.0))
+    assert out.contributors == ["w0", "w1"] and out.kind == "transfer"
+    late = k.submit(m, now=4.0)  # even after its round closed
+    assert late.status == "duplicate" and late.ack is not None and late.ack.accepted
+
+
+def test_a_repeated_update_is_counted_once() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    first = w["w0"].sub(1, 10.0, gv=1.0)
+    k.submit(first, now=0.0)
+    assert k.submit(first, now=0.1).status == "duplicate"
+    [out] = outcomes(k.submit(w["w1"].sub(1, 30.0, gv=3.0), now=0.2))
+    assert out.contributors == ["w0", "w1"] and out.weights == pytest.approx({"w0": 0.25, "w1": 0.75})
+
+
+def test_a_mature_actor_needs_pi_at_tc_over_the_whole_window() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    short = w["w0"].sub(1, 200.0, mature=True)  # PI 200, but over one episode
+    v = k.submit(short, now=0.0)
+    assert (v.status, v.reason) == ("rejected", "not_mature") and v.ack is not None and not v.ack.accepted
+    assert "over 1 episodes" in v.ack.reason
+    # Refused, it does not occupy the slot: the worker learns on and sends the update for that episode.
+    w["w0"].returns.pop()
+    assert k.submit(w["w0"].sub(1, 200.0), now=0.1).status == "accepted"
+    low = Fake("w1")
+    low.returns = [10.0] * (PI_WINDOW - 1)
+    v = k.submit(low.sub(1, 10.0, mature=True), now=0.2)  # PI 10 claimed mature
+    assert v.reason == "not_mature"
+
+
+@pytest.mark.parametrize(("change", "reason"), [
+    (dict(pi=199.0), "pi_mismatch"),  # PI is not the mean of the returns it came with
+    (dict(episode_return=55.0), "inconsistent"),  # the episode's return is not the last recent return
+    (dict(recent_returns=(1e9,), episode_return=1e9, pi=1e9), "absurd_return"),
+    (dict(recent_returns=(float("inf"),), episode_return=float("inf"), pi=float("inf")), "absurd_return"),
+    (dict(recent_returns=()), "invalid"),
+    (dict(gradient={"g": np.zeros(3, np.float32)}), "wrong_shape"),
+    (dict(episode=1_000_000_000), "out_of_window"),
+    (dict(worker_id="zz"), "unknown_worker"),
+])
+def test_lies_and_nonsense_are_refused_and_change_nothing(change: dict, reason: str) -> None:
+    from dataclasses import replace
+
+    k = keeper(["w0"])
+    honest = Fake("w0").sub(1, 20.0)
+    v = k.submit(replace(honest, **change), now=0.0)
+    assert (v.status, v.reason) == ("rejected", reason), v.detail
+    assert k.episode == 1 and not k.done and k.pending == {} and k.ahead == {} and k.counted == set()
+
+
+def test_returns_must_agree_with_what_the_worker_said_before() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    for e in range(1, PI_WINDOW):
+        k.submit(w["w0"].sub(e, 20.0), now=0.0)
+        k.submit(w["w1"].sub(e, 20.0), now=0.0)
+    liar = Fake("w0")
+    liar.returns = [200.0] * (PI_WINDOW - 1)  # rewrites history to look mature
+    v = k.submit(liar.sub(PI_WINDOW, 200.0, mature=True), now=1.0)
+    assert v.reason == "inconsistent" and "reported as 20.0" in v.detail
+
+
+def test_episode_one_billion_does_not_end_the_run() -> None:
+    k, w = keeper(["w0", "w1"], max_episodes=2000), fakes("w0", "w1")
+    assert k.submit(w["w0"].sub(1_000_000_000, 20.0), now=0.0).reason == "out_of_window"
+    assert k.submit(w["w0"].sub(1 + AHEAD_WINDOW + 1, 20.0), now=0.0).reason == "out_of_window"
+    assert not k.done and k.episode == 1
+    # The window is the open round up to AHEAD_WINDOW rounds ahead, and never past M.
+    assert k.submit(w["w1"].sub(1 + AHEAD_WINDOW, 20.0), now=0.0).status == "accepted"
+    short = keeper(["w0"], max_episodes=3)
+    assert short.submit(Fake("w0").sub(4, 20.0), now=0.0).reason == "out_of_window"
+
+
+def test_silent_worker_times_out_and_is_not_waited_on_again() -> None:
+    k, w = keeper(["w0", "w1", "w2"], timeout=10.0), fakes("w0", "w1", "w2")
+    k.submit(w["w0"].sub(1, 10.0), now=0.0)
+    k.submit(w["w1"].sub(1, 10.0), now=1.0)
+    assert k.tick(now=9.9) == []  # the timeout counts from the round's first submission
+    [out] = k.tick(now=10.0)
+    assert out.timed_out == ["w2"] and out.contributors == ["w0", "w1"]
+    assert k.workers["w2"].state == "lagging"
+    k.submit(w["w0"].sub(2, 10.0), now=11.0)
+    [out2] = outcomes(k.submit(w["w1"].sub(2, 10.0), now=11.5))  # round 2 no longer waits for the lagging worker
+    assert out2.episode == 2 and out2.timed_out == []
+    # Its late answer for round 1 is stale: refused, not counted.
+    late = k.submit(w["w2"].sub(1, 30.0), now=12.0)
+    assert (late.status, late.reason) == ("rejected", "stale") and k.workers["w2"].pi is None
+    # Submitting for the open round brings it back: the round now waits for it again.
+    k.submit(w["w2"].sub(3, 30.0), now=13.0)
+    assert k.workers["w2"].state == "active"
+    k.submit(w["w0"].sub(3, 10.0), now=13.1)
+    assert k.waiting_for() == ["w1"]
+
+
+def test_an_offline_worker_is_not_waited_for_but_what_it_sent_counts() -> None:
+    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+    k.submit(w["w0"].sub(1, 10.0), now=0.0)
+    k.submit(w["w1"].sub(1, 30.0), now=0.1)
+    assert k.note_status("w1", "offline", now=0.2) == []  # its submission stays in the round
+    [out] = k.note_status("w2", "offline", now=0.5)
+    assert out.contributors == ["w0", "w1"] and k.workers["w2"].state == "offline"
+
+
+def test_simultaneous_finish_transfers_the_best_and_both_leave() -> None:
+    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+    for e in range(1, PI_WINDOW):
+        k.submit(w["w0"].sub(e, 196.0), now=0.0)
+        k.submit(w["w1"].sub(e, 199.0), now=0.0)
+        k.submit(w["w2"].sub(e, 97.5), now=0.0)
+    k.submit(w["w0"].sub(PI_WINDOW, 196.0, 7.0, mature=True), now=0.0)
+    k.submit(w["w1"].sub(PI_WINDOW, 199.0, 9.0, mature=True), now=0.0)
+    [out] = outcomes(k.submit(w["w2"].sub(PI_WINDOW, 97.5), now=0.0))
+    assert out.kind == "transfer" and out.source_worker == "w1" and out.source_pi == 199.0
+    np.testing.assert_array_equal(out.params["g"], [9.0])
+    assert out.finished == ["w0", "w1"]
+    assert out.keep_weights == pytest.approx({"w2": 0.5})  # Eq. 10: 97.5 / 195
+    assert k.ids_in("active") == ["w2"]
+    v = k.submit(w["w2"].sub(PI_WINDOW + 1, 200.0, mature=True), now=1.0)
+    assert v.reason == "not_mature"  # PI 107.75: the returns it already reported count
+
+
+def test_the_last_finisher_leaves_without_a_transfer() -> None:
+    k, w = keeper(["w0"]), fakes("w0")
+    m = mature_after(w["w0"], 1, k)
+    [out] = outcomes(k.submit(m, now=0.0))
+    assert out.kind == "aggregate" and out.finished == ["w0"] and out.gradient is None
+    assert k.done and k.done_reason == "all workers solved" and k.workers["w0"].steps_at_solve == 200 * PI_WINDOW
+
+
+def test_plain_policy_is_uniform_and_hard() -> None:
+    k, w = keeper(["w0", "w1"], policy="plain"), fakes("w0", "w1")
+    m = mature_after(w["w0"], 1, k)
+    for e in range(1, PI_WINDOW):
+        [agg] = outcomes(k.submit(w["w1"].sub(e, 97.5), now=0.0))
+        assert agg.weights == {"w0": 0.5, "w1": 0.5}
+    k.submit(m, now=0.0)
+    [out] = outcomes(k.submit(w["w1"].sub(PI_WINDOW, 97.5), now=0.0))
+    assert out.keep_weights == {"w1": 0.0}
+
+
+def test_independent_policy_shares_nothing() -> None:
+    k, w = keeper(["w0", "w1"], policy="independent"), fakes("w0", "w1")
+    m = mature_after(w["w0"], 1, k)
+    for e in range(1, PI_WINDOW):
+        [out] = outcomes(k.submit(w["w1"].sub(e, 30.0), now=0.0))
+        assert out.kind == "aggregate" and out.gradient is None and out.weights == {}
+    k.submit(m, now=1.0)
+    [fin] = outcomes(k.submit(w["w1"].sub(PI_WINDOW, 30.0), now=1.0))
+    assert fin.kind == "aggregate" and fin.finished == ["w0"] and fin.params is None
+
+
+@pytest.mark.parametrize("policy", ["median", "trimmed"])
+def test_robust_policies_ignore_one_outlier_of_four(policy: str) -> None:
+    k, w = keeper(["w0", "w1", "w2", "w3"], policy=policy), fakes("w0", "w1", "w2", "w3")
+    for f, gv in zip(w.values(), [1.0, 2.0, 3.0, 1e30], strict=True):
+        v = k.submit(f.sub(1, 20.0, gv=gv), now=0.0)
+    [out] = outcomes(v)
+    np.testing.assert_allclose(out.gradient["g"], [2.5])  # the mean of the two middle values
+    assert out.weights == {}
+
+
+def test_run_ends_after_max_episodes() -> None:
+    k, f = keeper(["w0"], max_episodes=2), Fake("w0")
+    k.submit(f.sub(1, 1.0), now=0.0)
+    assert not k.done
+    k.submit(f.sub(2, 1.0), now=1.0)
+    assert k.done and "maximum" in (k.done_reason or "")
+    assert k.submit(f.sub(3, 1.0), now=2.0).reason == "run_over"
+
+
+def test_bad_config_raises() -> None:
+    with pytest.raises(ValueError):
+        keeper([])
+    with pytest.raises(ValueError, match="unknown federation policy 'fedavg'"):
+        keeper(["w0"], policy="fedavg")
+
+
+def test_workers_that_went_on_without_an_answer_are_resynchronised() -> None:
+    # Both submissions for round 1 were lost (say, a broker restart); the workers timed out and went on.
+    k, w = keeper(["w0", "w1"], timeout=10.0), fakes("w0", "w1")
+    w["w0"].returns, w["w1"].returns = [50.0], [150.0]  # their lost episode-1 returns
+    assert outcomes(k.submit(w["w0"].sub(2, 50.0, 1.0), now=0.0)) == []  # w0 is past round 1; w1 still awaited
+    assert k.episode == 1 and k.waiting_for() == ["w1"]
+    outs = outcomes(k.submit(w["w1"].sub(2, 150.0, 3.0), now=0.1))
+    # Round 1 closes empty (nobody is waiting for it), round 2 closes with both submissions.
+    assert [(o.episode, o.contributors) for o in outs] == [(1, []), (2, ["w0", "w1"])]
+    assert outs[1].weights == pytest.approx({"w0": 0.25, "w1": 0.75})
+    assert k.episode == 3
+
+
+def test_a_worker_ahead_does_not_block_the_round_timeout() -> None:
+    k, w = keeper(["w0", "w1", "w2"], timeout=5.0), fakes("w0", "w1", "w2")
+    k.submit(w["w0"].sub(1, 10.0), now=0.0)
+    w["w1"].returns = [10.0]
+    k.submit(w["w1"].sub(2, 10.0), now=0.5)  # w1 skipped round 1
+    [out1, *rest] = k.tick(now=5.0)  # w2 is silent
+    assert out1.episode == 1 and out1.timed_out == ["w2"] and out1.contributors == ["w0"]
+    assert rest == [] and k.episode == 2 and set(k.pending) == {"w1"}
+
+
+def test_keep_weight_uses_the_recipients_pi_at_that_round_not_a_later_one() -> None:
+    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+    m = mature_after(w["w0"], 1, k)
+    for e in range(1, PI_WINDOW):
+        k.submit(w["w1"].sub(e, 39.0), now=0.0)
+        k.submit(w["w2"].sub(e, 39.0), now=0.0)
+    k.submit(m, now=0.0)
+    k.submit(w["w1"].sub(PI_WINDOW, 39.0), now=0.0)
+    # w2 skipped round PI_WINDOW: its submission for the next one closes it (nobody else is awaited there).
+    [transfer] = outcomes(k.submit(w["w2"].sub(PI_WINDOW + 1, 195.0), now=0.0))
+    assert transfer.kind == "transfer" and transfer.episode == PI_WINDOW
+    # w2's PI at round PI_WINDOW is from its episode 9 (39.0), not the 54.6 of its later episode.
+    assert transfer.recipient_pis == {"w1": 39.0, "w2": 39.0}
+    assert transfer.keep_weights == pytest.approx({"w1": 0.2, "w2": 0.2})

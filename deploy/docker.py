@@ -29,6 +29,7 @@ import docker
 import requests
 from docker.errors import APIError, BuildError, DockerException, NotFound
 
+from chief import strategies
 from protocol.cli import add_device_noise, add_run_options, env, parse_checked
 from protocol.tasks import worker_seed
 
@@ -46,7 +47,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     p.add_argument("--workers", type=int, nargs="+", default=[int(env("FEDRL_WORKERS", "4"))],
                    help="worker count(s); several make a sweep, one run each (env FEDRL_WORKERS, default 4)")
-    add_run_options(p)
+    add_run_options(p, strategies.names())
     add_device_noise(p)
     p.add_argument("--out", type=Path, default=Path("runs/docker"),
                    help="folder that receives one run folder per run (default runs/docker)")

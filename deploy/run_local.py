@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import IO
 
+from chief import strategies
 from protocol.cli import add_device_noise, add_run_options, env, parse_checked
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
@@ -32,7 +33,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--workers", type=int, default=int(w) if (w := env("FEDRL_WORKERS", "")) else None,
                         help="number of workers (env FEDRL_WORKERS; default 4, or 3 for qube as in the paper)")
-    add_run_options(parser)
+    add_run_options(parser, strategies.names())
     add_device_noise(parser)
     parser.add_argument("--broker", default=env("FEDRL_BROKER", ""),
                         help="use this broker (mqtt://host:port) instead of starting the embedded one "

@@ -30,6 +30,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--reply-timeout", type=float, default=float(env("FEDRL_REPLY_TIMEOUT", "120")),
                         help="seconds to wait for the chief's answer to an episode before going on alone "
                         "(env FEDRL_REPLY_TIMEOUT, default 120)")
+    parser.add_argument("--ack-timeout", type=float, default=float(env("FEDRL_ACK_TIMEOUT", "600")),
+                        help="after solving, seconds to keep sending the mature actor until the chief acknowledges it "
+                        "(env FEDRL_ACK_TIMEOUT, default 600)")
     parser.add_argument("--start-timeout", type=float, default=float(env("FEDRL_START_TIMEOUT", "600")),
                         help="seconds to wait for the chief to start the run (env FEDRL_START_TIMEOUT, default 600)")
     parser.add_argument("--model-dir", type=Path, default=Path(p) if (p := env("FEDRL_MODEL_DIR", "")) else None,
@@ -50,6 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         return WorkerService(WorkerConfig(
             broker=broker_from(args), run_id=args.run_id, worker_id=args.id, env_id=args.env,
             device_noise=args.device_noise, reply_timeout=args.reply_timeout, start_timeout=args.start_timeout,
+            ack_timeout=args.ack_timeout,
             model_dir=args.model_dir, rig_id=args.rig_id))
 
     return run_service("worker", build)

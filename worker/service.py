@@ -1,6 +1,8 @@
 """The worker's MQTT adapter around Algorithm 2: announce, learn episode by episode, share the actor gradient and
 PI, apply the chief's answer (mean gradient through the optimizer, or the Eq. 11 blend), hand over the mature
-actor when PI >= TC. The learning itself is worker/ppo.py; the environments are worker/envs.py."""
+actor when PI >= TC and wait until the chief confirms it holds it. Every submission carries a receipt of what the
+worker did with the previous round's answer. The learning itself is worker/ppo.py; the environments are
+worker/envs.py."""
 
 from __future__ import annotations
 
@@ -20,9 +22,11 @@ import torch
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
     MatureParams,
+    Receipt,
     RunStart,
     RunStop,
     WorkerHello,
@@ -30,8 +34,8 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.tasks import performance_index, solved, worker_seed
-from protocol.tensors import check_spec, pack_arrays, unpack_arrays
+from protocol.tasks import PI_WINDOW, performance_index, solved, worker_seed
+from protocol.tensors import check_spec, digest, pack_arrays, unpack_arrays
 from worker.episode import build_learner_and_env, run_episode
 
 log = logging.getLogger("worker")
@@ -54,6 +58,7 @@ class WorkerConfig:
     device_noise: float = 1.0
     reply_timeout: float = 120.0
     start_timeout: float = 600.0
+    ack_timeout: float = 600.0
     model_dir: Path | None = None
     rig_id: str | None = None
 
@@ -68,6 +73,8 @@ class WorkerService:
         self.rejects = RejectCounter(log)
         self.inbox: queue.Queue[Any] = queue.Queue()
         self.replies: dict[int, ChiefAggregate | ChiefTransfer] = {}
+        self.acks: dict[int, ChiefAck] = {}
+        self.receipt: Receipt | None = None  # what this worker did with the last round's answer
         self.stop: RunStop | None = None
         self.start_msg: RunStart | None = None
         self.missed_replies = 0
@@ -80,10 +87,12 @@ class WorkerService:
 
     def _on_chief(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer)
+            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
             return
+        if isinstance(msg, ChiefAck) and msg.worker_id != self.cfg.worker_id:
+            return  # another worker's acknowledgement
         self.inbox.put(msg)
 
     def _status(self, state: str, episode: int = 0, pi: float | None = None, detail: str = "") -> None:
@@ -147,27 +156,35 @@ class WorkerService:
                  seed, cfg.env_id, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
         returns: list[float] = []
+        episode = start.first_episode
         try:
-            for episode in range(start.first_episode, start.max_episodes + 1):
-                if self.stop is not None:
-                    break
+            while episode <= start.max_episodes and self.stop is None:
                 ret, steps = run_episode(env, learner, seed=seed if episode == start.first_episode else None)
                 returns.append(ret)
-                pi = performance_index(returns)
-                if solved(returns, start.tc):  # Algorithm 2: learning finished -> send the mature actor, stop
-                    params = pack_arrays(learner.actor_parameters())
-                    self.conn.publish(self._topic(topics.UPDATE), encode(MatureParams(
-                        worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, steps=steps,
-                        params=params)), qos=1).wait_for_publish(timeout=10)
-                    self._status("finished", episode=episode, pi=pi)
+                recent, pi = returns[-PI_WINDOW:], performance_index(returns)
+                if solved(returns, start.tc):  # Algorithm 2: learning finished -> hand over the mature actor, stop
                     self._save(learner)
-                    log.info("solved at episode %d with PI %.1f", episode, pi)
-                    return EXIT_OK
+                    ack = self._hand_over(MatureParams(
+                        worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, recent_returns=recent,
+                        steps=steps, params=pack_arrays(learner.actor_parameters()), receipt=self.receipt))
+                    if ack is not None and ack.accepted:
+                        self._status("finished", episode=episode, pi=pi)
+                        log.info("solved at episode %d with PI %.1f; the chief holds the mature actor", episode, pi)
+                        return EXIT_OK
+                    if ack is None:
+                        if self.stop is not None:
+                            break
+                        raise TimeoutError(f"the chief did not acknowledge the mature actor of episode {episode} "
+                                           f"within {cfg.ack_timeout:.0f} s")
+                    log.error("the chief refused the mature actor of episode %d (%s); learning on", episode,
+                              ack.reason)
                 stats = learner.update()
                 self.conn.publish(self._topic(topics.UPDATE), encode(WorkerUpdate(
-                    worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, steps=steps,
-                    gradient=pack_arrays(learner.actor_gradient()), **_loss_fields(stats))), qos=1)
-                self._apply(self._await_reply(episode), learner)
+                    worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, recent_returns=recent,
+                    steps=steps, gradient=pack_arrays(learner.actor_gradient()), receipt=self.receipt,
+                    **_loss_fields(stats))), qos=1)
+                self._apply(episode, self._await_reply(episode), learner)
+                episode += 1
             self._status("stopped", episode=len(returns), pi=performance_index(returns) if returns else None,
                          detail=self.stop.reason if self.stop else "episode limit")
             return EXIT_OK
@@ -175,6 +192,36 @@ class WorkerService:
             close = getattr(env, "close", None)
             if close is not None:
                 close()
+
+    def _hand_over(self, mature: MatureParams) -> ChiefAck | None:
+        """Send the mature actor until the chief acknowledges it (accepted or refused); None on RunStop or when no
+        answer came within ``ack_timeout``. Resending is safe: the chief counts a worker's episode once."""
+        payload = encode(mature)
+        deadline = time.monotonic() + self.cfg.ack_timeout
+        interval = 2.0
+        while self.stop is None and time.monotonic() < deadline:
+            self.conn.publish(self._topic(topics.UPDATE), payload, qos=1)
+            resend_at = min(deadline, time.monotonic() + interval)
+            while self.stop is None and mature.episode not in self.acks and time.monotonic() < resend_at:
+                self._receive(timeout=min(0.5, max(0.0, resend_at - time.monotonic())))
+            if mature.episode in self.acks:
+                return self.acks.pop(mature.episode)
+            interval = min(2 * interval, 30.0)
+            log.warning("no acknowledgement of the mature actor of episode %d yet; sending it again", mature.episode)
+        return None
+
+    def _receive(self, timeout: float) -> None:
+        """Take one message from the chief (if any within ``timeout``) and file it."""
+        try:
+            msg = self.inbox.get(timeout=timeout)
+        except queue.Empty:
+            return
+        if isinstance(msg, RunStop):
+            self.stop = msg
+        elif isinstance(msg, ChiefAck):
+            self.acks[msg.episode] = msg
+        elif isinstance(msg, (ChiefAggregate, ChiefTransfer)):
+            self.replies[msg.episode] = msg
 
     def _await_reply(self, episode: int) -> ChiefAggregate | ChiefTransfer | None:
         """Wait for the chief's answer to this episode's round (Algorithm 2, 'wait for a message m_c')."""
@@ -186,33 +233,31 @@ class WorkerService:
                 log.warning("no answer from the chief for episode %d within %.0f s; going on alone (missed %d)",
                             episode, self.cfg.reply_timeout, self.missed_replies)
                 return None
-            try:
-                msg = self.inbox.get(timeout=min(remaining, 0.5))
-            except queue.Empty:
-                continue
-            if isinstance(msg, RunStop):
-                self.stop = msg
-            elif isinstance(msg, (ChiefAggregate, ChiefTransfer)) and msg.episode >= episode:
-                self.replies[msg.episode] = msg
+            self._receive(timeout=min(remaining, 0.5))
         for old in [e for e in self.replies if e < episode]:
             del self.replies[old]
         return self.replies.pop(episode, None)
 
-    def _apply(self, reply: ChiefAggregate | ChiefTransfer | None, learner: Any) -> None:
+    def _apply(self, episode: int, reply: ChiefAggregate | ChiefTransfer | None, learner: Any) -> None:
+        """Apply the chief's answer to round ``episode`` and note the receipt the next submission carries."""
+        self.receipt = Receipt(round=episode, applied="missed")
         if reply is None:
             return
         topic = topics.chief(self.cfg.run_id, reply.kind)
         try:
             if isinstance(reply, ChiefTransfer):
                 keep = reply.keep_weights.get(self.cfg.worker_id)
-                if keep is None:
-                    return
-                check_spec(reply.params, self.actor_spec, "transfer")
-                learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
-                log.info("blended in %s's mature actor (keep %.3f)", reply.source_worker, keep)
-            elif reply.gradient is not None:
-                check_spec(reply.gradient, self.actor_spec, "aggregate")
-                learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
+                if keep is not None:
+                    check_spec(reply.params, self.actor_spec, "transfer")
+                    learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
+                    log.info("blended in %s's mature actor (keep %.3f)", reply.source_worker, keep)
+                self.receipt = Receipt(round=episode, applied="transfer", digest=digest(reply.params), keep=keep)
+            else:
+                if reply.gradient is not None:
+                    check_spec(reply.gradient, self.actor_spec, "aggregate")
+                    learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
+                self.receipt = Receipt(round=episode, applied="aggregate",
+                                       digest=digest(reply.gradient) if reply.gradient is not None else "")
         except ValueError as err:
             self.rejects.reject(topic, "wrong_shape", str(err))
 

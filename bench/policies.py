@@ -1,8 +1,9 @@
-"""``python -m bench.policies``: episodes until all workers solve, per federation policy and seed.
+"""``python -m bench.policies``: episodes and env steps until the last worker solves, per federation policy and seed.
 
 Runs ``deploy.run_local`` (embedded broker, chief and N workers as separate processes) once per policy and seed,
-collects each run's summary.json, and writes ``bench/results/policies-<env>-n<N>.json`` plus a PNG comparing the
-policies (the paper's Figure 7 in spirit).
+audits each run folder (``python -m chief.audit``), collects its summary.json, and writes
+``bench/results/policies-<env>-n<N>.json`` plus a PNG comparing the policies (the paper's Figure 7 in spirit).
+Runs that did not finish within M are reported as unfinished, never dropped.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ import sys
 import time
 from pathlib import Path
 
-from chief.federation import POLICIES
+from chief import strategies
+from chief.audit import AuditFailure, audit
 from protocol.tasks import TASKS
 
 RESULTS = Path("bench/results")
@@ -34,22 +36,53 @@ def run_once(env_id: str, policy: str, seed: int, workers: int, max_episodes: in
     if not summary_path.exists():
         return {"policy": policy, "seed": seed, "error": proc.stdout[-2000:] + proc.stderr[-2000:], "wall_s": wall}
     s = json.loads(summary_path.read_text())
+    try:
+        report = audit(run_dir)
+        audited = f"passed: {report}"
+    except AuditFailure as failure:
+        audited = f"FAILED: {failure}"
     return {"policy": policy, "seed": seed, "episodes_to_all_solved": s["episodes_to_all_solved"],
+            "steps_of_last_worker": s["steps_of_last_worker"], "end_reason": s["end_reason"],
             "first_solved": min((w["episodes"] for w in s["workers"] if w["solved"]), default=None),
-            "per_worker": {w["id"]: w["episodes"] for w in s["workers"]}, "wall_s": round(wall, 1),
-            "run_dir": str(run_dir)}
+            "per_worker": {w["id"]: {"episodes": w["episodes"], "steps": w["steps"], "solved": w["solved"]}
+                           for w in s["workers"]},
+            "audit": audited, "wall_s": round(wall, 1), "run_dir": str(run_dir)}
+
+
+def spread(values: list[float]) -> dict[str, float | None]:
+    """Median and interquartile range (None when empty)."""
+    if not values:
+        return {"median": None, "q1": None, "q3": None, "min": None, "max": None}
+    q = statistics.quantiles(values, n=4, method="inclusive") if len(values) > 1 else [values[0]] * 3
+    return {"median": statistics.median(values), "q1": q[0], "q3": q[2], "min": min(values), "max": max(values)}
 
 
 def aggregate(runs: list[dict]) -> dict[str, dict]:
     table: dict[str, dict] = {}
     for policy in sorted({r["policy"] for r in runs}):
-        eps = [r["episodes_to_all_solved"] for r in runs if r["policy"] == policy]
-        solved = [e for e in eps if e is not None]
-        table[policy] = {"runs": len(eps), "all_solved_runs": len(solved),
-                         "median_episodes_to_all_solved": statistics.median(solved) if solved else None,
-                         "mean_episodes_to_all_solved": round(statistics.mean(solved), 1) if solved else None,
-                         "episodes": eps}
+        mine = [r for r in runs if r["policy"] == policy]
+        done = [r for r in mine if r.get("episodes_to_all_solved") is not None]
+        table[policy] = {"runs": len(mine), "all_solved_runs": len(done),
+                         "unfinished_seeds": [r["seed"] for r in mine if r.get("episodes_to_all_solved") is None],
+                         "audits_passed": sum(1 for r in mine if str(r.get("audit", "")).startswith("passed")),
+                         "last_worker_episodes": spread([r["episodes_to_all_solved"] for r in done]),
+                         "last_worker_steps": spread([r["steps_of_last_worker"] for r in done]),
+                         "episodes": [r.get("episodes_to_all_solved") for r in mine]}
     return table
+
+
+def markdown(report: dict) -> str:
+    """The README table: median [IQR] of the last worker's episodes and env steps, per policy."""
+    rows = ["| policy | last worker's episodes, median [IQR] | env steps, median [IQR] | per seed | all solved | "
+            "audit |", "| --- | --- | --- | --- | --- | --- |"]
+    for policy, t in report["summary"].items():
+        e, s = t["last_worker_episodes"], t["last_worker_steps"]
+        eps = " ".join("-" if x is None else str(x) for x in t["episodes"])
+        cell_e = "-" if e["median"] is None else f"{e['median']:g} [{e['q1']:g}-{e['q3']:g}]"
+        cell_s = "-" if s["median"] is None else f"{s['median']:,.0f} [{s['q1']:,.0f}-{s['q3']:,.0f}]"
+        rows.append(f"| {policy} | {cell_e} | {cell_s} | {eps} | {t['all_solved_runs']}/{t['runs']} | "
+                    f"{t['audits_passed']}/{t['runs']} passed |")
+    return "\n".join(rows)
 
 
 def plot(runs: list[dict], path: Path, title: str) -> None:
@@ -62,11 +95,14 @@ def plot(runs: list[dict], path: Path, title: str) -> None:
     fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
     for x, policy in enumerate(policies):
         ys = [r["episodes_to_all_solved"] for r in runs if r["policy"] == policy and r.get("episodes_to_all_solved")]
+        missed = sum(1 for r in runs if r["policy"] == policy and r.get("episodes_to_all_solved") is None)
+        if missed:
+            ax.annotate(f"{missed} unfinished", (x, 0), ha="center", fontsize=8)
         ax.scatter([x] * len(ys), ys, alpha=0.7)
         if ys:
             ax.hlines(statistics.median(ys), x - 0.25, x + 0.25, color="black")
     ax.set_xticks(range(len(policies)), policies)
-    ax.set_ylabel("episodes until all workers solved")
+    ax.set_ylabel("episodes until the last worker solved")
     ax.set_title(title)
     ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
@@ -77,8 +113,9 @@ def plot(runs: list[dict], path: Path, title: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.policies", description=__doc__.splitlines()[0])
     parser.add_argument("--env", default="CartPole-v0", choices=sorted(TASKS))
-    parser.add_argument("--policies", nargs="+", default=list(POLICIES), choices=POLICIES)
-    parser.add_argument("--seeds", nargs="+", type=int, default=[1, 2, 3])
+    parser.add_argument("--policies", nargs="+", default=strategies.names(), choices=strategies.names())
+    parser.add_argument("--seeds", nargs="+", type=int, default=list(range(101, 111)),
+                        help="base seeds (default 101-110: never used for tuning; the presets were tuned on 1-12)")
     parser.add_argument("--workers", type=int, default=4)
     parser.add_argument("--max-episodes", type=int, default=2000)
     parser.add_argument("--out", type=Path, default=RESULTS)
@@ -95,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
               "summary": aggregate(runs), "runs": runs}
     (args.out / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
     plot(runs, args.out / f"{stem}.png", f"{args.env}, {args.workers} workers")
-    print(json.dumps(report["summary"], indent=2))
+    print(markdown(report))
     return 0
 
 

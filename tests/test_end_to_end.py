@@ -1,54 +1,144 @@
-"""End to end: chief + 2 PPO workers as separate processes over a real broker learn CartPole-v0."""
+"""End to end: the chief and 4 PPO workers as separate processes over a real broker learn CartPole-v0 under every
+strategy of the registry, and the audit re-checks from the run folder what the federation did: every early
+finisher's actor reached every worker still learning, weights are the strategy's, nothing was counted twice, and
+every answer was applied by the worker it was meant for. The same seed gives the same result over Mosquitto
+under extra CPU load: timing does not decide the result."""
 
 from __future__ import annotations
 
 import json
+import multiprocessing
+import shutil
 import subprocess
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
+from chief import strategies
+from chief.audit import AuditFailure, audit
+
 pytestmark = pytest.mark.slow
 
+SEED = 3
+WORKERS = 4
 
-def federate(tmp_path: Path, name: str, broker: str | None, seed: int = 3, policy: str = "weighted") -> dict:
+
+def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None) -> Path:
     run_dir = tmp_path / name
-    argv = [sys.executable, "-m", "deploy.run_local", "--workers", "2", "--env", "CartPole-v0", "--policy", policy,
-            "--seed", str(seed), "--max-episodes", "600", "--run-dir", str(run_dir), "--run-id", name]
+    argv = [sys.executable, "-m", "deploy.run_local", "--workers", str(WORKERS), "--env", "CartPole-v0",
+            "--policy", policy, "--seed", str(SEED), "--max-episodes", "600", "--run-dir", str(run_dir),
+            "--run-id", name]
     if broker:
         argv += ["--broker", broker]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "all workers solved" in proc.stdout
+    return run_dir
+
+
+def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert (run_dir / "learning_curve.png").stat().st_size > 1000
-    assert sorted(p.name for p in (run_dir / "models").iterdir()) == ["w0.pt", "w1.pt"]
-    metrics = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
-    assert {m["worker"] for m in metrics if m["type"] == "episode"} == {"w0", "w1"}
-    return summary
+    return [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]]
+
+
+def early_finishers(run_dir: Path) -> dict[str, int]:
+    """Workers that solved while another was still learning, with their solve episode."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    last = summary["episodes_to_all_solved"]
+    return {w["id"]: w["episodes"] for w in summary["workers"] if w["episodes"] < last}
 
 
 @pytest.fixture(scope="module")
-def embedded_run(tmp_path_factory: pytest.TempPathFactory) -> dict:
-    """One federation over the embedded amqtt broker, shared by the tests below."""
-    return federate(tmp_path_factory.mktemp("e2e"), "amqtt", broker=None)
+def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """One 4-worker federation per strategy over the embedded amqtt broker, shared by the tests below."""
+    base = tmp_path_factory.mktemp("e2e")
+    return {policy: federate(base, f"amqtt-{policy}", policy) for policy in strategies.names()}
 
 
-def test_two_workers_learn_cartpole_over_the_embedded_broker(embedded_run: dict) -> None:
-    summary = embedded_run
-    assert summary["env"] == "CartPole-v0" and summary["policy"] == "weighted" and summary["seed"] == 3
-    assert all(w["solved"] for w in summary["workers"])
-    assert summary["episodes_to_all_solved"] == max(w["episodes"] for w in summary["workers"]) <= 600
-    assert summary["rejected_messages"] == {} and summary["wall_s"] > 0
+@pytest.mark.parametrize("policy", strategies.names())
+def test_four_workers_learn_and_the_audit_passes(runs: dict[str, Path], policy: str) -> None:
+    run_dir = runs[policy]
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["policy"] == policy and all(w["solved"] for w in summary["workers"])
+    assert summary["rejected_messages"] == {}
+    assert sorted(p.name for p in (run_dir / "models").iterdir()) == [f"w{i}.pt" for i in range(WORKERS)]
+    assert (run_dir / "learning_curve.png").stat().st_size > 1000
+    report = audit(run_dir)  # raises AuditFailure naming the first violated invariant
+    assert report.submissions == sum(w["episodes"] for w in summary["workers"])
+    assert report.receipts == report.submissions - WORKERS  # every answer but the first round's was confirmed
 
 
-def test_same_wiring_over_mosquitto_gives_the_same_result(
-    embedded_run: dict, mosquitto_broker: str, tmp_path: Path
+@pytest.mark.parametrize("policy", [p for p in strategies.names() if p != "independent"])
+def test_every_early_finisher_hands_its_actor_to_the_others(runs: dict[str, Path], policy: str) -> None:
+    run_dir = runs[policy]
+    early = early_finishers(run_dir)
+    assert early, "seed 3 should have workers finishing before the last"
+    rounds = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    transfers = {r["round"]: r for r in rounds if r["type"] == "round" and r["kind"] == "transfer"}
+    for worker, episode in early.items():
+        t = transfers.get(episode)
+        assert t is not None and worker in t["finished"], f"{worker} finished at {episode}: no transfer"
+        learning = {w for w, e in per_worker_solved(run_dir).items() if e > episode}
+        assert set(t["keep_weights"]) == learning
+    if policy == "plain":
+        assert all(k == 0.0 for t in transfers.values() for k in t["keep_weights"].values())
+
+
+def per_worker_solved(run_dir: Path) -> dict[str, int]:
+    return {w: e for w, e, _ in per_worker(run_dir)}
+
+
+def test_independent_workers_share_nothing(runs: dict[str, Path]) -> None:
+    rounds = [json.loads(x) for x in (runs["independent"] / "metrics.jsonl").read_text().splitlines()]
+    assert all(r["kind"] == "aggregate" and r["digest"] == "" for r in rounds if r["type"] == "round")
+
+
+def test_the_audit_fails_on_a_doctored_real_run(runs: dict[str, Path], tmp_path: Path) -> None:
+    run_dir = tmp_path / "doctored"
+    shutil.copytree(runs["weighted"], run_dir)
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    # Drop the first transfer's first recipient, as if the chief had skipped it.
+    for i, line in enumerate(lines):
+        record = json.loads(line)
+        if record["type"] == "round" and record["kind"] == "transfer":
+            record["keep_weights"].pop(sorted(record["keep_weights"])[0])
+            lines[i] = json.dumps(record)
+            break
+    (run_dir / "metrics.jsonl").write_text("\n".join(lines) + "\n")
+    with pytest.raises(AuditFailure, match=r"^transfer: "):
+        audit(run_dir)
+
+
+def _spin(stop: multiprocessing.synchronize.Event) -> None:  # type: ignore[name-defined]
+    x = 0
+    while not stop.is_set():
+        x += 1
+
+
+@contextmanager
+def cpu_load(processes: int = 2) -> Iterator[None]:
+    """Busy processes competing with the federation for both cores."""
+    stop = multiprocessing.Event()
+    procs = [multiprocessing.Process(target=_spin, args=(stop,), daemon=True) for _ in range(processes)]
+    for p in procs:
+        p.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for p in procs:
+            p.join(5)
+
+
+@pytest.mark.parametrize("policy", ["weighted", "plain"])
+def test_same_seed_same_result_over_mosquitto_under_cpu_load(
+    runs: dict[str, Path], mosquitto_broker: str, tmp_path: Path, policy: str
 ) -> None:
-    # Same seed on another broker: the federation is deterministic, so every worker solves at the same episode.
-    again = federate(tmp_path, "mosquitto", broker=mosquitto_broker)
-    assert again["broker"] == mosquitto_broker
-    episodes = [(w["id"], w["episodes"]) for w in again["workers"]]
-    assert episodes == [(w["id"], w["episodes"]) for w in embedded_run["workers"]]
-    assert all(w["solved"] for w in again["workers"])
+    with cpu_load():
+        run_dir = federate(tmp_path, f"mosquitto-{policy}", policy, broker=mosquitto_broker)
+    assert json.loads((run_dir / "summary.json").read_text())["broker"] == mosquitto_broker
+    assert per_worker(run_dir) == per_worker(runs[policy])  # episodes and env steps, worker by worker
+    audit(run_dir)

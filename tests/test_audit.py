@@ -1,0 +1,196 @@
+"""``python -m chief.audit``: passes on the records of an honest federation, and names the invariant a doctored
+run folder violates."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from chief.audit import AuditFailure, audit
+from chief.report import run_summary
+from chief.rounds import RoundKeeper, Submission
+from protocol.tasks import PI_WINDOW, performance_index, task
+
+SOLVE_AT = {"w0": 12, "w1": 15, "w2": 21}  # episodes at which each simulated worker hands over its actor
+
+
+def simulate(run_dir: Path, policy: str = "weighted") -> None:
+    """Drive the real RoundKeeper with three honest workers and write the run folder the chief would write."""
+    keeper = RoundKeeper(sorted(SOLVE_AT), policy, task("CartPole-v0"), max_episodes=100, round_timeout=30.0,
+                         actor_spec={"g": (2,)})
+    returns: dict[str, list[float]] = {w: [] for w in SOLVE_AT}
+    receipts: dict[str, dict[str, Any] | None] = {w: None for w in SOLVE_AT}
+    lines: list[dict[str, Any]] = []
+    episode = 1
+    while not keeper.done:
+        for index, w in enumerate(sorted(SOLVE_AT)):
+            if keeper.workers[w].state == "finished":
+                continue
+            ret = 200.0 if episode > SOLVE_AT[w] - PI_WINDOW else 20.0 + 10 * index + episode
+            returns[w].append(ret)
+            mature = episode == SOLVE_AT[w]
+            tensors = {"g": np.array([episode, -index], np.float32)}
+            verdict = keeper.submit(Submission(
+                w, episode, performance_index(returns[w]), ret, recent_returns=tuple(returns[w][-PI_WINDOW:]),
+                steps=int(ret), gradient=None if mature else tensors, params=tensors if mature else None,
+                receipt=receipts[w]), now=float(episode))
+            assert verdict.status == "accepted", verdict.detail
+            lines.append(verdict.record(float(episode)))
+            for outcome in verdict.outcomes:
+                lines.append(outcome.record())
+                for r in SOLVE_AT:  # what each worker applies, as worker/service.py reports it
+                    receipts[r] = {"round": outcome.episode, "applied": outcome.kind, "digest": outcome.digest,
+                                   "keep": outcome.keep_weights.get(r) if outcome.kind == "transfer" else None}
+        episode += 1
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+    summary = run_summary(keeper, keeper.done_reason or "", run_id="sim", seed=0)
+    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+
+
+@pytest.fixture(scope="module")
+def honest(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    run_dir = tmp_path_factory.mktemp("audit") / "honest"
+    simulate(run_dir)
+    return run_dir
+
+
+def records(run_dir: Path) -> list[dict[str, Any]]:
+    return [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
+
+
+def rewrite(run_dir: Path, lines: list[dict[str, Any]]) -> None:
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
+
+
+def first(lines: list[dict[str, Any]], **match: Any) -> dict[str, Any]:
+    return next(x for x in lines if all(x.get(k) == v for k, v in match.items()))
+
+
+@pytest.mark.parametrize("policy", ["weighted", "plain", "median", "trimmed", "independent"])
+def test_an_honest_federation_passes(tmp_path: Path, policy: str) -> None:
+    simulate(tmp_path / policy, policy)
+    report = audit(tmp_path / policy)
+    assert report.rounds == 21 and report.submissions == 12 + 15 + 21
+    # w0 and w1 finished while others were learning: one transfer each, to 2 and then 1 recipients.
+    expected = (0, 0) if policy == "independent" else (2, 3)
+    assert (report.transfers, report.transfer_deliveries) == expected
+    assert report.receipts == 12 + 15 + 21 - 3
+
+
+def doctor_weight(lines: list[dict]) -> None:
+    r = first(lines, type="round", round=3)
+    r["weights"] = {w: 1 / len(r["weights"]) for w in r["weights"]}
+
+
+def doctor_keep(lines: list[dict]) -> None:
+    first(lines, type="round", kind="transfer")["keep_weights"]["w2"] = 0.0
+
+
+def doctor_recipients(lines: list[dict]) -> None:
+    t = first(lines, type="round", kind="transfer")
+    del t["keep_weights"]["w1"]
+
+
+def doctor_drop_transfer(lines: list[dict]) -> None:
+    t = first(lines, type="round", kind="transfer")
+    t.update(kind="aggregate", keep_weights={}, source=None, digest="")
+
+
+def doctor_duplicate(lines: list[dict]) -> None:
+    lines.insert(5, dict(first(lines, type="episode", worker="w1", episode=2)))
+
+
+def doctor_spoofed(lines: list[dict]) -> None:
+    lines.insert(5, {**first(lines, type="episode", worker="w1", episode=2), "worker": "mallory"})
+
+
+def doctor_round_gap(lines: list[dict]) -> None:
+    lines.remove(first(lines, type="round", round=4))
+
+
+def doctor_contributors(lines: list[dict]) -> None:
+    first(lines, type="round", round=5)["contributors"].pop()
+
+
+def doctor_pi(lines: list[dict]) -> None:
+    first(lines, type="round", round=6)["pis"]["w0"] = 190.0
+
+
+def doctor_immature(lines: list[dict]) -> None:
+    m = first(lines, type="episode", kind="mature", worker="w0")
+    m["recent_returns"] = m["recent_returns"][-3:]
+
+
+def doctor_receipt(lines: list[dict]) -> None:
+    first(lines, type="episode", worker="w2", episode=13)["receipt"]["digest"] = "0" * 16
+
+
+def doctor_missed(lines: list[dict]) -> None:
+    first(lines, type="episode", worker="w2", episode=8)["receipt"] = {"round": 7, "applied": "missed"}
+
+
+@pytest.mark.parametrize(("doctor", "invariant"), [
+    (doctor_weight, "eq8-weights"),
+    (doctor_keep, "transfer"),
+    (doctor_recipients, "transfer"),
+    (doctor_drop_transfer, "transfer"),
+    (doctor_duplicate, "counted-once"),
+    (doctor_spoofed, "counted-once"),
+    (doctor_round_gap, "rounds-contiguous"),
+    (doctor_contributors, "contributors"),
+    (doctor_pi, "round-pis"),
+    (doctor_immature, "mature"),
+    (doctor_receipt, "delivery"),
+    (doctor_missed, "delivery"),
+])
+def test_a_doctored_record_names_the_violated_invariant(
+    honest: Path, tmp_path: Path, doctor: Callable[[list[dict]], None], invariant: str
+) -> None:
+    run_dir = tmp_path / "doctored"
+    shutil.copytree(honest, run_dir)
+    lines = records(run_dir)
+    doctor(lines)
+    rewrite(run_dir, lines)
+    with pytest.raises(AuditFailure) as failure:
+        audit(run_dir)
+    assert failure.value.invariant == invariant, str(failure.value)
+
+
+@pytest.mark.parametrize(("field", "value"), [("episodes_to_all_solved", 15), ("rounds", 20)])
+def test_a_doctored_summary_fails(honest: Path, tmp_path: Path, field: str, value: int) -> None:
+    run_dir = tmp_path / "doctored"
+    shutil.copytree(honest, run_dir)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    summary[field] = value
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(AuditFailure, match=r"summary|rounds-contiguous"):
+        audit(run_dir)
+    summary = json.loads((honest / "summary.json").read_text())
+    summary["workers"][1]["episodes"] = 14
+    (run_dir / "summary.json").write_text(json.dumps(summary))
+    with pytest.raises(AuditFailure, match="summary: the summary says w1 solved at episode 14"):
+        audit(run_dir)
+
+
+def test_the_command_exits_non_zero_naming_the_invariant(honest: Path, tmp_path: Path) -> None:
+    ok = subprocess.run([sys.executable, "-m", "chief.audit", str(honest)], capture_output=True, text=True)
+    assert ok.returncode == 0 and "audit passed" in ok.stdout and "2 transfers" in ok.stdout
+    run_dir = tmp_path / "doctored"
+    shutil.copytree(honest, run_dir)
+    lines = records(run_dir)
+    doctor_keep(lines)
+    rewrite(run_dir, lines)
+    bad = subprocess.run([sys.executable, "-m", "chief.audit", str(run_dir)], capture_output=True, text=True)
+    assert bad.returncode == 1 and "audit FAILED" in bad.stdout and "transfer:" in bad.stdout
+    missing = subprocess.run([sys.executable, "-m", "chief.audit", str(tmp_path / "nope")], capture_output=True,
+                             text=True)
+    assert missing.returncode == 2 and "cannot read" in missing.stderr

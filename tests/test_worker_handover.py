@@ -1,0 +1,77 @@
+"""The worker's finish path over a real broker: a mature actor that is lost is sent again until the chief
+acknowledges it; a refusal is reported back; another worker's acknowledgement is not taken for its own."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+
+from protocol import topics
+from protocol.codec import decode, encode
+from protocol.messages import ChiefAck, MatureParams
+from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.tensors import pack_arrays
+from worker.service import WorkerConfig, WorkerService
+
+RUN = "handover"
+
+
+def mature(episode: int = 12) -> MatureParams:
+    return MatureParams(worker_id="w0", episode=episode, episode_return=200.0, pi=200.0, recent_returns=[200.0] * 10,
+                        steps=200, params=pack_arrays({"w": np.ones(2, np.float32)}))
+
+
+class ScriptedChief:
+    """Drops the first ``drop`` MatureParams it receives (as a broker restart would), then answers ``accept``."""
+
+    def __init__(self, broker: str, drop: int, accept: bool) -> None:
+        self.received: list[int] = []
+        self.drop, self.accept = drop, accept
+        self.lock = threading.Lock()
+        self.conn = MqttConnection(BrokerAddress.parse(broker), client_id="scripted-chief").start()
+        self.conn.subscribe(topics.all_workers(RUN, topics.UPDATE), self._on_update)
+
+    def _on_update(self, topic: str, payload: bytes) -> None:
+        msg = decode(payload, MatureParams)
+        with self.lock:
+            self.received.append(msg.episode)
+            if len(self.received) <= self.drop:
+                return
+        # Another worker's acknowledgement first: it must not end w0's wait.
+        self.conn.publish(topics.chief(RUN, topics.ACK), encode(ChiefAck(worker_id="w9", episode=msg.episode,
+                                                                         accepted=True)))
+        self.conn.publish(topics.chief(RUN, topics.ACK), encode(ChiefAck(
+            worker_id=msg.worker_id, episode=msg.episode, accepted=self.accept,
+            reason="" if self.accept else "not_mature: PI 10 over 1 episodes")))
+
+
+def worker(broker: str) -> WorkerService:
+    svc = WorkerService(WorkerConfig(broker=BrokerAddress.parse(broker), run_id=RUN, worker_id="w0", ack_timeout=30))
+    svc.conn.start()
+    svc.conn.subscribe(topics.chief(RUN, "+"), svc._on_chief)
+    return svc
+
+
+def test_a_lost_mature_actor_is_sent_again_until_acknowledged(amqtt_broker: str) -> None:
+    chief = ScriptedChief(amqtt_broker, drop=1, accept=True)
+    svc = worker(amqtt_broker)
+    try:
+        ack = svc._hand_over(mature())
+    finally:
+        svc.conn.stop()
+        chief.conn.stop()
+    assert ack is not None and ack.accepted and ack.worker_id == "w0" and ack.episode == 12
+    assert chief.received == [12, 12]  # the first copy was lost, the second acknowledged
+
+
+def test_a_refusal_comes_back_with_its_reason(amqtt_broker: str) -> None:
+    chief = ScriptedChief(amqtt_broker, drop=0, accept=False)
+    svc = worker(amqtt_broker)
+    try:
+        ack = svc._hand_over(mature())
+    finally:
+        svc.conn.stop()
+        chief.conn.stop()
+    assert ack is not None and not ack.accepted and "not_mature" in ack.reason
+    assert chief.received == [12]

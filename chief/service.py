@@ -15,7 +15,7 @@ from typing import Any
 from chief import strategies
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
-from chief.rounds import RoundKeeper, RoundOutcome, Submission, Verdict
+from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
@@ -182,17 +182,9 @@ class ChiefService:
             if msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
             return keeper.note_status(msg.worker_id, msg.state, now)
-        verdict = keeper.submit(self._submission(kind, msg), now)
+        verdict = keeper.submit(submission_of(msg), now)
         self._answer(verdict, now)
         return verdict.outcomes
-
-    @staticmethod
-    def _submission(kind: str, msg: WorkerUpdate | MatureParams) -> Submission:
-        arrays = unpack_arrays(msg.gradient if isinstance(msg, WorkerUpdate) else msg.params)
-        return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return,
-                          recent_returns=tuple(msg.recent_returns), steps=msg.steps,
-                          gradient=arrays if kind == "update" else None, params=arrays if kind == "mature" else None,
-                          receipt=msg.receipt.model_dump() if msg.receipt is not None else None)
 
     def _answer(self, verdict: Verdict, now: float) -> None:
         """Record what was accepted, count what was not, and acknowledge mature actors."""
@@ -204,29 +196,18 @@ class ChiefService:
         else:
             self.rejects.reject(topic, verdict.reason, f"{sub.kind} for episode {sub.episode}: {verdict.detail}")
         if verdict.ack is not None:
-            ack = verdict.ack
-            self.conn.publish(topics.chief(self.cfg.run_id, topics.ACK), encode(ChiefAck(
-                worker_id=ack.worker_id, episode=ack.episode, accepted=ack.accepted, reason=ack.reason)), qos=1)
+            self.conn.publish(topics.chief(self.cfg.run_id, topics.ACK), encode(ack_of(verdict.ack)), qos=1)
 
     def _publish(self, outcome: RoundOutcome) -> None:
-        run = self.cfg.run_id
+        msg = answer_of(outcome)
+        topic = topics.chief(self.cfg.run_id, msg.kind)
         if outcome.kind == "transfer":
-            assert outcome.params is not None and outcome.source_worker is not None
-            msg: ChiefAggregate | ChiefTransfer = ChiefTransfer(
-                episode=outcome.episode, source_worker=outcome.source_worker, source_pi=float(outcome.source_pi or 0),
-                params=pack_arrays(outcome.params), keep_weights=outcome.keep_weights, finished=outcome.finished)
-            topic = topics.chief(run, topics.TRANSFER)
             log.info("round %d: %s finished (PI %.1f); transferring %s's actor to %s", outcome.episode,
                      ", ".join(outcome.finished), outcome.source_pi or 0, outcome.source_worker,
                      ", ".join(f"{w} (keep {k:.3f})" for w, k in outcome.keep_weights.items()))
-        else:
-            msg = ChiefAggregate(episode=outcome.episode,
-                                 gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
-                                 weights=outcome.weights, contributors=outcome.contributors)
-            topic = topics.chief(run, topics.AGGREGATE)
-            if outcome.finished:
-                log.info("round %d: %s finished (no transfer: %s)", outcome.episode, ", ".join(outcome.finished),
-                         "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
+        elif outcome.finished:
+            log.info("round %d: %s finished (no transfer: %s)", outcome.episode, ", ".join(outcome.finished),
+                     "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
         self.conn.publish(topic, encode(msg), qos=1)
         self.metrics.round({**outcome.record(), "t": round(time.monotonic() - self.t0, 3)})
 
@@ -272,3 +253,31 @@ class ChiefService:
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                            broker=str(self.cfg.broker), rejected_messages=self.rejects.as_dict())
+
+
+# -- translation between the wire and the round state machine (also used by deploy/inprocess.py) ----------------
+
+
+def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
+    """A worker's message as the RoundKeeper takes it."""
+    mature = isinstance(msg, MatureParams)
+    arrays = unpack_arrays(msg.params if mature else msg.gradient)  # type: ignore[union-attr]
+    return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return, recent_returns=tuple(msg.recent_returns),
+                      steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
+                      receipt=msg.receipt.model_dump() if msg.receipt is not None else None)
+
+
+def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:
+    """A closed round's answer to the workers."""
+    if outcome.kind == "transfer":
+        assert outcome.params is not None and outcome.source_worker is not None
+        return ChiefTransfer(episode=outcome.episode, source_worker=outcome.source_worker,
+                             source_pi=float(outcome.source_pi or 0), params=pack_arrays(outcome.params),
+                             keep_weights=outcome.keep_weights, finished=outcome.finished)
+    return ChiefAggregate(episode=outcome.episode,
+                          gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
+                          weights=outcome.weights, contributors=outcome.contributors)
+
+
+def ack_of(ack: Ack) -> ChiefAck:
+    return ChiefAck(worker_id=ack.worker_id, episode=ack.episode, accepted=ack.accepted, reason=ack.reason)

@@ -142,3 +142,13 @@ def test_same_seed_same_result_over_mosquitto_under_cpu_load(
     assert json.loads((run_dir / "summary.json").read_text())["broker"] == mosquitto_broker
     assert per_worker(run_dir) == per_worker(runs[policy])  # episodes and env steps, worker by worker
     audit(run_dir)
+
+
+@pytest.mark.parametrize("policy", ["weighted"])
+def test_the_in_process_mode_runs_the_same_federation(runs: dict[str, Path], tmp_path: Path, policy: str) -> None:
+    from deploy.inprocess import run_federation
+
+    summary = run_federation("CartPole-v0", policy, SEED, WORKERS, 600, tmp_path / "inprocess", plot=False)
+    assert summary["mode"] == "in-process"
+    assert per_worker(tmp_path / "inprocess") == per_worker(runs[policy])
+    assert audit(tmp_path / "inprocess").transfers == audit(runs[policy]).transfers

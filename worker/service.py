@@ -7,7 +7,6 @@ worker/envs.py."""
 from __future__ import annotations
 
 import logging
-import math
 import os
 import queue
 import socket
@@ -26,17 +25,15 @@ from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
     MatureParams,
-    Receipt,
     RunStart,
     RunStop,
     WorkerHello,
     WorkerStatus,
-    WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.tasks import PI_WINDOW, performance_index, solved, worker_seed
-from protocol.tensors import check_spec, digest, pack_arrays, unpack_arrays
-from worker.episode import build_learner_and_env, run_episode
+from protocol.tasks import worker_seed
+from worker.episode import build_learner_and_env
+from worker.federated import Algorithm2
 
 log = logging.getLogger("worker")
 
@@ -74,7 +71,6 @@ class WorkerService:
         self.inbox: queue.Queue[Any] = queue.Queue()
         self.replies: dict[int, ChiefAggregate | ChiefTransfer] = {}
         self.acks: dict[int, ChiefAck] = {}
-        self.receipt: Receipt | None = None  # what this worker did with the last round's answer
         self.stop: RunStop | None = None
         self.start_msg: RunStart | None = None
         self.missed_replies = 0
@@ -155,43 +151,38 @@ class WorkerService:
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env_id, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
-        returns: list[float] = []
-        episode = start.first_episode
+        algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode)
         try:
-            while episode <= start.max_episodes and self.stop is None:
-                ret, steps = run_episode(env, learner, seed=seed if episode == start.first_episode else None)
-                returns.append(ret)
-                recent, pi = returns[-PI_WINDOW:], performance_index(returns)
-                if solved(returns, start.tc):  # Algorithm 2: learning finished -> hand over the mature actor, stop
+            while algo.episode <= start.max_episodes and self.stop is None:
+                submission = algo.play()
+                if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner)
-                    ack = self._hand_over(MatureParams(
-                        worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, recent_returns=recent,
-                        steps=steps, params=pack_arrays(learner.actor_parameters()), receipt=self.receipt))
+                    ack = self._hand_over(submission)
                     if ack is not None and ack.accepted:
-                        self._status("finished", episode=episode, pi=pi)
-                        log.info("solved at episode %d with PI %.1f; the chief holds the mature actor", episode, pi)
+                        self._status("finished", episode=submission.episode, pi=submission.pi)
+                        log.info("solved at episode %d with PI %.1f; the chief holds the mature actor",
+                                 submission.episode, submission.pi)
                         return EXIT_OK
                     if ack is None:
                         if self.stop is not None:
                             break
-                        raise TimeoutError(f"the chief did not acknowledge the mature actor of episode {episode} "
-                                           f"within {cfg.ack_timeout:.0f} s")
-                    log.error("the chief refused the mature actor of episode %d (%s); learning on", episode,
-                              ack.reason)
-                stats = learner.update()
-                self.conn.publish(self._topic(topics.UPDATE), encode(WorkerUpdate(
-                    worker_id=cfg.worker_id, episode=episode, episode_return=ret, pi=pi, recent_returns=recent,
-                    steps=steps, gradient=pack_arrays(learner.actor_gradient()), receipt=self.receipt,
-                    **_loss_fields(stats))), qos=1)
-                self._apply(episode, self._await_reply(episode), learner)
-                episode += 1
-            self._status("stopped", episode=len(returns), pi=performance_index(returns) if returns else None,
+                        raise TimeoutError(f"the chief did not acknowledge the mature actor of episode "
+                                           f"{submission.episode} within {cfg.ack_timeout:.0f} s")
+                    log.error("the chief refused the mature actor of episode %d (%s); learning on",
+                              submission.episode, ack.reason)
+                    submission = algo.refused(submission)
+                self.conn.publish(self._topic(topics.UPDATE), encode(submission), qos=1)
+                reply = self._await_reply(submission.episode)
+                try:
+                    algo.apply(reply)
+                except ValueError as err:
+                    self.rejects.reject(topics.chief(cfg.run_id, reply.kind if reply else "?"), "wrong_shape",
+                                        str(err))
+            self._status("stopped", episode=algo.episode - 1, pi=algo.pi,
                          detail=self.stop.reason if self.stop else "episode limit")
             return EXIT_OK
         finally:
-            close = getattr(env, "close", None)
-            if close is not None:
-                close()
+            algo.close()
 
     def _hand_over(self, mature: MatureParams) -> ChiefAck | None:
         """Send the mature actor until the chief acknowledges it (accepted or refused); None on RunStop or when no
@@ -238,29 +229,6 @@ class WorkerService:
             del self.replies[old]
         return self.replies.pop(episode, None)
 
-    def _apply(self, episode: int, reply: ChiefAggregate | ChiefTransfer | None, learner: Any) -> None:
-        """Apply the chief's answer to round ``episode`` and note the receipt the next submission carries."""
-        self.receipt = Receipt(round=episode, applied="missed")
-        if reply is None:
-            return
-        topic = topics.chief(self.cfg.run_id, reply.kind)
-        try:
-            if isinstance(reply, ChiefTransfer):
-                keep = reply.keep_weights.get(self.cfg.worker_id)
-                if keep is not None:
-                    check_spec(reply.params, self.actor_spec, "transfer")
-                    learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
-                    log.info("blended in %s's mature actor (keep %.3f)", reply.source_worker, keep)
-                self.receipt = Receipt(round=episode, applied="transfer", digest=digest(reply.params), keep=keep)
-            else:
-                if reply.gradient is not None:
-                    check_spec(reply.gradient, self.actor_spec, "aggregate")
-                    learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
-                self.receipt = Receipt(round=episode, applied="aggregate",
-                                       digest=digest(reply.gradient) if reply.gradient is not None else "")
-        except ValueError as err:
-            self.rejects.reject(topic, "wrong_shape", str(err))
-
     def _save(self, learner: Any) -> None:
         if self.cfg.model_dir is None:
             return
@@ -268,12 +236,3 @@ class WorkerService:
         path = self.cfg.model_dir / f"{self.cfg.worker_id}.pt"
         learner.save(path)
         log.info("saved the mature model to %s", path)
-
-
-def _loss_fields(stats: Any) -> dict[str, float | None]:
-    """Finite loss numbers from the learner's update stats (None where absent or not finite)."""
-    out: dict[str, float | None] = {}
-    for key in ("actor_loss", "critic_loss", "entropy"):
-        value = getattr(stats, key, None)
-        out[key] = float(value) if value is not None and math.isfinite(value) else None
-    return out

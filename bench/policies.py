@@ -1,19 +1,23 @@
 """``python -m bench.policies``: episodes and env steps until the last worker solves, per federation policy and seed.
 
-Runs ``deploy.run_local`` (embedded broker, chief and N workers as separate processes) once per policy and seed,
-audits each run folder (``python -m chief.audit``), collects its summary.json, and writes
-``bench/results/policies-<env>-n<N>.json`` plus a PNG comparing the policies (the paper's Figure 7 in spirit).
-Runs that did not finish within M are reported as unfinished, never dropped.
+Runs one federation per policy and seed, ``--jobs`` at a time, either as ``make run`` does (``--mode mqtt``:
+``deploy.run_local``, embedded broker, chief and N workers as separate processes) or in one process
+(``--mode inprocess``: ``deploy.inprocess``, the same chief and worker logic without MQTT, which gives the same
+per-worker result). It audits each run folder (``python -m chief.audit``), collects its summary.json, and writes
+``bench/results/policies-<env>-n<N>.json`` (with the mode) plus a PNG comparing the policies (the paper's Figure 7
+in spirit). Runs that did not finish within M are reported as unfinished, never dropped.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import statistics
 import subprocess
 import sys
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from chief import strategies
@@ -23,13 +27,16 @@ from protocol.tasks import TASKS
 RESULTS = Path("bench/results")
 
 
-def run_once(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, out: Path) -> dict:
-    run_dir = out / f"{env_id}-{policy}-s{seed}-n{workers}"
+def run_once(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, out: Path,
+             mode: str = "mqtt") -> dict:
+    run_dir = out / f"{env_id}-{policy}-s{seed}-n{workers}-{mode}"
+    shutil.rmtree(run_dir, ignore_errors=True)
     t0 = time.monotonic()
+    launcher = "deploy.run_local" if mode == "mqtt" else "deploy.inprocess"
+    extra = ["--run-id", f"bench-{policy}-s{seed}"] if mode == "mqtt" else []
     proc = subprocess.run(
-        [sys.executable, "-m", "deploy.run_local", "--env", env_id, "--policy", policy, "--seed", str(seed),
-         "--workers", str(workers), "--max-episodes", str(max_episodes), "--run-dir", str(run_dir),
-         "--run-id", f"bench-{policy}-s{seed}"],
+        [sys.executable, "-m", launcher, "--env", env_id, "--policy", policy, "--seed", str(seed),
+         "--workers", str(workers), "--max-episodes", str(max_episodes), "--run-dir", str(run_dir), *extra],
         capture_output=True, text=True)
     wall = time.monotonic() - t0
     summary_path = run_dir / "summary.json"
@@ -41,7 +48,7 @@ def run_once(env_id: str, policy: str, seed: int, workers: int, max_episodes: in
         audited = f"passed: {report}"
     except AuditFailure as failure:
         audited = f"FAILED: {failure}"
-    return {"policy": policy, "seed": seed, "episodes_to_all_solved": s["episodes_to_all_solved"],
+    return {"policy": policy, "seed": seed, "mode": mode, "episodes_to_all_solved": s["episodes_to_all_solved"],
             "steps_of_last_worker": s["steps_of_last_worker"], "end_reason": s["end_reason"],
             "first_solved": min((w["episodes"] for w in s["workers"] if w["solved"]), default=None),
             "per_worker": {w["id"]: {"episodes": w["episodes"], "steps": w["steps"], "solved": w["solved"]}
@@ -119,17 +126,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=4)
     parser.add_argument("--max-episodes", type=int, default=2000)
     parser.add_argument("--out", type=Path, default=RESULTS)
+    parser.add_argument("--mode", choices=["mqtt", "inprocess"], default="mqtt",
+                        help="mqtt: as make run (separate processes, embedded broker); inprocess: the same logic in "
+                        "one process per run (default mqtt)")
+    parser.add_argument("--jobs", type=int, default=1,
+                        help="runs at a time (default 1; an MQTT run already uses N+2 processes)")
     args = parser.parse_args(argv)
     args.out.mkdir(parents=True, exist_ok=True)
+    plan = [(policy, seed) for seed in args.seeds for policy in args.policies]
     runs = []
-    for seed in args.seeds:
-        for policy in args.policies:
-            result = run_once(args.env, policy, seed, args.workers, args.max_episodes, args.out / "runs")
+    with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        futures = [pool.submit(run_once, args.env, policy, seed, args.workers, args.max_episodes, args.out / "runs",
+                               args.mode) for policy, seed in plan]
+        for future in futures:
+            result = future.result()
             runs.append(result)
             print(json.dumps(result), flush=True)
     stem = f"policies-{args.env}-n{args.workers}"
     report = {"env": args.env, "workers": args.workers, "seeds": args.seeds, "max_episodes": args.max_episodes,
-              "summary": aggregate(runs), "runs": runs}
+              "mode": args.mode, "summary": aggregate(runs), "runs": runs}
     (args.out / f"{stem}.json").write_text(json.dumps(report, indent=2) + "\n")
     plot(runs, args.out / f"{stem}.png", f"{args.env}, {args.workers} workers")
     print(markdown(report))

@@ -9,6 +9,7 @@ from pathlib import Path
 from chief import strategies
 from chief.service import ChiefConfig, ChiefService
 from protocol.cli import add_common, add_run_options, broker_from, env, parse_checked, run_service, setup_logging
+from protocol.mqtt import max_payload_from_env
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -16,8 +17,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         prog="python -m chief",
         description="Chief of a federated RL run: waits for the workers, runs the rounds of Algorithm 1 (PI-weighted "
         "gradient sharing and soft transfer), then writes summary.json, metrics.jsonl and learning_curve.png "
-        "into the run folder. Exit code 0 when the run ended normally (all solved or the episode limit), "
-        "2 on a bad option, 3 when no worker came.",
+        "into the run folder. Started again with the same --run-id and --run-dir, it resumes the run from its saved "
+        "state (chief-state.msgpack). Exit code 0 when the run ended normally (all solved or the episode limit), 2 on "
+        "a bad option or an unusable run folder, 3 when no worker came, 4 when the run was aborted (every unfinished "
+        "worker offline for --idle-timeout s). FEDRL_MAX_PAYLOAD (bytes) splits larger messages into chunks.",
     )
     add_common(parser)
     parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),
@@ -48,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
         return ChiefService(ChiefConfig(
             broker=broker_from(args), run_id=args.run_id, workers=args.workers, env_id=args.env,
             policy=args.policy, seed=args.seed, max_episodes=args.max_episodes, round_timeout=args.round_timeout,
-            start_timeout=args.start_timeout, idle_timeout=args.idle_timeout, run_dir=args.run_dir))
+            start_timeout=args.start_timeout, idle_timeout=args.idle_timeout, run_dir=args.run_dir,
+            max_payload=max_payload_from_env()))
 
     return run_service("chief", build)
 

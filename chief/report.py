@@ -17,11 +17,26 @@ log = logging.getLogger(__name__)
 class MetricsLog:
     """Appends JSON lines to ``metrics.jsonl`` and keeps each worker's PI curve for the plot."""
 
-    def __init__(self, run_dir: Path) -> None:
+    def __init__(self, run_dir: Path, resume_at: int | None = None) -> None:
+        """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
         run_dir.mkdir(parents=True, exist_ok=True)
         self.path = run_dir / "metrics.jsonl"
-        self._file: TextIO = self.path.open("w", encoding="utf-8")
         self.curves: dict[str, list[tuple[int, float]]] = {}
+        if resume_at is None:
+            self._file: TextIO = self.path.open("w", encoding="utf-8")
+            return
+        with self.path.open("r+b") as fh:
+            fh.truncate(resume_at)
+        for line in self.path.read_text(encoding="utf-8").splitlines():
+            record = json.loads(line)
+            if record.get("type") == "episode":
+                self.curves.setdefault(record["worker"], []).append((record["episode"], record["pi"]))
+        self._file = self.path.open("a", encoding="utf-8")
+
+    @property
+    def offset(self) -> int:
+        """Bytes written so far (what a saved state covers)."""
+        return self._file.tell()
 
     def episode(self, record: dict[str, Any]) -> None:
         """An accepted submission (``type: episode``); only what the chief counted is written."""

@@ -7,9 +7,11 @@ translates. ``submit`` decides whether a worker's submission counts:
   ``AHEAD_WINDOW`` rounds ahead, never past ``max_episodes``), with the run's tensor shapes;
 - its returns must lie within the task's bounds, agree with the returns the worker reported before, and its PI must be
   their mean (the chief uses its own mean from then on);
+- its tensors must be float32 with a finite L2 norm below NORM_LIMIT (so no sum of them can overflow float32);
 - a MatureParams (the worker's finish) counts only when PI >= TC over at least PI_WINDOW episodes;
 - a submission already counted for that worker and episode is a duplicate: it changes nothing (a repeated
-  MatureParams is acknowledged again).
+  MatureParams is acknowledged again). A duplicate or late submission for a closed round gets that round's answer
+  again (the worker missed it: a broker restart, a chief restart), so nobody waits out a reply timeout.
 
 A round collects one submission per waited-on worker for the current episode. It closes when all of them are in, or
 ``round_timeout`` seconds after its first submission arrived (silent workers are then marked lagging and not waited
@@ -20,6 +22,9 @@ Closing a round yields a RoundOutcome for the service to publish:
 - some submissions are mature -> the best one's actor goes to every worker still learning, each with the strategy's
   keep weight w_T of its own progress at that round (Eq. 10-11); the finished leave;
 - otherwise -> the strategy's aggregate of the round's gradients (Eq. 8-9 for ``weighted``), or nothing to share.
+  Before aggregating, a gradient whose norm exceeds NORM_FACTOR times the round's (lower) median norm is scaled down
+  to that bound, so one worker cannot blow up a linear mean; honest workers' norms stay within about 3.5x of each
+  other (measured on CartPole-v0 and Acrobot-v1).
 
 The run is done when every worker has finished or after ``max_episodes`` rounds; the service may ``abort`` it.
 """
@@ -35,7 +40,7 @@ import numpy as np
 
 from chief import federation, strategies
 from protocol.tasks import PI_WINDOW, TaskSpec, performance_index
-from protocol.tensors import digest
+from protocol.tensors import NORM_LIMIT, digest, l2_norm
 
 log = logging.getLogger(__name__)
 
@@ -46,6 +51,10 @@ AHEAD_WINDOW = 10
 #: Reported returns may exceed the task's bounds by this share of (ceiling - floor): device noise can push an action
 #: slightly past its nominal range (MountainCarContinuous's action cost), but not a return of 1e9.
 RETURN_MARGIN = 0.1
+#: A gradient above this many times the round's lower median norm is scaled down to it.
+NORM_FACTOR = 10.0
+#: Closed rounds whose answers are kept for workers that missed them.
+ANSWERS_KEPT = 32
 
 
 @dataclass(frozen=True)
@@ -103,6 +112,7 @@ class RoundOutcome:
     recipient_pis: dict[str, float | None] = field(default_factory=dict)
     finished: list[str] = field(default_factory=list)
     timed_out: list[str] = field(default_factory=list)
+    clipped: dict[str, float] = field(default_factory=dict)  # worker -> factor its gradient was scaled by
 
     @property
     def digest(self) -> str:
@@ -116,12 +126,13 @@ class RoundOutcome:
                 "contributors": self.contributors, "pis": self.pis, "weights": self.weights,
                 "digest": self.digest, "source": self.source_worker, "source_pi": self.source_pi,
                 "keep_weights": self.keep_weights, "recipient_pis": self.recipient_pis, "finished": self.finished,
-                "timed_out": self.timed_out}
+                "timed_out": self.timed_out, "clipped": self.clipped}
 
 
 @dataclass
 class Verdict:
-    """What ``submit`` decided: ``accepted`` (counted), ``duplicate`` (already counted) or ``rejected``."""
+    """What ``submit`` decided: ``accepted`` (counted), ``duplicate`` (already counted) or ``rejected``.
+    ``replay`` is a closed round's answer to send again to a worker that evidently missed it."""
 
     status: Literal["accepted", "duplicate", "rejected"]
     reason: str = ""
@@ -129,6 +140,7 @@ class Verdict:
     submission: Submission | None = None
     ack: Ack | None = None
     outcomes: list[RoundOutcome] = field(default_factory=list)
+    replay: RoundOutcome | None = None
 
     def record(self, t: float) -> dict[str, Any]:
         """An accepted submission's line in metrics.jsonl."""
@@ -188,8 +200,10 @@ class RoundKeeper:
         self.pending: dict[str, Submission] = {}
         self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
         self.counted: set[tuple[str, int]] = set()  # (worker, episode) of every accepted submission
+        self.answers: dict[int, RoundOutcome] = {}  # the last ANSWERS_KEPT closed rounds' answers
         self.round_opened_at: float | None = None  # time of the round's first submission
         self.done_reason: str | None = None
+        self.aborted = False
 
     # -- queries ---------------------------------------------------------------------------------------------
 
@@ -231,13 +245,15 @@ class RoundKeeper:
                 same = rec.solved_episode == sub.episode or self._held_mature(sub.worker_id) == sub.episode
                 ack = Ack(sub.worker_id, sub.episode, same, "" if same else "episode already counted as an update")
             return Verdict("duplicate", "duplicate", f"episode {sub.episode} of {sub.worker_id} already counted",
-                           submission=sub, ack=ack)
+                           submission=sub, ack=ack, replay=self.answers.get(sub.episode))
         if self.done:
             return self._reject(sub, "run_over", f"the run is over ({self.done_reason})")
         if rec.state == "finished":
             return self._reject(sub, "finished", f"{sub.worker_id} finished at episode {rec.solved_episode}")
         if sub.episode < self.episode:
-            return self._reject(sub, "stale", f"round {sub.episode} is closed (open round {self.episode})")
+            verdict = self._reject(sub, "stale", f"round {sub.episode} is closed (open round {self.episode})")
+            verdict.replay = self.answers.get(sub.episode)
+            return verdict
         last = min(self.episode + AHEAD_WINDOW, self.max_episodes)
         if sub.episode > last:
             return self._reject(sub, "out_of_window",
@@ -280,7 +296,7 @@ class RoundKeeper:
     def abort(self, reason: str) -> None:
         """End the run early (e.g. every worker stayed offline past the service's idle limit)."""
         if not self.done:
-            self.done_reason = reason
+            self.done_reason, self.aborted = reason, True
 
     # -- internals -------------------------------------------------------------------------------------------
 
@@ -305,6 +321,12 @@ class RoundKeeper:
             got = {k: tuple(np.shape(v)) for k, v in tensors.items()}
             if got != {k: tuple(v) for k, v in self.actor_spec.items()}:
                 return "wrong_shape", f"{sub.kind} tensors {got} differ from the run's actor {self.actor_spec}"
+        odd = sorted(k for k, v in tensors.items() if np.asarray(v).dtype != np.float32)
+        if odd:
+            return "wrong_dtype", f"{sub.kind} tensors {odd} are not float32"
+        norm = l2_norm(tensors)
+        if not norm <= NORM_LIMIT:
+            return "absurd_norm", f"{sub.kind} tensors have an L2 norm of {norm:.3g} (limit {NORM_LIMIT:g})"
         returns = sub.recent_returns
         if not returns or len(returns) > PI_WINDOW:
             return "invalid", f"{len(returns)} recent returns (1..{PI_WINDOW} expected)"
@@ -365,6 +387,8 @@ class RoundKeeper:
         episode = self.episode
         mature = {w: s for w, s in subs.items() if s.mature}
         outcome = self._transfer(episode, subs, mature) if mature else self._aggregate(episode, subs)
+        self.answers[episode] = outcome
+        self.answers.pop(episode - ANSWERS_KEPT, None)
         self.pending = {}
         self.round_opened_at = None
         self.episode += 1
@@ -380,8 +404,8 @@ class RoundKeeper:
         outcome = RoundOutcome(episode=episode, kind="aggregate", strategy=self.policy, contributors=contributors,
                                pis=pis)
         if contributors:
-            grads = {w: subs[w].gradient for w in contributors}
-            agg = self.strategy.aggregate(grads, {w: self.progress(pi) for w, pi in pis.items()})  # type: ignore[arg-type]
+            grads, outcome.clipped = bound_norms({w: subs[w].gradient for w in contributors})  # type: ignore[misc]
+            agg = self.strategy.aggregate(grads, {w: self.progress(pi) for w, pi in pis.items()})
             outcome.gradient, outcome.weights = agg.gradient, agg.weights or {}
         return outcome
 
@@ -406,3 +430,28 @@ class RoundKeeper:
             keep_weights={w: float(k) for w, k in keep.items() if k is not None}, recipient_pis=recipient_pis,
             finished=finished,
         )
+
+
+Gradients = dict[str, dict[str, np.ndarray]]
+
+
+def bound_norms(gradients: Gradients) -> tuple[Gradients, dict[str, float]]:
+    """Scale every gradient whose norm exceeds NORM_FACTOR times the lower median norm down to that bound.
+
+    Returns the (possibly scaled) gradients and, per scaled worker, the factor applied. The lower median (the
+    ((n-1)//2)-th smallest norm) is an honest worker's norm as long as fewer than half of them lie, also at n = 2.
+    """
+    norms = {w: l2_norm(g) for w, g in gradients.items()}
+    reference = sorted(norms.values())[(len(norms) - 1) // 2]
+    bound = NORM_FACTOR * reference
+    if not bound > 0:
+        return dict(gradients), {}
+    out, clipped = dict(gradients), {}
+    for w, norm in norms.items():
+        if norm > bound:
+            factor = bound / norm
+            clipped[w] = factor
+            out[w] = {k: (np.asarray(v, np.float64) * factor).astype(np.float32) for k, v in gradients[w].items()}
+            log.warning("the gradient of %s (norm %.3g) is above %g x the round's median norm %.3g: scaled by %.3g",
+                        w, norm, NORM_FACTOR, reference, factor)
+    return out, clipped

@@ -7,12 +7,13 @@ from __future__ import annotations
 import datetime as dt
 import logging
 import queue
+import secrets
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chief import strategies
+from chief import checkpoint, strategies
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
@@ -35,7 +36,7 @@ from protocol.tensors import pack_arrays, unpack_arrays
 
 log = logging.getLogger("chief")
 
-EXIT_OK, EXIT_NO_WORKERS = 0, 3
+EXIT_OK, EXIT_BAD_SETTING, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 2, 3, 4
 
 
 @dataclass
@@ -52,10 +53,11 @@ class ChiefConfig:
     idle_timeout: float = 120.0
     run_dir: Path = Path("runs/default")
     progress_interval: float = 2.0
+    max_payload: int | None = None
 
 
 class ChiefService:
-    """Runs one federation from the first hello to the summary."""
+    """Runs one federation from the first hello (or from its saved state) to the summary."""
 
     def __init__(self, cfg: ChiefConfig) -> None:
         self.cfg = cfg
@@ -66,17 +68,35 @@ class ChiefService:
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
         self.roster = Roster(cfg.env_id)
         self.keeper: RoundKeeper | None = None
-        self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-chief")
-        self.metrics = MetricsLog(cfg.run_dir)
+        self.session = secrets.token_hex(8)
+        self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
+        if self.saved is not None:
+            self._check_resumable(*self.saved)
+        self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-chief", max_payload=cfg.max_payload,
+                                   rejects=self.rejects)
+        self.metrics: MetricsLog | None = None
         self.t0 = time.monotonic()
         self._last_progress = 0.0
         self._last_line, self._last_printed = "", 0.0
+        self._outbox: list[tuple[str, bytes]] = []  # held back until the state is saved
+        self._must_save = False
+        self.duplicates = 0
+        self.epoch = 0  # how often this run's chief has restarted
+
+    def _check_resumable(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
+        if service.get("run_id") != self.cfg.run_id:
+            raise ValueError(f"{self.cfg.run_dir} holds run {service.get('run_id')!r}, not {self.cfg.run_id!r}: "
+                             "use the same --run-id to resume it, or another --run-dir")
+        if keeper.done:
+            raise ValueError(f"the run in {self.cfg.run_dir} is over ({keeper.done_reason}); choose another --run-dir")
+        if keeper.policy != self.cfg.policy:
+            raise ValueError(f"the saved run uses policy {keeper.policy!r}, not {self.cfg.policy!r}")
 
     # -- network thread: decode, validate, enqueue -------------------------------------------------------------
 
     def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams)
+            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
             sender = topics.worker_id_of(topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
@@ -84,7 +104,7 @@ class ChiefService:
         if msg.worker_id != sender:
             self.rejects.reject(topic, "spoofed", f"payload says worker {msg.worker_id!r}, topic says {sender!r}")
             return
-        self.events.put((msg.kind, msg))
+        self.events.put((topic, msg))
 
     # -- main thread -------------------------------------------------------------------------------------------
 
@@ -94,31 +114,58 @@ class ChiefService:
         self.conn.start()
         for leaf in (topics.HELLO, topics.STATUS, topics.UPDATE):
             self.conn.subscribe(topics.all_workers(run, leaf), self._on_message, qos=1)
-        log.info("run %s: waiting for %d workers on %s (env %s, policy %s)", run, cfg.workers, cfg.broker,
-                 cfg.env_id, cfg.policy)
         try:
-            workers = self._gather_workers()
-            if not workers:
-                log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
-                return EXIT_NO_WORKERS
-            self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
-                                      actor_spec=self.roster.actor_spec)
+            if self.saved is not None:
+                self._resume(*self.saved)
+            else:
+                log.info("run %s: waiting for %d workers on %s (env %s, policy %s)", run, cfg.workers, cfg.broker,
+                         cfg.env_id, cfg.policy)
+                self.metrics = MetricsLog(cfg.run_dir)
+                workers = self._gather_workers()
+                if not workers:
+                    log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
+                    return EXIT_NO_WORKERS
+                self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
+                                          actor_spec=self.roster.actor_spec)
+                self._save()
             self._announce()
             self._federate()
-            self._finish()
-            return EXIT_OK
+            return self._finish()
         finally:
-            self.metrics.close()
+            if self.metrics is not None:
+                self.metrics.close()
             self.conn.stop()
+
+    def _resume(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
+        """Carry on a run from its saved state: the records are cut back to what the state had seen."""
+        self.keeper = keeper
+        self.session, self.epoch, self.duplicates = service["session"], service["epoch"] + 1, service["duplicates"]
+        self.roster = Roster(self.cfg.env_id, started=True, actor_spec=keeper.actor_spec, hosts=service["hosts"])
+        self.rejects.restore(service["rejects"])
+        self.metrics = MetricsLog(self.cfg.run_dir, resume_at=service["metrics_bytes"])
+        self.t0 = time.monotonic() - service["elapsed_s"]
+        log.warning("resuming run %s from %s at round %d (%d workers, %d finished)", self.cfg.run_id,
+                    self.cfg.run_dir / checkpoint.FILENAME, keeper.episode, len(keeper.workers),
+                    len(keeper.ids_in("finished")))
+
+    def _save(self) -> None:
+        """Write the chief's state (after the records it covers are on disk)."""
+        assert self.keeper is not None and self.metrics is not None
+        self._must_save = False
+        checkpoint.save(self.cfg.run_dir, self.keeper, {
+            "run_id": self.cfg.run_id, "session": self.session, "epoch": self.epoch, "duplicates": self.duplicates,
+            "hosts": self.roster.hosts,
+            "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
+            "elapsed_s": time.monotonic() - self.t0})
 
     def _gather_workers(self) -> list[str]:
         deadline = time.monotonic() + self.cfg.start_timeout
         while len(self.roster.workers) < self.cfg.workers and time.monotonic() < deadline:
             try:
-                kind, msg = self.events.get(timeout=0.2)
+                _, msg = self.events.get(timeout=0.2)
             except queue.Empty:
                 continue
-            if kind == "hello":
+            if msg.kind == "hello":
                 self._register(msg)
         if 0 < len(self.roster.workers) < self.cfg.workers:
             log.warning("only %d of %d workers arrived within %.0f s; starting with them", len(self.roster.workers),
@@ -140,7 +187,8 @@ class ChiefService:
         assert self.keeper is not None
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env_id, policy=self.cfg.policy, seed=self.cfg.seed,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
-                       workers=sorted(self.keeper.workers), first_episode=self.keeper.episode)
+                       workers=sorted(self.keeper.workers), first_episode=self.keeper.episode, session=self.session,
+                       epoch=self.epoch)
         self.conn.publish(topics.chief(self.cfg.run_id, topics.START), encode(msg), qos=1)
 
     def _federate(self) -> None:
@@ -148,37 +196,46 @@ class ChiefService:
         assert keeper is not None
         idle_since: float | None = None
         while not keeper.done:
+            outcomes: list[RoundOutcome] = []
             try:
-                kind, msg = self.events.get(timeout=0.1)
-                outcomes = self._handle(kind, msg)
+                topic, msg = self.events.get(timeout=0.1)
             except queue.Empty:
-                outcomes = []
+                pass
+            else:
+                try:
+                    outcomes = self._handle(msg)
+                except Exception as exc:  # one message never ends the run: log it, count it, go on
+                    log.exception("handling %s from %s failed", msg.kind, topic)
+                    self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
             now = time.monotonic()
             outcomes += keeper.tick(now)
-            for outcome in outcomes:
-                self._publish(outcome)
+            if outcomes:
+                self._close_rounds(outcomes)
+            elif self._must_save:
+                self._save()
+            self._flush()
             if keeper.ids_in("active", "lagging"):
                 idle_since = None
             elif idle_since is None:
                 idle_since = now
             elif now - idle_since > self.cfg.idle_timeout:
-                keeper.abort(f"every unfinished worker stayed offline for {self.cfg.idle_timeout:.0f} s")
+                keeper.abort(f"aborted: every unfinished worker stayed offline for {self.cfg.idle_timeout:.0f} s")
             self._progress(now)
         self._progress(time.monotonic(), force=True)
 
-    def _handle(self, kind: str, msg: Any) -> list[RoundOutcome]:
+    def _handle(self, msg: Any) -> list[RoundOutcome]:
         keeper = self.keeper
         assert keeper is not None
         now = time.monotonic()
-        if kind == "hello":
+        if msg.kind == "hello":
             if self._register(msg):
                 self._announce()  # a restarted worker learns the run and the open round
             return []
         if msg.worker_id not in keeper.workers:
-            self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, kind), "unknown_worker",
+            self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, msg.kind), "unknown_worker",
                                 "not part of this run")
             return []
-        if kind == "status":
+        if msg.kind == "status":
             if msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
             return keeper.note_status(msg.worker_id, msg.state, now)
@@ -187,20 +244,49 @@ class ChiefService:
         return verdict.outcomes
 
     def _answer(self, verdict: Verdict, now: float) -> None:
-        """Record what was accepted, count what was not, and acknowledge mature actors."""
+        """Record what was accepted, count what was not, acknowledge mature actors, answer again a round a worker
+        missed."""
         sub = verdict.submission
-        assert sub is not None
+        assert sub is not None and self.metrics is not None
         topic = topics.worker(self.cfg.run_id, sub.worker_id, topics.UPDATE)
         if verdict.status == "accepted":
             self.metrics.episode(verdict.record(now - self.t0))
+        elif verdict.status == "duplicate":
+            self.duplicates += 1  # sent again (a worker's resend, a broker's redelivery): counted once
         else:
             self.rejects.reject(topic, verdict.reason, f"{sub.kind} for episode {sub.episode}: {verdict.detail}")
         if verdict.ack is not None:
-            self.conn.publish(topics.chief(self.cfg.run_id, topics.ACK), encode(ack_of(verdict.ack)), qos=1)
+            # Sent once the state is saved (_flush): what the chief confirms is on disk first.
+            self._must_save |= verdict.ack.accepted and verdict.status == "accepted"
+            self._outbox.append((topics.chief(self.cfg.run_id, topics.ACK), encode(ack_of(verdict.ack))))
+        if verdict.replay is not None:
+            log.info("%s sent episode %d again: answering round %d again", sub.worker_id, sub.episode,
+                     verdict.replay.episode)
+            msg = answer_of(verdict.replay)
+            self._outbox.append((topics.chief(self.cfg.run_id, msg.kind), encode(msg)))
+
+    def _flush(self) -> None:
+        """Send the acknowledgements and repeated answers held back until the state was saved."""
+        for topic, payload in self._outbox:
+            self.conn.publish(topic, payload, qos=1)
+        self._outbox.clear()
+
+    def _close_rounds(self, outcomes: list[RoundOutcome]) -> None:
+        """Record the closed rounds, save the state, then answer the workers (in that order, so a chief that dies
+        in between answers them again from its state)."""
+        assert self.metrics is not None
+        for outcome in outcomes:
+            self.metrics.round({**outcome.record(), "t": round(time.monotonic() - self.t0, 3)})
+        self._save()
+        for outcome in outcomes:
+            self._log_outcome(outcome)
+            self._publish(outcome)
 
     def _publish(self, outcome: RoundOutcome) -> None:
         msg = answer_of(outcome)
-        topic = topics.chief(self.cfg.run_id, msg.kind)
+        self.conn.publish(topics.chief(self.cfg.run_id, msg.kind), encode(msg), qos=1)
+
+    def _log_outcome(self, outcome: RoundOutcome) -> None:
         if outcome.kind == "transfer":
             log.info("round %d: %s finished (PI %.1f); transferring %s's actor to %s", outcome.episode,
                      ", ".join(outcome.finished), outcome.source_pi or 0, outcome.source_worker,
@@ -208,8 +294,6 @@ class ChiefService:
         elif outcome.finished:
             log.info("round %d: %s finished (no transfer: %s)", outcome.episode, ", ".join(outcome.finished),
                      "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
-        self.conn.publish(topic, encode(msg), qos=1)
-        self.metrics.round({**outcome.record(), "t": round(time.monotonic() - self.t0, 3)})
 
     def _progress(self, now: float, force: bool = False) -> None:
         if not force and now - self._last_progress < self.cfg.progress_interval:
@@ -230,21 +314,26 @@ class ChiefService:
         self._last_line, self._last_printed = line, now
         print(f"[{now - self.t0:7.1f}s] {line}", flush=True)
 
-    def _finish(self) -> None:
+    def _finish(self) -> int:
+        """Tell the workers, write the summary and the plot; the exit code (EXIT_ABORTED for an aborted run)."""
         keeper = self.keeper
-        assert keeper is not None
+        assert keeper is not None and self.metrics is not None
         cfg = self.cfg
         reason = keeper.done_reason or "stopped"
+        aborted = keeper.aborted
         all_solved = all(r.state == "finished" for r in keeper.workers.values())
         rounds = keeper.episode - 1
+        self._save()
         self.conn.publish(topics.chief(cfg.run_id, topics.STOP),
-                          encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved)),
+                          encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
+                                         aborted=aborted, session=self.session)),
                           qos=1).wait_for_publish(timeout=5)
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
         plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
                              f"{cfg.env_id}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
         log.info("run over (%s) after %d rounds; results in %s", reason, rounds, cfg.run_dir)
+        return EXIT_ABORTED if aborted else EXIT_OK
 
     def summary(self, reason: str, all_solved: bool, rounds: int) -> dict[str, Any]:
         keeper = self.keeper
@@ -252,7 +341,8 @@ class ChiefService:
         return run_summary(keeper, reason, run_id=self.cfg.run_id, seed=self.cfg.seed,
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-                           broker=str(self.cfg.broker), rejected_messages=self.rejects.as_dict())
+                           broker=str(self.cfg.broker), rejected_messages=self.rejects.as_dict(),
+                           duplicates=self.duplicates, restarts=self.epoch)
 
 
 # -- translation between the wire and the round state machine (also used by deploy/inprocess.py) ----------------

@@ -119,11 +119,19 @@ def main(argv: list[str] | None = None) -> int:
                 "FEDRL_REPLY_TIMEOUT": str(max(120.0, 4 * args.round_timeout))})
         print(f"run {args.run_id}: {args.workers} workers on {args.env}, policy {args.policy}, seed {args.seed}; "
               f"logs in {log_dir}")
-        chief = fleet.start("chief", ["-m", "chief"], {
+        chief_env = {
             **common, "FEDRL_WORKERS": str(args.workers), "FEDRL_POLICY": args.policy, "FEDRL_SEED": str(args.seed),
             "FEDRL_MAX_EPISODES": str(args.max_episodes), "FEDRL_ROUND_TIMEOUT": str(args.round_timeout),
-            "FEDRL_RUN_DIR": str(run_dir)}, stream=True)
-        code = relay(chief, log_dir / "chief.log", fleet)
+            "FEDRL_RUN_DIR": str(run_dir)}
+        restarts = 0
+        while True:
+            chief = fleet.start("chief", ["-m", "chief"], chief_env, stream=True)
+            code = relay(chief, log_dir / "chief.log", fleet)
+            if code in CHIEF_FINAL_CODES or (run_dir / "summary.json").exists() or restarts >= MAX_CHIEF_RESTARTS:
+                break
+            restarts += 1
+            print(f"!! the chief died (exit code {code}); restarting it ({restarts} of {MAX_CHIEF_RESTARTS}): it "
+                  "resumes the run from its saved state", flush=True)
     except KeyboardInterrupt:
         print("\ninterrupted; stopping every process", file=sys.stderr)
         fleet.stop(grace=5)
@@ -137,6 +145,11 @@ def main(argv: list[str] | None = None) -> int:
         return code or 1
     print_summary(json.loads(summary_path.read_text()), run_dir, wall)
     return code
+
+
+#: Chief exit codes that end a run (done, bad setting, no workers, aborted); any other means it died.
+CHIEF_FINAL_CODES = (0, 2, 3, 4)
+MAX_CHIEF_RESTARTS = 5
 
 
 def start_rigs(fleet: Fleet, args: argparse.Namespace, common: dict[str, str]) -> dict[int, str]:
@@ -153,7 +166,7 @@ def relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> int:
     """Print the chief's progress as it comes and keep a copy; warn when a worker dies."""
     assert chief.stdout is not None
     reported: set[str] = set()
-    with log_path.open("wb") as log_file:
+    with log_path.open("ab") as log_file:
         for line in iter(chief.stdout.readline, b""):
             log_file.write(line)
             log_file.flush()

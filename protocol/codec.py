@@ -1,4 +1,7 @@
-"""msgpack codec for the pydantic messages, with validation that turns any bad payload into a DecodeError."""
+"""msgpack codec for the pydantic messages, with validation that turns any bad payload into a DecodeError.
+
+Decoding is strict: no coercion ("100" is not a number, ``true`` not an integer, 1.0 not a schema version), msgpack
+arrays stay tuples, and a message must be of a kind its topic carries (protocol/routes.py)."""
 
 from __future__ import annotations
 
@@ -11,6 +14,7 @@ import msgpack
 from pydantic import ValidationError
 
 from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
+from protocol.routes import route_of
 
 #: Default cap on one payload. A 3x128 actor's gradient is ~140 KB; a QUBE state ~100 B.
 MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
@@ -32,19 +36,23 @@ def encode(message: Message) -> bytes:
     return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
 
 
-def decode(payload: bytes, *expected: type[M], max_bytes: int = MAX_PAYLOAD_BYTES) -> M:
-    """msgpack bytes -> validated message of one of the ``expected`` types (any type when none given)."""
+def decode(payload: bytes, *expected: type[M], max_bytes: int = MAX_PAYLOAD_BYTES, topic: str | None = None) -> M:
+    """msgpack bytes -> validated message of one of the ``expected`` types (any type when none given).
+
+    With ``topic``, the message must also be of a kind that topic carries (``wrong_topic`` otherwise).
+    """
     if len(payload) > max_bytes:
         raise DecodeError("oversized", f"{len(payload)} bytes exceeds the limit of {max_bytes}")
     try:
-        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, max_bin_len=max_bytes)
+        obj = msgpack.unpackb(payload, raw=False, strict_map_key=True, use_list=False, max_bin_len=max_bytes)
     except Exception as exc:  # msgpack raises several unrelated types on garbage
         raise DecodeError("malformed", f"not msgpack ({type(exc).__name__}: {exc})") from None
     if not isinstance(obj, dict):
         raise DecodeError("malformed", f"expected a map, got {type(obj).__name__}")
     version = obj.get("schema_version")
-    if version != SCHEMA_VERSION:
-        raise DecodeError("version", f"schema version {version!r} not supported (this build speaks {SCHEMA_VERSION})")
+    if type(version) is not int or version != SCHEMA_VERSION:
+        raise DecodeError("version", f"schema version {version!r} not supported (this build speaks the integer "
+                          f"{SCHEMA_VERSION})")
     kind = obj.get("kind")
     cls = MESSAGE_TYPES.get(kind) if isinstance(kind, str) else None
     if cls is None:
@@ -52,8 +60,13 @@ def decode(payload: bytes, *expected: type[M], max_bytes: int = MAX_PAYLOAD_BYTE
     if expected and cls not in expected:
         names = ", ".join(t.model_fields["kind"].default for t in expected)
         raise DecodeError("unexpected_kind", f"got {kind!r}, expected one of: {names}")
+    if topic is not None:
+        route = route_of(topic)
+        if route is None or kind not in route.kinds:
+            carries = ", ".join(sorted(route.kinds)) if route else "nothing (not a topic of the contract)"
+            raise DecodeError("wrong_topic", f"a {kind!r} message on {topic}, which carries {carries}")
     try:
-        return cls.model_validate(obj)  # type: ignore[return-value]
+        return cls.model_validate(obj, strict=True)  # type: ignore[return-value]
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first.get("loc", ()))
@@ -76,6 +89,11 @@ class RejectCounter:
 
     def reject_error(self, topic: str, error: DecodeError) -> None:
         self.reject(topic, error.reason, error.detail)
+
+    def restore(self, counts: dict[str, int]) -> None:
+        """Carry on from saved counts (a resumed chief)."""
+        with self._lock:
+            self._counts.update(counts)
 
     @property
     def total(self) -> int:

@@ -9,61 +9,17 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
 
-from protocol import topics
 from protocol.codec import MAX_PAYLOAD_BYTES
-from protocol.messages import MESSAGE_TYPES, Message, Receipt
+from protocol.messages import MESSAGE_TYPES, Receipt
+from protocol.routes import ROUTES
 from protocol.tensors import ALLOWED_DTYPES, MAX_ELEMENTS, MAX_NDIM, TensorBlob
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "wire-contract.md"
-
-
-@dataclass(frozen=True)
-class Route:
-    """One topic: who publishes what on it, and how."""
-
-    topic: str
-    publisher: str
-    payloads: tuple[type[Message], ...]
-    qos: int
-    note: str = ""
-    retain: bool = False
-
-
-def _w(leaf: str) -> str:
-    return f"{topics.FEDRL}/<run>/worker/<id>/{leaf}"
-
-
-def _c(leaf: str) -> str:
-    return f"{topics.FEDRL}/<run>/chief/{leaf}"
-
-
-def _r(leaf: str) -> str:
-    return f"{topics.QUBE}/<rig>/{leaf}"
-
-
-M = MESSAGE_TYPES
-ROUTES: tuple[Route, ...] = (
-    Route(_w(topics.HELLO), "worker", (M["hello"],), 1, "every second until a RunStart names the worker"),
-    Route(_w(topics.STATUS), "worker", (M["status"],), 1, "its MQTT last will is `offline`"),
-    Route(_w(topics.UPDATE), "worker", (M["update"], M["mature"]), 1,
-          "one per episode; MatureParams is sent again until a ChiefAck for its episode arrives"),
-    Route(_c(topics.START), "chief", (M["run_start"],), 1, "again whenever a worker of the run says hello"),
-    Route(_c(topics.AGGREGATE), "chief", (M["aggregate"],), 1, "the answer to a round without a finisher"),
-    Route(_c(topics.TRANSFER), "chief", (M["transfer"],), 1, "the answer to a round in which a worker finished"),
-    Route(_c(topics.ACK), "chief", (M["ack"],), 1, "the answer to every MatureParams"),
-    Route(_c(topics.STOP), "chief", (M["run_stop"],), 1, "the run is over"),
-    Route(_r(topics.STATE), "bridge / qube-sim", (M["qube_state"],), 0, "every control tick (7 ms)"),
-    Route(_r(topics.ACTION), "worker", (M["qube_action"],), 0, "applied only within the deadline of its state"),
-    Route(_r(topics.RESET), "worker", (M["qube_reset"],), 1, "start an episode: swing up and hold"),
-    Route(_r(topics.STATUS), "bridge / qube-sim", (M["qube_status"],), 1, "its MQTT last will is `offline`"),
-    Route(_r(topics.TELEMETRY), "bridge / qube-sim", (M["qube_telemetry"],), 0, "every second"),
-)
 
 
 def _type_name(schema: dict[str, Any], defs: dict[str, Any]) -> str:
@@ -125,7 +81,16 @@ def markdown() -> str:
         "MQTT 3.1.1. Every payload is the msgpack map of one message (below), with `schema_version` = 1 and its",
         f"`kind`; unknown fields are errors and floats must be finite. Payloads over {MAX_PAYLOAD_BYTES:,} bytes are "
         "refused.",
-        "Nothing is retained. Topic levels `<run>`, `<id>` and `<rig>` are 1-64 of `A-Z a-z 0-9 _ . : -`.",
+        "Nothing is retained, and a retained message is never acted on. Topic levels `<run>`, `<id>` and `<rig>` are "
+        "1-64 of `A-Z a-z 0-9 _ . : -`. A message must be of a kind its topic carries (table below).",
+        "",
+        "Sessions are persistent (clean session off) under a client id with a random part; QoS 1 messages are "
+        "at-least-once, and every receiver is idempotent: a worker's episode is counted once, an answer applied "
+        "once.",
+        "",
+        "**Chunks.** A sender with a payload limit (`FEDRL_MAX_PAYLOAD`) sends a larger payload as [Chunk](#chunk) "
+        "messages on the message's own topic; receivers rejoin them (in index order, within the payload limit) before "
+        "decoding the message. Chunks are the one kind any topic may carry.",
         "",
         "## Topics",
         "",
@@ -152,7 +117,7 @@ def markdown() -> str:
         "",
         "## Messages",
     ]
-    for kind, model in MESSAGE_TYPES.items():
+    for kind, model in MESSAGE_TYPES.items():  # Chunk last: it is transport, not a message of the federation
         doc = " ".join((model.__doc__ or "").split())
         out += ["", f"### {model.__name__}", "", f"`kind` = `{kind!r}`. {doc}", "", *fields_table(model)]
     out += ["", "### Receipt", "", " ".join((Receipt.__doc__ or "").split()), "", *fields_table(Receipt), ""]

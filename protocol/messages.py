@@ -23,7 +23,7 @@ Ident = Annotated[str, StringConstraints(min_length=1, max_length=64, pattern=r"
 #: workers only apply what the chief sends, whatever the strategy.
 PolicyName = Annotated[str, StringConstraints(min_length=1, max_length=32, pattern=r"^[a-z][a-z0-9_-]*$")]
 #: PI is the mean of at most this many recent returns (protocol.tasks.PI_WINDOW).
-RecentReturns = Annotated[list[float], Field(min_length=1, max_length=PI_WINDOW)]
+RecentReturns = Annotated[tuple[float, ...], Field(min_length=1, max_length=PI_WINDOW)]
 
 
 class Strict(BaseModel):
@@ -121,7 +121,7 @@ class ChiefAggregate(Message):
     episode: int = Field(ge=1)
     gradient: TensorDict | None
     weights: dict[str, float]
-    contributors: list[str]
+    contributors: tuple[Ident, ...]
 
 
 class ChiefTransfer(Message):
@@ -133,7 +133,7 @@ class ChiefTransfer(Message):
     source_pi: float
     params: TensorDict
     keep_weights: dict[str, Annotated[float, Field(ge=0.0, le=1.0)]]
-    finished: list[str]
+    finished: tuple[Ident, ...]
 
 
 class ChiefAck(Message):
@@ -151,7 +151,9 @@ class ChiefAck(Message):
 class RunStart(Message):
     """The chief starts (or re-announces) the run; a worker's index is its position in ``workers``.
 
-    ``first_episode`` is the open round: a worker that restarts mid-run numbers its episodes from there.
+    ``first_episode`` is the open round: a worker that restarts mid-run numbers its episodes from there. ``session``
+    names this run of the chief (kept when it resumes): a worker acts only on a RunStop of the same session. ``epoch``
+    counts the chief's restarts: a worker waiting for an answer sends its submission again when it sees a new one.
     """
 
     kind: Literal["run_start"] = "run_start"
@@ -162,18 +164,22 @@ class RunStart(Message):
     max_episodes: int = Field(ge=1)
     tc: float
     r_floor: float
-    workers: list[str]
+    workers: tuple[Ident, ...]
     first_episode: int = Field(default=1, ge=1)
+    session: str = Field(default="", max_length=32)
+    epoch: int = Field(default=0, ge=0)
 
 
 class RunStop(Message):
-    """The run is over; workers stop."""
+    """The run is over; workers stop. ``aborted``: it ended early (e.g. every worker offline), not by its rule."""
 
     kind: Literal["run_stop"] = "run_stop"
     run_id: Ident
     reason: str
     episodes: int = Field(ge=0)
     all_solved: bool
+    aborted: bool = False
+    session: str = Field(default="", max_length=32)
 
 
 # --- QUBE-Servo 2 rigs --------------------------------------------------------------------------------------
@@ -239,6 +245,21 @@ class QubeTelemetry(Message):
     latency_ms: dict[str, float]
 
 
+# --- transport ------------------------------------------------------------------------------------------------
+
+
+class Chunk(Message):
+    """One piece of a payload too large for the broker's packet limit (protocol/mqtt.py splits and rejoins them on
+    the message's own topic, so services never see chunks)."""
+
+    kind: Literal["chunk"] = "chunk"
+    id: Annotated[str, StringConstraints(min_length=8, max_length=32, pattern=r"^[0-9a-f]+$")]
+    index: int = Field(ge=0)
+    count: int = Field(ge=1, le=4096)
+    total: int = Field(ge=1)
+    data: bytes
+
+
 MESSAGE_TYPES: dict[str, type[Message]] = {
     cls.model_fields["kind"].default: cls
     for cls in (
@@ -256,5 +277,6 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         QubeReset,
         QubeStatus,
         QubeTelemetry,
+        Chunk,
     )
 }

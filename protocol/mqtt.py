@@ -1,5 +1,17 @@
 """paho-mqtt 2.x connection helper: MQTT 3.1.1, TCP_NODELAY, last will, automatic reconnect and resubscribe.
 
+- **Identity and sessions.** The client id is the given name plus a random part nobody can guess (so nobody can take
+  over a process's connection by connecting with its id), stable for the life of the process; the session is
+  persistent (not clean), so a broker that keeps sessions queues QoS 1 messages for us while we are away, and paho
+  sends our unacknowledged ones again after a reconnect. ``connects`` and ``session_present`` tell whether the broker
+  still had our session (the embedded amqtt loses sessions when it restarts).
+- **Retained messages are never delivered to handlers**: a retained message is a leftover of an earlier run (or a
+  trap), and nothing in the contract is retained. They are counted as rejects (``retained``).
+- **Chunking.** With ``max_payload`` set (``FEDRL_MAX_PAYLOAD``, e.g. 131072 for AWS IoT Core's 128 KB cap), a larger
+  payload is sent as Chunk messages on the same topic; every connection rejoins chunks before its handlers see them,
+  so services never do. Bounded: at most MAX_PARTIAL messages in assembly, each within the codec's payload limit, and
+  a partial message expires after CHUNK_TTL seconds.
+
 Handlers run on paho's network thread: keep them short (decode, validate, put on a queue). A handler that raises is
 logged and counted; it never kills the network loop.
 """
@@ -8,20 +20,98 @@ from __future__ import annotations
 
 import logging
 import os
+import secrets
 import socket
 import ssl
 import threading
+import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from urllib.parse import unquote, urlsplit
 
 import paho.mqtt.client as paho
 from paho.mqtt.enums import CallbackAPIVersion
 
+from protocol.codec import MAX_PAYLOAD_BYTES, DecodeError, RejectCounter, decode, encode
+from protocol.messages import Chunk
+
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
 DEFAULT_BROKER = "mqtt://127.0.0.1:1883"
+#: Chunk assembly limits: partial messages held at once, and seconds before a partial message is dropped.
+MAX_PARTIAL, CHUNK_TTL = 64, 60.0
+#: Bytes of a Chunk message around its data (msgpack keys, id, counters), kept below max_payload.
+CHUNK_OVERHEAD = 160
+_CHUNK_SNIFF = b"\xa4kind\xa5chunk"
+
+
+def max_payload_from_env() -> int | None:
+    """FEDRL_MAX_PAYLOAD in bytes (unset or 0: no chunking); a ValueError names a bad value."""
+    raw = os.environ.get("FEDRL_MAX_PAYLOAD", "").strip()
+    if not raw or raw == "0":
+        return None
+    try:
+        value = int(raw)
+    except ValueError:
+        raise ValueError(f"FEDRL_MAX_PAYLOAD must be a number of bytes, not {raw!r}") from None
+    if value < 1024:
+        raise ValueError(f"FEDRL_MAX_PAYLOAD must be at least 1024 bytes (or 0 for no chunking), not {value}")
+    return value
+
+
+@dataclass
+class _Partial:
+    count: int
+    total: int
+    started: float
+    parts: dict[int, bytes] = field(default_factory=dict)
+
+
+class ChunkAssembler:
+    """Rejoins Chunk messages per (topic, id); thread-confined to paho's network thread."""
+
+    def __init__(self, max_partial: int = MAX_PARTIAL, ttl: float = CHUNK_TTL) -> None:
+        self.max_partial, self.ttl = max_partial, ttl
+        self._partial: dict[tuple[str, str], _Partial] = {}
+
+    def add(self, topic: str, chunk: Chunk, now: float) -> bytes | None:
+        """The whole payload once its last chunk arrived, else None; a ValueError for an inconsistent chunk."""
+        for key in [k for k, p in self._partial.items() if now - p.started > self.ttl]:
+            del self._partial[key]
+        if chunk.total > MAX_PAYLOAD_BYTES:
+            raise ValueError(f"chunked payload of {chunk.total} bytes exceeds the limit of {MAX_PAYLOAD_BYTES}")
+        if chunk.index >= chunk.count:
+            raise ValueError(f"chunk {chunk.index} of {chunk.count}")
+        key = (topic, chunk.id)
+        partial = self._partial.get(key)
+        if partial is None:
+            if len(self._partial) >= self.max_partial:
+                raise ValueError(f"more than {self.max_partial} chunked messages in assembly")
+            partial = self._partial[key] = _Partial(chunk.count, chunk.total, now)
+        if (partial.count, partial.total) != (chunk.count, chunk.total):
+            del self._partial[key]
+            raise ValueError("chunks of one message disagree on their count or size")
+        partial.parts[chunk.index] = chunk.data
+        if sum(len(d) for d in partial.parts.values()) > partial.total:
+            del self._partial[key]
+            raise ValueError("chunks carry more bytes than announced")
+        if len(partial.parts) < partial.count:
+            return None
+        del self._partial[key]
+        payload = b"".join(partial.parts[i] for i in range(partial.count))
+        if len(payload) != partial.total:
+            raise ValueError(f"rejoined {len(payload)} bytes, {partial.total} announced")
+        return payload
+
+
+def split(payload: bytes, max_payload: int) -> list[bytes]:
+    """Encoded Chunk messages, each at most ``max_payload`` bytes, that rejoin to ``payload``."""
+    size = max_payload - CHUNK_OVERHEAD
+    pieces = [payload[i:i + size] for i in range(0, len(payload), size)]
+    ident = secrets.token_hex(8)
+    return [encode(Chunk(id=ident, index=i, count=len(pieces), total=len(payload), data=piece))
+            for i, piece in enumerate(pieces)]
 
 
 @dataclass(frozen=True)
@@ -97,20 +187,27 @@ class MqttConnection:
         client_id: str,
         will: tuple[str, bytes] | None = None,
         keepalive: int = 15,
+        max_payload: int | None = None,
+        rejects: RejectCounter | None = None,
     ) -> None:
         self.address = address
-        self.client_id = client_id
+        self.client_id = f"{client_id}-{secrets.token_hex(6)}"  # the part nobody can guess
         self.connected = threading.Event()
+        self.connects = 0  # successful CONNACKs so far (more than 1: we reconnected)
+        self.session_present = False  # whether the broker still had our session at the last CONNACK
         self.handler_errors = 0
+        self.max_payload = max_payload
+        self.rejects = rejects or RejectCounter(log)
+        self._assembler = ChunkAssembler()
         self._stopping = False
         self._subscriptions: dict[str, tuple[int, Handler]] = {}
         self._lock = threading.Lock()
         self._keepalive = keepalive
         self._client = paho.Client(
             CallbackAPIVersion.VERSION2,
-            client_id=client_id,
+            client_id=self.client_id,
             protocol=paho.MQTTv311,
-            clean_session=True,
+            clean_session=False,
             reconnect_on_failure=True,
         )
         self._client.on_socket_open = _set_nodelay
@@ -172,15 +269,35 @@ class MqttConnection:
             self._client.unsubscribe(topic_filter)
 
     def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> paho.MQTTMessageInfo:
-        """Queue a message; QoS 1 messages published while disconnected go out after the reconnect."""
-        return self._client.publish(topic, payload, qos=qos, retain=retain)
+        """Queue a message (as chunks when it exceeds ``max_payload``); QoS 1 messages published while disconnected
+        go out after the reconnect. The returned info is the last chunk's."""
+        if self.max_payload is None or len(payload) <= self.max_payload:
+            return self._client.publish(topic, payload, qos=qos, retain=retain)
+        info = None
+        for piece in split(payload, self.max_payload):
+            info = self._client.publish(topic, piece, qos=qos, retain=retain)
+        assert info is not None
+        return info
 
     # -- paho callbacks ----------------------------------------------------------------------------------------
 
     def _wrap(self, handler: Handler) -> Callable[[paho.Client, object, paho.MQTTMessage], None]:
         def on_message(client: paho.Client, userdata: object, msg: paho.MQTTMessage) -> None:
             try:
-                handler(msg.topic, msg.payload)
+                if msg.retain:
+                    self.rejects.reject(msg.topic, "retained", "a retained message (left on the broker earlier)")
+                    return
+                payload = msg.payload
+                if _CHUNK_SNIFF in payload[:48]:
+                    try:
+                        whole = self._assembler.add(msg.topic, decode(payload, Chunk), time.monotonic())
+                    except (DecodeError, ValueError) as err:
+                        self.rejects.reject(msg.topic, "bad_chunk", str(err))
+                        return
+                    if whole is None:
+                        return
+                    payload = whole
+                handler(msg.topic, payload)
             except Exception:
                 self.handler_errors += 1
                 log.exception("handler for %s failed (handler errors: %d)", msg.topic, self.handler_errors)
@@ -195,7 +312,10 @@ class MqttConnection:
             subs = list(self._subscriptions.items())
         for topic_filter, (qos, _) in subs:
             client.subscribe(topic_filter, qos)
-        log.info("%s connected to %s (%d subscriptions)", self.client_id, self.address, len(subs))
+        self.session_present = bool(getattr(flags, "session_present", False))
+        self.connects += 1
+        log.info("%s connected to %s (%d subscriptions, %s)", self.client_id, self.address, len(subs),
+                 "session resumed" if self.session_present else "new session")
         self.connected.set()
 
     def _on_disconnect(

@@ -6,6 +6,7 @@ Decoding validates dtype, shape, byte count and finiteness so a malformed or poi
 from __future__ import annotations
 
 import hashlib
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -16,6 +17,9 @@ ALLOWED_DTYPES = frozenset({"<f4", "<f8", "<f2", "<i4", "<i8", "|u1"})
 #: No single tensor above this many elements (a 3x128 MLP has ~35k parameters).
 MAX_ELEMENTS = 16_000_000
 MAX_NDIM = 8
+#: Largest L2 norm of an actor's gradient or parameters anyone accepts (honest ones stay below 1e3): it keeps every
+#: sum the chief forms far inside float32, and an absurd aggregate or transfer away from a worker's actor.
+NORM_LIMIT = 1e6
 
 
 class TensorBlob(BaseModel):
@@ -33,7 +37,7 @@ class TensorBlob(BaseModel):
             raise ValueError(f"dtype {self.dtype!r} not allowed (allowed: {sorted(ALLOWED_DTYPES)})")
         if any(d < 0 for d in self.shape):
             raise ValueError(f"negative dimension in shape {self.shape}")
-        count = int(np.prod(self.shape, dtype=np.int64)) if self.shape else 1
+        count = math.prod(self.shape)  # Python integers: no overflow, whatever the shape claims
         if count > MAX_ELEMENTS:
             raise ValueError(f"tensor of {count} elements exceeds the limit of {MAX_ELEMENTS}")
         expected = count * np.dtype(self.dtype).itemsize
@@ -95,3 +99,12 @@ def digest(arrays: Mapping[str, np.ndarray] | Mapping[str, TensorBlob]) -> str:
         h.update(f"{name}|{blob.dtype}|{blob.shape}|".encode())
         h.update(blob.data)
     return h.hexdigest()[:16]
+
+
+def l2_norm(arrays: Mapping[str, np.ndarray] | Mapping[str, TensorBlob]) -> float:
+    """The L2 norm over all tensors, in float64 (inf when it overflows or a value is not finite)."""
+    total = 0.0
+    for a in arrays.values():
+        values = a.to_array() if isinstance(a, TensorBlob) else np.asarray(a)
+        total += float(np.sum(np.square(values, dtype=np.float64)))
+    return math.sqrt(total) if math.isfinite(total) else math.inf

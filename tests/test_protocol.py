@@ -20,6 +20,7 @@ from protocol.messages import (
     QubeState,
     Receipt,
     RunStart,
+    RunStop,
     WorkerHello,
     WorkerStatus,
     WorkerUpdate,
@@ -130,6 +131,8 @@ def bad_blob(**over: object) -> dict:
         bad_blob(data=np.array([1, np.nan, 2, 3, 4, 5], np.float32).tobytes()),  # NaN gradient
         bad_blob(data=np.array([1, np.inf, 2, 3, 4, 5], np.float32).tobytes()),
         bad_blob(shape=[1] * 9, data=b"\x00\x00\x80\x3f"),  # too many dimensions
+        bad_blob(dtype="<i4", shape=[2**31, 2**31, 4], data=b""),  # the product overflows int64 to 0
+        bad_blob(dtype="<i4", shape=[2**62, 4], data=b""),
     ],
 )
 def test_rejects_bad_tensors(blob: dict) -> None:
@@ -222,4 +225,35 @@ def test_the_wire_contract_document_is_up_to_date() -> None:
     assert contract.DOC.read_text(encoding="utf-8") == contract.markdown(), (
         "docs/wire-contract.md is out of date: python -m protocol.contract --write")
     kinds = {p.model_fields["kind"].default for r in contract.ROUTES for p in r.payloads}
-    assert kinds == set(contract.MESSAGE_TYPES), "every message kind has a topic in the contract"
+    assert kinds == set(contract.MESSAGE_TYPES) - {"chunk"}, "every message kind has a topic in the contract"
+
+
+@pytest.mark.parametrize(("change", "what"), [
+    (dict(schema_version=1.0), "version"),
+    (dict(schema_version=True), "version"),
+    (dict(episode="3"), "invalid"),
+    (dict(episode=True), "invalid"),
+    (dict(pi="15.5"), "invalid"),
+    (dict(steps=20.0), "invalid"),
+    (dict(worker_id=7), "invalid"),
+])
+def test_nothing_is_coerced(change: dict, what: str) -> None:
+    assert reason_of(msgpack.packb(raw_update(**change), use_bin_type=True)) == what
+
+
+def test_a_message_must_be_of_a_kind_its_topic_carries() -> None:
+    payload = encode(update())
+    assert decode(payload, topic="fedrl/r1/worker/w0/update") == update()
+    assert reason_of_topic(payload, "fedrl/r1/worker/w0/hello") == "wrong_topic"
+    assert reason_of_topic(payload, "fedrl/r1/chief/aggregate") == "wrong_topic"
+    assert reason_of_topic(payload, "qube/rig0/action") == "wrong_topic"
+    assert reason_of_topic(payload, "somewhere/else") == "wrong_topic"
+    stop = encode(RunStop(run_id="r1", reason="x", episodes=1, all_solved=False))
+    assert reason_of_topic(stop, "fedrl/r1/chief/aggregate") == "wrong_topic"
+    assert decode(stop, topic="fedrl/r1/chief/stop").kind == "run_stop"
+
+
+def reason_of_topic(payload: bytes, topic: str) -> str:
+    with pytest.raises(DecodeError) as info:
+        decode(payload, topic=topic)
+    return info.value.reason

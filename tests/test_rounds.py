@@ -127,6 +127,9 @@ def test_a_mature_actor_needs_pi_at_tc_over_the_whole_window() -> None:
     (dict(recent_returns=()), "invalid"),
     (dict(gradient={"g": np.zeros(3, np.float32)}), "wrong_shape"),
     (dict(episode=1_000_000_000), "out_of_window"),
+    (dict(gradient={"g": np.array([3e38], np.float32)}), "absurd_norm"),
+    (dict(gradient={"g": np.array([1e300], np.float64)}), "wrong_dtype"),
+    (dict(gradient={"g": np.array([1.0], np.float64)}), "wrong_dtype"),
     (dict(worker_id="zz"), "unknown_worker"),
 ])
 def test_lies_and_nonsense_are_refused_and_change_nothing(change: dict, reason: str) -> None:
@@ -242,7 +245,7 @@ def test_independent_policy_shares_nothing() -> None:
 @pytest.mark.parametrize("policy", ["median", "trimmed"])
 def test_robust_policies_ignore_one_outlier_of_four(policy: str) -> None:
     k, w = keeper(["w0", "w1", "w2", "w3"], policy=policy), fakes("w0", "w1", "w2", "w3")
-    for f, gv in zip(w.values(), [1.0, 2.0, 3.0, 1e30], strict=True):
+    for f, gv in zip(w.values(), [1.0, 2.0, 3.0, 1e5], strict=True):
         v = k.submit(f.sub(1, 20.0, gv=gv), now=0.0)
     [out] = outcomes(v)
     np.testing.assert_allclose(out.gradient["g"], [2.5])  # the mean of the two middle values
@@ -302,3 +305,26 @@ def test_keep_weight_uses_the_recipients_pi_at_that_round_not_a_later_one() -> N
     # w2's PI at round PI_WINDOW is from its episode 9 (39.0), not the 54.6 of its later episode.
     assert transfer.recipient_pis == {"w1": 39.0, "w2": 39.0}
     assert transfer.keep_weights == pytest.approx({"w1": 0.2, "w2": 0.2})
+
+
+def test_one_huge_gradient_is_scaled_to_ten_times_the_median_norm() -> None:
+    k, w = keeper(["w0", "w1", "w2", "w3"]), fakes("w0", "w1", "w2", "w3")
+    for f, gv in zip(w.values(), [1.0, 2.0, 3.0, 1e5], strict=True):
+        v = k.submit(f.sub(1, 100.0, gv=gv), now=0.0)
+    [out] = outcomes(v)
+    assert out.clipped == pytest.approx({"w3": 20.0 / 1e5})  # the lower median norm is 2: bound 20
+    np.testing.assert_allclose(out.gradient["g"], [0.25 * (1 + 2 + 3 + 20)], rtol=1e-6)  # equal PIs: the mean
+    assert out.record()["clipped"] == out.clipped
+
+
+def test_honest_spread_is_not_clipped_and_float32_cannot_overflow() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    k.submit(w["w0"].sub(1, 100.0, gv=1.0), now=0.0)
+    [out] = outcomes(k.submit(w["w1"].sub(1, 100.0, gv=3.0), now=0.0))
+    assert out.clipped == {}
+    # At the norm limit, four workers' sum stays far inside float32.
+    k4, f4 = keeper(["a", "b", "c", "d"], policy="plain"), fakes("a", "b", "c", "d")
+    for f in f4.values():
+        v = k4.submit(f.sub(1, 100.0, gv=9e5), now=0.0)
+    [big] = outcomes(v)
+    assert np.isfinite(big.gradient["g"]).all()

@@ -7,6 +7,7 @@ import sys
 from pathlib import Path
 
 from protocol.cli import add_common, add_device_noise, broker_from, env, parse_checked, run_service, setup_logging
+from protocol.mqtt import max_payload_from_env
 from protocol.tasks import TASKS
 from worker.service import WorkerConfig, WorkerService, auto_worker_id
 
@@ -16,7 +17,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         prog="python -m worker",
         description="A federated RL worker: Actor-Critic PPO on its own environment, sharing its actor gradient "
         "and Performance Index with the chief after every episode and applying what the chief sends back. "
-        "Exits when it has solved the task (after handing over its mature actor) or when the run ends.",
+        "Exits when it has solved the task (after the chief acknowledged its mature actor) or when the run ends: "
+        "exit code 0 then, 1 on an error, 2 on a bad option, 3 when no run started, 4 when the run was aborted "
+        "before this worker solved.",
     )
     add_common(parser)
     parser.add_argument("--id", default=env("FEDRL_WORKER_ID", "auto"),
@@ -33,6 +36,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--ack-timeout", type=float, default=float(env("FEDRL_ACK_TIMEOUT", "600")),
                         help="after solving, seconds to keep sending the mature actor until the chief acknowledges it "
                         "(env FEDRL_ACK_TIMEOUT, default 600)")
+    parser.add_argument("--resend-interval", type=float, default=float(env("FEDRL_RESEND_INTERVAL", "30")),
+                        help="send an unanswered submission again after this many seconds (also at once after a "
+                        "reconnect or a chief restart; env FEDRL_RESEND_INTERVAL, default 30)")
     parser.add_argument("--start-timeout", type=float, default=float(env("FEDRL_START_TIMEOUT", "600")),
                         help="seconds to wait for the chief to start the run (env FEDRL_START_TIMEOUT, default 600)")
     parser.add_argument("--model-dir", type=Path, default=Path(p) if (p := env("FEDRL_MODEL_DIR", "")) else None,
@@ -53,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
         return WorkerService(WorkerConfig(
             broker=broker_from(args), run_id=args.run_id, worker_id=args.id, env_id=args.env,
             device_noise=args.device_noise, reply_timeout=args.reply_timeout, start_timeout=args.start_timeout,
-            ack_timeout=args.ack_timeout,
+            ack_timeout=args.ack_timeout, resend_interval=args.resend_interval, max_payload=max_payload_from_env(),
             model_dir=args.model_dir, rig_id=args.rig_id))
 
     return run_service("worker", build)

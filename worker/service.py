@@ -7,6 +7,7 @@ worker/envs.py."""
 from __future__ import annotations
 
 import logging
+import math
 import os
 import queue
 import socket
@@ -29,15 +30,17 @@ from protocol.messages import (
     RunStop,
     WorkerHello,
     WorkerStatus,
+    WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import worker_seed
+from protocol.tensors import NORM_LIMIT, l2_norm
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
 
 log = logging.getLogger("worker")
 
-EXIT_OK, EXIT_ERROR, EXIT_NOT_STARTED = 0, 1, 3
+EXIT_OK, EXIT_ERROR, EXIT_NOT_STARTED, EXIT_ABORTED = 0, 1, 3, 4
 
 
 def auto_worker_id() -> str:
@@ -56,8 +59,10 @@ class WorkerConfig:
     reply_timeout: float = 120.0
     start_timeout: float = 600.0
     ack_timeout: float = 600.0
+    resend_interval: float = 30.0
     model_dir: Path | None = None
     rig_id: str | None = None
+    max_payload: int | None = None
 
 
 class WorkerService:
@@ -71,25 +76,37 @@ class WorkerService:
         self.inbox: queue.Queue[Any] = queue.Queue()
         self.replies: dict[int, ChiefAggregate | ChiefTransfer] = {}
         self.acks: dict[int, ChiefAck] = {}
+        self.answered: set[int] = set()  # rounds whose answer was applied (a repeated answer is not applied again)
         self.stop: RunStop | None = None
-        self.start_msg: RunStart | None = None
+        self.start: RunStart | None = None
+        self.restarted = False  # a RunStart of a new epoch arrived: the chief restarted
+        self.epoch = 0
+        self.duplicates = 0
         self.missed_replies = 0
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
-                                   will=(self._topic(topics.STATUS), will))
+                                   will=(self._topic(topics.STATUS), will), max_payload=cfg.max_payload,
+                                   rejects=self.rejects)
 
     def _topic(self, leaf: str) -> str:
         return topics.worker(self.cfg.run_id, self.cfg.worker_id, leaf)
 
     def _on_chief(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck)
+            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
             return
         if isinstance(msg, ChiefAck) and msg.worker_id != self.cfg.worker_id:
             return  # another worker's acknowledgement
-        self.inbox.put(msg)
+        if isinstance(msg, (ChiefAggregate, ChiefTransfer)):
+            tensors = msg.params if isinstance(msg, ChiefTransfer) else msg.gradient
+            norm = l2_norm(tensors) if tensors is not None else 0.0
+            if not norm <= NORM_LIMIT:
+                self.rejects.reject(topic, "absurd_norm", f"round {msg.episode}'s {msg.kind} has an L2 norm of "
+                                    f"{norm:.3g} (limit {NORM_LIMIT:g})")
+                return
+        self.inbox.put((topic, msg))
 
     def _status(self, state: str, episode: int = 0, pi: float | None = None, detail: str = "") -> None:
         msg = WorkerStatus(worker_id=self.cfg.worker_id, state=state, episode=episode, pi=pi, detail=detail)  # type: ignore[arg-type]
@@ -131,15 +148,16 @@ class WorkerService:
                 self.conn.publish(self._topic(topics.HELLO), encode(hello), qos=1)
                 next_hello = time.monotonic() + 1.0
             try:
-                msg = self.inbox.get(timeout=0.2)
+                topic, msg = self.inbox.get(timeout=0.2)
             except queue.Empty:
                 continue
             if isinstance(msg, RunStart) and cfg.worker_id in msg.workers:
                 if msg.env_id != cfg.env_id:
                     raise ValueError(f"the chief runs {msg.env_id!r} but this worker was started for {cfg.env_id!r}")
+                self.start, self.epoch = msg, msg.epoch
                 return msg
-            if isinstance(msg, RunStop):
-                return None
+            reason = "not_in_run" if isinstance(msg, RunStart) else "before_start"
+            self.rejects.reject(topic, reason, f"a {msg.kind} before a RunStart naming {cfg.worker_id}")
         return None
 
     def _learn(self, start: RunStart) -> int:
@@ -171,8 +189,7 @@ class WorkerService:
                     log.error("the chief refused the mature actor of episode %d (%s); learning on",
                               submission.episode, ack.reason)
                     submission = algo.refused(submission)
-                self.conn.publish(self._topic(topics.UPDATE), encode(submission), qos=1)
-                reply = self._await_reply(submission.episode)
+                reply = self._exchange(submission)
                 try:
                     algo.apply(reply)
                 except ValueError as err:
@@ -180,6 +197,9 @@ class WorkerService:
                                         str(err))
             self._status("stopped", episode=algo.episode - 1, pi=algo.pi,
                          detail=self.stop.reason if self.stop else "episode limit")
+            if self.stop is not None and self.stop.aborted:
+                log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
+                return EXIT_ABORTED
             return EXIT_OK
         finally:
             algo.close()
@@ -202,32 +222,62 @@ class WorkerService:
         return None
 
     def _receive(self, timeout: float) -> None:
-        """Take one message from the chief (if any within ``timeout``) and file it."""
+        """Take one message from the chief (if any within ``timeout``) and file it; count what is dropped."""
         try:
-            msg = self.inbox.get(timeout=timeout)
+            topic, msg = self.inbox.get(timeout=timeout)
         except queue.Empty:
             return
+        start = self.start
         if isinstance(msg, RunStop):
-            self.stop = msg
+            if start is not None and msg.session != start.session:
+                self.rejects.reject(topic, "wrong_session", f"a RunStop of session {msg.session!r}, this run's is "
+                                    f"{start.session!r}")
+            else:
+                self.stop = msg
+        elif isinstance(msg, RunStart):
+            if start is not None and msg.session == start.session and msg.epoch > self.epoch:
+                self.epoch, self.restarted = msg.epoch, True  # the chief restarted: it may have lost our submission
         elif isinstance(msg, ChiefAck):
             self.acks[msg.episode] = msg
-        elif isinstance(msg, (ChiefAggregate, ChiefTransfer)):
+        elif msg.episode in self.replies or msg.episode in self.answered:
+            self.duplicates += 1  # an answer sent again (to a worker that missed it): applied once
+        else:
             self.replies[msg.episode] = msg
 
-    def _await_reply(self, episode: int) -> ChiefAggregate | ChiefTransfer | None:
-        """Wait for the chief's answer to this episode's round (Algorithm 2, 'wait for a message m_c')."""
+    def _exchange(self, submission: WorkerUpdate) -> ChiefAggregate | ChiefTransfer | None:
+        """Submit one episode and wait for the chief's answer to its round (Algorithm 2, 'wait for a message m_c').
+
+        The submission goes out again when the connection came back, when the chief announced itself again (it may
+        have restarted) and every ``resend_interval`` seconds: the chief counts it once, and answers a round it
+        already closed again, so a lost message costs seconds, not ``reply_timeout``.
+        """
+        episode = submission.episode
+        payload = encode(submission)
         deadline = time.monotonic() + self.cfg.reply_timeout
+        sent_at, connects = -math.inf, -1
+        self.restarted = False
         while episode not in self.replies and self.stop is None:
-            remaining = deadline - time.monotonic()
-            if remaining <= 0:
+            now = time.monotonic()
+            if now >= deadline:
                 self.missed_replies += 1
                 log.warning("no answer from the chief for episode %d within %.0f s; going on alone (missed %d)",
                             episode, self.cfg.reply_timeout, self.missed_replies)
                 return None
-            self._receive(timeout=min(remaining, 0.5))
+            if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
+                if connects != -1:
+                    log.info("sending episode %d again (%s)", episode, "reconnected" if self.conn.connects != connects
+                             else "the chief restarted" if self.restarted else "no answer yet")
+                self.conn.publish(self._topic(topics.UPDATE), payload, qos=1)
+                sent_at, connects, self.restarted = now, self.conn.connects, False
+            self._receive(timeout=min(deadline - now, 0.5))
         for old in [e for e in self.replies if e < episode]:
+            self.rejects.reject(topics.chief(self.cfg.run_id, self.replies[old].kind), "stale",
+                                f"round {old}'s answer came after this worker had moved on")
             del self.replies[old]
-        return self.replies.pop(episode, None)
+        reply = self.replies.pop(episode, None)
+        if reply is not None:
+            self.answered.add(episode)
+        return reply
 
     def _save(self, learner: Any) -> None:
         if self.cfg.model_dir is None:

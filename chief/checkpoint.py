@@ -1,0 +1,136 @@
+"""The chief's state on disk, so a chief that died can resume its run (``python -m chief`` with the same run id and
+run folder finds ``chief-state.msgpack`` and carries on from it).
+
+What is kept: the round state machine (open round, every worker's record with its accepted returns and PIs, the
+pending and early submissions, which episodes were counted, the answers of the last few rounds), the roster, the
+reject counters, the run's session id, and how far ``metrics.jsonl`` had been written. It is written atomically
+(temporary file, fsync, rename) whenever a round closes and before a mature actor is acknowledged, so what the chief
+confirmed to a worker is never lost. Tensors are stored as raw float32 bytes in msgpack, never pickled: a state file
+is data, and loading one runs no code.
+
+What is not kept (and need not be): gradients accepted since the last write. Workers send a submission again when
+the chief comes back (they see its RunStart), and everything is idempotent by worker and episode, so the resumed
+chief counts each episode once and records it once (``metrics.jsonl`` is cut back to the written position).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import msgpack
+import numpy as np
+
+from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
+from protocol.tasks import TaskSpec
+from protocol.tensors import TensorBlob
+
+FILENAME = "chief-state.msgpack"
+VERSION = 1
+#: Closed rounds whose answers a state file keeps (a waiting worker waits for one of the last ones).
+ANSWERS_SAVED = 3
+
+
+def _arrays(arrays: dict[str, np.ndarray] | None) -> dict[str, Any] | None:
+    if arrays is None:
+        return None
+    return {k: TensorBlob.from_array(np.asarray(v)).model_dump() for k, v in arrays.items()}
+
+
+def _unarrays(blobs: dict[str, Any] | None) -> dict[str, np.ndarray] | None:
+    if blobs is None:
+        return None
+    return {k: TensorBlob.model_validate(v).to_array().copy() for k, v in blobs.items()}
+
+
+def _submission(s: Submission) -> dict[str, Any]:
+    return {"worker_id": s.worker_id, "episode": s.episode, "pi": s.pi, "episode_return": s.episode_return,
+            "recent_returns": list(s.recent_returns), "steps": s.steps, "gradient": _arrays(s.gradient),
+            "params": _arrays(s.params), "receipt": s.receipt}
+
+
+def _unsubmission(d: dict[str, Any]) -> Submission:
+    return Submission(d["worker_id"], d["episode"], d["pi"], d["episode_return"], tuple(d["recent_returns"]),
+                      d["steps"], _unarrays(d["gradient"]), _unarrays(d["params"]), d["receipt"])
+
+
+def _outcome(o: RoundOutcome) -> dict[str, Any]:
+    fields = {k: v for k, v in vars(o).items() if k not in ("gradient", "params")}
+    return {**fields, "gradient": _arrays(o.gradient), "params": _arrays(o.params)}
+
+
+def _unoutcome(d: dict[str, Any]) -> RoundOutcome:
+    return RoundOutcome(**{**d, "gradient": _unarrays(d["gradient"]), "params": _unarrays(d["params"])})
+
+
+def keeper_state(k: RoundKeeper) -> dict[str, Any]:
+    """Everything a RoundKeeper needs to go on, as plain data."""
+    workers = []
+    for rec in k.workers.values():
+        workers.append({**{f: getattr(rec, f) for f in ("worker_id", "state", "pi", "last_episode", "solved_episode",
+                                                         "steps", "steps_at_solve")},
+                        "returns": sorted(rec.returns.items()), "pis": sorted(rec.pis.items())})
+    last = sorted(k.answers)[-ANSWERS_SAVED:]
+    return {
+        "policy": k.policy, "env_id": k.task.env_id, "max_episodes": k.max_episodes,
+        "round_timeout": k.round_timeout, "actor_spec": k.actor_spec, "episode": k.episode,
+        "workers": workers, "pending": [_submission(s) for s in k.pending.values()],
+        "ahead": [_submission(s) for subs in k.ahead.values() for s in subs.values()],
+        "counted": sorted(k.counted), "answers": [_outcome(k.answers[e]) for e in last],
+        "done_reason": k.done_reason, "aborted": k.aborted,
+    }
+
+
+def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
+    """The RoundKeeper a state describes (its round timer starts afresh)."""
+    if state["env_id"] != task.env_id:
+        raise ValueError(f"the saved run learns {state['env_id']!r}, not {task.env_id!r}")
+    spec = {k: tuple(v) for k, v in state["actor_spec"].items()} if state["actor_spec"] else None
+    k = RoundKeeper([w["worker_id"] for w in state["workers"]], state["policy"], task, state["max_episodes"],
+                    state["round_timeout"], actor_spec=spec)
+    for w in state["workers"]:
+        rec = WorkerRecord(w["worker_id"], w["state"], w["pi"], w["last_episode"], w["solved_episode"], w["steps"],
+                           w["steps_at_solve"], dict(map(tuple, w["returns"])), dict(map(tuple, w["pis"])))
+        k.workers[rec.worker_id] = rec
+    k.episode = state["episode"]
+    k.pending = {s["worker_id"]: _unsubmission(s) for s in state["pending"]}
+    for s in state["ahead"]:
+        sub = _unsubmission(s)
+        k.ahead.setdefault(sub.episode, {})[sub.worker_id] = sub
+    k.counted = {(w, e) for w, e in state["counted"]}
+    k.answers = {o.episode: o for o in map(_unoutcome, state["answers"])}
+    k.done_reason, k.aborted = state["done_reason"], state["aborted"]
+    return k
+
+
+def save(run_dir: Path, keeper: RoundKeeper, service: dict[str, Any]) -> Path:
+    """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset)."""
+    path = run_dir / FILENAME
+    tmp = path.with_suffix(".tmp")
+    data = msgpack.packb({"version": VERSION, "keeper": keeper_state(keeper), "service": service}, use_bin_type=True)
+    with tmp.open("wb") as fh:
+        fh.write(data)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fd = os.open(run_dir, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    return path
+
+
+def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:
+    """The saved keeper and service state, or None when the folder holds none; ValueError for a bad file."""
+    path = run_dir / FILENAME
+    if not path.exists():
+        return None
+    try:
+        state = msgpack.unpackb(path.read_bytes(), raw=False, strict_map_key=False)
+        if state.get("version") != VERSION:
+            raise ValueError(f"version {state.get('version')!r}, this build reads {VERSION}")
+        return restore_keeper(state["keeper"], task), state["service"]
+    except (ValueError, KeyError, TypeError, msgpack.UnpackException) as err:
+        raise ValueError(f"cannot resume from {path}: {type(err).__name__}: {err}") from None

@@ -1,9 +1,10 @@
 """``python -m deploy.run_local`` (what ``make run`` calls): a whole federation on one machine.
 
-Starts the embedded broker (unless FEDRL_BROKER points at one), the chief and N workers as separate processes
-(plus one simulated QUBE-Servo 2 rig per worker, lockstep clock, when the env is ``qube``), relays the chief's
-live progress, prints a summary table at the end and leaves summary.json, metrics.jsonl, learning_curve.png,
-the workers' mature models and every process's log in the run folder.
+Starts the embedded broker (unless FEDRL_BROKER points at one) with this run's own users and ACL, the chief and
+N workers as separate processes (plus one simulated QUBE-Servo 2 rig per worker, lockstep clock, when the env is
+``qube``), relays the chief's live progress (restarting a chief that died: it resumes from its saved state), prints
+a summary table at the end and leaves summary.json, metrics.jsonl, learning_curve.png, the workers' mature models and
+every process's log in the run folder.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import IO
 
@@ -22,7 +24,7 @@ from chief import strategies
 from protocol.cli import add_device_noise, add_run_options, env, parse_checked
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
-from services.broker.embedded import start_broker_process
+from services.broker.embedded import make_credentials, start_broker_process
 
 
 def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
@@ -98,31 +100,40 @@ def main(argv: list[str] | None = None) -> int:
     log_dir.mkdir(parents=True, exist_ok=True)
     fleet = Fleet(log_dir)
     t0 = time.monotonic()
+    worker_ids = [f"w{i}" for i in range(args.workers)]
+    rigs = {i: f"rig{i}" for i in range(args.workers)} if args.env == "qube" else {}
+    login: Callable[[str], dict[str, str]] = lambda user: {}  # noqa: E731  (an external broker: the caller's env)
     try:
         if args.broker:
             broker = str(BrokerAddress.from_env(args.broker))
             print(f"using the broker at {broker}")
         else:
+            # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
+            creds = make_credentials(run_dir / "broker", args.run_id, worker_ids,
+                                     {worker_ids[i]: rig for i, rig in rigs.items()})
+            login = creds.env
             with (log_dir / "broker.log").open("wb") as broker_log:
-                proc, port = start_broker_process(stdout=broker_log, stderr=subprocess.STDOUT)
+                proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT)
             fleet.add("broker", proc)
             broker = f"mqtt://127.0.0.1:{port}"
-            print(f"embedded broker on {broker}")
+            print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
         common = {"FEDRL_BROKER": broker, "FEDRL_RUN_ID": args.run_id, "FEDRL_ENV": args.env,
                   "PYTHONUNBUFFERED": "1"}
-        worker_ids = [f"w{i}" for i in range(args.workers)]
-        rigs = start_rigs(fleet, args, common) if args.env == "qube" else {}
+        for i, rig in rigs.items():
+            fleet.start(f"qube-sim-{rig}", ["-m", "services.qube_sim"], {
+                **common, **login(rig), "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(worker_seed(args.seed, i)),
+                "FEDRL_QUBE_CLOCK": env("FEDRL_QUBE_CLOCK", "lockstep")})
         for i, wid in enumerate(worker_ids):
             fleet.start(f"worker-{wid}", ["-m", "worker"], {
-                **common, "FEDRL_WORKER_ID": wid, "FEDRL_DEVICE_NOISE": str(args.device_noise),
+                **common, **login(wid), "FEDRL_WORKER_ID": wid, "FEDRL_DEVICE_NOISE": str(args.device_noise),
                 "FEDRL_MODEL_DIR": str(run_dir / "models"), "FEDRL_RIG_ID": rigs.get(i, ""),
                 "FEDRL_REPLY_TIMEOUT": str(max(120.0, 4 * args.round_timeout))})
         print(f"run {args.run_id}: {args.workers} workers on {args.env}, policy {args.policy}, seed {args.seed}; "
               f"logs in {log_dir}")
         chief_env = {
-            **common, "FEDRL_WORKERS": str(args.workers), "FEDRL_POLICY": args.policy, "FEDRL_SEED": str(args.seed),
-            "FEDRL_MAX_EPISODES": str(args.max_episodes), "FEDRL_ROUND_TIMEOUT": str(args.round_timeout),
-            "FEDRL_RUN_DIR": str(run_dir)}
+            **common, **login("chief"), "FEDRL_WORKERS": str(args.workers), "FEDRL_POLICY": args.policy,
+            "FEDRL_SEED": str(args.seed), "FEDRL_MAX_EPISODES": str(args.max_episodes),
+            "FEDRL_ROUND_TIMEOUT": str(args.round_timeout), "FEDRL_RUN_DIR": str(run_dir)}
         restarts = 0
         while True:
             chief = fleet.start("chief", ["-m", "chief"], chief_env, stream=True)
@@ -150,16 +161,6 @@ def main(argv: list[str] | None = None) -> int:
 #: Chief exit codes that end a run (done, bad setting, no workers, aborted); any other means it died.
 CHIEF_FINAL_CODES = (0, 2, 3, 4)
 MAX_CHIEF_RESTARTS = 5
-
-
-def start_rigs(fleet: Fleet, args: argparse.Namespace, common: dict[str, str]) -> dict[int, str]:
-    """One simulated QUBE-Servo 2 per worker (lockstep clock for fast training); returns worker index -> rig id."""
-    rigs = {i: f"rig{i}" for i in range(args.workers)}
-    for i, rig in rigs.items():
-        fleet.start(f"qube-sim-{rig}", ["-m", "services.qube_sim"], {
-            **common, "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(worker_seed(args.seed, i)),
-            "FEDRL_QUBE_CLOCK": env("FEDRL_QUBE_CLOCK", "lockstep")})
-    return rigs
 
 
 def relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> int:

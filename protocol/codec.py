@@ -17,7 +17,7 @@ from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Message
 from protocol.routes import route_of
 
 #: Default cap on one payload. A 3x128 actor's gradient is ~140 KB; a QUBE state ~100 B.
-MAX_PAYLOAD_BYTES = 8 * 1024 * 1024
+MAX_PAYLOAD_BYTES = 4 * 1024 * 1024
 
 M = TypeVar("M", bound=Message)
 

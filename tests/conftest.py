@@ -26,14 +26,18 @@ def amqtt_broker(tmp_path: Path) -> Iterator[str]:
         log.close()
 
 
-def start_mosquitto(tmp_path: Path, port: int | None = None) -> tuple[subprocess.Popen, int]:
-    """Mosquitto with TCP_NODELAY and a 4 MiB packet limit on a free loopback port."""
+def start_mosquitto(tmp_path: Path, port: int | None = None, max_packet_size: int = 4259840,
+                    persistence: bool = False) -> tuple[subprocess.Popen, int]:
+    """Mosquitto with TCP_NODELAY and a packet limit (the codec's 4 MiB plus headers) on a free loopback port; with
+    ``persistence`` it keeps sessions and queued messages across a restart (in a folder of the test)."""
     binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
     port = port or free_port(HOST)
     conf = tmp_path / f"mosquitto-{port}.conf"
+    store = f"persistence true\npersistence_location {tmp_path}/\nautosave_interval 1\n" if persistence else (
+        "persistence false\n")
     conf.write_text(
-        f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\nmax_packet_size 4194304\n"
-        "persistence false\nlog_dest stderr\n"
+        f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\nmax_packet_size {max_packet_size}\n"
+        f"{store}log_dest stderr\n"
     )
     log = (tmp_path / f"mosquitto-{port}.log").open("wb")
     proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)

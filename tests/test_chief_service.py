@@ -220,3 +220,38 @@ def test_chief_goes_on_without_a_silent_worker(amqtt_broker: str, tmp_path: Path
             chief.kill()
     summary = json.loads((tmp_path / "run" / "summary.json").read_text())
     assert summary["episodes_to_all_solved"] == 11
+
+
+def test_one_message_that_breaks_the_chief_is_counted_and_the_run_goes_on(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """Whatever goes wrong while handling one message (here: the round state machine raises), the main loop logs
+    and counts it and carries on with the next message."""
+    from chief.report import MetricsLog
+    from chief.rounds import RoundKeeper
+    from chief.service import ChiefConfig, ChiefService
+    from protocol.tasks import task
+
+    svc = ChiefService(ChiefConfig(broker=BrokerAddress.parse("mqtt://127.0.0.1:9"), run_id=RUN, workers=1,
+                                   run_dir=tmp_path / "run", max_episodes=2))
+    sent: list[str] = []
+    monkeypatch.setattr(svc.conn, "publish", lambda topic, payload, qos=1: sent.append(topic))
+    svc.keeper = RoundKeeper(["w0"], "weighted", task("CartPole-v0"), 2, 30.0, actor_spec={"w": (2,)})
+    svc.metrics = MetricsLog(tmp_path / "run")
+    real_submit, calls = svc.keeper.submit, []
+
+    def flaky(sub, now):  # type: ignore[no-untyped-def]
+        calls.append(sub.episode)
+        if len(calls) == 1:
+            raise RuntimeError("a bug triggered by one message")
+        return real_submit(sub, now)
+
+    monkeypatch.setattr(svc.keeper, "submit", flaky)
+    HISTORY.clear()
+    topic = topics.worker(RUN, "w0", topics.UPDATE)
+    first = update("w0", 1, 10.0, [1.0, 1.0])
+    for msg in (first, first, update("w0", 2, 10.0, [1.0, 1.0])):
+        svc.events.put((topic, msg))
+    svc._federate()
+    assert svc.keeper.done and calls == [1, 1, 2]
+    assert svc.rejects.as_dict() == {"handler_error": 1}
+    assert sent.count(topics.chief(RUN, topics.AGGREGATE)) == 2

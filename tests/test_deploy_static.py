@@ -91,12 +91,14 @@ def test_compose_has_broker_chief_and_scaled_workers() -> None:
 
 
 def test_mosquitto_dev_config() -> None:
-    for name in ("mosquitto.conf", "mosquitto.loopback.conf"):
+    from services.broker.embedded import MAX_PACKET_SIZE
+
+    for name in ("mosquitto.conf", "mosquitto.loopback.conf", "mosquitto.prod.conf"):
         conf = dict(line.split(None, 1) for line in (MOSQUITTO / name).read_text().splitlines()
                     if line.strip() and not line.startswith("#") and " " in line)
         assert conf["set_tcp_nodelay"] == "true"
-        assert 1 << 20 <= int(conf["max_packet_size"]) <= 8 << 20
-        assert conf["persistence"] == "true"
+        assert int(conf["max_packet_size"]) == MAX_PACKET_SIZE  # the same limit as the codec and the embedded broker
+        assert conf["persistence"] == "true" and conf["persistent_client_expiration"] == "1d"
 
 
 def compose_cli() -> list[list[str]]:

@@ -1,34 +1,88 @@
-"""Run amqtt as a broker bound to one interface, and start/stop it as a child process."""
+"""Run amqtt as a broker bound to one interface, and start/stop it as a child process.
+
+Hardened for a shared machine: with a password file only listed users connect (argon2 hashes, amqtt's FileAuthPlugin),
+with an ACL file each user publishes and subscribes only where it may (TopicAccessControlListPlugin), and every
+packet above ``max_packet_size`` closes its connection before its body is read (amqtt has no such limit of its own;
+Mosquitto's ``max_packet_size`` does the same). Sessions are kept for reconnecting clients, but not across a restart
+of this broker (amqtt keeps them in memory): clients then find their session gone and send again what is
+unanswered (protocol/mqtt.py, worker/service.py).
+"""
 
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
+import secrets
 import signal
 import socket
 import subprocess
 import sys
 import time
+from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
+
+from protocol.codec import MAX_PAYLOAD_BYTES
 
 log = logging.getLogger(__name__)
 
+#: The largest MQTT packet the broker takes: the codec's payload limit plus room for the topic and headers.
+MAX_PACKET_SIZE = MAX_PAYLOAD_BYTES + 64 * 1024
 
-def broker_config(host: str, port: int, max_connections: int = 256) -> dict[str, Any]:
-    """amqtt config: one TCP listener, anonymous clients allowed (local use), no $SYS chatter, sessions expire."""
+
+class PacketTooLarge(Exception):
+    """A client announced a packet above the limit: its connection is closed."""
+
+
+def broker_config(host: str, port: int, max_connections: int = 256, password_file: Path | None = None,
+                  acl: dict[str, dict[str, list[str]]] | None = None) -> dict[str, Any]:
+    """amqtt config: one TCP listener, no $SYS chatter, sessions expire; anonymous clients unless a password file is
+    given; topic ACLs (``{"publish": {user: [filters]}, "subscribe": {...}}``) when given."""
+    plugins: dict[str, Any] = {}
+    if password_file is None:
+        plugins["amqtt.plugins.authentication.AnonymousAuthPlugin"] = {"allow_anonymous": True}
+    else:
+        plugins["amqtt.plugins.authentication.FileAuthPlugin"] = {"password_file": str(password_file)}
+    if acl is not None:
+        plugins["amqtt.plugins.topic_checking.TopicAccessControlListPlugin"] = {
+            "publish_acl": acl.get("publish", {}), "acl": acl.get("subscribe", {})}
     return {
         "listeners": {"default": {"type": "tcp", "bind": f"{host}:{port}", "max_connections": max_connections}},
         "timeout_disconnect_delay": 2,
         "session_expiry_interval": 600,
-        "plugins": {"amqtt.plugins.authentication.AnonymousAuthPlugin": {"allow_anonymous": True}},
+        "plugins": plugins,
     }
 
 
-async def serve(host: str, port: int, stop: asyncio.Event) -> None:
+def install_packet_limit(max_bytes: int) -> None:
+    """Make amqtt close a connection whose next packet announces more than ``max_bytes`` (before reading it)."""
+    from amqtt.mqtt.packet import MQTTFixedHeader
+
+    original = MQTTFixedHeader.from_stream.__func__  # type: ignore[attr-defined]
+    if getattr(original, "_fedrl_limit", None) is not None:
+        original = original._fedrl_original
+
+    async def from_stream(cls: type, reader: Any) -> Any:
+        header = await original(cls, reader)
+        if header is not None and header.remaining_length > max_bytes:
+            log.warning("closing a connection that announced a %d-byte packet (limit %d)", header.remaining_length,
+                        max_bytes)
+            raise PacketTooLarge(f"{header.remaining_length} bytes")
+        return header
+
+    from_stream._fedrl_limit = max_bytes  # type: ignore[attr-defined]
+    from_stream._fedrl_original = original  # type: ignore[attr-defined]
+    MQTTFixedHeader.from_stream = classmethod(from_stream)  # type: ignore[method-assign, assignment]
+
+
+async def serve(host: str, port: int, stop: asyncio.Event, password_file: Path | None = None,
+                acl: dict[str, dict[str, list[str]]] | None = None, max_packet_size: int = MAX_PACKET_SIZE) -> None:
     """Run the broker until ``stop`` is set."""
     from amqtt.broker import Broker  # the broker extra is only needed by this process
 
-    broker = Broker(broker_config(host, port))
+    install_packet_limit(max_packet_size)
+    broker = Broker(broker_config(host, port, password_file=password_file, acl=acl))
     await broker.start()
     log.info("amqtt broker listening on %s:%d", host, port)
     print(f"broker ready on {host}:{port}", flush=True)
@@ -36,17 +90,75 @@ async def serve(host: str, port: int, stop: asyncio.Event) -> None:
     await broker.shutdown()
 
 
-def run(host: str, port: int) -> None:
+def run(host: str, port: int, password_file: Path | None = None, acl_file: Path | None = None,
+        max_packet_size: int = MAX_PACKET_SIZE) -> None:
     """Blocking entry point: serve until SIGINT/SIGTERM."""
+    acl = json.loads(acl_file.read_text(encoding="utf-8")) if acl_file is not None else None
 
     async def main() -> None:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, stop.set)
-        await serve(host, port, stop)
+        await serve(host, port, stop, password_file=password_file, acl=acl, max_packet_size=max_packet_size)
 
     asyncio.run(main())
+
+
+@dataclass(frozen=True)
+class Credentials:
+    """Per-run users of an embedded broker: ``users`` maps a name to its password (kept in memory and handed to
+    the processes through their environment); the folder holds the argon2 password file and the ACL."""
+
+    folder: Path
+    users: dict[str, str]
+
+    @property
+    def password_file(self) -> Path:
+        return self.folder / "passwd"
+
+    @property
+    def acl_file(self) -> Path:
+        return self.folder / "acl.json"
+
+    def env(self, user: str) -> dict[str, str]:
+        """FEDRL_MQTT_USERNAME / FEDRL_MQTT_PASSWORD for one process."""
+        return {"FEDRL_MQTT_USERNAME": user, "FEDRL_MQTT_PASSWORD": self.users[user]}
+
+
+def run_acl(run_id: str, workers: list[str], rigs: dict[str, str]) -> dict[str, dict[str, list[str]]]:
+    """Who may publish and subscribe where in one run: the chief on its topics, each worker on its own (and its
+    rig's action and reset), each rig on its own, and a read-only observer (the dashboard)."""
+    run = f"fedrl/{run_id}"
+    publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#"], "observer": []}
+    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#"], "observer": [f"{run}/#", "qube/#"]}
+    for w in workers:
+        rig = rigs.get(w)
+        publish[w] = [f"{run}/worker/{w}/#"] + ([f"qube/{rig}/action", f"qube/{rig}/reset"] if rig else [])
+        subscribe[w] = [f"{run}/chief/#"] + ([f"qube/{rig}/#"] if rig else [])
+    for rig in rigs.values():
+        publish[rig] = [f"qube/{rig}/#"]
+        subscribe[rig] = [f"qube/{rig}/#"]
+    return {"publish": publish, "subscribe": subscribe}
+
+
+def make_credentials(folder: Path, run_id: str, workers: list[str], rigs: dict[str, str] | None = None
+                     ) -> Credentials:
+    """Random passwords for the chief, each worker and rig and an observer, written as an argon2 password file and
+    an ACL into ``folder`` (created, private)."""
+    from pwdlib import PasswordHash
+    from pwdlib.hashers.argon2 import Argon2Hasher
+
+    rigs = rigs or {}
+    folder.mkdir(parents=True, exist_ok=True)
+    folder.chmod(0o700)
+    users = {name: secrets.token_urlsafe(24) for name in ["chief", "observer", *workers, *rigs.values()]}
+    hasher = PasswordHash((Argon2Hasher(),))
+    creds = Credentials(folder, users)
+    creds.password_file.write_text("".join(f"{u}:{hasher.hash(p)}\n" for u, p in users.items()), encoding="utf-8")
+    creds.password_file.chmod(0o600)
+    creds.acl_file.write_text(json.dumps(run_acl(run_id, workers, rigs), indent=2), encoding="utf-8")
+    return creds
 
 
 def free_port(host: str = "127.0.0.1") -> int:
@@ -62,18 +174,18 @@ _PROBE_DISCONNECT = bytes([0xE0, 0])
 
 
 def broker_answers(host: str, port: int, timeout: float = 1.0) -> bool:
-    """True when an MQTT broker on host:port answers a CONNECT with a successful CONNACK."""
+    """True when an MQTT broker on host:port answers a CONNECT with a CONNACK (accepting it or not)."""
     try:
         with socket.create_connection((host, port), timeout=timeout) as sock:
             sock.sendall(_PROBE_CONNECT)
             reply = sock.recv(4)
             sock.sendall(_PROBE_DISCONNECT)
-            return len(reply) == 4 and reply[0] == 0x20 and reply[3] == 0
+            return len(reply) == 4 and reply[0] == 0x20  # any CONNACK: "not authorized" also means it is up
     except OSError:
         return False
 
 
-def wait_for_port(host: str, port: int, timeout: float = 15.0, proc: subprocess.Popen | None = None) -> None:
+def wait_for_port(host: str, port: int, timeout: float = 60.0, proc: subprocess.Popen | None = None) -> None:
     """Block until an MQTT broker answers on host:port; raise with a clear reason otherwise."""
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -86,12 +198,15 @@ def wait_for_port(host: str, port: int, timeout: float = 15.0, proc: subprocess.
 
 
 def start_broker_process(
-    host: str = "127.0.0.1", port: int | None = None, **popen: Any
+    host: str = "127.0.0.1", port: int | None = None, credentials: Credentials | None = None, **popen: Any
 ) -> tuple[subprocess.Popen, int]:
     """Start ``python -m services.broker`` on a free (or given) port and wait until it listens."""
     port = port or free_port(host)
+    extra = ([] if credentials is None else
+             ["--password-file", str(credentials.password_file), "--acl-file", str(credentials.acl_file)])
     proc = subprocess.Popen(
-        [sys.executable, "-m", "services.broker", "--host", host, "--port", str(port), "--log-level", "WARNING"],
+        [sys.executable, "-m", "services.broker", "--host", host, "--port", str(port), "--log-level", "WARNING",
+         *extra],
         **popen,
     )
     try:

@@ -358,3 +358,38 @@ def test_command_line_errors_are_one_line(tmp_path: Path) -> None:
                              capture_output=True, text=True, timeout=60)
         assert out.returncode == 2, out.stderr
         assert needle in out.stderr and "Traceback" not in out.stderr
+
+
+# -- deployment ------------------------------------------------------------------------------------------------
+
+
+def test_compose_and_dockerfile_run_the_dashboard() -> None:
+    import re
+
+    from tests.test_deploy_static import ROOT, ancestry, compose, dockerfile_stages
+
+    services = compose()["services"]
+    dash, chief = services["dashboard"], services["chief"]
+    assert dash["build"]["dockerfile"] == "deploy/Dockerfile" and dash["build"]["target"] == "dashboard"
+    assert dash["ports"] == ["${FEDRL_DASHBOARD_BIND:-127.0.0.1}:${FEDRL_DASHBOARD_PORT:-8050}:8050"]
+    assert dash["depends_on"]["mosquitto"]["condition"] == "service_healthy"
+    for var in ("FEDRL_BROKER", "FEDRL_RUN_ID"):
+        assert dash["environment"][var] == chief["environment"][var]
+    stages = dockerfile_stages()
+    lines = stages["dashboard"][1]
+    assert 'ENTRYPOINT ["python", "-m", "services.dashboard"]' in lines
+    assert 'CMD ["--host", "0.0.0.0", "--port", "8050"]' in lines and "EXPOSE 8050" in lines
+    chain = ancestry(stages, "dashboard")
+    assert "runtime" in chain
+    installs = re.findall(r"pip-install ([^&;\n]*)", " ".join(line for s in chain for line in stages[s][1]))
+    assert installs and not [i for i in installs if "[learn]" in i or re.search(r"\b(torch|gymnasium)\b", i)], installs
+    assert '"services.dashboard" = ["static/*"]' in (ROOT / "pyproject.toml").read_text(), "the page must be packaged"
+
+
+def test_dashboard_imports_no_torch() -> None:
+    import subprocess
+
+    code = ("import sys, services.dashboard.__main__, services.dashboard.screenshot; "
+            "bad = [m for m in ('torch', 'gymnasium') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -68,6 +69,14 @@ class DashboardServer(ThreadingHTTPServer):
     def full_stats(self) -> dict[str, Any]:
         return {**self.stats(), "pages": self.hub.clients, "dropped_pages": self.hub.dropped_clients,
                 "ignored": dict(self.hub.view.ignored), "t": round(time.time(), 3)}
+
+    def handle_error(self, request: Any, client_address: Any) -> None:
+        """A browser that went away mid-request is normal; anything else is logged with its traceback."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError)):
+            log.debug("%s went away: %s", client_address, exc)
+        else:
+            log.exception("request from %s failed", client_address)
 
     def shutdown(self) -> None:
         self.stopping.set()

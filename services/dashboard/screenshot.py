@@ -38,9 +38,13 @@ def interrupt(proc: subprocess.Popen, timeout: float = 30.0) -> None:
 
 def capture(driver: Any, out: Path, width: int) -> Path:
     """Save the whole page (not just the window) as a PNG."""
-    height = int(driver.execute_script("return document.documentElement.scrollHeight"))
-    driver.set_window_size(width, height + 20)
-    time.sleep(0.5)  # one more render at the new size
+    for _ in range(5):  # the window's outer size is not the page's: grow it until nothing scrolls
+        inner, full = driver.execute_script(
+            "return [window.innerHeight, document.documentElement.scrollHeight]")
+        if full <= inner:
+            break
+        driver.set_window_size(width, driver.get_window_size()["height"] + full - inner)
+        time.sleep(0.3)  # one more render at the new size
     out.parent.mkdir(parents=True, exist_ok=True)
     if not driver.save_screenshot(str(out)):
         raise RuntimeError(f"Chromium could not save {out}")

@@ -230,8 +230,7 @@ function renderRigs() {
   const rows = Array.from(state.rigs.values()).sort((a, b) => a.id.localeCompare(b.id)).map((r) => {
     const lat = r.latency_ms || {};
     return el("tr", { "data-rig": r.id },
-      el("td", {}, r.id), el("td", {}, badge(r.phase)), el("td", { class: "num" }, r.episode),
-      el("td", { class: "num" }, r.ticks),
+      el("td", {}, r.id), el("td", {}, badge(r.phase)), el("td", { class: "num" }, r.ticks),
       el("td", { class: "num" }, `${fmt(lat.p50, 2)} / ${fmt(lat.p99, 2)} / ${fmt(lat.max, 2)}`),
       el("td", { class: "num" }, fmt((r.jitter_ms || {}).p99, 2)),
       el("td", { class: "num" }, r.deadline_misses), el("td", { class: "num" }, r.late_actions),

@@ -301,7 +301,13 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
     assert "default-src 'none'" in page.getheader("Content-Security-Policy")
     assert "http://" not in body and "https://" not in body, "the page must load nothing from elsewhere"
     http_conn.request("GET", "/nope")
-    assert http_conn.getresponse().status == 404
+    missing = http_conn.getresponse()
+    assert missing.status == 404 and missing.read()
+    http_conn.request("GET", "/api/snapshot", headers={"Host": f"rebound.example:{port}"})  # DNS rebinding
+    refused = http_conn.getresponse()
+    assert refused.status == 403 and b"run" not in refused.read()
+    http_conn.request("GET", "/healthz", headers={"Host": f"localhost:{port}"})
+    assert http_conn.getresponse().read() == b"ok\n"
 
     sse = SseReader(host, port)
     assert sse.response.getheader("Content-Type").startswith("text/event-stream")
@@ -313,12 +319,19 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
         def send(topic: str, payload: Any) -> None:
             pub.publish(topic, payload if isinstance(payload, bytes) else encode(payload), qos=1).wait_for_publish(5)
 
-        # The dashboard subscribes without waiting for the broker's SUBACKs: repeat a rig status until it shows,
-        # then every subscription is in place (the rig filters are the last ones made).
+        # The dashboard subscribes without waiting for the broker's SUBACKs (and amqtt may handle them in any
+        # order): repeat a rig status and a message of a kind the page ignores until both have been seen.
         for _ in range(100):
             send("qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"))
             try:
-                sse.until(lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), timeout=0.2)
+                sse.until(lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), timeout=0.3)
+                break
+            except AssertionError:
+                continue
+        for _ in range(30):
+            send(f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0))
+            try:
+                sse.until(lambda n, d: n == "stats" and d["ignored"].get("qube_action"), timeout=1.5)
                 break
             except AssertionError:
                 continue

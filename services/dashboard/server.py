@@ -28,6 +28,8 @@ log = logging.getLogger("dashboard.http")
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 STATIC_TYPES = {".html": "text/html; charset=utf-8", ".js": "text/javascript; charset=utf-8",
                 ".css": "text/css; charset=utf-8"}
+#: Host names a browser uses for a server bound to loopback; any other name there is a DNS-rebinding attempt.
+LOOPBACK_NAMES = frozenset({"127.0.0.1", "localhost", "[::1]", "::1"})
 #: The page may load its own files and talk to this server, nothing else.
 CSP = ("default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data:; connect-src 'self'; "
        "base-uri 'none'; form-action 'none'; frame-ancestors 'none'")
@@ -59,6 +61,7 @@ class DashboardServer(ThreadingHTTPServer):
         self.stats_interval = stats_interval
         self.static = load_static()
         self.stopping = threading.Event()
+        self.loopback_only = address[0] in LOOPBACK_NAMES or address[0].startswith("127.")
 
     @property
     def url(self) -> str:
@@ -69,6 +72,14 @@ class DashboardServer(ThreadingHTTPServer):
     def full_stats(self) -> dict[str, Any]:
         return {**self.stats(), "pages": self.hub.clients, "dropped_pages": self.hub.dropped_clients,
                 "ignored": dict(self.hub.view.ignored), "t": round(time.time(), 3)}
+
+    def host_allowed(self, header: str | None) -> bool:
+        """Served on loopback, only pages that asked for a loopback name get an answer (DNS rebinding)."""
+        if not self.loopback_only or not header:
+            return True
+        name = header.strip().lower()
+        name = name[: name.index("]") + 1] if name.startswith("[") else name.rsplit(":", 1)[0]
+        return name in LOOPBACK_NAMES or name.startswith("127.")
 
     def handle_error(self, request: Any, client_address: Any) -> None:
         """A browser that went away mid-request is normal; anything else is logged with its traceback."""
@@ -107,7 +118,9 @@ class DashboardHandler(BaseHTTPRequestHandler):
 
     def do_GET(self) -> None:
         path = urlsplit(self.path).path
-        if path in self.server.static:
+        if not self.server.host_allowed(self.headers.get("Host")):
+            self._send(403, "text/plain; charset=utf-8", b"this dashboard answers to 127.0.0.1 and localhost only\n")
+        elif path in self.server.static:
             self._send(200, *self.server.static[path])
         elif path == "/api/snapshot":
             self._send(200, "application/json", _json({**self.server.hub.snapshot(),

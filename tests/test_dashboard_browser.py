@@ -65,6 +65,7 @@ def test_page_shows_every_worker_and_growing_curves_during_a_run(tmp_path: Path)
                 time.sleep(0.2)
             time.sleep(0.5)
             final = browser.page_state(driver)
+            js_errors = [e for e in driver.get_log("browser") if e.get("source") == "javascript"]
             shot = capture(driver, tmp_path / "page.png", 1280)
         assert run.proc.wait(120) == 0, run.output[-3000:]
     finally:
@@ -77,3 +78,4 @@ def test_page_shows_every_worker_and_growing_curves_during_a_run(tmp_path: Path)
     assert "all workers solved" in run.output
     assert final["phase"] == "stopped" and all(w["state"] == "finished" for w in final["workers"].values())
     assert shot.stat().st_size > 10_000
+    assert not js_errors, js_errors

@@ -19,7 +19,7 @@ from services.dashboard import browser
 from services.dashboard.screenshot import capture, interrupt
 
 REASON = browser.missing()
-pytestmark = pytest.mark.skipif(REASON is not None, reason=f"no headless browser: {REASON}")
+pytestmark = [pytest.mark.slow, pytest.mark.skipif(REASON is not None, reason=f"no headless browser: {REASON}")]
 
 
 class Launcher:

@@ -1,10 +1,10 @@
 """``python -m deploy.run_local`` (what ``make run`` calls): a whole federation on one machine.
 
-Starts the embedded broker (unless FEDRL_BROKER points at one) with this run's own users and ACL, the chief and
-N workers as separate processes (plus one simulated QUBE-Servo 2 rig per worker, lockstep clock, when the env is
-``qube``), relays the chief's live progress (restarting a chief that died: it resumes from its saved state), prints
-a summary table at the end and leaves summary.json, metrics.jsonl, learning_curve.png, the workers' mature models and
-every process's log in the run folder.
+Starts the embedded broker (unless FEDRL_BROKER points at one) with this run's own users and ACL, the live dashboard
+(``services.dashboard``, its URL printed), the chief and N workers as separate processes (plus one simulated
+QUBE-Servo 2 rig per worker, lockstep clock, when the env is ``qube``), relays the chief's live progress (restarting
+a chief that died: it resumes from its saved state), prints a summary table at the end and leaves summary.json,
+metrics.jsonl, learning_curve.png, the workers' mature models and every process's log in the run folder.
 """
 
 from __future__ import annotations
@@ -44,7 +44,15 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                         help="run id / topic prefix (env FEDRL_RUN_ID; default: derived from the start time)")
     parser.add_argument("--run-dir", type=Path, default=Path(p) if (p := env("FEDRL_RUN_DIR", "")) else None,
                         help="run folder (env FEDRL_RUN_DIR; default runs/<time>-<env>-<policy>-s<seed>)")
+    parser.add_argument("--dashboard-port", type=dashboard_port, default=env("FEDRL_DASHBOARD_PORT", "0"),
+                        help="port of the live dashboard on 127.0.0.1 (env FEDRL_DASHBOARD_PORT; default 0 = any "
+                        "free port, its URL is printed; 'off' = no dashboard)")
+    parser.add_argument("--dashboard-linger", type=float, default=float(env("FEDRL_DASHBOARD_LINGER", "0")),
+                        help="keep the dashboard up this many seconds after the run ended, to look at the final "
+                        "state (env FEDRL_DASHBOARD_LINGER, default 0)")
     args = parse_checked(parser, argv)
+    if args.dashboard_linger < 0:
+        parser.error("--dashboard-linger must be >= 0")
     if args.workers is None:
         args.workers = 3 if args.env == "qube" else 4
     if args.workers < 1:
@@ -54,6 +62,19 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.run_dir is None:
         args.run_dir = Path("runs") / f"{stamp}-{args.env}-{args.policy}-s{args.seed}"
     return args
+
+
+def dashboard_port(text: str) -> int | None:
+    """A port 0-65535 (0 = any free one), or None for 'off'."""
+    if text.strip().lower() in ("off", "none", "no", "false"):
+        return None
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a port 0-65535 or 'off', got {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"expected a port 0-65535 or 'off', got {port}")
+    return port
 
 
 class Fleet:
@@ -119,6 +140,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
         common = {"FEDRL_BROKER": broker, "FEDRL_RUN_ID": args.run_id, "FEDRL_ENV": args.env,
                   "PYTHONUNBUFFERED": "1"}
+        url_file = log_dir / "dashboard.url"
+        if args.dashboard_port is not None:  # first, so that it sees the run start
+            url_file.unlink(missing_ok=True)
+            dashboard = fleet.start("dashboard", ["-m", "services.dashboard", "--host", "127.0.0.1", "--port",
+                                                  str(args.dashboard_port), "--url-file", str(url_file)],
+                                    {**common, **login("observer")})
         for i, rig in rigs.items():
             fleet.start(f"qube-sim-{rig}", ["-m", "services.qube_sim"], {
                 **common, **login(rig), "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(worker_seed(args.seed, i)),
@@ -130,6 +157,10 @@ def main(argv: list[str] | None = None) -> int:
                 "FEDRL_REPLY_TIMEOUT": str(max(120.0, 4 * args.round_timeout))})
         print(f"run {args.run_id}: {args.workers} workers on {args.env}, policy {args.policy}, seed {args.seed}; "
               f"logs in {log_dir}")
+        if args.dashboard_port is not None:
+            url = wait_for_url(dashboard, url_file)
+            print(f"dashboard: {url}" if url else f"!! the dashboard did not start; see {log_dir / 'dashboard.log'}",
+                  flush=True)
         chief_env = {
             **common, **login("chief"), "FEDRL_WORKERS": str(args.workers), "FEDRL_POLICY": args.policy,
             "FEDRL_SEED": str(args.seed), "FEDRL_MAX_EPISODES": str(args.max_episodes),
@@ -143,19 +174,34 @@ def main(argv: list[str] | None = None) -> int:
             restarts += 1
             print(f"!! the chief died (exit code {code}); restarting it ({restarts} of {MAX_CHIEF_RESTARTS}): it "
                   "resumes the run from its saved state", flush=True)
+        wall = time.monotonic() - t0
+        summary_path = run_dir / "summary.json"
+        if not summary_path.exists():
+            print(f"the chief exited with code {code} and wrote no summary; see {log_dir}", file=sys.stderr)
+            return code or 1
+        print_summary(json.loads(summary_path.read_text()), run_dir, wall)
+        if args.dashboard_port is not None and args.dashboard_linger > 0 and dashboard.poll() is None:
+            print(f"the dashboard stays up for {args.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
+            time.sleep(args.dashboard_linger)
+        return code
     except KeyboardInterrupt:
         print("\ninterrupted; stopping every process", file=sys.stderr)
         fleet.stop(grace=5)
         return 130
     finally:
         fleet.stop()
-    wall = time.monotonic() - t0
-    summary_path = run_dir / "summary.json"
-    if not summary_path.exists():
-        print(f"the chief exited with code {code} and wrote no summary; see {log_dir}", file=sys.stderr)
-        return code or 1
-    print_summary(json.loads(summary_path.read_text()), run_dir, wall)
-    return code
+
+
+def wait_for_url(proc: subprocess.Popen, url_file: Path, timeout: float = 20.0) -> str | None:
+    """The URL the dashboard wrote once it served its page, or None when it exited or took too long."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if url_file.exists():
+            return url_file.read_text().strip()
+        if proc.poll() is not None:
+            return None
+        time.sleep(0.05)
+    return None
 
 
 #: Chief exit codes that end a run (done, bad setting, no workers, aborted); any other means it died.

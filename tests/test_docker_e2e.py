@@ -19,6 +19,8 @@ from pathlib import Path
 
 import pytest
 
+from services.broker.embedded import free_port
+
 pytestmark = pytest.mark.docker
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -83,7 +85,7 @@ def project(built: dict[str, str], tmp_path: Path) -> Iterator[tuple[list[str], 
     runs.chmod(0o777)  # the chief runs as uid 10001
     env = {**built, "FEDRL_RUNS_VOLUME": str(runs), "FEDRL_WORKERS": "2", "FEDRL_ENV": "CartPole-v0",
            "FEDRL_SEED": SEED, "FEDRL_MAX_EPISODES": MAX_EPISODES, "FEDRL_RUN_ID": "e2e",
-           "COMPOSE_PROJECT_NAME": f"fedrl-e2e-{os.getpid()}"}
+           "COMPOSE_PROJECT_NAME": f"fedrl-e2e-{os.getpid()}", "FEDRL_DASHBOARD_PORT": str(free_port())}
     cli = compose_cli()
     try:
         yield cli, env, runs

@@ -183,23 +183,28 @@ def env_spec(env_id: str) -> EnvSpec:
         raise ValueError(f"unsupported env {env_id!r}; supported: {', '.join(sorted(ENVS))}") from None
 
 
-def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, **extra: Any) -> gym.Env:
+def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, render_mode: str | None = None,
+             **extra: Any) -> gym.Env:
     """Build the environment of one device (worker).
 
     ``seed`` selects the device (its noise offset and jitter stream); seed the dynamics as usual with
     ``env.reset(seed=seed)`` on the first reset. ``device_noise`` defaults to the paper's DeviceNoise().
     Raw (unclipped) Box actions may be passed to ``step``: the wrapper clips them to the action space.
+    ``render_mode`` (gymnasium tasks only, e.g. "rgb_array" for a video) is passed to ``gym.make``.
     ``extra`` keyword arguments go to the spec's factory (gymnasium tasks take none).
     """
     spec = env_spec(env_id)
     noise = DeviceNoise() if device_noise is None else device_noise
     if spec.factory is not None:
+        if render_mode is not None:
+            raise ValueError(f"{env_id} cannot be rendered (render_mode is for the gymnasium tasks)")
         return spec.factory(spec, seed, noise, **extra)
     if extra:
         raise ValueError(f"{env_id} is a gymnasium task and takes no extra arguments, got {sorted(extra)}")
     with warnings.catch_warnings():  # CartPole-v0 is deliberate (the paper's task): no deprecation notice
         warnings.filterwarnings("ignore", message=".*is out of date.*")
-        env = gym.make(spec.gym_id, max_episode_steps=spec.max_steps, disable_env_checker=True)
+        env = gym.make(spec.gym_id, max_episode_steps=spec.max_steps, disable_env_checker=True,
+                       render_mode=render_mode)
     return DeviceNoiseWrapper(env, noise, seed, spec.noise_target)
 
 

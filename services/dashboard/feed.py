@@ -1,0 +1,128 @@
+"""The dashboard's MQTT adapter: subscribe to one run's topics and the rigs' status and telemetry, decode, enqueue.
+
+paho's network thread only decodes and enqueues (a bounded queue: when it is full the message is counted as dropped,
+never waited for); the pump thread applies batches to the Hub. Bad payloads are logged and counted, messages of
+kinds this build does not know are counted and ignored, and the rigs' 143 Hz ``state`` topic is never subscribed.
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+import uuid
+from collections import Counter
+from typing import Any
+
+from protocol import topics
+from protocol.codec import DecodeError, RejectCounter, decode
+from protocol.messages import Message
+from protocol.mqtt import BrokerAddress, MqttConnection
+from services.dashboard.hub import Hub
+
+log = logging.getLogger("dashboard")
+
+
+def subscriptions(run_id: str, rigs: list[str] | None) -> list[tuple[str, int]]:
+    """Topic filters and QoS: everything of the run, and status + telemetry of the given rigs (None = all)."""
+    subs = [(f"{topics.FEDRL}/{topics.check_id(run_id, 'run id')}/#", 1)]
+    for rig in rigs if rigs else ["+"]:
+        name = rig if rig == "+" else topics.check_id(rig, "rig id")
+        subs += [(f"{topics.QUBE}/{name}/{topics.STATUS}", 1), (f"{topics.QUBE}/{name}/{topics.TELEMETRY}", 0)]
+    return subs
+
+
+def sender_mismatch(topic: str, msg: Message) -> str | None:
+    """Why a message's own id contradicts its topic (a worker speaking for another, a rig for another), or None."""
+    parts = topic.split("/")
+    if len(parts) == 5 and parts[0] == topics.FEDRL and parts[2] == "worker":
+        claimed = getattr(msg, "worker_id", None)
+        if claimed is not None and claimed != parts[3]:
+            return f"payload says worker {claimed!r}, topic says {parts[3]!r}"
+    if len(parts) == 3 and parts[0] == topics.QUBE:
+        claimed = getattr(msg, "rig_id", None)
+        if claimed is not None and claimed != parts[1]:
+            return f"payload says rig {claimed!r}, topic says {parts[1]!r}"
+    return None
+
+
+class MqttFeed:
+    """Decoded messages of one run into a Hub."""
+
+    def __init__(self, broker: BrokerAddress, run_id: str, hub: Hub, rigs: list[str] | None = None,
+                 max_queue: int = 50_000) -> None:
+        self.run_id = topics.check_id(run_id, "run id")
+        self.hub = hub
+        self.subs = subscriptions(run_id, rigs)
+        self.rejects = RejectCounter(log)
+        self.unknown: Counter[str] = Counter()
+        self.received = 0
+        self.dropped = 0
+        self.inbox: queue.Queue[tuple[str, Message, float]] = queue.Queue(maxsize=max_queue)
+        self.conn = MqttConnection(broker, client_id=f"fedrl-{run_id}-dashboard-{uuid.uuid4().hex[:6]}")
+        self._stop = threading.Event()
+        self._pump = threading.Thread(target=self._run_pump, name="dashboard-pump", daemon=True)
+
+    # -- network thread ----------------------------------------------------------------------------------------
+
+    def on_message(self, topic: str, payload: bytes) -> None:
+        self.received += 1
+        try:
+            msg = decode(payload)
+        except DecodeError as err:
+            if err.reason == "unknown_kind":  # a newer peer's message: not ours to judge
+                self.unknown[err.detail.removeprefix("unknown message kind ")] += 1
+                log.debug("ignored message on %s: %s", topic, err.detail)
+            else:
+                self.rejects.reject_error(topic, err)
+            return
+        problem = sender_mismatch(topic, msg)
+        if problem is not None:
+            self.rejects.reject(topic, "spoofed", problem)
+            return
+        try:
+            self.inbox.put_nowait((topic, msg, time.time()))
+        except queue.Full:
+            self.dropped += 1
+
+    # -- pump thread -------------------------------------------------------------------------------------------
+
+    def _run_pump(self) -> None:
+        while not self._stop.is_set():
+            try:
+                batch = [self.inbox.get(timeout=0.2)]
+            except queue.Empty:
+                continue
+            try:
+                while len(batch) < 1000:
+                    batch.append(self.inbox.get_nowait())
+            except queue.Empty:
+                pass
+            try:
+                self.hub.apply(batch)
+            except Exception:  # a bug in the view must not stop the dashboard
+                log.exception("could not apply %d messages", len(batch))
+
+    # -- lifecycle ---------------------------------------------------------------------------------------------
+
+    def start(self, timeout: float = 10.0) -> MqttFeed:
+        self._pump.start()
+        self.conn.start(timeout)
+        for topic_filter, qos in self.subs:
+            self.conn.subscribe(topic_filter, self.on_message, qos=qos)
+        log.info("dashboard following run %s on %s (%s)", self.run_id, self.conn.address,
+                 ", ".join(t for t, _ in self.subs))
+        return self
+
+    def stop(self) -> None:
+        self._stop.set()
+        try:
+            self.conn.stop()
+        finally:
+            if self._pump.is_alive():
+                self._pump.join(timeout=2)
+
+    def stats(self) -> dict[str, Any]:
+        return {"received": self.received, "rejected": self.rejects.as_dict(), "unknown": dict(self.unknown),
+                "dropped": self.dropped, "connected": self.conn.connected.is_set()}

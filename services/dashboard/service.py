@@ -1,0 +1,82 @@
+"""Wires the dashboard together: RunView + Hub (core), MqttFeed (broker side), DashboardServer (browser side)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from protocol.mqtt import BrokerAddress
+from services.dashboard.feed import MqttFeed
+from services.dashboard.hub import Hub
+from services.dashboard.server import DashboardServer
+from services.dashboard.view import RunView
+
+log = logging.getLogger("dashboard")
+
+
+@dataclass
+class DashboardConfig:
+    broker: BrokerAddress
+    run_id: str = "default"
+    host: str = "127.0.0.1"
+    port: int = 8050  # 0 = any free port
+    rigs: list[str] | None = None  # None = every rig's status and telemetry
+    max_points: int = 4000  # per worker curve kept for new pages (older points are thinned)
+    url_file: Path | None = None  # written with the page's URL once it is served
+
+
+class DashboardService:
+    """A live web view of one run; ``start()``/``stop()`` for tests, ``run()`` for the command line."""
+
+    def __init__(self, cfg: DashboardConfig) -> None:
+        self.cfg = cfg
+        self.hub = Hub(RunView(cfg.run_id, max_points=cfg.max_points))
+        self.feed = MqttFeed(cfg.broker, cfg.run_id, self.hub, cfg.rigs)
+        try:
+            self.server = DashboardServer((cfg.host, cfg.port), self.hub, self.feed.stats)
+        except OSError as err:
+            raise ValueError(f"cannot serve on {cfg.host}:{cfg.port}: {err.strerror or err}") from None
+        self._http = threading.Thread(target=self.server.serve_forever, kwargs={"poll_interval": 0.2},
+                                      name="dashboard-http", daemon=True)
+        self.stop_event = threading.Event()
+
+    @property
+    def url(self) -> str:
+        return self.server.url
+
+    def start(self) -> DashboardService:
+        """Serve the page, then connect to the broker (ConnectionError if it cannot be reached)."""
+        self._http.start()
+        try:
+            self.feed.start()
+        except ConnectionError:
+            self.stop()
+            raise
+        if self.cfg.url_file is not None:
+            tmp = self.cfg.url_file.with_name(self.cfg.url_file.name + ".tmp")
+            tmp.write_text(self.url + "\n")
+            tmp.replace(self.cfg.url_file)
+        return self
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.feed.stop()
+        if self._http.is_alive():
+            self.server.shutdown()
+        self.server.server_close()
+
+    def run(self) -> int:
+        self.start()
+        print(f"dashboard for run {self.cfg.run_id}: {self.url}", flush=True)
+        try:
+            self.stop_event.wait()
+        finally:
+            self.stop()
+        return 0
+
+    def install_signal_handlers(self) -> None:
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, lambda *_: self.stop_event.set())

@@ -1,0 +1,334 @@
+"""The dashboard's pure core: ``RunView`` folds decoded messages of one run into a JSON-ready state.
+
+``apply(topic, message, now)`` takes one decoded message and returns the events it caused (small dicts the page
+applies to its copy of the state); ``snapshot()`` is the whole state, for a page that just connected. No MQTT, no
+HTTP, no threads here; tensors (gradients, actors) are never kept, only the scalar fields next to them.
+
+Events (``type`` plus fields):
+
+- ``run``: the run's settings and progress (env, policy, TC, workers, open round, who solved, how it ended);
+- ``worker``: one worker's summary (state, episode, PI, last return, weights) without its curve;
+- ``point``: one new point of a worker's curve, ``[episode, PI, return]``;
+- ``round``: one closed round (aggregate or transfer: weights, contributors, source, keep weights);
+- ``rig``: one QUBE-Servo 2 rig's phase and loop timing;
+- ``reset``: a new run under the same id started; the page clears what it has.
+"""
+
+from __future__ import annotations
+
+from collections import Counter, deque
+from dataclasses import dataclass, field
+from typing import Any
+
+from protocol.messages import (
+    ChiefAggregate,
+    ChiefTransfer,
+    MatureParams,
+    Message,
+    QubeStatus,
+    QubeTelemetry,
+    RunStart,
+    RunStop,
+    WorkerHello,
+    WorkerStatus,
+    WorkerUpdate,
+)
+
+Event = dict[str, Any]
+
+#: Worker states shown on the page. ``lagging``: training, but the last closed round went on without it.
+WORKER_STATES = ("waiting", "training", "lagging", "finished", "stopped", "offline", "error")
+
+
+def _round(value: float | None, digits: int = 4) -> float | None:
+    return None if value is None else round(float(value), digits)
+
+
+@dataclass
+class WorkerView:
+    """What the page knows about one worker."""
+
+    id: str
+    status: str = "waiting"  # from WorkerStatus / updates; ``lagging`` is derived in ``summary``
+    episode: int = 0
+    pi: float | None = None
+    ret: float | None = None
+    steps: int = 0
+    solved_episode: int | None = None
+    weight: float | None = None  # its w_n in the last aggregate it took part in (Eq. 8)
+    keep: float | None = None  # its w_T in the last transfer it received (Eq. 10)
+    detail: str = ""
+    host: str = ""
+    last_seen: float = 0.0
+    points: list[list[float]] = field(default_factory=list)  # [episode, PI, return], thinned past max_points
+
+    def summary(self, last_round: int, last_contributors: frozenset[str]) -> Event:
+        state = self.status
+        if state == "training" and last_round and self.episode < last_round and self.id not in last_contributors:
+            state = "lagging"
+        return {"type": "worker", "id": self.id, "state": state, "episode": self.episode, "pi": _round(self.pi),
+                "ret": _round(self.ret), "steps": self.steps, "solved_episode": self.solved_episode,
+                "weight": _round(self.weight), "keep": _round(self.keep), "detail": self.detail,
+                "host": self.host, "last_seen": round(self.last_seen, 3), "points": len(self.points)}
+
+
+@dataclass
+class RigView:
+    """One QUBE-Servo 2 rig: its phase (QubeStatus) and loop timing (QubeTelemetry)."""
+
+    id: str
+    phase: str = "?"
+    detail: str = ""
+    episode: int = 0
+    ticks: int = 0
+    deadline_misses: int = 0
+    late_actions: int = 0
+    faults: int = 0
+    latency_ms: dict[str, float] = field(default_factory=dict)
+    jitter_ms: dict[str, float] = field(default_factory=dict)
+    last_seen: float = 0.0
+
+    def summary(self) -> Event:
+        return {"type": "rig", "id": self.id, "phase": self.phase, "detail": self.detail, "episode": self.episode,
+                "ticks": self.ticks, "deadline_misses": self.deadline_misses, "late_actions": self.late_actions,
+                "faults": self.faults, "latency_ms": dict(self.latency_ms), "jitter_ms": dict(self.jitter_ms),
+                "last_seen": round(self.last_seen, 3)}
+
+
+class RunView:
+    """The state of one run (``run_id``) as the page shows it; fed decoded messages, one at a time."""
+
+    def __init__(self, run_id: str, max_points: int = 4000, max_rounds: int = 300) -> None:
+        if max_points < 2:
+            raise ValueError("max_points must be at least 2")
+        self.run_id = run_id
+        self.max_points = max_points
+        self.max_rounds = max_rounds
+        self.kinds: Counter[str] = Counter()  # messages applied, by kind
+        self.ignored: Counter[str] = Counter()  # valid messages of kinds the page does not show
+        self._handlers = {
+            "hello": self._on_hello, "status": self._on_status, "update": self._on_update,
+            "mature": self._on_mature, "ack": self._on_ack, "run_start": self._on_run_start,
+            "run_stop": self._on_run_stop, "aggregate": self._on_aggregate, "transfer": self._on_transfer,
+            "qube_status": self._on_qube_status, "qube_telemetry": self._on_qube_telemetry,
+        }
+        self._clear()
+
+    def _clear(self) -> None:
+        self.start: RunStart | None = None
+        self.stop: RunStop | None = None
+        self.started_at: float | None = None
+        self.stopped_at: float | None = None
+        self.first_point_at: float | None = None
+        self.env_id: str | None = None
+        self.workers: dict[str, WorkerView] = {}
+        self.rigs: dict[str, RigView] = {}
+        self.rounds: deque[Event] = deque(maxlen=self.max_rounds)
+        self.transfers: list[Event] = []
+        self.round_count = 0
+        self.last_round = 0  # episode number of the last closed round
+        self.last_contributors: frozenset[str] = frozenset()
+
+    # -- feeding ---------------------------------------------------------------------------------------------
+
+    def apply(self, topic: str, msg: Message, now: float) -> list[Event]:
+        """Fold one decoded message in; returns the events for the page (empty when nothing shown changed)."""
+        kind = str(getattr(msg, "kind", type(msg).__name__))
+        handler = self._handlers.get(kind)
+        if handler is None:
+            self.ignored[kind] += 1
+            return []
+        self.kinds[kind] += 1
+        return handler(msg, now)
+
+    def _worker(self, worker_id: str) -> WorkerView:
+        if worker_id not in self.workers:
+            self.workers[worker_id] = WorkerView(worker_id)
+        return self.workers[worker_id]
+
+    def _worker_event(self, w: WorkerView) -> Event:
+        return w.summary(self.last_round, self.last_contributors)
+
+    def _all_workers(self) -> list[Event]:
+        return [self._worker_event(w) for w in self.workers.values()]
+
+    def _on_hello(self, msg: WorkerHello, now: float) -> list[Event]:
+        w = self._worker(msg.worker_id)
+        w.host, w.last_seen = msg.host, now
+        out: list[Event] = []
+        if self.env_id is None:
+            self.env_id = msg.env_id
+            out.append(self.run_summary())
+        return [*out, self._worker_event(w)]
+
+    def _on_status(self, msg: WorkerStatus, now: float) -> list[Event]:
+        w = self._worker(msg.worker_id)
+        w.last_seen = now
+        w.detail = msg.detail
+        if msg.state == "online":
+            w.status = "waiting" if self.start is None else "training"
+        elif msg.state == "finished":
+            w.status = "finished"
+            w.solved_episode = w.solved_episode or msg.episode or None
+        elif w.status != "finished" or msg.state == "error":
+            w.status = msg.state
+        if msg.pi is not None:
+            w.pi = msg.pi
+        w.episode = max(w.episode, msg.episode)
+        return [self._worker_event(w)]
+
+    def _point(self, w: WorkerView, episode: int, pi: float, ret: float, now: float) -> list[Event]:
+        w.episode, w.pi, w.ret, w.last_seen = max(w.episode, episode), pi, ret, now
+        if self.first_point_at is None:
+            self.first_point_at = now
+        point = [episode, _round(pi), _round(ret)]
+        if w.points and w.points[-1][0] == episode:  # a resent submission: replace, do not add
+            w.points[-1] = point
+        else:
+            w.points.append(point)
+        if len(w.points) > self.max_points:  # thin: keep every other point (always the newest)
+            w.points = w.points[-1::-2][::-1]
+        return [{"type": "point", "worker": w.id, "point": point}]
+
+    def _on_update(self, msg: WorkerUpdate, now: float) -> list[Event]:
+        w = self._worker(msg.worker_id)
+        out: list[Event] = []
+        if w.status == "finished" and msg.episode > (w.solved_episode or 0):  # its finish was refused: it goes on
+            w.status, w.solved_episode = "training", None
+            out.append(self.run_summary())
+        elif w.status in ("waiting", "offline", "stopped", "error"):
+            w.status = "training"
+        w.steps = msg.steps
+        return [*self._point(w, msg.episode, msg.pi, msg.episode_return, now), self._worker_event(w), *out]
+
+    def _on_mature(self, msg: MatureParams, now: float) -> list[Event]:
+        w = self._worker(msg.worker_id)
+        w.status, w.solved_episode, w.steps = "finished", msg.episode, msg.steps
+        return [*self._point(w, msg.episode, msg.pi, msg.episode_return, now), self._worker_event(w),
+                self.run_summary()]
+
+    def _on_ack(self, msg: Any, now: float) -> list[Event]:
+        """The chief's answer to a mature actor (a newer message kind): a refusal means the worker goes on."""
+        worker_id = getattr(msg, "worker_id", None)
+        if worker_id not in self.workers or getattr(msg, "accepted", True):
+            return []
+        w = self.workers[worker_id]
+        if w.status == "finished" and w.solved_episode == getattr(msg, "episode", None):
+            w.status, w.solved_episode = "training", None
+            w.detail = f"finish refused: {getattr(msg, 'reason', '')}".strip()
+        return [self._worker_event(w), self.run_summary()]
+
+    def _on_run_start(self, msg: RunStart, now: float) -> list[Event]:
+        if msg.run_id != self.run_id:
+            return []
+        out: list[Event] = []
+        if self.stop is not None:  # the same run id again after a stop: a new run
+            self._clear()
+            out.append({"type": "reset"})
+        if self.start is None:
+            self.started_at = now
+        self.start, self.env_id = msg, msg.env_id
+        for wid in msg.workers:
+            w = self._worker(wid)
+            if w.status == "waiting":
+                w.status = "training"
+        return [*out, self.run_summary(), *self._all_workers()]
+
+    def _on_run_stop(self, msg: RunStop, now: float) -> list[Event]:
+        if msg.run_id != self.run_id:
+            return []
+        self.stop, self.stopped_at = msg, now
+        for w in self.workers.values():
+            if w.status in ("training", "waiting"):
+                w.status = "stopped"
+        return [self.run_summary(), *self._all_workers()]
+
+    def _close_round(self, episode: int, record: Event, contributors: list[str]) -> None:
+        self.round_count += 1
+        self.last_round = max(self.last_round, episode)
+        self.last_contributors = frozenset(contributors)
+        self.rounds.append(record)
+
+    def _on_aggregate(self, msg: ChiefAggregate, now: float) -> list[Event]:
+        record = {"type": "round", "round": msg.episode, "kind": "aggregate", "t": round(now, 3),
+                  "contributors": list(msg.contributors), "shared": msg.gradient is not None,
+                  "weights": {k: _round(v) for k, v in msg.weights.items()}}
+        self._close_round(msg.episode, record, msg.contributors)
+        for wid, weight in msg.weights.items():
+            self._worker(wid).weight = weight
+        return [record, self.run_summary(), *self._all_workers()]
+
+    def _on_transfer(self, msg: ChiefTransfer, now: float) -> list[Event]:
+        record = {"type": "round", "round": msg.episode, "kind": "transfer", "t": round(now, 3),
+                  "source": msg.source_worker, "source_pi": _round(msg.source_pi),
+                  "keep_weights": {k: _round(v) for k, v in msg.keep_weights.items()},
+                  "finished": list(msg.finished), "contributors": sorted({*msg.keep_weights, *msg.finished})}
+        self._close_round(msg.episode, record, record["contributors"])
+        self.transfers.append(record)
+        for wid, keep in msg.keep_weights.items():
+            self._worker(wid).keep = keep
+        for wid in msg.finished:
+            w = self._worker(wid)
+            w.status = "finished"
+            w.solved_episode = w.solved_episode or msg.episode
+        return [record, self.run_summary(), *self._all_workers()]
+
+    def _rig(self, rig_id: str) -> RigView:
+        if rig_id not in self.rigs:
+            self.rigs[rig_id] = RigView(rig_id)
+        return self.rigs[rig_id]
+
+    def _on_qube_status(self, msg: QubeStatus, now: float) -> list[Event]:
+        rig = self._rig(msg.rig_id)
+        rig.phase, rig.detail, rig.episode, rig.last_seen = msg.state, msg.detail, msg.episode, now
+        return [rig.summary()]
+
+    def _on_qube_telemetry(self, msg: QubeTelemetry, now: float) -> list[Event]:
+        rig = self._rig(msg.rig_id)
+        rig.ticks, rig.deadline_misses, rig.late_actions, rig.faults = (msg.ticks, msg.deadline_misses,
+                                                                         msg.late_actions, msg.faults)
+        rig.latency_ms = {k: round(v, 3) for k, v in msg.latency_ms.items()}
+        rig.jitter_ms = {k: round(v, 3) for k, v in msg.jitter_ms.items()}
+        rig.last_seen = now
+        return [rig.summary()]
+
+    # -- reading ---------------------------------------------------------------------------------------------
+
+    def run_summary(self) -> Event:
+        start, stop = self.start, self.stop
+        solved = sorted(((w.id, w.solved_episode) for w in self.workers.values() if w.status == "finished"),
+                        key=lambda x: (x[1] or 0, x[0]))
+        if stop is not None:
+            phase = "stopped"
+        elif start is not None:
+            phase = "running"
+        else:
+            phase = "waiting"
+        return {
+            "type": "run", "run_id": self.run_id, "phase": phase, "env": self.env_id,
+            "policy": start.policy if start else None, "seed": start.seed if start else None,
+            "tc": start.tc if start else None, "r_floor": start.r_floor if start else None,
+            "max_episodes": start.max_episodes if start else None,
+            "workers": list(start.workers) if start else sorted(self.workers),
+            "round": self.last_round + 1 if start else None, "rounds": self.round_count,
+            "transfers": len(self.transfers), "solved": [{"worker": w, "episode": e} for w, e in solved],
+            "stop": {"reason": stop.reason, "episodes": stop.episodes, "all_solved": stop.all_solved} if stop else None,
+            "started_at": self.started_at, "stopped_at": self.stopped_at, "first_point_at": self.first_point_at,
+        }
+
+    def snapshot(self) -> dict[str, Any]:
+        """The whole state: run, workers with their curves, recent rounds, every transfer, rigs."""
+        workers = []
+        for w in self.workers.values():
+            item = self._worker_event(w)
+            item["curve"] = [list(p) for p in w.points]
+            workers.append(item)
+        return {
+            "run": self.run_summary(),
+            "workers": workers,
+            "rounds": list(self.rounds),
+            "transfers": list(self.transfers),
+            "rigs": [r.summary() for r in self.rigs.values()],
+            "kinds": dict(self.kinds),
+            "ignored": dict(self.ignored),
+        }

@@ -1,0 +1,408 @@
+"""The live dashboard: the pure RunView, the feed's decoding and rejects, the hub's fan-out, and the HTTP/SSE server
+against a real broker (no browser; tests/test_dashboard_browser.py drives Chromium)."""
+
+from __future__ import annotations
+
+import http.client
+import json
+import queue
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import msgpack
+import numpy as np
+import pytest
+
+from protocol import topics
+from protocol.codec import encode
+from protocol.messages import (
+    ChiefAggregate,
+    ChiefTransfer,
+    MatureParams,
+    QubeAction,
+    QubeState,
+    QubeStatus,
+    QubeTelemetry,
+    RunStart,
+    RunStop,
+    WorkerHello,
+    WorkerStatus,
+    WorkerUpdate,
+)
+from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.tensors import pack_arrays
+from services.dashboard.feed import MqttFeed, subscriptions
+from services.dashboard.hub import Hub
+from services.dashboard.service import DashboardConfig, DashboardService
+from services.dashboard.view import RunView
+
+RUN = "dash1"
+BIG = {"w": np.ones((256, 256), np.float32)}  # a 256 KiB tensor: must never end up in the view
+
+
+def start(workers: list[str], run_id: str = RUN) -> RunStart:
+    return RunStart(run_id=run_id, env_id="CartPole-v0", policy="weighted", seed=1, max_episodes=100, tc=195.0,
+                    r_floor=0.0, workers=workers)
+
+
+def update(worker: str, episode: int, pi: float, ret: float | None = None) -> WorkerUpdate:
+    return WorkerUpdate(worker_id=worker, episode=episode, episode_return=pi if ret is None else ret, pi=pi, steps=20,
+                        gradient=pack_arrays(BIG))
+
+
+def mature(worker: str, episode: int, pi: float) -> MatureParams:
+    return MatureParams(worker_id=worker, episode=episode, episode_return=pi, pi=pi, params=pack_arrays(BIG))
+
+
+def aggregate(episode: int, weights: dict[str, float]) -> ChiefAggregate:
+    return ChiefAggregate(episode=episode, gradient=pack_arrays(BIG), weights=weights, contributors=sorted(weights))
+
+
+def feed(view: RunView, *messages: Any, t: float = 100.0) -> list[dict]:
+    events: list[dict] = []
+    for i, msg in enumerate(messages):
+        events += view.apply("t", msg, t + i)
+    return events
+
+
+def workers_of(view: RunView) -> dict[str, dict]:
+    return {w["id"]: w for w in view.snapshot()["workers"]}
+
+
+# -- RunView ---------------------------------------------------------------------------------------------------
+
+
+def test_view_follows_a_run_from_hello_to_stop() -> None:
+    view = RunView(RUN)
+    events = feed(view, WorkerHello(worker_id="w0", env_id="CartPole-v0", actor_spec={"w": (2,)}, host="h0"))
+    assert view.snapshot()["run"]["phase"] == "waiting" and view.snapshot()["run"]["env"] == "CartPole-v0"
+    assert any(e["type"] == "worker" and e["id"] == "w0" and e["state"] == "waiting" for e in events)
+
+    events = feed(view, start(["w0", "w1"]))
+    run = view.snapshot()["run"]
+    assert (run["phase"], run["tc"], run["policy"], run["workers"], run["round"]) == (
+        "running", 195.0, "weighted", ["w0", "w1"], 1)
+    assert {w["id"]: w["state"] for w in workers_of(view).values()} == {"w0": "training", "w1": "training"}
+
+    events = feed(view, update("w0", 1, 10.0, 12.0), update("w1", 1, 30.0))
+    assert {"type": "point", "worker": "w0", "point": [1, 10.0, 12.0]} in events
+    events = feed(view, aggregate(1, {"w0": 0.25, "w1": 0.75}))
+    rounds = view.snapshot()["rounds"]
+    assert rounds[-1]["weights"] == {"w0": 0.25, "w1": 0.75} and rounds[-1]["shared"]
+    assert workers_of(view)["w1"]["weight"] == 0.75 and view.snapshot()["run"]["round"] == 2
+
+    # Round 2 closes without w1: it is lagging until it submits for the open round.
+    feed(view, update("w0", 2, 20.0), aggregate(2, {"w0": 1.0}))
+    assert workers_of(view)["w1"]["state"] == "lagging" and workers_of(view)["w0"]["state"] == "training"
+    feed(view, update("w1", 2, 40.0))
+    assert workers_of(view)["w1"]["state"] == "training"
+
+    # w1 finishes at round 3; w0 gets its actor with keep weight 0.1.
+    feed(view, update("w0", 3, 19.5), mature("w1", 3, 196.0),
+         ChiefTransfer(episode=3, source_worker="w1", source_pi=196.0, params=pack_arrays(BIG),
+                       keep_weights={"w0": 0.1}, finished=["w1"]))
+    snap = view.snapshot()
+    assert snap["transfers"][-1]["source"] == "w1" and snap["transfers"][-1]["keep_weights"] == {"w0": 0.1}
+    assert workers_of(view)["w0"]["keep"] == 0.1
+    assert workers_of(view)["w1"]["state"] == "finished" and workers_of(view)["w1"]["solved_episode"] == 3
+    assert snap["run"]["solved"] == [{"worker": "w1", "episode": 3}] and snap["run"]["transfers"] == 1
+
+    feed(view, RunStop(run_id=RUN, reason="episode limit", episodes=3, all_solved=False))
+    snap = view.snapshot()
+    assert snap["run"]["phase"] == "stopped" and snap["run"]["stop"]["reason"] == "episode limit"
+    assert workers_of(view)["w0"]["state"] == "stopped" and workers_of(view)["w1"]["state"] == "finished"
+    assert [p[0] for p in workers_of(view)["w0"]["curve"]] == [1, 2, 3]
+
+
+def test_view_keeps_no_tensors() -> None:
+    view = RunView(RUN)
+    feed(view, start(["w0"]), *[update("w0", e, float(e)) for e in range(1, 51)], aggregate(1, {"w0": 1.0}),
+         mature("w0", 51, 200.0))
+    text = json.dumps(view.snapshot(), allow_nan=False)
+    assert len(text) < 10_000, "gradients or actors were kept"
+
+    def no_bytes(obj: Any) -> None:
+        assert not isinstance(obj, (bytes, np.ndarray))
+        for child in obj.values() if isinstance(obj, dict) else obj if isinstance(obj, list) else []:
+            no_bytes(child)
+
+    no_bytes(view.snapshot())
+
+
+def test_view_worker_states_from_status_messages() -> None:
+    view = RunView(RUN)
+    feed(view, start(["w0", "w1", "w2"]), WorkerStatus(worker_id="w0", state="offline", detail="connection lost"),
+         WorkerStatus(worker_id="w1", state="error", detail="RuntimeError: boom"),
+         WorkerStatus(worker_id="w2", state="finished", episode=7, pi=199.0))
+    w = workers_of(view)
+    assert (w["w0"]["state"], w["w0"]["detail"]) == ("offline", "connection lost")
+    assert w["w1"]["state"] == "error" and w["w2"]["state"] == "finished" and w["w2"]["solved_episode"] == 7
+    feed(view, update("w0", 3, 5.0))  # back from the dead
+    assert workers_of(view)["w0"]["state"] == "training"
+
+
+def test_view_a_refused_finish_goes_back_to_training() -> None:
+    view = RunView(RUN)
+    feed(view, start(["w0", "w1"]), mature("w0", 12, 196.0))
+    assert workers_of(view)["w0"]["state"] == "finished"
+    # The chief's refusal (a newer message kind; duck-typed here) or a later update both mean it goes on learning.
+    feed(view, SimpleNamespace(kind="ack", worker_id="w0", episode=12, accepted=False, reason="PI does not match"))
+    assert workers_of(view)["w0"]["state"] == "training" and workers_of(view)["w0"]["solved_episode"] is None
+    feed(view, mature("w1", 12, 196.0), update("w1", 13, 150.0))
+    assert workers_of(view)["w1"]["state"] == "training"
+
+
+def test_view_resent_points_replace_and_long_curves_are_thinned() -> None:
+    view = RunView(RUN, max_points=8)
+    feed(view, start(["w0"]), update("w0", 1, 1.0), mature("w0", 2, 2.0), mature("w0", 2, 2.0))
+    assert [p[0] for p in workers_of(view)["w0"]["curve"]] == [1, 2]
+    view = RunView(RUN, max_points=8)
+    feed(view, start(["w0"]), *[update("w0", e, float(e)) for e in range(1, 10)])
+    curve = [p[0] for p in workers_of(view)["w0"]["curve"]]
+    assert len(curve) <= 8 and curve[-1] == 9 and curve == sorted(curve)
+    assert curve[0] <= 2, "thinning keeps the start of the curve"
+
+
+def test_view_rigs_other_runs_and_unshown_kinds() -> None:
+    view = RunView(RUN)
+    feed(view, QubeStatus(rig_id="rig0", state="running", episode=4),
+         QubeTelemetry(rig_id="rig0", ticks=1430, deadline_misses=2, late_actions=1, faults=0,
+                       jitter_ms={"p50": 0.01, "p99": 0.2, "max": 1.0}, latency_ms={"p50": 1.1, "p99": 2.5, "max": 6}))
+    rig = view.snapshot()["rigs"][0]
+    assert (rig["id"], rig["phase"], rig["episode"], rig["deadline_misses"], rig["latency_ms"]["p99"]) == (
+        "rig0", "running", 4, 2, 2.5)
+    assert feed(view, start(["x"], run_id="other"), RunStop(run_id="other", reason="x", episodes=1,
+                                                           all_solved=True)) == []
+    assert view.snapshot()["run"]["phase"] == "waiting"
+    assert feed(view, QubeState(rig_id="rig0", seq=1, t=0.0, theta=0, alpha=0, theta_dot=0, alpha_dot=0),
+                QubeAction(rig_id="rig0", seq=1, command=0)) == []
+    assert view.snapshot()["ignored"] == {"qube_state": 1, "qube_action": 1}
+
+
+def test_view_same_run_id_again_starts_afresh() -> None:
+    view = RunView(RUN)
+    feed(view, start(["w0"]), update("w0", 1, 1.0), RunStop(run_id=RUN, reason="done", episodes=1, all_solved=False))
+    events = feed(view, start(["w5"]))
+    assert events[0] == {"type": "reset"}
+    assert list(workers_of(view)) == ["w5"] and view.snapshot()["run"]["phase"] == "running"
+
+
+# -- feed and hub ----------------------------------------------------------------------------------------------
+
+
+def test_subscriptions_leave_out_the_143_hz_state_topic() -> None:
+    subs = dict(subscriptions(RUN, None))
+    assert subs == {f"fedrl/{RUN}/#": 1, "qube/+/status": 1, "qube/+/telemetry": 0}
+    assert dict(subscriptions(RUN, ["rigA"])) == {f"fedrl/{RUN}/#": 1, "qube/rigA/status": 1, "qube/rigA/telemetry": 0}
+    with pytest.raises(ValueError):
+        subscriptions(RUN, ["bad/rig"])
+
+
+def test_feed_rejects_counts_and_survives_bad_payloads() -> None:
+    hub = Hub(RunView(RUN))
+    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, hub)  # never started: on_message is called directly
+    topic = topics.worker(RUN, "w0", topics.UPDATE)
+    fd.on_message(topic, b"\x00junk")
+    fd.on_message(topic, msgpack.packb({"schema_version": 1, "kind": "future_thing", "x": 1}))
+    fd.on_message(topic, msgpack.packb({"schema_version": 7, "kind": "update"}))
+    fd.on_message(topic, encode(update("w1", 1, 5.0)))  # spoofed: topic says w0
+    fd.on_message("qube/rig1/telemetry", encode(QubeTelemetry(rig_id="rig2", ticks=1, deadline_misses=0,
+                                                              late_actions=0, faults=0, jitter_ms={}, latency_ms={})))
+    fd.on_message(topic, encode(update("w0", 1, 5.0)))
+    stats = fd.stats()
+    assert stats["received"] == 6 and stats["unknown"] == {"'future_thing'": 1}
+    assert stats["rejected"] == {"malformed": 1, "version": 1, "spoofed": 2}
+    assert fd.inbox.qsize() == 1
+    hub.apply([fd.inbox.get_nowait()])
+    assert workers_of(hub.view)["w0"]["points"] == 1
+
+
+def test_feed_never_blocks_the_network_thread() -> None:
+    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, Hub(RunView(RUN)), max_queue=2)
+    for e in range(1, 5):
+        fd.on_message(topics.worker(RUN, "w0", topics.UPDATE), encode(update("w0", e, 1.0)))
+    assert fd.inbox.qsize() == 2 and fd.stats()["dropped"] == 2
+
+
+def test_hub_cuts_off_a_page_that_falls_behind() -> None:
+    hub = Hub(RunView(RUN), client_batches=2)
+    snapshot, slow = hub.connect()
+    _, fast = hub.connect()
+    assert snapshot["run"]["phase"] == "waiting" and hub.clients == 2
+    for e in range(1, 4):
+        hub.apply([("t", update("w0", e, 1.0), 0.0)])
+        if e < 3:
+            assert fast.next_batch(0.1)
+    assert slow.overflowed.is_set() and hub.dropped_clients == 1 and hub.clients == 1
+    assert [ev["point"][0] for ev in fast.next_batch(0.1) if ev["type"] == "point"] == [3]
+
+
+# -- the HTTP server and its event stream, against a real broker ---------------------------------------------
+
+
+class SseReader:
+    """Reads ``event:``/``data:`` pairs from /events in a thread."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self.conn = http.client.HTTPConnection(host, port, timeout=30)
+        self.conn.request("GET", "/events")
+        self.response = self.conn.getresponse()
+        self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
+        threading.Thread(target=self._read, daemon=True).start()
+
+    def _read(self) -> None:
+        name = None
+        try:
+            for raw in self.response:
+                line = raw.decode().rstrip("\n")
+                if line.startswith("event: "):
+                    name = line[7:]
+                elif line.startswith("data: ") and name:
+                    self.events.put((name, json.loads(line[6:])))
+        except Exception:  # the server went away
+            pass
+
+    def until(self, predicate: Any, timeout: float = 20.0) -> tuple[str, Any]:
+        deadline = time.monotonic() + timeout
+        seen: list[str] = []
+        while time.monotonic() < deadline:
+            try:
+                name, data = self.events.get(timeout=0.2)
+            except queue.Empty:
+                continue
+            if predicate(name, data):
+                return name, data
+            seen.append(f"{name}: {json.dumps(data)[:300]}")
+        raise AssertionError("the expected event never came; got:\n" + "\n".join(seen[-8:]))
+
+
+@pytest.fixture
+def dashboard(amqtt_broker: str) -> Iterator[DashboardService]:
+    service = DashboardService(DashboardConfig(broker=BrokerAddress.parse(amqtt_broker), run_id=RUN, port=0)).start()
+    try:
+        yield service
+    finally:
+        service.stop()
+
+
+def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, amqtt_broker: str) -> None:
+    host, port = dashboard.server.server_address[:2]
+    assert host == "127.0.0.1" and port not in (0, 1883)
+    http_conn = http.client.HTTPConnection(host, port, timeout=10)
+    http_conn.request("GET", "/")
+    page = http_conn.getresponse()
+    body = page.read().decode()
+    assert page.status == 200 and "<canvas id=\"curves\"" in body and "/app.js" in body
+    assert "default-src 'none'" in page.getheader("Content-Security-Policy")
+    assert "http://" not in body and "https://" not in body, "the page must load nothing from elsewhere"
+    http_conn.request("GET", "/nope")
+    missing = http_conn.getresponse()
+    assert missing.status == 404 and missing.read()
+    http_conn.request("GET", "/api/snapshot", headers={"Host": f"rebound.example:{port}"})  # DNS rebinding
+    refused = http_conn.getresponse()
+    assert refused.status == 403 and b"run" not in refused.read()
+    http_conn.request("GET", "/healthz", headers={"Host": f"localhost:{port}"})
+    assert http_conn.getresponse().read() == b"ok\n"
+
+    sse = SseReader(host, port)
+    assert sse.response.getheader("Content-Type").startswith("text/event-stream")
+    _, snap = sse.until(lambda n, d: n == "snapshot")
+    assert snap["run"]["phase"] == "waiting" and snap["workers"] == []
+
+    pub = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="dash-test-pub").start()
+    try:
+        def send(topic: str, payload: Any) -> None:
+            pub.publish(topic, payload if isinstance(payload, bytes) else encode(payload), qos=1).wait_for_publish(5)
+
+        # The dashboard subscribes without waiting for the broker's SUBACKs (and amqtt may handle them in any
+        # order): repeat a rig status and a message of a kind the page ignores until both have been seen.
+        for _ in range(100):
+            send("qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"))
+            try:
+                sse.until(lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), timeout=0.3)
+                break
+            except AssertionError:
+                continue
+        for _ in range(30):
+            send(f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0))
+            try:
+                sse.until(lambda n, d: n == "stats" and d["ignored"].get("qube_action"), timeout=1.5)
+                break
+            except AssertionError:
+                continue
+        send(topics.chief(RUN, topics.START), start(["w0", "w1"]))
+        send(topics.worker(RUN, "w0", topics.UPDATE), b"\x00garbage")  # must not stop anything
+        send(topics.worker(RUN, "w0", topics.UPDATE), update("w0", 1, 12.0))
+        send(topics.chief("someone-else", topics.START), start(["x"], run_id="someone-else"))
+        send("qube/rigS/state", QubeState(rig_id="rigS", seq=1, t=0, theta=0, alpha=0, theta_dot=0, alpha_dot=0))
+        send("qube/rigS/status", QubeStatus(rig_id="rigS", state="ready"))
+
+        def has_point(name: str, data: Any) -> bool:
+            return name == "delta" and any(e["type"] == "point" and e["worker"] == "w0" for e in data)
+
+        _, delta = sse.until(has_point)
+        assert {"type": "point", "worker": "w0", "point": [1, 12.0, 12.0]} in delta
+        sse.until(lambda n, d: n == "delta" and any(e["type"] == "rig" and e["phase"] == "ready" for e in d))
+        _, stats = sse.until(lambda n, d: n == "stats" and d["rejected"].get("malformed") == 1)
+        assert stats["connected"] and stats["pages"] == 1
+
+        # A second page connecting now gets everything so far in its snapshot.
+        late = SseReader(host, port)
+        _, snap = late.until(lambda n, d: n == "snapshot")
+        assert snap["run"]["workers"] == ["w0", "w1"] and snap["workers"][0]["curve"] == [[1, 12.0, 12.0]]
+        assert [r["id"] for r in snap["rigs"]] == ["rigS"], "qube/<rig>/state must not be subscribed"
+        send(topics.worker(RUN, "w1", topics.UPDATE), update("w1", 1, 30.0))
+        for reader in (sse, late):
+            reader.until(lambda n, d: n == "delta" and any(e.get("worker") == "w1" for e in d))
+    finally:
+        pub.stop()
+
+
+def test_command_line_errors_are_one_line(tmp_path: Path) -> None:
+    import subprocess
+
+    for argv, needle in ((["--port", "70000"], "port must be 0-65535"), (["--run-id", "a/b"], "run id")):
+        out = subprocess.run([sys.executable, "-m", "services.dashboard", "--broker", "mqtt://127.0.0.1:9", *argv],
+                             capture_output=True, text=True, timeout=60)
+        assert out.returncode == 2, out.stderr
+        assert needle in out.stderr and "Traceback" not in out.stderr
+
+
+# -- deployment ------------------------------------------------------------------------------------------------
+
+
+def test_compose_and_dockerfile_run_the_dashboard() -> None:
+    import re
+
+    from tests.test_deploy_static import ROOT, ancestry, compose, dockerfile_stages
+
+    services = compose()["services"]
+    dash, chief = services["dashboard"], services["chief"]
+    assert dash["build"]["dockerfile"] == "deploy/Dockerfile" and dash["build"]["target"] == "dashboard"
+    assert dash["ports"] == ["${FEDRL_DASHBOARD_BIND:-127.0.0.1}:${FEDRL_DASHBOARD_PORT:-8050}:8050"]
+    assert dash["depends_on"]["mosquitto"]["condition"] == "service_healthy"
+    for var in ("FEDRL_BROKER", "FEDRL_RUN_ID"):
+        assert dash["environment"][var] == chief["environment"][var]
+    stages = dockerfile_stages()
+    lines = stages["dashboard"][1]
+    assert 'ENTRYPOINT ["python", "-m", "services.dashboard"]' in lines
+    assert 'CMD ["--host", "0.0.0.0", "--port", "8050"]' in lines and "EXPOSE 8050" in lines
+    chain = ancestry(stages, "dashboard")
+    assert "runtime" in chain
+    installs = re.findall(r"pip-install ([^&;\n]*)", " ".join(line for s in chain for line in stages[s][1]))
+    assert installs and not [i for i in installs if "[learn]" in i or re.search(r"\b(torch|gymnasium)\b", i)], installs
+    assert '"services.dashboard" = ["static/*"]' in (ROOT / "pyproject.toml").read_text(), "the page must be packaged"
+
+
+def test_dashboard_imports_no_torch() -> None:
+    import subprocess
+
+    code = ("import sys, services.dashboard.__main__, services.dashboard.screenshot; "
+            "bad = [m for m in ('torch', 'gymnasium') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stdout + out.stderr

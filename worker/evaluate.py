@@ -1,0 +1,272 @@
+"""``python -m worker.evaluate MODEL --env ENV``: run a saved controller greedily and report its returns.
+
+    python -m worker.evaluate runs/<run>/models/w0.pt --env CartPole-v0 --episodes 10 --json eval.json
+    python -m worker.evaluate runs/<run>/models/w0.pt --env CartPole-v0 --video videos/
+    python -m worker.evaluate model.pt --env qube-local
+    python -m worker.evaluate model.pt --env qube --rig-id rig0 --broker mqtt://lab:1883   # a rig over MQTT
+
+MODEL is a ``models/<worker>.pt`` that a worker saved when it solved its task (worker/ppo.py ``save``). Each episode
+takes the deterministic action (arg-max for discrete actions, the Gaussian mean for continuous ones), episode i is
+seeded with ``seed + i``, and nothing is learned. The report: every return, mean +- standard deviation, and whether
+the mean reaches the task's TC (protocol/tasks.py). ``--video DIR`` writes an animated GIF per recorded episode
+(gymnasium tasks; needs the ``video`` extra: pygame renders, Pillow writes).
+
+Exit codes: 0 evaluated (whether or not TC was reached: see the report), 2 a bad option or a model that does not
+fit (one line on stderr), 1 the broker or rig could not be reached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import json
+import math
+import os
+import sys
+import uuid
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, NoReturn
+
+import gymnasium as gym
+import numpy as np
+
+from protocol.cli import add_device_noise, env, parse_checked, setup_logging
+from protocol.mqtt import DEFAULT_BROKER, BrokerAddress, MqttConnection
+from protocol.tasks import TASKS
+from worker.envs import DeviceNoise, env_spec, make_env
+from worker.ppo import PPOConfig, PPOLearner
+
+
+class EvalError(ValueError):
+    """A problem with the inputs (missing or foreign model, unsupported option): one line, exit 2."""
+
+
+@dataclass
+class Evaluation:
+    """What ``evaluate`` found; ``asdict`` is the ``--json`` file."""
+
+    model: str
+    env: str
+    episodes: int
+    seed: int
+    device_noise: float | None  # None: the rig tasks, whose variation is the rig's own
+    returns: list[float]
+    steps: list[int]
+    mean: float
+    std: float
+    min: float
+    max: float
+    tc: float
+    reached_tc: bool
+    greedy: bool = True
+    rig_id: str | None = None
+    videos: list[str] = field(default_factory=list)
+
+
+# -- the model -------------------------------------------------------------------------------------------------
+
+
+def load_learner(path: Path, env_id: str, observation_space: gym.Space, action_space: gym.Space) -> PPOLearner:
+    """A learner with the saved networks, checked against the env's spaces; EvalError with the reason otherwise."""
+    import torch
+
+    if not path.is_file():
+        raise EvalError(f"no model file at {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a file that is not a checkpoint
+        first = (str(exc).splitlines() or [""])[0][:200]
+        raise EvalError(f"{path} is not a saved model ({type(exc).__name__}: {first})") from None
+    if not isinstance(state, dict) or not {"config", "actor", "critic", "obs_norm"} <= set(state):
+        raise EvalError(f"{path} is not a model saved by a fedrl worker (no actor/critic/config in it)")
+    try:
+        config = PPOConfig.from_dict(state["config"])
+        learner = PPOLearner(observation_space, action_space, config, seed=0)
+    except (TypeError, ValueError) as exc:
+        raise EvalError(f"{path}: {exc}") from None
+    for net in ("actor", "critic"):
+        expected = {k: tuple(v.shape) for k, v in getattr(learner, net).state_dict().items()}
+        saved = {k: tuple(getattr(v, "shape", ())) for k, v in state[net].items()}
+        names = [*expected, *(k for k in saved if k not in expected)]
+        for name in sorted(names, key=lambda k: "." not in k):  # layers (the input layer first), then the rest
+            if expected.get(name) != saved.get(name):
+                raise EvalError(f"{path} does not fit {env_id}: {net} {name} is {saved.get(name)} in the model but "
+                                f"{expected.get(name)} for {env_id} (was it saved for another env?)")
+    try:
+        learner.load_state_dict(state)
+    except (KeyError, RuntimeError, ValueError) as exc:
+        first = (str(exc).splitlines() or [""])[0][:300]
+        raise EvalError(f"{path} could not be loaded for {env_id}: {first}") from None
+    return learner
+
+
+# -- episodes ----------------------------------------------------------------------------------------------------
+
+
+def play(env: gym.Env, learner: PPOLearner, seed: int, frames: list[np.ndarray] | None = None) -> tuple[float, int]:
+    """One greedy episode; returns (return, steps). ``frames`` collects ``env.render()`` images when given."""
+    obs, _ = env.reset(seed=seed)
+    if frames is not None:
+        frames.append(env.render())
+    ret, steps = 0.0, 0
+    while True:
+        obs, reward, terminated, truncated, _ = env.step(learner.act_greedy(obs))
+        ret += float(reward)
+        steps += 1
+        if frames is not None:
+            frames.append(env.render())
+        if terminated or truncated:
+            return ret, steps
+
+
+def write_gif(frames: list[np.ndarray], path: Path, fps: float) -> Path:
+    """Frames (H x W x 3 uint8) as an animated GIF that loops."""
+    from PIL import Image
+
+    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames if f is not None]
+    if not images:
+        raise EvalError("the environment rendered no frames")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(path, save_all=True, append_images=images[1:], duration=max(20, round(1000 / fps)), loop=0)
+    return path
+
+
+def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device_noise: float = 1.0,
+             video_dir: Path | None = None, video_episodes: int = 1, rig_id: str | None = None,
+             conn: Any = None) -> Evaluation:
+    """Run ``model`` greedily for ``episodes`` episodes of ``env_id``; see the module docstring."""
+    spec = env_spec(env_id)
+    if video_dir is not None:
+        check_video_support(env_id)
+    extra: dict[str, Any] = {"rig_id": rig_id, "conn": conn} if spec.factory is not None else {}
+    environment = make_env(env_id, seed, DeviceNoise(scale=device_noise),
+                           render_mode="rgb_array" if video_dir is not None else None, **extra)
+    videos: list[str] = []
+    returns: list[float] = []
+    steps: list[int] = []
+    try:
+        learner = load_learner(model, env_id, environment.observation_space, environment.action_space)
+        where = f" (rig {rig_id})" if rig_id else ""
+        noise = f", device noise {device_noise:g}" if spec.factory is None else ""
+        print(f"evaluating {model} on {env_id}{where}: {episodes} greedy episodes, seeds {seed}-{seed + episodes - 1}"
+              f"{noise}", flush=True)
+        fps = float(environment.metadata.get("render_fps") or 30)
+        for i in range(episodes):
+            frames: list[np.ndarray] | None = [] if video_dir is not None and i < video_episodes else None
+            ret, n = play(environment, learner, seed + i, frames)
+            returns.append(ret)
+            steps.append(n)
+            print(f"episode {i + 1:3d}: return {ret:9.2f} ({n} steps)", flush=True)
+            if frames is not None and video_dir is not None:
+                out = write_gif(frames, video_dir / f"{model.stem}-{env_id}-episode{i + 1}.gif", fps)
+                videos.append(str(out))
+                print(f"             video: {out}", flush=True)
+    finally:
+        environment.close()
+    arr = np.asarray(returns, dtype=np.float64)
+    mean = float(arr.mean())
+    return Evaluation(model=str(model), env=env_id, episodes=episodes, seed=seed,
+                      device_noise=device_noise if spec.factory is None else None,
+                      returns=returns, steps=steps, mean=mean, std=float(arr.std()), min=float(arr.min()),
+                      max=float(arr.max()), tc=spec.tc, reached_tc=bool(mean >= spec.tc), rig_id=rig_id,
+                      videos=videos)
+
+
+def check_video_support(env_id: str) -> None:
+    if env_spec(env_id).gym_id is None:
+        raise EvalError(f"--video records the gymnasium tasks only; {env_id} has no renderer")
+    needed = (("pygame", "pygame"), ("Pillow", "PIL"))
+    absent = [name for name, module in needed if importlib.util.find_spec(module) is None]
+    if absent:
+        raise EvalError(f"--video needs {' and '.join(absent)}: pip install -e '.[video]'")
+    os.environ.setdefault("PYGAME_HIDE_SUPPORT_PROMPT", "1")
+    os.environ.setdefault("SDL_VIDEODRIVER", "dummy")  # rgb_array rendering needs no screen
+
+
+# -- command line ------------------------------------------------------------------------------------------------
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An option error is one line on stderr and exit code 2 (no usage dump)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: {message} (--help lists the options)\n")
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    parser = OneLineParser(prog="python -m worker.evaluate", description=__doc__.split("\n")[0],
+                                     epilog="Exit codes: 0 evaluated, 2 bad option or model, 1 broker/rig unreachable.")
+    parser.add_argument("model", type=Path, help="a models/<worker>.pt saved by a worker")
+    parser.add_argument("--env", default=env("FEDRL_ENV", "") or None, choices=sorted(TASKS),
+                        help="task to run it on (env FEDRL_ENV)")
+    parser.add_argument("--episodes", type=int, default=10, help="number of episodes (default 10)")
+    parser.add_argument("--seed", type=int, default=0, help="episode i is seeded with seed + i (default 0)")
+    add_device_noise(parser)
+    parser.add_argument("--json", type=Path, default=None, help="also write the results to this JSON file")
+    parser.add_argument("--video", type=Path, default=None, metavar="DIR",
+                        help="write an animated GIF of the first --video-episodes episodes here (gymnasium tasks)")
+    parser.add_argument("--video-episodes", type=int, default=1, help="episodes to record with --video (default 1)")
+    parser.add_argument("--rig-id", default=env("FEDRL_RIG_ID", "") or None,
+                        help="the rig to drive with --env qube (env FEDRL_RIG_ID)")
+    parser.add_argument("--broker", default=env("FEDRL_BROKER", DEFAULT_BROKER),
+                        help=f"broker of the rig with --env qube (env FEDRL_BROKER, default {DEFAULT_BROKER})")
+    parser.add_argument("--log-level", default=env("FEDRL_LOG_LEVEL", "WARNING"), help="default WARNING")
+    args = parse_checked(parser, argv)
+    if args.env is None:
+        parser.error("--env is required (or set FEDRL_ENV)")
+    if args.episodes < 1:
+        parser.error("--episodes must be at least 1")
+    if args.video_episodes < 1:
+        parser.error("--video-episodes must be at least 1")
+    if not (args.device_noise >= 0 and math.isfinite(args.device_noise)):
+        parser.error("--device-noise must be >= 0")
+    if args.env == "qube" and not args.rig_id:
+        parser.error("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
+    return args
+
+
+def report(result: Evaluation) -> str:
+    verdict = "reached" if result.reached_tc else "not reached"
+    return (f"mean return {result.mean:.2f} ± {result.std:.2f} (min {result.min:.2f}, max {result.max:.2f}) over "
+            f"{result.episodes} episodes; TC {result.tc:g}: {verdict}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    setup_logging(args.log_level, "evaluate")
+    import torch
+
+    torch.set_num_threads(1)
+    conn = None
+    try:
+        if args.video is not None:
+            check_video_support(args.env)
+        if not args.model.is_file():
+            raise EvalError(f"no model file at {args.model}")
+        if args.env == "qube":
+            conn = MqttConnection(BrokerAddress.from_env(args.broker),
+                                  client_id=f"fedrl-eval-{args.rig_id}-{uuid.uuid4().hex[:6]}").start()
+        result = evaluate(args.model, args.env, args.episodes, args.seed, args.device_noise, args.video,
+                          args.video_episodes, args.rig_id if conn else None, conn)
+    except EvalError as err:
+        print(f"evaluate: {err}", file=sys.stderr)
+        return 2
+    except (ConnectionError, TimeoutError, RuntimeError) as err:
+        print(f"evaluate: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        if conn is not None:
+            conn.stop()
+    print(report(result), flush=True)
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(asdict(result), indent=2) + "\n")
+        print(f"results: {args.json}", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

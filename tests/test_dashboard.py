@@ -51,12 +51,14 @@ def start(workers: list[str], run_id: str = RUN) -> RunStart:
 
 
 def update(worker: str, episode: int, pi: float, ret: float | None = None) -> WorkerUpdate:
-    return WorkerUpdate(worker_id=worker, episode=episode, episode_return=pi if ret is None else ret, pi=pi, steps=20,
-                        gradient=pack_arrays(BIG))
+    value = pi if ret is None else ret
+    return WorkerUpdate(worker_id=worker, episode=episode, episode_return=value, pi=pi, recent_returns=(value,),
+                        steps=20, gradient=pack_arrays(BIG))
 
 
 def mature(worker: str, episode: int, pi: float) -> MatureParams:
-    return MatureParams(worker_id=worker, episode=episode, episode_return=pi, pi=pi, params=pack_arrays(BIG))
+    return MatureParams(worker_id=worker, episode=episode, episode_return=pi, pi=pi, recent_returns=(pi,) * 10,
+                        params=pack_arrays(BIG))
 
 
 def aggregate(episode: int, weights: dict[str, float]) -> ChiefAggregate:

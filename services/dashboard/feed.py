@@ -11,7 +11,6 @@ import logging
 import queue
 import threading
 import time
-import uuid
 from collections import Counter
 from typing import Any
 
@@ -60,7 +59,7 @@ class MqttFeed:
         self.received = 0
         self.dropped = 0
         self.inbox: queue.Queue[tuple[str, Message, float]] = queue.Queue(maxsize=max_queue)
-        self.conn = MqttConnection(broker, client_id=f"fedrl-{run_id}-dashboard-{uuid.uuid4().hex[:6]}")
+        self.conn = MqttConnection(broker, client_id=f"fedrl-{run_id}-dashboard", rejects=self.rejects)
         self._stop = threading.Event()
         self._pump = threading.Thread(target=self._run_pump, name="dashboard-pump", daemon=True)
 
@@ -69,7 +68,7 @@ class MqttFeed:
     def on_message(self, topic: str, payload: bytes) -> None:
         self.received += 1
         try:
-            msg = decode(payload)
+            msg = decode(payload, topic=topic)
         except DecodeError as err:
             if err.reason == "unknown_kind":  # a newer peer's message: not ours to judge
                 self.unknown[err.detail.removeprefix("unknown message kind ")] += 1

@@ -5,6 +5,8 @@ pure math (GAE Eq. 2, critic loss Eq. 3, clipped surrogate Eq. 6) and the learne
 memory, the two Adam optimizers (Eq. 4 and 7) and the hooks the federation needs:
 
 - ``actor_gradient()``: the episode's actor gradient g_theta^n sent to the chief (Algorithm 2),
+- ``prepare()``, ``minibatch_gradients()``, ``apply_step()``: the K steps of ``update()`` one at a time, for
+  strategies that share every mini-batch step's gradients,
 - ``apply_gradient(g_bar)``: one actor-optimizer step with the chief's weighted mean gradient (Eq. 9),
 - ``blend_actor(theta_bar, w_T)``: the soft transfer of a mature actor, Eq. 11.
 
@@ -299,6 +301,32 @@ def value_loss(values: torch.Tensor, targets: torch.Tensor, kind: str = "l1") ->
 
 
 @dataclass
+class Batch:
+    """theta_old's view of the trajectory memory (``PPOLearner.prepare``): inputs, actions, their old
+    log-probabilities, GAE advantages and returns (Eq. 2)."""
+
+    n: int
+    obs: torch.Tensor
+    actions: torch.Tensor
+    old_logp: torch.Tensor
+    advantages: torch.Tensor
+    returns: torch.Tensor
+
+
+@dataclass
+class StepGradients:
+    """One mini-batch step's gradients (None where not finite) and its statistics."""
+
+    critic: dict[str, torch.Tensor] | None
+    actor: dict[str, torch.Tensor] | None
+    actor_loss: float
+    critic_loss: float
+    entropy: float
+    approx_kl: float
+    clip_fraction: float
+
+
+@dataclass
 class UpdateStats:
     """Means over the K mini-batch steps of one ``update()``."""
 
@@ -395,6 +423,35 @@ class PPOLearner:
     def update(self) -> UpdateStats:
         """theta_old <- theta, then K times: a random mini-batch of U from memory, a critic step (Eq. 3-4)
         and an actor step (Eq. 6-7). Also records the episode's actor gradient (see ``actor_gradient``)."""
+        batch = self.prepare()
+        grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
+        totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"), 0.0)
+        actor_steps, skipped = 0, 0
+        for _ in range(self.config.update_epochs):
+            step = self.minibatch_gradients(batch)
+            self.apply_step(step.critic, step.actor)
+            skipped += (step.critic is None) + (step.actor is None)
+            if step.actor is not None:
+                actor_steps += 1
+                for name, g in step.actor.items():
+                    grad_sum[name] += g
+            for key in totals:
+                totals[key] += getattr(step, key)
+
+        # The gradient shared with the chief: the mean of the K actor mini-batch gradients of this episode
+        # (as applied, i.e. after clipping). The paper says "the last gradient"; the mean over the episode
+        # estimates the same direction with less mini-batch noise.
+        self._episode_gradient = {
+            name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True)
+            for name, g in grad_sum.items()
+        }
+        k = float(self.config.update_epochs)
+        means = {key: value / k for key, value in totals.items()}
+        return UpdateStats(**means, memory_size=batch.n, skipped_steps=skipped)
+
+    def prepare(self) -> Batch:
+        """theta_old <- theta: the whole memory's inputs, log-probs under the current actor, GAE advantages and
+        returns under the current critic (Eq. 2). The K mini-batch steps of an update draw from it."""
         cfg = self.config
         n = len(self.memory)
         if n == 0:
@@ -412,8 +469,6 @@ class PPOLearner:
             gap = np.stack(next_np[:-1]).reshape(n - 1, -1) != np.stack(obs_np[1:]).reshape(n - 1, -1)
             episode_end[:-1] |= gap.any(axis=1)
         episode_end[-1] = True  # nothing follows the newest transition yet
-
-        # theta_old <- theta: log-probs and values of the whole memory under the current networks
         with torch.no_grad():
             old_logp, _ = self.actor.log_prob_entropy(obs, actions)
             values = self.critic(obs).numpy()
@@ -422,68 +477,63 @@ class PPOLearner:
         adv_np, ret_np = compute_gae(
             rewards, values, next_values, terminated, episode_end, cfg.gamma, cfg.gae_lambda
         )
-        advantages = torch.as_tensor(adv_np, dtype=torch.float32)
-        returns = torch.as_tensor(ret_np, dtype=torch.float32)
+        return Batch(n=n, obs=obs, actions=actions, old_logp=old_logp,
+                     advantages=torch.as_tensor(adv_np, dtype=torch.float32),
+                     returns=torch.as_tensor(ret_np, dtype=torch.float32))
 
-        grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
-        totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"), 0.0)
-        actor_steps, skipped = 0, 0
-        for _ in range(cfg.update_epochs):
-            idx = torch.randperm(n, generator=self.generator)[: cfg.batch_size]
+    def minibatch_gradients(self, batch: Batch) -> StepGradients:
+        """One random mini-batch of U: the critic's gradient of L^V (Eq. 3) and the actor's of -L^CLIP (Eq. 6,
+        with the entropy bonus), each after optional norm clipping; None where the loss or a gradient is not
+        finite. Nothing is applied: ``apply_step`` does that (with these, or with a federation's mean of them)."""
+        cfg = self.config
+        idx = torch.randperm(batch.n, generator=self.generator)[: cfg.batch_size]
+        critic_loss = value_loss(self.critic(batch.obs[idx]), batch.returns[idx], cfg.value_loss)
+        critic_grad = self._gradients(critic_loss, self.critic, self.critic_optimizer)
+        new_logp, entropy = self.actor.log_prob_entropy(batch.obs[idx], batch.actions[idx])
+        adv = batch.advantages[idx]
+        if cfg.normalize_advantages and len(idx) > 1:
+            adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+        surrogate = clipped_surrogate_loss(new_logp, batch.old_logp[idx], adv, cfg.clip_epsilon)
+        actor_loss = surrogate - cfg.entropy_coef * entropy.mean()
+        actor_grad = self._gradients(actor_loss, self.actor, self.actor_optimizer)
+        with torch.no_grad():
+            log_ratio = new_logp - batch.old_logp[idx]
+            ratio = log_ratio.exp()
+            approx_kl = float(((ratio - 1) - log_ratio).mean())
+            clip_fraction = float(((ratio - 1).abs() > cfg.clip_epsilon).float().mean())
+        return StepGradients(critic=critic_grad, actor=actor_grad, actor_loss=actor_loss.item(),
+                             critic_loss=critic_loss.item(), entropy=entropy.mean().item(), approx_kl=approx_kl,
+                             clip_fraction=clip_fraction)
 
-            # critic: mu <- mu - eta_mu * grad L^V (Eq. 3-4)
-            critic_loss = value_loss(self.critic(obs[idx]), returns[idx], cfg.value_loss)
-            skipped += not self._optimizer_step(critic_loss, self.critic, self.critic_optimizer)
-
-            # actor: theta <- theta - eta_theta * grad(-L^CLIP) (Eq. 6-7), with an entropy bonus
-            new_logp, entropy = self.actor.log_prob_entropy(obs[idx], actions[idx])
-            adv = advantages[idx]
-            if cfg.normalize_advantages and len(idx) > 1:
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-            surrogate = clipped_surrogate_loss(new_logp, old_logp[idx], adv, cfg.clip_epsilon)
-            actor_loss = surrogate - cfg.entropy_coef * entropy.mean()
-            if self._optimizer_step(actor_loss, self.actor, self.actor_optimizer):
-                actor_steps += 1
-                for name, p in self.actor.named_parameters():
-                    if p.grad is not None:
-                        grad_sum[name] += p.grad
-            else:
-                skipped += 1
-
-            with torch.no_grad():
-                log_ratio = new_logp - old_logp[idx]
-                ratio = log_ratio.exp()
-                totals["approx_kl"] += float(((ratio - 1) - log_ratio).mean())
-                totals["clip_fraction"] += float(((ratio - 1).abs() > cfg.clip_epsilon).float().mean())
-            totals["actor_loss"] += actor_loss.item()
-            totals["critic_loss"] += critic_loss.item()
-            totals["entropy"] += entropy.mean().item()
-
-        # The gradient shared with the chief: the mean of the K actor mini-batch gradients of this episode
-        # (as applied, i.e. after clipping). The paper says "the last gradient"; the mean over the episode
-        # estimates the same direction with less mini-batch noise.
-        self._episode_gradient = {
-            name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True)
-            for name, g in grad_sum.items()
-        }
-        k = float(cfg.update_epochs)
-        means = {key: value / k for key, value in totals.items()}
-        return UpdateStats(**means, memory_size=n, skipped_steps=skipped)
-
-    def _optimizer_step(self, loss: torch.Tensor, net: nn.Module, optimizer: torch.optim.Optimizer) -> bool:
-        """Backward, optional gradient-norm clipping, one optimizer step. A non-finite loss or gradient skips
-        the step (returns False), so a numerical blow-up never reaches the parameters or the chief."""
+    def _gradients(self, loss: torch.Tensor, net: nn.Module, optimizer: torch.optim.Optimizer
+                   ) -> dict[str, torch.Tensor] | None:
+        """Backward and optional gradient-norm clipping; the gradients, or None when the loss or a gradient is not
+        finite (so a numerical blow-up never reaches the parameters or the chief)."""
         optimizer.zero_grad()
         if not torch.isfinite(loss):
-            return False
+            return None
         loss.backward()
         if self.config.max_grad_norm is not None:
             nn.utils.clip_grad_norm_(net.parameters(), self.config.max_grad_norm)
-        if not all(bool(torch.isfinite(p.grad).all()) for p in net.parameters() if p.grad is not None):
+        grads = {name: p.grad.clone() for name, p in net.named_parameters() if p.grad is not None}
+        optimizer.zero_grad()
+        if not all(bool(torch.isfinite(g).all()) for g in grads.values()):
+            return None
+        return grads
+
+    def apply_step(self, critic: Mapping[str, torch.Tensor] | None, actor: Mapping[str, torch.Tensor] | None) -> None:
+        """One critic-optimizer step (Eq. 4) and one actor-optimizer step (Eq. 7) with the given gradients; a
+        network whose gradient is None is not stepped."""
+        for grads, net, optimizer in ((critic, self.critic, self.critic_optimizer),
+                                      (actor, self.actor, self.actor_optimizer)):
+            if grads is None:
+                continue
             optimizer.zero_grad()
-            return False
-        optimizer.step()
-        return True
+            for name, p in net.named_parameters():
+                if name in grads:
+                    p.grad = grads[name].clone()
+            optimizer.step()
+            optimizer.zero_grad()
 
     # -- federation hooks ---------------------------------------------------------------------------------
 

@@ -4,8 +4,9 @@ Reads ``summary.json`` and ``metrics.jsonl`` (what the chief accepted, and every
 the federation must have done. It exits 0 when every invariant holds, 1 naming the first that does not, 2 when the
 folder cannot be read. The invariants:
 
-- ``counted-once``: no worker's episode is counted twice;
-- ``rounds-contiguous``: rounds are 1, 2, ... without gaps, as many as the summary says;
+- ``counted-once``: no worker's episode (or, under a per-step strategy, step) is counted twice;
+- ``rounds-contiguous``: rounds are 1, 2, ... without gaps, as many as the summary says, each the round of its
+  (episode, step);
 - ``contributors``: a round's contributors are exactly the submissions counted for its episode, and every counted
   submission belongs to a round (a run that was aborted may leave some in the round it never closed);
 - ``round-pis``: the PIs a round used are the PIs of its counted submissions;
@@ -76,42 +77,51 @@ def _require(ok: bool, invariant: str, detail: str) -> None:
         raise AuditFailure(invariant, detail)
 
 
-def load(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
-    """summary, episode records and round records of a run folder (OSError/ValueError when unreadable)."""
+def load(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
+    """summary, episode records, later-step records and round records of a run folder (OSError/ValueError when
+    unreadable)."""
     summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-    episodes, rounds = [], []
+    found: dict[str, list[dict[str, Any]]] = {"episode": [], "step": [], "round": []}
     for number, line in enumerate((run_dir / "metrics.jsonl").read_text(encoding="utf-8").splitlines(), 1):
         if not line.strip():
             continue
         record = json.loads(line)
         kind = record.get("type")
-        if kind == "episode":
-            episodes.append(record)
-        elif kind == "round":
-            rounds.append(record)
-        else:
+        if kind not in found:
             raise ValueError(f"metrics.jsonl line {number}: unknown record type {kind!r}")
-    return summary, episodes, rounds
+        found[kind].append(record)
+    return summary, found["episode"], found["step"], found["round"]
 
 
 def audit(run_dir: Path) -> AuditReport:
     """Check every invariant; raises AuditFailure at the first one violated."""
-    summary, episodes, rounds = load(run_dir)
+    summary, episodes, steps_done, rounds = load(run_dir)
     strategy = strategies.get(summary["policy"])
     tc, r_floor = float(summary["tc"]), float(summary["r_floor"])
+    per_episode = int(summary.get("rounds_per_episode", 1))
     workers = [w["id"] for w in summary["workers"]]
-    report = AuditReport(rounds=len(rounds), submissions=len(episodes))
+    report = AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps_done))
 
     def progress(pi: float | None) -> float:
         return federation.progress(r_floor if pi is None else pi, tc, r_floor)
 
-    # counted-once
+    def round_of(episode: int, step: int) -> int:
+        return (episode - 1) * per_episode + step + 1
+
+    # counted-once: every counted submission by (worker, round); the episode records by (worker, episode)
     by_key: dict[tuple[str, int], dict[str, Any]] = {}
-    for e in episodes:
-        key = (e["worker"], int(e["episode"]))
-        _require(key not in by_key, "counted-once", f"{key[0]}'s episode {key[1]} is counted twice")
+    by_round: dict[tuple[str, int], dict[str, Any]] = {}
+    for e in episodes + steps_done:
+        step = int(e.get("step", 0))
+        key = (e["worker"], round_of(int(e["episode"]), step))
+        _require(int(e.get("round", key[1])) == key[1], "rounds-contiguous",
+                 f"{e['worker']}'s episode {e['episode']} step {step} is filed as round {e.get('round')}, not {key[1]}")
+        _require(key not in by_round, "counted-once",
+                 f"{key[0]}'s episode {e['episode']} (step {step}) is counted twice")
         _require(key[0] in workers, "counted-once", f"a submission of {key[0]}, who is not in the run, was counted")
-        by_key[key] = e
+        by_round[key] = e
+        if e["type"] == "episode":
+            by_key[(e["worker"], int(e["episode"]))] = e
 
     # rounds-contiguous
     numbers = [int(r["round"]) for r in rounds]
@@ -123,14 +133,14 @@ def audit(run_dir: Path) -> AuditReport:
 
     # contributors
     per_round: dict[int, dict[str, dict[str, Any]]] = defaultdict(dict)
-    for (w, ep), e in by_key.items():
-        per_round[ep][w] = e
+    for (w, r), e in by_round.items():
+        per_round[r][w] = e
     aborted = not str(summary.get("end_reason", "")).startswith(("all workers solved", "reached the maximum"))
-    for ep in sorted(per_round):
-        if ep > last_round:
-            _require(aborted, "contributors", f"episode {ep} of {sorted(per_round[ep])} was counted but round {ep} "
-                     f"never closed, although the run ended normally ({summary.get('end_reason')})")
-            report.uncounted += [(w, ep) for w in sorted(per_round[ep])]
+    for r in sorted(per_round):
+        if r > last_round:
+            _require(aborted, "contributors", f"round {r} of {sorted(per_round[r])} was counted but never closed, "
+                     f"although the run ended normally ({summary.get('end_reason')})")
+            report.uncounted += [(w, r) for w in sorted(per_round[r])]
     for r in rounds:
         n = int(r["round"])
         counted = sorted(per_round.get(n, {}))
@@ -140,7 +150,11 @@ def audit(run_dir: Path) -> AuditReport:
     # round-pis and mature
     for r in rounds:
         n = int(r["round"])
-        expected = {w: e["pi"] for w, e in per_round.get(n, {}).items()}
+        _require((int(r.get("episode", n)), int(r.get("step", 0))) == ((n - 1) // per_episode + 1,
+                                                                       (n - 1) % per_episode),
+                 "rounds-contiguous", f"round {n} says episode {r.get('episode')} step {r.get('step')}")
+        episode_n = (n - 1) // per_episode + 1
+        expected = {w: by_key[(w, episode_n)]["pi"] for w in per_round.get(n, {}) if (w, episode_n) in by_key}
         _require(set(r["pis"]) == set(expected) and all(_close(r["pis"][w], expected[w]) for w in expected),
                  "round-pis", f"round {n} used PIs {r['pis']}, the counted submissions say {expected}")
     solved_at: dict[str, int] = {}
@@ -171,11 +185,12 @@ def audit(run_dir: Path) -> AuditReport:
 
     for r in rounds:
         n = int(r["round"])
-        finished = sorted(w for w, e in per_round.get(n, {}).items() if e["kind"] == "mature")
+        episode_n = (n - 1) // per_episode + 1
+        finished = sorted(w for w, e in per_round.get(n, {}).items() if e.get("kind") == "mature")
         _require(sorted(r["finished"]) == finished, "transfer",
                  f"round {n} says {sorted(r['finished'])} finished, the counted mature actors are {finished}")
-        learners = sorted(w for w in workers if solved_at.get(w, math.inf) > n)
-        keeps = {w: strategy.keep_weight(progress(pi_at(w, n))) for w in learners}
+        learners = sorted(w for w in workers if solved_at.get(w, math.inf) > episode_n)
+        keeps = {w: strategy.keep_weight(progress(pi_at(w, episode_n))) for w in learners}
         transfers = bool(learners) and all(k is not None for k in keeps.values())
         if finished and transfers:
             _require(r["kind"] == "transfer", "transfer",
@@ -187,8 +202,8 @@ def audit(run_dir: Path) -> AuditReport:
                      f"round {n}'s transfer went to {sorted(r['keep_weights'])}, the workers still learning were "
                      f"{learners}")
             for w in learners:
-                _require(_close(r["recipient_pis"].get(w), pi_at(w, n)), "transfer",
-                         f"round {n}: {w}'s PI at that round was {pi_at(w, n)}, the transfer used "
+                _require(_close(r["recipient_pis"].get(w), pi_at(w, episode_n)), "transfer",
+                         f"round {n}: {w}'s PI at that round was {pi_at(w, episode_n)}, the transfer used "
                          f"{r['recipient_pis'].get(w)}")
                 _require(_close(r["keep_weights"][w], keeps[w]), "transfer",
                          f"round {n}: {w} kept {r['keep_weights'][w]} of its actor, Eq. 10 gives {keeps[w]}")
@@ -197,9 +212,7 @@ def audit(run_dir: Path) -> AuditReport:
             continue
         _require(r["kind"] == "aggregate", "transfer", f"round {n} sent a transfer, but nobody both finished and "
                  "left others learning under a strategy that transfers")
-        if finished:
-            continue  # the finishers left; nothing was shared this round
-        contributors = sorted(r["contributors"])
+        contributors = sorted(w for w in r["contributors"] if w not in finished)  # the finishers only leave
         if not contributors:
             _require(not r["weights"] and not r["digest"], "eq8-weights", f"round {n} had no contributors but "
                      "shared a gradient")
@@ -217,12 +230,12 @@ def audit(run_dir: Path) -> AuditReport:
     for r in rounds:
         n = int(r["round"])
         for w in workers:
-            nxt = by_key.get((w, n + 1))
+            nxt = by_round.get((w, n + 1))
             if nxt is None:
                 continue
             receipt = nxt.get("receipt")
             _require(receipt is not None and int(receipt.get("round", -1)) == n, "delivery",
-                     f"{w}'s submission for episode {n + 1} carries no receipt of round {n} ({receipt})")
+                     f"{w}'s submission for round {n + 1} carries no receipt of round {n} ({receipt})")
             _require(receipt["applied"] != "missed", "delivery", f"round {n}'s {r['kind']} never reached {w}")
             _require(receipt["applied"] == r["kind"] and receipt.get("digest", "") == r["digest"], "delivery",
                      f"{w} applied {receipt['applied']} {receipt.get('digest')!r} as round {n}'s answer, the chief "

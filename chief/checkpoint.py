@@ -44,24 +44,25 @@ def _unarrays(blobs: dict[str, Any] | None) -> dict[str, np.ndarray] | None:
     return {k: TensorBlob.model_validate(v).to_array().copy() for k, v in blobs.items()}
 
 
+TENSORS = ("gradient", "params", "critic_gradient")
+
+
 def _submission(s: Submission) -> dict[str, Any]:
-    return {"worker_id": s.worker_id, "episode": s.episode, "pi": s.pi, "episode_return": s.episode_return,
-            "recent_returns": list(s.recent_returns), "steps": s.steps, "gradient": _arrays(s.gradient),
-            "params": _arrays(s.params), "receipt": s.receipt}
+    fields = {k: v for k, v in vars(s).items() if k not in TENSORS}
+    return {**fields, "recent_returns": list(s.recent_returns), **{k: _arrays(getattr(s, k)) for k in TENSORS}}
 
 
 def _unsubmission(d: dict[str, Any]) -> Submission:
-    return Submission(d["worker_id"], d["episode"], d["pi"], d["episode_return"], tuple(d["recent_returns"]),
-                      d["steps"], _unarrays(d["gradient"]), _unarrays(d["params"]), d["receipt"])
+    return Submission(**{**d, "recent_returns": tuple(d["recent_returns"]), **{k: _unarrays(d[k]) for k in TENSORS}})
 
 
 def _outcome(o: RoundOutcome) -> dict[str, Any]:
-    fields = {k: v for k, v in vars(o).items() if k not in ("gradient", "params")}
-    return {**fields, "gradient": _arrays(o.gradient), "params": _arrays(o.params)}
+    fields = {k: v for k, v in vars(o).items() if k not in TENSORS}
+    return {**fields, **{k: _arrays(getattr(o, k)) for k in TENSORS}}
 
 
 def _unoutcome(d: dict[str, Any]) -> RoundOutcome:
-    return RoundOutcome(**{**d, "gradient": _unarrays(d["gradient"]), "params": _unarrays(d["params"])})
+    return RoundOutcome(**{**d, **{k: _unarrays(d[k]) for k in TENSORS}})
 
 
 def keeper_state(k: RoundKeeper) -> dict[str, Any]:
@@ -69,12 +70,13 @@ def keeper_state(k: RoundKeeper) -> dict[str, Any]:
     workers = []
     for rec in k.workers.values():
         workers.append({**{f: getattr(rec, f) for f in ("worker_id", "state", "pi", "last_episode", "solved_episode",
-                                                         "steps", "steps_at_solve")},
+                                                         "steps", "steps_at_solve", "last_round", "excused")},
                         "returns": sorted(rec.returns.items()), "pis": sorted(rec.pis.items())})
     last = sorted(k.answers)[-ANSWERS_SAVED:]
     return {
         "policy": k.policy, "env_id": k.task.env_id, "max_episodes": k.max_episodes,
-        "round_timeout": k.round_timeout, "actor_spec": k.actor_spec, "episode": k.episode,
+        "round_timeout": k.round_timeout, "actor_spec": k.actor_spec, "critic_spec": k.critic_spec,
+        "rounds_per_episode": k.rounds_per_episode, "round": k.round,
         "workers": workers, "pending": [_submission(s) for s in k.pending.values()],
         "ahead": [_submission(s) for subs in k.ahead.values() for s in subs.values()],
         "counted": sorted(k.counted), "answers": [_outcome(k.answers[e]) for e in last],
@@ -86,20 +88,24 @@ def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
     """The RoundKeeper a state describes (its round timer starts afresh)."""
     if state["env_id"] != task.env_id:
         raise ValueError(f"the saved run learns {state['env_id']!r}, not {task.env_id!r}")
-    spec = {k: tuple(v) for k, v in state["actor_spec"].items()} if state["actor_spec"] else None
+    def spec(key: str) -> dict[str, tuple[int, ...]] | None:
+        return {name: tuple(shape) for name, shape in state[key].items()} if state[key] is not None else None
+
     k = RoundKeeper([w["worker_id"] for w in state["workers"]], state["policy"], task, state["max_episodes"],
-                    state["round_timeout"], actor_spec=spec)
+                    state["round_timeout"], actor_spec=spec("actor_spec"), critic_spec=spec("critic_spec"),
+                    rounds_per_episode=state["rounds_per_episode"])
     for w in state["workers"]:
         rec = WorkerRecord(w["worker_id"], w["state"], w["pi"], w["last_episode"], w["solved_episode"], w["steps"],
-                           w["steps_at_solve"], dict(map(tuple, w["returns"])), dict(map(tuple, w["pis"])))
+                           w["steps_at_solve"], dict(map(tuple, w["returns"])), dict(map(tuple, w["pis"])),
+                           w["last_round"], w["excused"])
         k.workers[rec.worker_id] = rec
-    k.episode = state["episode"]
+    k.round = state["round"]
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state["pending"]}
     for s in state["ahead"]:
         sub = _unsubmission(s)
-        k.ahead.setdefault(sub.episode, {})[sub.worker_id] = sub
+        k.ahead.setdefault(k.round_of(sub.episode, sub.step), {})[sub.worker_id] = sub
     k.counted = {(w, e) for w, e in state["counted"]}
-    k.answers = {o.episode: o for o in map(_unoutcome, state["answers"])}
+    k.answers = {o.round: o for o in map(_unoutcome, state["answers"])}
     k.done_reason, k.aborted = state["done_reason"], state["aborted"]
     return k
 

@@ -39,8 +39,10 @@ class MetricsLog:
         return self._file.tell()
 
     def episode(self, record: dict[str, Any]) -> None:
-        """An accepted submission (``type: episode``); only what the chief counted is written."""
-        self.curves.setdefault(record["worker"], []).append((record["episode"], record["pi"]))
+        """An accepted submission (``type: episode``, or ``step`` for a later step of a per-step strategy); only what
+        the chief counted is written."""
+        if record["type"] == "episode":
+            self.curves.setdefault(record["worker"], []).append((record["episode"], record["pi"]))
         self._write(record)
 
     def round(self, record: dict[str, Any]) -> None:
@@ -78,7 +80,8 @@ def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]
         "episodes_to_all_solved": last["episodes"] if all_solved else None,
         "steps_of_last_worker": last["steps"] if all_solved else None,
         "total_steps": sum(rec.steps for rec in keeper.workers.values()),
-        "rounds": keeper.episode - 1,
+        "rounds": keeper.round - 1,
+        "rounds_per_episode": keeper.rounds_per_episode,
         "end_reason": reason,
         **meta,
     }

@@ -1,7 +1,8 @@
 """Who takes part in a run: the chief admits workers by their hello (pure code, no MQTT).
 
-A worker is admitted when it runs the run's env and its actor has the same tensor names and shapes as the first
-admitted worker's (Eq. 9 and Eq. 11 need aligned parameters). Once the run has started, only its workers may
+A worker is admitted when it runs the run's env and its actor and critic have the same tensor names and shapes, and
+its PPO the same number K of mini-batch steps per episode, as the first admitted worker's (Eq. 9 and Eq. 11 need
+aligned parameters; a per-step strategy needs the same K everywhere). Once the run has started, only its workers may
 say hello again (a restarted worker, which then learns the open round from the re-announced RunStart).
 """
 
@@ -15,6 +16,8 @@ class Roster:
     env_id: str
     started: bool = False
     actor_spec: dict[str, tuple[int, ...]] | None = None
+    critic_spec: dict[str, tuple[int, ...]] | None = None
+    update_steps: int = 0
     hosts: dict[str, str] = field(default_factory=dict)
 
     @property
@@ -22,16 +25,20 @@ class Roster:
         return sorted(self.hosts)
 
     def offer(self, worker_id: str, env_id: str, actor_spec: dict[str, tuple[int, ...]],
-              host: str = "") -> tuple[str, str] | None:
+              host: str = "", critic_spec: dict[str, tuple[int, ...]] | None = None,
+              update_steps: int = 0) -> tuple[str, str] | None:
         """Admit (or re-admit) a worker; returns (reason, detail) when it is turned away."""
         if self.started and worker_id not in self.hosts:
             return "late_worker", "the run has started without this worker"
         if env_id != self.env_id:
             return "wrong_env", f"worker runs {env_id!r}, this run is {self.env_id!r}"
         spec = {k: tuple(v) for k, v in actor_spec.items()}
+        critic = {k: tuple(v) for k, v in (critic_spec or {}).items()}
         if self.actor_spec is None:
-            self.actor_spec = spec
+            self.actor_spec, self.critic_spec, self.update_steps = spec, critic, update_steps
         elif spec != self.actor_spec:
             return "wrong_model", "actor shape differs from the other workers'"
+        elif critic != self.critic_spec or update_steps != self.update_steps:
+            return "wrong_model", "critic shape or PPO steps per episode differ from the other workers'"
         self.hosts[worker_id] = host
         return None

@@ -125,8 +125,12 @@ class ChiefService:
                 if not workers:
                     log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
                     return EXIT_NO_WORKERS
+                per_step = strategies.get(cfg.policy).per_step
+                if per_step and self.roster.update_steps < 1:
+                    raise ValueError(f"policy {cfg.policy!r} needs workers that report their PPO steps per episode")
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
-                                          actor_spec=self.roster.actor_spec)
+                                          actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
+                                          rounds_per_episode=self.roster.update_steps if per_step else 1)
                 self._save()
             self._announce()
             self._federate()
@@ -140,12 +144,14 @@ class ChiefService:
         """Carry on a run from its saved state: the records are cut back to what the state had seen."""
         self.keeper = keeper
         self.session, self.epoch, self.duplicates = service["session"], service["epoch"] + 1, service["duplicates"]
-        self.roster = Roster(self.cfg.env_id, started=True, actor_spec=keeper.actor_spec, hosts=service["hosts"])
+        self.roster = Roster(self.cfg.env_id, started=True, actor_spec=keeper.actor_spec,
+                             critic_spec=keeper.critic_spec, update_steps=service["update_steps"],
+                             hosts=service["hosts"])
         self.rejects.restore(service["rejects"])
         self.metrics = MetricsLog(self.cfg.run_dir, resume_at=service["metrics_bytes"])
         self.t0 = time.monotonic() - service["elapsed_s"]
         log.warning("resuming run %s from %s at round %d (%d workers, %d finished)", self.cfg.run_id,
-                    self.cfg.run_dir / checkpoint.FILENAME, keeper.episode, len(keeper.workers),
+                    self.cfg.run_dir / checkpoint.FILENAME, keeper.round, len(keeper.workers),
                     len(keeper.ids_in("finished")))
 
     def _save(self) -> None:
@@ -154,7 +160,7 @@ class ChiefService:
         self._must_save = False
         checkpoint.save(self.cfg.run_dir, self.keeper, {
             "run_id": self.cfg.run_id, "session": self.session, "epoch": self.epoch, "duplicates": self.duplicates,
-            "hosts": self.roster.hosts,
+            "hosts": self.roster.hosts, "update_steps": self.roster.update_steps,
             "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
             "elapsed_s": time.monotonic() - self.t0})
 
@@ -175,7 +181,8 @@ class ChiefService:
 
     def _register(self, hello: WorkerHello) -> bool:
         new = hello.worker_id not in self.roster.hosts
-        refused = self.roster.offer(hello.worker_id, hello.env_id, dict(hello.actor_spec), hello.host)
+        refused = self.roster.offer(hello.worker_id, hello.env_id, dict(hello.actor_spec), hello.host,
+                                    critic_spec=dict(hello.critic_spec), update_steps=hello.update_steps)
         if refused is not None:
             self.rejects.reject(topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO), *refused)
             return False
@@ -187,8 +194,8 @@ class ChiefService:
         assert self.keeper is not None
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env_id, policy=self.cfg.policy, seed=self.cfg.seed,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
-                       workers=sorted(self.keeper.workers), first_episode=self.keeper.episode, session=self.session,
-                       epoch=self.epoch)
+                       workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
+                       session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode)
         self.conn.publish(topics.chief(self.cfg.run_id, topics.START), encode(msg), qos=1)
 
     def _federate(self) -> None:
@@ -260,8 +267,7 @@ class ChiefService:
             self._must_save |= verdict.ack.accepted and verdict.status == "accepted"
             self._outbox.append((topics.chief(self.cfg.run_id, topics.ACK), encode(ack_of(verdict.ack))))
         if verdict.replay is not None:
-            log.info("%s sent episode %d again: answering round %d again", sub.worker_id, sub.episode,
-                     verdict.replay.episode)
+            log.info("%s sent round %d again: answering it again", sub.worker_id, verdict.replay.round)
             msg = answer_of(verdict.replay)
             self._outbox.append((topics.chief(self.cfg.run_id, msg.kind), encode(msg)))
 
@@ -308,7 +314,7 @@ class ChiefService:
                 cells.append(f"{w} solved@{rec.solved_episode} PI {pi}")
             else:
                 cells.append(f"{w} ep {rec.last_episode} PI {pi}{'' if rec.state == 'active' else ' ' + rec.state}")
-        line = f"round {keeper.episode:4d} | " + " | ".join(cells)
+        line = f"round {keeper.round:4d} | " + " | ".join(cells)
         if line == self._last_line and not force and now - self._last_printed < 15.0:
             return  # nothing changed: stay quiet (but say something at least every 15 s)
         self._last_line, self._last_printed = line, now
@@ -322,7 +328,7 @@ class ChiefService:
         reason = keeper.done_reason or "stopped"
         aborted = keeper.aborted
         all_solved = all(r.state == "finished" for r in keeper.workers.values())
-        rounds = keeper.episode - 1
+        rounds = keeper.round - 1
         self._save()
         self.conn.publish(topics.chief(cfg.run_id, topics.STOP),
                           encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
@@ -352,9 +358,11 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
     """A worker's message as the RoundKeeper takes it."""
     mature = isinstance(msg, MatureParams)
     arrays = unpack_arrays(msg.params if mature else msg.gradient)  # type: ignore[union-attr]
+    critic = None if mature or msg.critic_gradient is None else unpack_arrays(msg.critic_gradient)  # type: ignore[union-attr]
     return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return, recent_returns=tuple(msg.recent_returns),
                       steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
-                      receipt=msg.receipt.model_dump() if msg.receipt is not None else None)
+                      receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
+                      step=0 if mature else msg.step, critic_gradient=critic)  # type: ignore[union-attr]
 
 
 def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:
@@ -364,8 +372,10 @@ def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:
         return ChiefTransfer(episode=outcome.episode, source_worker=outcome.source_worker,
                              source_pi=float(outcome.source_pi or 0), params=pack_arrays(outcome.params),
                              keep_weights=outcome.keep_weights, finished=outcome.finished)
-    return ChiefAggregate(episode=outcome.episode,
+    return ChiefAggregate(episode=outcome.episode, step=outcome.step,
                           gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
+                          critic_gradient=(pack_arrays(outcome.critic_gradient)
+                                           if outcome.critic_gradient is not None else None),
                           weights=outcome.weights, contributors=outcome.contributors)
 
 

@@ -36,41 +36,55 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     """Run one federation to its end; returns its summary (also written to ``run_dir``)."""
     torch.set_num_threads(1)
     spec = task(env_id)
+    strategy = strategies.get(policy)
     ids = [f"w{i}" for i in range(workers)]
     algos: dict[str, Algorithm2] = {}
+    keeper: RoundKeeper | None = None
     for i, wid in enumerate(ids):
         env, learner = build_learner_and_env(env_id, seed=worker_seed(seed, i), device_noise=device_noise,
                                              init_seed=seed)
-        algos[wid] = Algorithm2(wid, env, learner, spec.tc, worker_seed(seed, i))
-    keeper = RoundKeeper(ids, policy, spec, max_episodes, round_timeout=float("inf"),
-                         actor_spec=next(iter(algos.values())).actor_spec)
+        if keeper is None:
+            keeper = RoundKeeper(ids, policy, spec, max_episodes, round_timeout=float("inf"),
+                                 actor_spec=learner.actor_spec(), critic_spec=learner.critic_spec(),
+                                 rounds_per_episode=learner.config.update_epochs if strategy.per_step else 1)
+        algos[wid] = Algorithm2(wid, env, learner, spec.tc, worker_seed(seed, i),
+                                rounds_per_episode=keeper.rounds_per_episode)
+    assert keeper is not None
     metrics = MetricsLog(run_dir)
     t0 = time.monotonic()
-    learning = list(ids)
+    open_: dict[str, WorkerUpdate | MatureParams] = {}  # each learning worker's submission for the open round
     try:
         while not keeper.done:
             answers: dict[int, ChiefAggregate | ChiefTransfer] = {}
-            for wid in list(learning):
+            for wid in [w for w in ids if keeper.workers[w].state != "finished"]:
                 algo = algos[wid]
-                msg = _wire(algo.play(), WorkerUpdate, MatureParams)
+                if wid not in open_:
+                    open_[wid] = _wire(algo.play(), WorkerUpdate, MatureParams)
                 while True:
+                    msg = open_[wid]
                     verdict = keeper.submit(submission_of(msg), time.monotonic() - t0)
                     if verdict.status == "accepted":
                         metrics.episode(verdict.record(time.monotonic() - t0))
                     for outcome in verdict.outcomes:
                         metrics.round({**outcome.record(), "t": round(time.monotonic() - t0, 3)})
-                        answers[outcome.episode] = _wire(answer_of(outcome), ChiefAggregate, ChiefTransfer)
+                        answers[outcome.round] = _wire(answer_of(outcome), ChiefAggregate, ChiefTransfer)
                     if isinstance(msg, MatureParams) and verdict.ack is not None and not verdict.ack.accepted:
-                        msg = _wire(algo.refused(msg), WorkerUpdate)  # refused: it learns on
+                        open_[wid] = _wire(algo.refused(msg), WorkerUpdate)  # refused: it learns on
                         continue
                     break
-                if isinstance(msg, MatureParams):
-                    learning.remove(wid)
-            for wid in learning:
-                algos[wid].apply(answers.get(algos[wid].episode))
-            if progress:
-                cells = " | ".join(f"{w} PI {algos[w].pi:.1f}" for w in learning if algos[w].pi is not None)
-                print(f"round {keeper.episode - 1:4d} | {cells}", flush=True)
+            for wid in list(open_):
+                algo = algos[wid]
+                if isinstance(open_[wid], MatureParams):
+                    del open_[wid]  # finished (accepted)
+                    continue
+                nxt = algo.apply(answers.get(algo.round))
+                if nxt is None:
+                    del open_[wid]  # its episode's rounds are done: it plays the next one
+                else:
+                    open_[wid] = _wire(nxt, WorkerUpdate)
+            if progress and keeper.step_of(keeper.round - 1) == keeper.rounds_per_episode - 1:
+                cells = " | ".join(f"{w} PI {algos[w].pi:.1f}" for w in ids if algos[w].pi is not None)
+                print(f"episode {keeper.episode_of(keeper.round - 1):4d} | {cells}", flush=True)
     finally:
         metrics.close()
         for algo in algos.values():

@@ -48,6 +48,8 @@ class WorkerHello(Message):
     worker_id: Ident
     env_id: str
     actor_spec: dict[str, tuple[int, ...]]
+    critic_spec: dict[str, tuple[int, ...]] = Field(default_factory=dict)
+    update_steps: int = Field(default=0, ge=0, le=1000)  # K, the PPO mini-batch steps per episode
     host: str = ""
     pid: int = 0
 
@@ -80,7 +82,9 @@ class WorkerUpdate(Message):
     """Algorithm 2, end of an episode: the episode's actor gradient g_theta^n and the Performance Index.
 
     ``recent_returns`` are the returns PI is the mean of (oldest first, this episode's last), so the chief can
-    check PI against the returns it was told before.
+    check PI against the returns it was told before. Under a per-step strategy (RunStart.rounds_per_episode = K)
+    a worker sends K of them per episode, ``step`` 0..K-1, each with that mini-batch step's actor and critic
+    gradients; the episode's fields are repeated.
     """
 
     kind: Literal["update"] = "update"
@@ -92,6 +96,8 @@ class WorkerUpdate(Message):
     steps: int = Field(ge=0)
     gradient: TensorDict
     receipt: Receipt | None = None
+    step: int = Field(default=0, ge=0)
+    critic_gradient: TensorDict | None = None
     actor_loss: float | None = None
     critic_loss: float | None = None
     entropy: float | None = None
@@ -115,13 +121,16 @@ class MatureParams(Message):
 
 
 class ChiefAggregate(Message):
-    """Algorithm 1, no worker finished: the weighted mean gradient g_bar (Eq. 8-9), or None (no sharing)."""
+    """Algorithm 1, no worker finished: the weighted mean gradient g_bar (Eq. 8-9), or None (no sharing).
+    Under a per-step strategy it answers step ``step`` of the episode and carries the mean critic gradient too."""
 
     kind: Literal["aggregate"] = "aggregate"
     episode: int = Field(ge=1)
     gradient: TensorDict | None
     weights: dict[str, float]
     contributors: tuple[Ident, ...]
+    step: int = Field(default=0, ge=0)
+    critic_gradient: TensorDict | None = None
 
 
 class ChiefTransfer(Message):
@@ -154,6 +163,7 @@ class RunStart(Message):
     ``first_episode`` is the open round: a worker that restarts mid-run numbers its episodes from there. ``session``
     names this run of the chief (kept when it resumes): a worker acts only on a RunStop of the same session. ``epoch``
     counts the chief's restarts: a worker waiting for an answer sends its submission again when it sees a new one.
+    ``rounds_per_episode`` is 1 for the paper's strategies and K for a per-step strategy (see WorkerUpdate).
     """
 
     kind: Literal["run_start"] = "run_start"
@@ -168,6 +178,7 @@ class RunStart(Message):
     first_episode: int = Field(default=1, ge=1)
     session: str = Field(default="", max_length=32)
     epoch: int = Field(default=0, ge=0)
+    rounds_per_episode: int = Field(default=1, ge=1, le=1000)
 
 
 class RunStop(Message):

@@ -108,3 +108,14 @@ def l2_norm(arrays: Mapping[str, np.ndarray] | Mapping[str, TensorBlob]) -> floa
         values = a.to_array() if isinstance(a, TensorBlob) else np.asarray(a)
         total += float(np.sum(np.square(values, dtype=np.float64)))
     return math.sqrt(total) if math.isfinite(total) else math.inf
+
+
+def answer_digest(gradient: Mapping[str, np.ndarray] | Mapping[str, TensorBlob] | None,
+                  critic: Mapping[str, np.ndarray] | Mapping[str, TensorBlob] | None = None) -> str:
+    """The digest of an aggregate's tensors ('' when it shares none): its actor gradient, or with a critic gradient
+    both, named ``actor/...`` and ``critic/...``."""
+    if gradient is None:
+        return ""
+    if critic is None:
+        return digest(gradient)
+    return digest({**{f"actor/{k}": v for k, v in gradient.items()}, **{f"critic/{k}": v for k, v in critic.items()}})

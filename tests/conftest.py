@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import subprocess
 from collections.abc import Iterator
@@ -35,6 +36,8 @@ def start_mosquitto(tmp_path: Path, port: int | None = None, max_packet_size: in
     conf = tmp_path / f"mosquitto-{port}.conf"
     store = f"persistence true\npersistence_location {tmp_path}/\nautosave_interval 1\n" if persistence else (
         "persistence false\n")
+    if os.geteuid() == 0:
+        store += "user root\n"  # as root, Mosquitto would switch to its own user, who cannot write the test's folder
     conf.write_text(
         f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\nmax_packet_size {max_packet_size}\n"
         f"{store}log_dest stderr\n"

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from chief import strategies
 from chief.audit import AuditFailure, audit
 from chief.report import run_summary
 from chief.rounds import RoundKeeper, Submission
@@ -23,32 +24,37 @@ SOLVE_AT = {"w0": 12, "w1": 15, "w2": 21}  # episodes at which each simulated wo
 
 
 def simulate(run_dir: Path, policy: str = "weighted") -> None:
-    """Drive the real RoundKeeper with three honest workers and write the run folder the chief would write."""
+    """Drive the real RoundKeeper with three honest workers and write the run folder the chief would write (three
+    rounds per episode under a per-step strategy)."""
+    per_step = 3 if strategies.get(policy).per_step else 1
     keeper = RoundKeeper(sorted(SOLVE_AT), policy, task("CartPole-v0"), max_episodes=100, round_timeout=30.0,
-                         actor_spec={"g": (2,)})
+                         actor_spec={"g": (2,)}, critic_spec={"c": (1,)}, rounds_per_episode=per_step)
     returns: dict[str, list[float]] = {w: [] for w in SOLVE_AT}
     receipts: dict[str, dict[str, Any] | None] = {w: None for w in SOLVE_AT}
     lines: list[dict[str, Any]] = []
     episode = 1
     while not keeper.done:
-        for index, w in enumerate(sorted(SOLVE_AT)):
-            if keeper.workers[w].state == "finished":
-                continue
-            ret = 200.0 if episode > SOLVE_AT[w] - PI_WINDOW else 20.0 + 10 * index + episode
-            returns[w].append(ret)
-            mature = episode == SOLVE_AT[w]
-            tensors = {"g": np.array([episode, -index], np.float32)}
-            verdict = keeper.submit(Submission(
-                w, episode, performance_index(returns[w]), ret, recent_returns=tuple(returns[w][-PI_WINDOW:]),
-                steps=int(ret), gradient=None if mature else tensors, params=tensors if mature else None,
-                receipt=receipts[w]), now=float(episode))
-            assert verdict.status == "accepted", verdict.detail
-            lines.append(verdict.record(float(episode)))
-            for outcome in verdict.outcomes:
-                lines.append(outcome.record())
-                for r in SOLVE_AT:  # what each worker applies, as worker/service.py reports it
-                    receipts[r] = {"round": outcome.episode, "applied": outcome.kind, "digest": outcome.digest,
-                                   "keep": outcome.keep_weights.get(r) if outcome.kind == "transfer" else None}
+        for step in range(per_step):
+            for index, w in enumerate(sorted(SOLVE_AT)):
+                if keeper.workers[w].state == "finished" or (step and episode == SOLVE_AT[w]):
+                    continue
+                if step == 0:
+                    returns[w].append(200.0 if episode > SOLVE_AT[w] - PI_WINDOW else 20.0 + 10 * index + episode)
+                ret = returns[w][-1]
+                mature = episode == SOLVE_AT[w]
+                tensors = {"g": np.array([episode + step, -index], np.float32)}
+                critic = {"c": np.array([step + 1.0], np.float32)} if per_step > 1 and not mature else None
+                verdict = keeper.submit(Submission(
+                    w, episode, performance_index(returns[w]), ret, recent_returns=tuple(returns[w][-PI_WINDOW:]),
+                    steps=int(ret), gradient=None if mature else tensors, params=tensors if mature else None,
+                    receipt=receipts[w], step=step, critic_gradient=critic), now=float(episode))
+                assert verdict.status == "accepted", verdict.detail
+                lines.append(verdict.record(float(episode)))
+                for outcome in verdict.outcomes:
+                    lines.append(outcome.record())
+                    for r in SOLVE_AT:  # what each worker applies, as worker/service.py reports it
+                        receipts[r] = {"round": outcome.round, "applied": outcome.kind, "digest": outcome.digest,
+                                       "keep": outcome.keep_weights.get(r) if outcome.kind == "transfer" else None}
         episode += 1
     run_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "metrics.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
@@ -75,13 +81,17 @@ def first(lines: list[dict[str, Any]], **match: Any) -> dict[str, Any]:
     return next(x for x in lines if all(x.get(k) == v for k, v in match.items()))
 
 
-@pytest.mark.parametrize("policy", ["weighted", "plain", "median", "trimmed", "independent"])
+@pytest.mark.parametrize("policy", strategies.names())
 def test_an_honest_federation_passes(tmp_path: Path, policy: str) -> None:
     simulate(tmp_path / policy, policy)
     report = audit(tmp_path / policy)
+    if strategies.get(policy).per_step:  # three rounds per episode; a finisher's episode has one
+        assert report.rounds == 20 * 3 + 1 and report.submissions == 3 * (12 + 15 + 21) - 2 * 3
+        assert report.transfers == 0 and report.receipts == report.submissions - 3
+        return
     assert report.rounds == 21 and report.submissions == 12 + 15 + 21
     # w0 and w1 finished while others were learning: one transfer each, to 2 and then 1 recipients.
-    expected = (0, 0) if policy == "independent" else (2, 3)
+    expected = (0, 0) if strategies.get(policy).keep_weight(0.5) is None else (2, 3)
     assert (report.transfers, report.transfer_deliveries) == expected
     assert report.receipts == 12 + 15 + 21 - 3
 

@@ -322,7 +322,8 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
             pub.publish(topic, payload if isinstance(payload, bytes) else encode(payload), qos=1).wait_for_publish(5)
 
         # The dashboard subscribes without waiting for the broker's SUBACKs (and amqtt may handle them in any
-        # order): repeat a rig status and a message of a kind the page ignores until both have been seen.
+        # order): repeat a rig status and a message on a topic that does not carry its kind (refused as
+        # wrong_topic) until both have been seen.
         for _ in range(100):
             send("qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"))
             try:
@@ -333,7 +334,7 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
         for _ in range(30):
             send(f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0))
             try:
-                sse.until(lambda n, d: n == "stats" and d["ignored"].get("qube_action"), timeout=1.5)
+                sse.until(lambda n, d: n == "stats" and d["rejected"].get("wrong_topic"), timeout=1.5)
                 break
             except AssertionError:
                 continue

@@ -185,13 +185,30 @@ def test_silent_worker_times_out_and_is_not_waited_on_again() -> None:
     assert k.waiting_for() == ["w1"]
 
 
-def test_an_offline_worker_is_not_waited_for_but_what_it_sent_counts() -> None:
-    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+def test_a_last_will_does_not_end_the_wait_but_a_stop_does_and_what_was_sent_counts() -> None:
+    k, w = keeper(["w0", "w1", "w2"], timeout=10.0), fakes("w0", "w1", "w2")
     k.submit(w["w0"].sub(1, 10.0), now=0.0)
     k.submit(w["w1"].sub(1, 30.0), now=0.1)
     assert k.note_status("w1", "offline", now=0.2) == []  # its submission stays in the round
-    [out] = k.note_status("w2", "offline", now=0.5)
-    assert out.contributors == ["w0", "w1"] and k.workers["w2"].state == "offline"
+    # w2's last will: a broker restart delivers everyone's, so the round still waits for it ...
+    assert k.note_status("w2", "offline", now=0.3) == [] and k.waiting_for() == ["w2"]
+    assert k.workers["w2"].state == "offline"
+    [out] = k.tick(now=10.0)  # ... until it times out
+    assert out.contributors == ["w0", "w1"] and out.timed_out == ["w2"]
+    # A worker that says it stopped is not waited for at all.
+    k.submit(w["w0"].sub(2, 10.0), now=11.0)
+    k.submit(w["w1"].sub(2, 30.0), now=11.0)
+    assert k.round == 3
+    # And a worker whose will arrived but which comes back in time keeps its place.
+    k2, f2 = keeper(["a", "b"]), fakes("a", "b")
+    k2.submit(f2["a"].sub(1, 10.0), now=0.0)
+    k2.note_status("b", "offline", now=0.1)
+    [back] = outcomes(k2.submit(f2["b"].sub(1, 30.0), now=0.5))
+    assert back.contributors == ["a", "b"] and k2.workers["b"].state == "active"
+    k3, f3 = keeper(["a", "b"]), fakes("a", "b")
+    k3.submit(f3["a"].sub(1, 10.0), now=0.0)
+    [gone] = k3.note_status("b", "error", now=0.1)
+    assert gone.contributors == ["a"]
 
 
 def test_simultaneous_finish_transfers_the_best_and_both_leave() -> None:
@@ -312,8 +329,8 @@ def test_one_huge_gradient_is_scaled_to_ten_times_the_median_norm() -> None:
     for f, gv in zip(w.values(), [1.0, 2.0, 3.0, 1e5], strict=True):
         v = k.submit(f.sub(1, 100.0, gv=gv), now=0.0)
     [out] = outcomes(v)
-    assert out.clipped == pytest.approx({"w3": 20.0 / 1e5})  # the lower median norm is 2: bound 20
-    np.testing.assert_allclose(out.gradient["g"], [0.25 * (1 + 2 + 3 + 20)], rtol=1e-6)  # equal PIs: the mean
+    assert out.clipped == pytest.approx({"w3": 25.0 / 1e5})  # the median norm is 2.5: bound 25
+    np.testing.assert_allclose(out.gradient["g"], [0.25 * (1 + 2 + 3 + 25)], rtol=1e-6)  # equal PIs: the mean
     assert out.record()["clipped"] == out.clipped
 
 
@@ -328,3 +345,62 @@ def test_honest_spread_is_not_clipped_and_float32_cannot_overflow() -> None:
         v = k4.submit(f.sub(1, 100.0, gv=9e5), now=0.0)
     [big] = outcomes(v)
     assert np.isfinite(big.gradient["g"]).all()
+
+
+def steps_of(f: Fake, episode: int, ret: float, k: int, gv: float = 1.0) -> list[Submission]:
+    """An honest worker's K submissions for one episode under a per-step strategy."""
+    from dataclasses import replace
+
+    first = f.sub(episode, ret, gv=gv)
+    return [replace(first, step=s, critic_gradient={"c": np.array([10 * gv], np.float32)}) for s in range(k)]
+
+
+def sync_keeper(max_episodes: int, k: int) -> RoundKeeper:
+    return RoundKeeper(["w0", "w1"], "sync", CARTPOLE, max_episodes=max_episodes, round_timeout=10.0,
+                       actor_spec=SPEC, critic_spec={"c": (1,)}, rounds_per_episode=k)
+
+
+def test_a_per_step_strategy_has_k_rounds_per_episode() -> None:
+    """Under ``sync`` each of the K mini-batch steps is a round: actor and critic gradients are averaged, and a later
+    step must follow its episode's step 0 with the same return and PI."""
+    from dataclasses import replace
+
+    k, w = sync_keeper(max_episodes=2, k=3), fakes("w0", "w1")
+    a1, b1 = steps_of(w["w0"], 1, 20.0, 3, gv=1.0), steps_of(w["w1"], 1, 20.0, 3, gv=3.0)
+    assert k.submit(a1[1], now=0.0).reason == "out_of_order"  # step 1 before step 0
+    k.submit(a1[0], now=0.0)
+    [out] = outcomes(k.submit(b1[0], now=0.0))
+    assert (out.round, out.episode, out.step) == (1, 1, 0) and out.weights == {"w0": 0.5, "w1": 0.5}
+    np.testing.assert_allclose(out.gradient["g"], [2.0])
+    np.testing.assert_allclose(out.critic_gradient["c"], [20.0])
+    assert k.round == 2 and k.episode == 1 and k.next_episode == 2
+    assert k.submit(replace(a1[1], episode_return=99.0), now=0.0).reason == "inconsistent"  # repeats its episode's
+    assert k.submit(replace(a1[1], critic_gradient=None), now=0.0).reason == "invalid"
+    assert k.submit(replace(a1[1], step=3), now=0.0).reason == "invalid"
+    k.submit(a1[1], now=0.0)
+    [out2] = outcomes(k.submit(b1[1], now=0.0))
+    assert (out2.round, out2.step) == (2, 1)
+    k.submit(a1[2], now=0.0)
+    k.submit(b1[2], now=0.0)
+    assert k.round == 4 and k.episode == 2 and not k.done
+    for a, b in zip(steps_of(w["w0"], 2, 20.0, 3), steps_of(w["w1"], 2, 20.0, 3), strict=True):
+        k.submit(a, now=0.0)
+        outs = outcomes(k.submit(b, now=0.0))
+    assert outs[0].round == 6 and k.done and "maximum of 2 episodes" in (k.done_reason or "")
+
+
+def test_a_per_step_strategy_lets_a_finisher_leave_and_the_others_go_on() -> None:
+    from dataclasses import replace
+
+    k, w = sync_keeper(max_episodes=100, k=2), fakes("w0", "w1")
+    for e in range(1, PI_WINDOW):
+        for a, b in zip(steps_of(w["w0"], e, 200.0, 2), steps_of(w["w1"], e, 20.0, 2), strict=True):
+            k.submit(a, now=0.0)
+            k.submit(b, now=0.0)
+    finish = w["w0"].sub(PI_WINDOW, 200.0, mature=True)
+    assert k.submit(replace(finish, step=1), now=0.0).reason == "invalid"  # a finish comes at step 0
+    k.submit(finish, now=0.0)
+    [out] = outcomes(k.submit(steps_of(w["w1"], PI_WINDOW, 20.0, 2)[0], now=0.0))
+    assert out.kind == "aggregate" and out.finished == ["w0"] and out.contributors == ["w0", "w1"]
+    assert out.weights == {"w1": 1.0} and out.gradient is not None  # the learner's step is shared, not dropped
+    assert k.workers["w0"].state == "finished" and k.waiting_for() == ["w1"]

@@ -22,9 +22,9 @@ def grads(*values: float) -> dict[str, dict[str, np.ndarray]]:
 
 
 def test_registry_holds_the_paper_policies_and_the_robust_ones() -> None:
-    assert strategies.names() == ["independent", "median", "plain", "trimmed", "weighted"]
+    assert strategies.names() == ["independent", "median", "plain", "sync", "trimmed", "weighted"]
     assert strategies.get("weighted").keep_weight(0.3) == 0.3
-    with pytest.raises(ValueError, match="choose one of independent, median, plain, trimmed, weighted"):
+    with pytest.raises(ValueError, match="choose one of independent, median, plain, sync, trimmed, weighted"):
         strategies.get("fedavg")
 
 

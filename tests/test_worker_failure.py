@@ -31,7 +31,7 @@ def test_killed_worker_is_dropped_and_the_run_still_ends(amqtt_broker: str, tmp_
     run_dir = tmp_path / "run"
     common = ["--broker", amqtt_broker, "--run-id", "kill", "--env", "CartPole-v0"]
     chief = spawn("chief", *common, "--workers", "2", "--max-episodes", "600", "--run-dir", str(run_dir),
-                  "--round-timeout", "30", "--idle-timeout", "3", log=tmp_path / "chief.log")
+                  "--round-timeout", "5", "--idle-timeout", "3", log=tmp_path / "chief.log")
     w0 = spawn("worker", *common, "--id", "w0", log=tmp_path / "w0.log")
     w1 = spawn("worker", *common, "--id", "w1", log=tmp_path / "w1.log")
     try:

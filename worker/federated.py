@@ -3,10 +3,17 @@ apply the chief's answer. worker/service.py carries it over MQTT; deploy/inproce
 so both run the same worker logic.
 
 Per episode (paper Algorithm 2): act until the episode ends, storing transitions; PI = mean of the last PI_WINDOW
-returns. If PI >= TC over PI_WINDOW episodes, the worker's submission is its mature actor (MatureParams). Otherwise it
-runs K PPO updates and submits the episode's actor gradient with its PI (WorkerUpdate), then applies the chief's
+returns. If PI >= TC over PI_WINDOW episodes, the worker's submission is its mature actor (MatureParams). Otherwise
+it runs K PPO updates and submits the episode's actor gradient with its PI (WorkerUpdate), then applies the chief's
 answer: the aggregate gradient through its actor's optimizer, or a mature actor blended in with its keep weight
 (Eq. 11). Each submission carries a receipt of what it did with the previous round's answer.
+
+Under a per-step strategy (``rounds_per_episode`` = K > 1) the K PPO steps are K rounds: each step's actor and
+critic gradients are submitted, and the chief's mean of them is what the worker's optimizers apply.
+
+    submission = algo.play()                 # the episode, then its first submission
+    while submission is not None:
+        submission = algo.apply(answer_to(submission))   # the next step's submission, or None after the last
 """
 
 from __future__ import annotations
@@ -16,12 +23,14 @@ import math
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
+import torch
 
 from protocol.messages import ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
 from protocol.tasks import PI_WINDOW, performance_index, solved
-from protocol.tensors import check_spec, digest, pack_arrays, unpack_arrays
+from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
 from worker.episode import run_episode
-from worker.ppo import PPOLearner
+from worker.ppo import Batch, PPOLearner, StepGradients
 
 log = logging.getLogger("worker")
 
@@ -30,73 +39,145 @@ class Algorithm2:
     """One worker's side of every round, from ``first_episode`` on."""
 
     def __init__(self, worker_id: str, env: gym.Env, learner: PPOLearner, tc: float, seed: int,
-                 first_episode: int = 1) -> None:
+                 first_episode: int = 1, rounds_per_episode: int = 1) -> None:
+        if rounds_per_episode not in (1, learner.config.update_epochs):
+            raise ValueError(f"the chief runs {rounds_per_episode} rounds per episode, but this worker's PPO takes "
+                             f"{learner.config.update_epochs} steps per episode")
         self.worker_id = worker_id
         self.env = env
         self.learner = learner
         self.tc = tc
         self.seed = seed
         self.first_episode = first_episode
-        self.episode = first_episode  # the episode to play next
+        self.rounds_per_episode = rounds_per_episode
+        self.episode = first_episode  # the episode played last (or next, before the first play)
+        self.step = 0  # the mini-batch step of the open submission
         self.returns: list[float] = []
         self.total_steps = 0
         self.receipt: Receipt | None = None  # what was done with the last round's answer
         self.actor_spec = learner.actor_spec()
+        self._played = False
+        self._batch: Batch | None = None
+        self._own: StepGradients | None = None  # this step's own gradients (applied if no answer comes)
+        self._last = (0.0, 0)  # the episode's return and env steps
+        self.refused_answer: str | None = None  # why the last answer was not applied
 
     @property
     def pi(self) -> float | None:
         return performance_index(self.returns) if self.returns else None
 
+    @property
+    def next_episode(self) -> int:
+        """The episode ``play()`` plays next."""
+        return self.episode + 1 if self._played else self.first_episode
+
+    @property
+    def per_step(self) -> bool:
+        return self.rounds_per_episode > 1
+
+    @property
+    def round(self) -> int:
+        """The round of the open submission (episode and step)."""
+        return (self.episode - 1) * self.rounds_per_episode + self.step + 1
+
     def play(self) -> WorkerUpdate | MatureParams:
-        """Play the next episode; return what to submit for it: the mature actor once PI >= TC, else the gradient
-        of this episode's K PPO updates."""
+        """Play the next episode; return its first submission: the mature actor once PI >= TC, else the gradient
+        of this episode's K PPO updates (of its first mini-batch step, under a per-step strategy)."""
+        if self._played:
+            self.episode += 1
+        self._played, self.step = True, 0
         ret, steps = run_episode(self.env, self.learner, seed=self.seed if self.episode == self.first_episode else None)
         self.returns.append(ret)
         self.total_steps += steps
+        self._last = (ret, steps)
         if solved(self.returns, self.tc):
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,
                                 params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt)
-        return self._update(ret, steps)
+        return self._first_update()
 
     def refused(self, mature: MatureParams) -> WorkerUpdate:
         """The chief refused the mature actor: learn on, submitting this episode as an ordinary update."""
-        return self._update(mature.episode_return, mature.steps)
+        return self._first_update()
 
-    def _update(self, ret: float, steps: int) -> WorkerUpdate:
+    def _first_update(self) -> WorkerUpdate:
+        if self.per_step:
+            self._batch = self.learner.prepare()
+            return self._step_update()
         stats = self.learner.update()
-        return WorkerUpdate(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
-                            recent_returns=self.returns[-PI_WINDOW:], steps=steps,
-                            gradient=pack_arrays(self.learner.actor_gradient()), receipt=self.receipt,
+        return self._update(self.learner.actor_gradient(), None, stats)
+
+    def _step_update(self) -> WorkerUpdate:
+        """Step ``self.step``'s own mini-batch gradients, to be averaged by the chief. A non-finite step (which the
+        worker would skip alone) is shared as zeros: the others' mean still moves every worker alike."""
+        assert self._batch is not None
+        self._own = own = self.learner.minibatch_gradients(self._batch)
+        return self._update(_numpy(own.actor, self.learner.actor), _numpy(own.critic, self.learner.critic), own)
+
+    def _update(self, actor: dict[str, np.ndarray], critic: dict[str, np.ndarray] | None, stats: Any) -> WorkerUpdate:
+        ret, steps = self._last
+        return WorkerUpdate(worker_id=self.worker_id, episode=self.episode, step=self.step, episode_return=ret,
+                            pi=self.pi, recent_returns=self.returns[-PI_WINDOW:], steps=steps,
+                            gradient=pack_arrays(actor), receipt=self.receipt,
+                            critic_gradient=pack_arrays(critic) if critic is not None else None,
                             **_loss_fields(stats))
 
-    def apply(self, reply: ChiefAggregate | ChiefTransfer | None) -> Receipt:
-        """Apply the chief's answer to the episode just submitted (None: no answer came) and move to the next
-        episode. Raises ValueError for an answer whose tensors do not fit this worker's actor (nothing applied)."""
-        episode = self.episode
-        self.episode += 1
-        self.receipt = Receipt(round=episode, applied="missed")
-        if reply is None:
-            return self.receipt
-        if isinstance(reply, ChiefTransfer):
-            keep = reply.keep_weights.get(self.worker_id)
-            if keep is not None:
-                check_spec(reply.params, self.actor_spec, "transfer")
-                self.learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
-                log.info("%s blended in %s's mature actor (keep %.3f)", self.worker_id, reply.source_worker, keep)
-            self.receipt = Receipt(round=episode, applied="transfer", digest=digest(reply.params), keep=keep)
-            return self.receipt
-        if reply.gradient is not None:
-            check_spec(reply.gradient, self.actor_spec, "aggregate")
-            self.learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
-        self.receipt = Receipt(round=episode, applied="aggregate",
-                               digest=digest(reply.gradient) if reply.gradient is not None else "")
-        return self.receipt
+    def apply(self, reply: ChiefAggregate | ChiefTransfer | None) -> WorkerUpdate | None:
+        """Apply the chief's answer to the open submission (None: no answer came) and return the next submission
+        of this episode (under a per-step strategy), or None when the episode's rounds are done.
+
+        An answer whose tensors do not fit this worker's networks is not applied: ``refused`` then says why (the
+        receipt says ``missed``), and under a per-step strategy the worker takes its own step, as without answer.
+        """
+        round_ = self.round
+        self.receipt = Receipt(round=round_, applied="missed")
+        self.refused_answer = None
+        try:
+            if reply is not None and isinstance(reply, ChiefTransfer):
+                keep = reply.keep_weights.get(self.worker_id)
+                if keep is not None:
+                    check_spec(reply.params, self.actor_spec, "transfer")
+                    self.learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
+                    log.info("%s blended in %s's mature actor (keep %.3f)", self.worker_id, reply.source_worker, keep)
+                self.receipt = Receipt(round=round_, applied="transfer", digest=digest(reply.params), keep=keep)
+            elif reply is not None:
+                self._apply_aggregate(reply)
+                self.receipt = Receipt(round=round_, applied="aggregate",
+                                       digest=answer_digest(reply.gradient, reply.critic_gradient))
+        except ValueError as err:
+            self.refused_answer = str(err)
+        if self.receipt.applied == "missed" and self.per_step and self._own is not None:
+            self.learner.apply_step(self._own.critic, self._own.actor)  # no usable answer: our own step
+        if self.per_step and self.step + 1 < self.rounds_per_episode:
+            self.step += 1
+            return self._step_update()
+        self._batch = self._own = None
+        return None
+
+    def _apply_aggregate(self, reply: ChiefAggregate) -> None:
+        if not self.per_step:
+            if reply.gradient is not None:
+                check_spec(reply.gradient, self.actor_spec, "aggregate")
+                self.learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
+            return
+        if reply.gradient is None or reply.critic_gradient is None:
+            raise ValueError(f"round {self.round}: a per-step aggregate without its actor and critic gradients")
+        check_spec(reply.gradient, self.actor_spec, "aggregate")
+        check_spec(reply.critic_gradient, self.learner.critic_spec(), "aggregate critic")
+        as_torch = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.gradient).items()}
+        critic = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.critic_gradient).items()}
+        self.learner.apply_step(critic, as_torch)  # the same mean step as every other worker
 
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)
         if close is not None:
             close()
+
+
+def _numpy(grads: dict[str, torch.Tensor] | None, net: torch.nn.Module) -> dict[str, np.ndarray]:
+    """A network's gradients as float32 arrays (zeros where the step had none)."""
+    return {k: (grads[k] if grads else torch.zeros_like(p)).numpy().astype(np.float32)
+            for k, p in net.named_parameters()}
 
 
 def _loss_fields(stats: Any) -> dict[str, float | None]:

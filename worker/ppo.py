@@ -541,6 +541,10 @@ class PPOLearner:
         """Names and shapes of the actor's parameters (``actor.named_parameters()`` order)."""
         return {name: tuple(p.shape) for name, p in self.actor.named_parameters()}
 
+    def critic_spec(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of the critic's parameters."""
+        return {name: tuple(p.shape) for name, p in self.critic.named_parameters()}
+
     def actor_parameters(self) -> dict[str, np.ndarray]:
         """A float32 copy of theta."""
         return {

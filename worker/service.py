@@ -139,6 +139,7 @@ class WorkerService:
         _, probe = build_learner_and_env(cfg.env_id, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
                                          spec_only=True)
         hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env_id, actor_spec=probe.actor_spec(),
+                            critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs,
                             host=socket.gethostname(), pid=os.getpid())
         self.actor_spec = probe.actor_spec()
         deadline = time.monotonic() + cfg.start_timeout
@@ -169,9 +170,10 @@ class WorkerService:
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env_id, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
-        algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode)
+        algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
+                          rounds_per_episode=start.rounds_per_episode)
         try:
-            while algo.episode <= start.max_episodes and self.stop is None:
+            while algo.next_episode <= start.max_episodes and self.stop is None:
                 submission = algo.play()
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner)
@@ -189,13 +191,12 @@ class WorkerService:
                     log.error("the chief refused the mature actor of episode %d (%s); learning on",
                               submission.episode, ack.reason)
                     submission = algo.refused(submission)
-                reply = self._exchange(submission)
-                try:
-                    algo.apply(reply)
-                except ValueError as err:
-                    self.rejects.reject(topics.chief(cfg.run_id, reply.kind if reply else "?"), "wrong_shape",
-                                        str(err))
-            self._status("stopped", episode=algo.episode - 1, pi=algo.pi,
+                while submission is not None:  # one round, or K of them under a per-step strategy
+                    reply = self._exchange(submission, algo.round)
+                    submission = algo.apply(reply)
+                    if algo.refused_answer is not None and reply is not None:
+                        self.rejects.reject(topics.chief(cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
+            self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
                          detail=self.stop.reason if self.stop else "episode limit")
             if self.stop is not None and self.stop.aborted:
                 log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
@@ -239,44 +240,49 @@ class WorkerService:
                 self.epoch, self.restarted = msg.epoch, True  # the chief restarted: it may have lost our submission
         elif isinstance(msg, ChiefAck):
             self.acks[msg.episode] = msg
-        elif msg.episode in self.replies or msg.episode in self.answered:
-            self.duplicates += 1  # an answer sent again (to a worker that missed it): applied once
         else:
-            self.replies[msg.episode] = msg
+            r = self._round_of(msg)
+            if r in self.replies or r in self.answered:
+                self.duplicates += 1  # an answer sent again (to a worker that missed it): applied once
+            else:
+                self.replies[r] = msg
 
-    def _exchange(self, submission: WorkerUpdate) -> ChiefAggregate | ChiefTransfer | None:
-        """Submit one episode and wait for the chief's answer to its round (Algorithm 2, 'wait for a message m_c').
+    def _round_of(self, answer: ChiefAggregate | ChiefTransfer) -> int:
+        per_episode = self.start.rounds_per_episode if self.start is not None else 1
+        return (answer.episode - 1) * per_episode + getattr(answer, "step", 0) + 1
+
+    def _exchange(self, submission: WorkerUpdate, round_: int) -> ChiefAggregate | ChiefTransfer | None:
+        """Submit one round and wait for the chief's answer to it (Algorithm 2, 'wait for a message m_c').
 
         The submission goes out again when the connection came back, when the chief announced itself again (it may
         have restarted) and every ``resend_interval`` seconds: the chief counts it once, and answers a round it
         already closed again, so a lost message costs seconds, not ``reply_timeout``.
         """
-        episode = submission.episode
         payload = encode(submission)
         deadline = time.monotonic() + self.cfg.reply_timeout
         sent_at, connects = -math.inf, -1
         self.restarted = False
-        while episode not in self.replies and self.stop is None:
+        while round_ not in self.replies and self.stop is None:
             now = time.monotonic()
             if now >= deadline:
                 self.missed_replies += 1
-                log.warning("no answer from the chief for episode %d within %.0f s; going on alone (missed %d)",
-                            episode, self.cfg.reply_timeout, self.missed_replies)
+                log.warning("no answer from the chief for round %d within %.0f s; going on alone (missed %d)",
+                            round_, self.cfg.reply_timeout, self.missed_replies)
                 return None
             if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
                 if connects != -1:
-                    log.info("sending episode %d again (%s)", episode, "reconnected" if self.conn.connects != connects
+                    log.info("sending round %d again (%s)", round_, "reconnected" if self.conn.connects != connects
                              else "the chief restarted" if self.restarted else "no answer yet")
                 self.conn.publish(self._topic(topics.UPDATE), payload, qos=1)
                 sent_at, connects, self.restarted = now, self.conn.connects, False
             self._receive(timeout=min(deadline - now, 0.5))
-        for old in [e for e in self.replies if e < episode]:
+        for old in [r for r in self.replies if r < round_]:
             self.rejects.reject(topics.chief(self.cfg.run_id, self.replies[old].kind), "stale",
                                 f"round {old}'s answer came after this worker had moved on")
             del self.replies[old]
-        reply = self.replies.pop(episode, None)
+        reply = self.replies.pop(round_, None)
         if reply is not None:
-            self.answered.add(episode)
+            self.answered.add(round_)
         return reply
 
     def _save(self, learner: Any) -> None:

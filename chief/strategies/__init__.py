@@ -2,7 +2,7 @@
 same way). Adding a strategy is one new module defining ``STRATEGY`` (a ``base.Strategy``) plus its test.
 
 >>> names()
-['independent', 'median', 'plain', 'trimmed', 'weighted']
+['independent', 'median', 'plain', 'sync', 'trimmed', 'weighted']
 """
 
 from __future__ import annotations

@@ -5,7 +5,10 @@ A strategy decides two things of Algorithm 1 (paper Section IV):
 - ``aggregate(gradients, progress)``: the round's shared gradient g_bar from the contributors' actor gradients, and
   the contribution weight of each (Eq. 8-9 for the linear rules; ``None`` for a rule that is not a weighted sum);
 - ``keep_weight(progress)``: w_T, how much of its own actor a recipient keeps when a mature actor arrives (Eq. 10);
-  ``None`` when the strategy transfers nothing.
+  ``None`` when the strategy transfers nothing;
+- ``per_step``: whether rounds are episodes (the paper: each worker runs its K PPO steps and submits the episode's
+  mean actor gradient) or mini-batch steps (K rounds per episode: each step's actor and critic gradients are
+  aggregated and every worker applies the aggregate before its next step).
 
 ``progress`` is each worker's sign-safe progress in [0, 1] (chief/federation.py), computed by the round state
 machine from the PIs it accepted. One module per strategy in this package registers one ``Strategy``; nothing else
@@ -42,11 +45,9 @@ class Strategy:
     tolerates: Callable[[int], int]
     #: One line on what it tolerates and what it does not, for the README table.
     robustness: str
-
-    @property
-    def shares(self) -> bool:
-        """Whether rounds share anything at all (False: workers learn alone)."""
-        return self.keep_weight(0.0) is not None
+    #: Share every mini-batch step (K rounds per episode, actor and critic gradients) instead of one gradient per
+    #: episode.
+    per_step: bool = False
 
 
 def no_gradient(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:

@@ -105,7 +105,38 @@ def test_local_env_retries_a_failed_swing_up_then_gives_up() -> None:
     from rpi_bridge.reset import ResetConfig
 
     env = QubeLocalEnv(seed=4)
-    env.core = ControlCore(env.device, ControlConfig(reset=ResetConfig(timeout_s=0.05)))  # no swing-up can succeed
+    env.core = ControlCore(env.device, ControlConfig(reset=ResetConfig(timeout_s=0.05)),  # no swing-up can succeed
+                           clock=env.clock)
     with pytest.raises(RuntimeError, match="could not reset"):
         env.reset()
-    assert sum(1 for e in env.core.events if e[0] == "reset_failed") == 5
+    assert env.failed_resets == 5
+
+
+def test_the_first_action_of_every_episode_over_mqtt_is_applied(amqtt_broker: str) -> None:
+    """The rig's first ``ready`` state opens an action slot, so the env's first answer of an episode is applied as
+    in process (it used to be dropped as late, every episode)."""
+    import threading
+
+    from rpi_bridge.service import BridgeService
+    from services.qube_sim.clock import VirtualClock
+    from services.qube_sim.spi_peer import SimulatedQube
+
+    clock = VirtualClock()
+    device = SimulatedQube(seed=4, period_s=0, clock=clock)
+    service = BridgeService(device, "rigF", BrokerAddress.parse(amqtt_broker), lockstep=True, advance=clock.advance,
+                            clock=clock, client_prefix="qube-first")
+    loop = threading.Thread(target=service.run, daemon=True)
+    loop.start()
+    conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="qube-first-env").start()
+    try:
+        env = QubeMqttEnv(conn, "rigF", reset_timeout_s=30)
+        for _ in range(3):
+            ret, *_ = play(env, steps=20)
+            assert ret == 20.0
+        counters = service.core.counters  # (the lockstep rig now waits for the next answer)
+        assert service.runner.slot.late == 0 and counters.misses == 0
+        assert counters.applied == 60  # every answer of every episode, the first ones included
+    finally:
+        conn.stop()
+        service.stop_event.set()
+        loop.join(10)

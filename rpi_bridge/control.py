@@ -170,6 +170,8 @@ class ControlCore:
         self._filters_started = False
         self._provisional: Calibration | None = None  # angles before calibration: zero at the first reading
         self.started = False  # calibration and self-test passed
+        self._theta = 0.0  # the last arm angle read
+        self._return_limit = 0.0  # a reset that starts past the arm limit may bring the arm back from there
 
     # -- requests (the runner calls these between ticks) -------------------------------------------------------
 
@@ -217,8 +219,9 @@ class ControlCore:
             self._fault("stall error" if reading.stall_error else "amplifier fault")
         elif self._stalled_for >= cfg.stall_timeout_s - 1e-9:
             self._fault(f"stall detected for {self._stalled_for:.2f} s: the arm is blocked (end stop, cable, hand?)")
-        elif self.calibration is not None and abs(theta) > cfg.arm_limit:
+        elif self.calibration is not None and abs(theta) > self._arm_limit_now(theta):
             self._fault(f"arm at {math.degrees(theta):.0f} deg, past the {math.degrees(cfg.arm_limit):.0f} deg limit")
+        self._theta = theta
 
         awaits = False
         state = (theta, alpha, theta_dot, alpha_dot)
@@ -301,6 +304,13 @@ class ControlCore:
             self.write_latencies.append(now - self._read_at)
         return True
 
+    def _arm_limit_now(self, theta: float) -> float:
+        """The arm limit, except while a reset that began past it (the arm came to rest there after a fault)
+        brings the arm back: then it may not move further out than where it began (+ 3 deg)."""
+        if self._return_limit and (self.phase != "resetting" or abs(theta) <= self.cfg.arm_limit):
+            self._return_limit = 0.0
+        return max(self.cfg.arm_limit, self._return_limit)
+
     def _serve_pending_reset(self) -> None:
         request = self._pending_reset
         if request is None or self.phase in ("calibrating", "self_test"):
@@ -373,6 +383,8 @@ class ControlCore:
 
     def _start_reset(self, request_id: int) -> None:
         self.request_id = request_id
+        if abs(self._theta) > self.cfg.arm_limit:
+            self._return_limit = abs(self._theta) + math.radians(3.0)
         self.fault_reason = ""
         self.phase = "resetting"
         self._reset_ctl.reset()

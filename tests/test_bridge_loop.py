@@ -428,3 +428,16 @@ def test_a_lockstep_rig_with_injected_timing_writes_each_action_after_its_delay(
     assert core.periods[-1] == pytest.approx(PERIOD)  # the read-to-read period stays 7 ms
     with pytest.raises(ValueError):
         BridgeRunner(core, "rig0", answer, lockstep=False, timing=timing)
+
+
+def test_a_reset_brings_back_an_arm_that_came_to_rest_past_the_limit() -> None:
+    """After an arm-limit fault the amplifier is off and the arm coasts to rest near the stop: the next reset
+    brings it back and swings up (a reset that let it go further out would still fault)."""
+    core, device, clock = lockstep_core()
+    s = until_ready(core, clock)
+    device.reset_state(theta=math.radians(113), alpha=math.pi)  # at rest past the limit, as after a fault
+    clock.advance(PERIOD)
+    assert core.sense().phase == "fault"
+    s = until_ready(core, clock, request_id=2)
+    assert s.phase == "ready" and s.episode == 2 and abs(s.theta) < math.radians(45)
+    assert max(abs(c) for c in device.commands) <= 416

@@ -69,9 +69,9 @@ def build_sim_service(args: argparse.Namespace) -> BridgeService:
     params = replace(params, Cr=args.coulomb_arm, Cp=args.coulomb_pendulum)
     fault = args.wiring_fault.replace("-", "_")
     faults = {fault: True} if fault != "none" else {}
-    timing = None
-    if args.clock == "delayed":
-        timing = InjectedTiming.parse(args.delay_ms, args.miss_rate, seed=args.seed)
+    timing = InjectedTiming.parse(args.delay_ms, args.miss_rate, seed=args.seed)  # checked whatever the clock
+    if args.clock != "delayed":
+        timing = None
     if args.clock in ("lockstep", "delayed"):
         clock = VirtualClock()
         device = SimulatedQube(params, seed=args.seed, period_s=0, clock=clock, **faults)

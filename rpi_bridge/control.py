@@ -170,7 +170,8 @@ class ControlCore:
         self._filters_started = False
         self._provisional: Calibration | None = None  # angles before calibration: zero at the first reading
         self.started = False  # calibration and self-test passed
-        self._theta = 0.0  # the last arm angle read
+        self._theta = 0.0  # the last arm angle read, and its rate
+        self._theta_dot = 0.0
         self._return_limit = 0.0  # a reset that starts past the arm limit may bring the arm back from there
 
     # -- requests (the runner calls these between ticks) -------------------------------------------------------
@@ -221,7 +222,7 @@ class ControlCore:
             self._fault(f"stall detected for {self._stalled_for:.2f} s: the arm is blocked (end stop, cable, hand?)")
         elif self.calibration is not None and abs(theta) > self._arm_limit_now(theta):
             self._fault(f"arm at {math.degrees(theta):.0f} deg, past the {math.degrees(cfg.arm_limit):.0f} deg limit")
-        self._theta = theta
+        self._theta, self._theta_dot = theta, theta_dot
 
         awaits = False
         state = (theta, alpha, theta_dot, alpha_dot)
@@ -305,8 +306,9 @@ class ControlCore:
         return True
 
     def _arm_limit_now(self, theta: float) -> float:
-        """The arm limit, except while a reset that began past it (the arm came to rest there after a fault)
-        brings the arm back: then it may not move further out than where it began (+ 3 deg)."""
+        """The arm limit, except while a reset that began past it (after a fault the arm coasts towards the stop)
+        brings the arm back: then it may not move further out than where it began plus the distance it needs to
+        stop at the reset's braking rate, plus 3 deg."""
         if self._return_limit and (self.phase != "resetting" or abs(theta) <= self.cfg.arm_limit):
             self._return_limit = 0.0
         return max(self.cfg.arm_limit, self._return_limit)
@@ -384,7 +386,9 @@ class ControlCore:
     def _start_reset(self, request_id: int) -> None:
         self.request_id = request_id
         if abs(self._theta) > self.cfg.arm_limit:
-            self._return_limit = abs(self._theta) + math.radians(3.0)
+            outward = max(0.0, math.copysign(1.0, self._theta) * self._theta_dot)
+            stopping = outward * outward / (2.0 * self.cfg.reset.brake_accel)
+            self._return_limit = abs(self._theta) + stopping + math.radians(3.0)
         self.fault_reason = ""
         self.phase = "resetting"
         self._reset_ctl.reset()

@@ -441,3 +441,23 @@ def test_a_reset_brings_back_an_arm_that_came_to_rest_past_the_limit() -> None:
     s = until_ready(core, clock, request_id=2)
     assert s.phase == "ready" and s.episode == 2 and abs(s.theta) < math.radians(45)
     assert max(abs(c) for c in device.commands) <= 416
+
+
+def test_a_reset_requested_while_the_arm_still_coasts_out_after_a_fault_brakes_it_and_brings_it_back() -> None:
+    """The pendulum falls with the arm swinging out at 6 rad/s: the amplifier goes off (fallen), the arm coasts past
+    110 deg (fault), and the reset requested at once brakes it and brings it back, although it first moves some
+    degrees further out."""
+    core, device, clock = lockstep_core()
+    s = until_ready(core, clock)
+    core.act(0)  # running
+    device.reset_state(theta=math.radians(70), alpha=math.pi, theta_dot=6.0)
+    phases = []
+    while s.phase != "fault" and len(phases) < 100:
+        clock.advance(PERIOD)
+        s = core.sense()
+        phases.append(s.phase)
+        core.act(None)
+    assert phases[0] == "fallen" and s.phase == "fault" and device.state[2] > 2.0
+    clock.advance(PERIOD)  # the worker's reset request comes a tick later
+    s = until_ready(core, clock, request_id=2)
+    assert s.phase == "ready" and abs(s.theta) < math.radians(45)

@@ -140,3 +140,31 @@ def test_the_first_action_of_every_episode_over_mqtt_is_applied(amqtt_broker: st
         conn.stop()
         service.stop_event.set()
         loop.join(10)
+
+
+def test_the_env_retries_a_reset_that_ends_in_a_fault() -> None:
+    """A rig that faults during the reset (e.g. its arm limit) answers with a ``fault`` status for that request:
+    the env treats it as a failed swing-up and retries, instead of waiting for the reset timeout."""
+    from protocol.codec import decode, encode
+    from protocol.messages import QubeReset, QubeStatus
+
+    class FaultingRig:
+        def __init__(self) -> None:
+            self.callbacks: dict[str, object] = {}
+            self.resets = 0
+
+        def subscribe(self, topic: str, callback, qos: int = 0) -> None:
+            self.callbacks[topic] = callback
+
+        def publish(self, topic: str, payload: bytes, qos: int = 0) -> None:
+            request = decode(payload, QubeReset)
+            self.resets += 1
+            status = QubeStatus(rig_id="rigX", state="fault", request_id=request.request_id,
+                                detail="arm at 114 deg, past the 110 deg limit")
+            self.callbacks["qube/rigX/status"]("qube/rigX/status", encode(status))
+
+    rig = FaultingRig()
+    env = QubeMqttEnv(rig, "rigX", reset_timeout_s=1.0, reset_attempts=3, settle_s=0.0)
+    with pytest.raises(RuntimeError, match="reset fault: arm at 114 deg"):
+        env.reset()
+    assert rig.resets == 3 and env.failed_resets == 3

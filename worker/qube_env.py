@@ -133,8 +133,8 @@ class QubeMqttEnv(_QubeTask):
                 continue
             if isinstance(msg, QubeStatus) and msg.request_id == self._request:
                 acknowledged = True
-                if msg.state == "reset_failed":
-                    raise ResetFailed(f"rig {self.rig_id}: reset failed: {msg.detail}")
+                if msg.state in ("reset_failed", "fault"):  # a fault during the reset (e.g. the arm limit)
+                    raise ResetFailed(f"rig {self.rig_id}: reset {msg.state.replace('_', ' ')}: {msg.detail}")
             if isinstance(msg, QubeState) and msg.episode == self._request and msg.phase == "ready":
                 self._last = msg
                 return observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot), {"seq": msg.seq}

@@ -167,6 +167,8 @@ class ResetController:
         self.phase = "swing_up"
         self.energy_target = 0.0
         self.failure = ""
+        self.catches = 0  # catches started this attempt
+        self.max_arm = 0.0  # largest |theta| seen this attempt
         self._alpha_filter: VelocityFilter | None = None
         self._last_alpha: float | None = None
         self._last_alpha_dot = 0.0
@@ -249,6 +251,7 @@ class ResetController:
                 alpha_dot = self._alpha_filter.update(alpha, dt)
 
         brake = self.must_brake(theta, theta_dot, dt)
+        self.max_arm = max(self.max_arm, abs(theta))
         caught = self.phase in ("catch", "holding", "ready")
         catchable = (
             abs(alpha) < cfg.catch_angle
@@ -256,6 +259,8 @@ class ResetController:
             and not self.must_brake(theta, theta_dot, dt, cfg.catch_abandon)
         )
         if catchable and not brake:
+            if not caught:
+                self.catches += 1
             command = self.hold_command(theta, alpha, theta_dot, alpha_dot)
             inside = abs(alpha) <= cfg.balance_band and abs(theta) <= cfg.arm_band
             self.in_band_time = self.in_band_time + dt if inside else 0.0
@@ -275,7 +280,9 @@ class ResetController:
         self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 
         if self.phase != "ready" and self.elapsed >= cfg.timeout_s:
-            return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s")
+            return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s ({self.catches} catches "
+                              f"started, arm up to {math.degrees(self.max_arm):.0f} deg, energy target "
+                              f"{self.energy_target:+.2f})")
         return command, self.phase
 
     def _fail(self, reason: str) -> tuple[int, str]:

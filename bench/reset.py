@@ -48,7 +48,7 @@ def main(argv: list[str] | None = None) -> int:
         results = run_condition(condition, args.trials)
         row = {"condition": condition.name, "damping": condition.damping, "spread": condition.spread,
                "coulomb_nm": list(condition.coulomb), **summary(results),
-               "failures": sorted({r.outcome for r in results if not r.ready}),
+               "failures": [f"start {i}: {r.outcome}" for i, r in enumerate(results) if not r.ready],
                "cpu_s": round(time.monotonic() - t0, 1)}
         print(json.dumps(row), flush=True)
         rows.append(row)

@@ -15,7 +15,8 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
 2. **adaptive energy target**: damping (up to 5x the nominal one here) and a rig that differs from the model make
    the pendulum turn back short of the top at E = E0. Each turnaround above horizontal but outside the catch
    region raises E0 by ``boost_gain`` times the energy it lacked; each pass over the top (the catch did not take
-   it) lowers E0 by ``overshoot_gain`` times the excess. E0 starts at 0 on every reset.
+   it) or each catch that did not hold a pendulum which came in with excess energy lowers E0 by
+   ``overshoot_gain`` times the excess. E0 starts at 0 on every reset.
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum
@@ -168,6 +169,7 @@ class ResetController:
         self.energy_target = 0.0
         self.failure = ""
         self.catches = 0  # catches started this attempt
+        self._arrival_energy = 0.0  # pendulum energy when the current catch started
         self.max_arm = 0.0  # largest |theta| seen this attempt
         self._alpha_filter: VelocityFilter | None = None
         self._last_alpha: float | None = None
@@ -261,6 +263,7 @@ class ResetController:
         if catchable and not brake:
             if not caught:
                 self.catches += 1
+                self._arrival_energy = self.normalised_energy(alpha, alpha_dot)
             command = self.hold_command(theta, alpha, theta_dot, alpha_dot)
             inside = abs(alpha) <= cfg.balance_band and abs(theta) <= cfg.arm_band
             self.in_band_time = self.in_band_time + dt if inside else 0.0
@@ -269,6 +272,10 @@ class ResetController:
             else:
                 self.phase = "holding" if inside else "catch"
         else:
+            if caught:  # a catch that did not hold: if the pendulum came in too fast, aim lower next time
+                excess = self._arrival_energy - cfg.overshoot_margin
+                if excess > 0:
+                    self.energy_target = max(0.0, self.energy_target - cfg.overshoot_gain * excess)
             self.in_band_time = 0.0
             self.phase = "swing_up"
             self._adapt(alpha, alpha_dot)

@@ -61,7 +61,7 @@ class TrialResult:
     seconds: float  # from the reset request to ready (or to the end of the trial)
     max_arm_deg: float  # largest |theta| of the simulated arm during the reset
     hit_end_stop: bool
-    outcome: str  # "ready", "reset_failed", "fault: <reason>" or "timeout"
+    outcome: str  # "ready", "reset_failed: <detail>", "fault: <reason>" or "timeout"
 
 
 def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = None,
@@ -95,8 +95,9 @@ def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = N
         if sensed.awaits_action:
             outcome = "ready"
             break
-        if any(e[0] == "reset_failed" for e in core.events):
-            outcome = "reset_failed"
+        failed = [e for e in core.events if e[0] == "reset_failed"]
+        if failed:
+            outcome = f"reset_failed: {failed[0][2]}"
             break
         if core.phase == "fault":
             outcome = f"fault: {core.fault_reason}"

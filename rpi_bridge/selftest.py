@@ -51,7 +51,9 @@ def judge(samples: list[tuple[int, int]], config: SelfTestConfig | None = None) 
     if len(samples) < 2:
         raise ValueError("judge needs the baseline and at least one sample after it")
     base0, base1 = samples[0]
-    arm = [s[0] - base0 for s in samples[1:]]
+    # the arm during the positive pulse only (the readings that the negative one cannot have reached yet): a loop
+    # that stalls while the negative pulse is held must not turn a good rig into a reversed one
+    arm = [s[0] - base0 for s in samples[1 : cfg.pulse_ticks + 2]]
     arm_move = max(arm, key=abs)
     pendulum_first = next((s[1] - base1 for s in samples[1:] if abs(s[1] - base1) >= cfg.pendulum_min_counts), 0)
     seen = f"encoder 0 moved {arm_move:+d} counts, encoder 1 first moved {pendulum_first:+d} counts"

@@ -102,6 +102,9 @@ def test_self_test_verdicts() -> None:
     assert "motor leads are reversed" in judge([(0, 0), (-3, -1), (-9, -4)]).detail
     assert "did not move" in judge([(0, 0), (1, 0), (2, 3)]).detail
     assert "encoder 1 cable" in judge([(0, 0), (5, 0), (12, 1)]).detail
+    # a loop that stalled while the negative half was held: the arm went far back, but the positive half decides
+    stalled = [(0, 0), (1, 1), (3, 3), (7, 7), (12, 12), (10, 16), (-20, 19), (-55, 10)]
+    assert judge(stalled).ok
     with pytest.raises(ValueError):
         judge([(0, 0)])
     with pytest.raises(ValueError):

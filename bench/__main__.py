@@ -2,6 +2,9 @@
 
 BENCHES = {
     "bench.policies": "episodes until all workers solve, per federation policy and seed (JSON + PNG)",
+    "bench.latency": "state-to-action and read-to-motor latency through the real-time bridge loop, per broker",
+    "bench.reset": "swing-up reset success over pendulum damping x rig spread x Coulomb friction",
+    "bench.loop_cost": "per-tick cost of the bridge loop (SPI transfer, sense, publish, wait, write)",
 }
 
 if __name__ == "__main__":

@@ -5,8 +5,10 @@ broker and a simulated rig in real time (``python -m services.qube_sim --clock r
 loop, 7 ms period and deadline) as separate processes, and answers the rig's states from this process the way a
 worker does: observation -> PPO actor forward pass -> action. The answers follow a balancing rule so that episodes
 last; the actor's sampled action is computed (and timed) but not sent. After ``--ticks`` answered states it reads
-the rig's own telemetry: p50/p99/max of state-publish -> action-arrival, deadline misses and late actions.
-Writes ``bench/results/latency.json``.
+the rig's own telemetry: p50/p99/max of state-publish -> action-arrival, of state-read -> motor-write (the
+deadline held at the motor: an action whose write would start after the read + 7 ms is not written), deadline
+misses, late actions and actions dropped at the motor. ``--stress N`` runs N busy processes meanwhile (a loaded
+machine). Writes ``bench/results/latency.json``.
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def start_mosquitto(workdir: Path) -> tuple[subprocess.Popen, int]:
     return proc, port
 
 
-def measure(broker_name: str, ticks: int, workdir: Path) -> dict:
+def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0) -> dict:
     if broker_name == "mosquitto":
         broker, port = start_mosquitto(workdir)
     else:
@@ -61,6 +63,7 @@ def measure(broker_name: str, ticks: int, workdir: Path) -> dict:
     rig = subprocess.Popen([sys.executable, "-m", "services.qube_sim", "--broker", url, "--rig-id", rig_id,
                             "--clock", "realtime", "--log-level", "WARNING"])
     conn = MqttConnection(BrokerAddress.parse(url), client_id="bench-worker").start()
+    hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(stress)]
     telemetry: queue.Queue[QubeTelemetry] = queue.Queue()
     conn.subscribe(topics.rig(rig_id, topics.TELEMETRY), lambda t, p: telemetry.put(decode(p, QubeTelemetry)), qos=0)
     try:
@@ -86,6 +89,9 @@ def measure(broker_name: str, ticks: int, workdir: Path) -> dict:
         while not telemetry.empty():
             last = telemetry.get()
     finally:
+        for hog in hogs:
+            hog.kill()
+            hog.wait()
         conn.stop()
         rig.terminate()
         rig.wait(10)
@@ -95,13 +101,17 @@ def measure(broker_name: str, ticks: int, workdir: Path) -> dict:
     answered_ticks = last.latency_ms["n"] + last.deadline_misses
     return {
         "broker": broker_name,
+        "stress_processes": stress,
         "ticks_answered": answered,
         "episodes": episodes,
         "wall_s": round(wall, 1),
         "latency_ms": last.latency_ms,
         "tick_jitter_ms": last.jitter_ms,
+        "read_to_motor_ms": last.motor_ms,
+        "tick_period_ms": last.period_ms,
         "deadline_misses": last.deadline_misses,
         "late_actions": last.late_actions,
+        "late_at_motor": last.late_at_motor,
         "miss_rate": round(last.deadline_misses / answered_ticks, 6) if answered_ticks else None,
         "env_timeouts": env.timeouts,
         "worker_forward_pass_ms": percentiles(compute),
@@ -112,20 +122,26 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.latency", description=__doc__.splitlines()[0])
     parser.add_argument("--ticks", type=int, default=10_000, help="answered states per broker (default 10000)")
     parser.add_argument("--brokers", nargs="+", default=["amqtt", "mosquitto"], choices=("amqtt", "mosquitto"))
+    parser.add_argument("--stress", type=int, nargs="+", default=[0],
+                        help="busy processes running during a measurement; one measurement per value (default 0)")
     parser.add_argument("--out", type=Path, default=RESULTS / "latency.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     results = []
+    if any(n < 0 for n in args.stress):
+        parser.error("--stress values must be >= 0")
     for name in args.brokers:
         if name == "mosquitto" and subprocess.run(["which", "mosquitto"], capture_output=True).returncode != 0:
             print("mosquitto not installed; skipping it", file=sys.stderr)
             continue
-        with tempfile.TemporaryDirectory() as workdir:  # the Mosquitto config lives only as long as the run
-            result = measure(name, args.ticks, Path(workdir))
-        print(json.dumps(result), flush=True)
-        results.append(result)
-    report = {"period_ms": 7.0, "deadline_ms": 7.0, "ticks_per_broker": args.ticks, "machine": platform.platform(),
+        for stress in args.stress:
+            with tempfile.TemporaryDirectory() as workdir:  # the Mosquitto config lives only as long as the run
+                result = measure(name, args.ticks, Path(workdir), stress)
+            print(json.dumps(result), flush=True)
+            results.append(result)
+    report = {"command": " ".join(["python -m bench.latency", *(argv if argv is not None else sys.argv[1:])]),
+              "period_ms": 7.0, "deadline_ms": 7.0, "ticks_per_broker": args.ticks, "machine": platform.platform(),
               "cpus": __import__("os").cpu_count(), "results": results}
     args.out.write_text(json.dumps(report, indent=2) + "\n")
     print(f"wrote {args.out}")

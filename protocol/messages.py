@@ -212,7 +212,7 @@ class QubeState(Message):
     theta_dot: float
     alpha_dot: float
     episode: int = Field(default=0, ge=0)
-    phase: Literal["idle", "resetting", "ready", "running", "fallen", "fault"] = "running"
+    phase: Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault"] = "running"
 
 
 class QubeAction(Message):
@@ -233,11 +233,13 @@ class QubeReset(Message):
 
 
 class QubeStatus(Message):
-    """Rig state changes: ready (after a reset), running, fault (amplifier disabled), reset failed."""
+    """Rig state changes: start-up checks (calibrating, self_test), ready (after a reset), running, fault (amplifier
+    disabled), reset failed."""
 
     kind: Literal["qube_status"] = "qube_status"
     rig_id: Ident
-    state: Literal["idle", "resetting", "ready", "running", "fallen", "fault", "reset_failed", "offline"]
+    state: Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault",
+                   "reset_failed", "offline"]
     request_id: int = Field(default=-1, ge=-1)
     episode: int = Field(default=0, ge=0)
     detail: str = Field(default="", max_length=2000)
@@ -254,6 +256,9 @@ class QubeTelemetry(Message):
     faults: int = Field(ge=0)
     jitter_ms: dict[str, float]
     latency_ms: dict[str, float]
+    late_at_motor: int = Field(default=0, ge=0)  # arrived in time but not written to the motor within the deadline
+    motor_ms: dict[str, float] = Field(default_factory=dict)  # state read -> motor write of applied actions
+    period_ms: dict[str, float] = Field(default_factory=dict)  # measured time between reads
 
 
 # --- transport ------------------------------------------------------------------------------------------------

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from protocol.cli import add_common, broker_from, env, parse_checked, setup_logging
 from rpi_bridge.control import ControlConfig
+from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT
 
 
 def load_env_file(path: Path) -> None:
@@ -34,8 +35,9 @@ def add_loop_options(parser: argparse.ArgumentParser) -> None:
                         help="an action must arrive this long after its state's read, at most the period "
                         "(env FEDRL_DEADLINE_MS, default 7)")
     parser.add_argument("--max-command", type=int, default=int(env("FEDRL_MAX_COMMAND", "400")),
-                        help="actions are clipped to +-this many SPI counts, 999 = full scale "
-                        "(env FEDRL_MAX_COMMAND, default 400)")
+                        help=f"actions are clipped to +-this many SPI counts, at most {MAX_COMMAND} "
+                        f"(= {MAX_COMMAND * VOLTS_PER_COUNT:.2f} V: the manual's +-10 V) (env FEDRL_MAX_COMMAND, "
+                        "default 400)")
     parser.add_argument("--arm-limit-deg", type=float, default=float(env("FEDRL_ARM_LIMIT_DEG", "110")),
                         help="arm angle that disables the amplifier (env FEDRL_ARM_LIMIT_DEG, default 110)")
     parser.add_argument("--action-timeout", type=float, default=float(env("FEDRL_ACTION_TIMEOUT", "0.5")),
@@ -46,8 +48,11 @@ def add_loop_options(parser: argparse.ArgumentParser) -> None:
 def control_config(args: argparse.Namespace) -> ControlConfig:
     if not 0 < args.deadline_ms <= args.period_ms:
         raise ValueError(f"--deadline-ms {args.deadline_ms} must be in (0, --period-ms {args.period_ms}]")
-    if not 0 < args.max_command <= 999:
-        raise ValueError("--max-command must be in 1..999")
+    if not 0 < args.max_command <= MAX_COMMAND:
+        raise ValueError(f"--max-command must be in 1..{MAX_COMMAND} (the QUBE-Servo 2 manual's +-10 V is "
+                         f"{MAX_COMMAND} counts; 999 would be about 24 V), got {args.max_command}")
+    if not 0 < args.period_ms:
+        raise ValueError(f"--period-ms must be positive, got {args.period_ms}")
     return ControlConfig(period_s=args.period_ms / 1e3, max_command=args.max_command,
                          arm_limit=math.radians(args.arm_limit_deg), action_timeout_s=args.action_timeout)
 
@@ -68,6 +73,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     )
     add_common(parser, with_run=False)
     add_loop_options(parser)
+    parser.add_argument("--state-dir", type=Path, default=Path(env("FEDRL_STATE_DIR", "/var/lib/fedrl")),
+                        help="keeps this rig's calibration in <dir>/<rig>-calibration.json across restarts "
+                        "(env FEDRL_STATE_DIR, default /var/lib/fedrl, the systemd unit's StateDirectory)")
+    parser.add_argument("--recalibrate", action="store_true",
+                        default=env("FEDRL_RECALIBRATE", "0").lower() in ("1", "true", "yes"),
+                        help="ignore the stored calibration and calibrate again once the pendulum hangs still "
+                        "(centre the arm first; env FEDRL_RECALIBRATE=1)")
     parser.add_argument("--spi-bus", type=int, default=int(env("FEDRL_SPI_BUS", "0")),
                         help="SPI bus (env FEDRL_SPI_BUS, default 0)")
     parser.add_argument("--spi-device", type=int, default=int(env("FEDRL_SPI_DEVICE", "0")),
@@ -87,6 +99,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"rpi_bridge: {err}", file=sys.stderr)
         return 2
     setup_logging(args.log_level, f"bridge[{args.rig_id}]")
+    from rpi_bridge.calibration import CalibrationStore
     from rpi_bridge.device import SpidevDevice
     from rpi_bridge.service import BridgeService
 
@@ -95,7 +108,9 @@ def main(argv: list[str] | None = None) -> int:
     except (RuntimeError, OSError) as err:
         print(f"rpi_bridge: cannot open SPI {args.spi_bus}.{args.spi_device}: {err}", file=sys.stderr)
         return 1
-    service = BridgeService(device, args.rig_id, broker_from(args), control, deadline_s=args.deadline_ms / 1e3)
+    service = BridgeService(device, args.rig_id, broker_from(args), control, deadline_s=args.deadline_ms / 1e3,
+                            store=CalibrationStore.for_rig(args.state_dir, args.rig_id),
+                            recalibrate=args.recalibrate)
     service.install_signal_handlers()
     try:
         service.run()

@@ -53,6 +53,9 @@ STATUS_STALL_ERROR = 0x04
 
 MOTOR_MAX = 999  # [DS] p.2: -999..999 = 10 x PWM duty %
 MOTOR_ENABLE_BIT = 0x8000
+VOLTS_PER_COUNT = 24.0 / MOTOR_MAX  # [DS] p.2: 500 counts (50 % duty) is "approximately 12 VDC"
+MAX_NORMAL_VOLTS = 10.0  # [UM] Table 2.2 and its caution: recommended (and "max motor input") +-10 V
+MAX_COMMAND = math.floor(MAX_NORMAL_VOLTS / VOLTS_PER_COUNT)  # 416 counts = 9.99 V: the cap of every command sent
 LED_MAX = 999  # [DS]: 0x0000..0x03E7 per colour
 
 TACH_IDLE = 0x7FFFFF  # [DS] p.3: value at zero speed (about 20 counts/s)
@@ -96,6 +99,11 @@ def clamp_command(value: float, limit: int = MOTOR_MAX) -> int:
     if value != value:  # NaN
         return 0
     return round(max(-limit, min(limit, value)))
+
+
+def volts_to_counts(volts: float) -> float:
+    """Amplifier volts to SPI motor counts (not rounded, not clamped)."""
+    return volts / VOLTS_PER_COUNT
 
 
 def _motor_word(motor: int, enable: bool) -> int:

@@ -1,28 +1,37 @@
-"""Episode reset for the QUBE-Servo 2: swing the pendulum up from hanging and hold it upright, as pure code.
+"""Episode reset for the QUBE-Servo 2: swing the pendulum up from wherever it is and hold it upright, inside the
+arm's travel, as pure code.
 
-State convention (rpi_bridge.frame): theta = arm angle (counter-clockwise positive), alpha = pendulum angle
-(0 upright, +-pi hanging), rad and rad/s. Commands are SPI motor counts; a positive command drives theta
-negative.
+State convention (rpi_bridge/frame.py): theta = arm angle (counter-clockwise positive), alpha = pendulum angle
+(0 upright, +-pi hanging), rad and rad/s. Commands are SPI motor counts; a positive command drives theta negative.
+Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manual's limit).
 
-1. **swing_up**: energy pumping (Astrom & Furuta, "Swinging up a pendulum by energy control", Automatica
-   2000). The pendulum energy about its pivot, E = Jp_pivot*alpha_dot^2/2 + mp*g*l*(cos(alpha) - 1) with l =
-   Lp/2, is 0 upright at rest and -2*mp*g*l hanging. From the equations of motion (reference/qube-servo2.md)
-   the pendulum row gives dE/dt = mp*l*Lr*cos(alpha)*alpha_dot*theta_ddot, so the wanted arm acceleration is
-   k*(E0 - E)*alpha_dot*cos(alpha) (saturated), plus a PD term that keeps the arm near 0. That acceleration is
-   turned into a command through the model (computed torque, :class:`PlantModel`), applied to the state
-   predicted over the actuation delay (the command computed from one SPI reply acts from the next transfer
-   on). The energy estimate depends on the pendulum's inertia; where the rig differs from the model the
-   pendulum turns back short of the top, so each turnaround above horizontal raises the target E0 a little
-   ("boost").
-2. **catch** / **holding**: once |alpha| < catch angle, linear state feedback command = -K.x; "holding" while
-   |alpha| is inside the balance band (and |theta| inside the arm band), "catch" while not yet.
-3. **ready** after ``hold_time_s`` continuously inside the band; the hold command keeps going. Leaving the
-   catch region goes back to swing_up. **failed** (command 0, latched until :meth:`ResetController.reset`)
-   when ``timeout_s`` passes without reaching ready.
+1. **swing_up**: energy pumping (Astrom & Furuta, "Swinging up a pendulum by energy control", Automatica 2000).
+   The pendulum energy about its pivot, E = Jp_pivot*alpha_dot^2/2 + mp*g*l*(cos(alpha) - 1), l = Lp/2, is 0
+   upright at rest and -2*mp*g*l hanging; the pendulum row of the equations of motion gives dE/dt =
+   mp*l*Lr*cos(alpha)*alpha_dot*theta_ddot (plus damping), so the wanted arm acceleration is
+   k*(E0 - E)*alpha_dot*cos(alpha), saturated, plus a weak PD that centres the arm. The acceleration becomes a
+   command through the model (computed torque, :class:`PlantModel`), applied to the state predicted over the
+   actuation delay.
+2. **adaptive energy target**: damping (up to 5x the nominal one here) and a rig that differs from the model make
+   the pendulum turn back short of the top at E = E0. Each turnaround above horizontal but outside the catch
+   region raises E0 by ``boost_gain`` times the energy it lacked; each pass over the top (the catch did not take
+   it) or each catch that did not hold a pendulum which came in with excess energy lowers E0 by
+   ``overshoot_gain`` times the excess. E0 starts at 0 on every reset.
+3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
+   the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
+   at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum
+   horizontal), so 100 rad/s^2 leaves a margin for weaker rigs.
+4. **catch** / **holding**: linear state feedback (LQR, below) once |alpha| < ``catch_angle``, but only if the
+   arm is within ``catch_arm_limit`` and not heading for the soft limit; a catch is abandoned (back to swing-up,
+   braking) as soon as the arm could not stop inside the soft limit with ``catch_abandon`` of the braking budget.
+   "holding" while |alpha| is inside the balance band and |theta| inside the arm band, "catch" while not yet.
+5. **ready** after ``hold_time_s`` continuously inside the band; the hold command keeps going. **failed**
+   (command 0, latched until :meth:`ResetController.reset`) when ``timeout_s`` passes without reaching ready.
 
 The controller estimates alpha_dot itself from the angles (a 50s/(s+50)-type filter with a faster 100 rad/s
-cutoff): the 7 ms tick plus a 20 ms filter lag cost too much phase for the catch. Gains and defaults were
-tuned on ``services.qube_sim`` (lockstep SPI peer at 7 ms, 1 ms RK4 sub-steps, +-5 % rig variation).
+cutoff): the 7 ms tick plus a 20 ms filter lag cost too much phase for the catch. The gains were tuned on
+``services.qube_sim`` (1 ms RK4 sub-steps behind the SPI frame, 7 ms ticks) over varied starts on nominal rigs,
+rigs spread +-15 % and 5x pendulum damping; ``python -m bench.reset`` measures them.
 """
 
 from __future__ import annotations
@@ -30,7 +39,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-from rpi_bridge.frame import clamp_command
+from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT, clamp_command
 from rpi_bridge.velocity import VelocityFilter, wrap_angle
 
 # Discrete LQR at T = 7 ms for x = (theta, alpha, theta_dot, alpha_dot), u in SPI counts (1 count = 24/999 V),
@@ -56,7 +65,7 @@ class PlantModel:
     Dr: float = 0.00027
     Dp: float = 0.00005
     g: float = 9.81
-    volts_per_count: float = 24.0 / 999.0
+    volts_per_count: float = VOLTS_PER_COUNT
 
     @property
     def swing_depth(self) -> float:
@@ -100,33 +109,49 @@ class PlantModel:
 
 @dataclass(frozen=True)
 class ResetConfig:
-    """Tunables of :class:`ResetController` (angles in rad, times in s, commands in SPI counts)."""
+    """Tunables of :class:`ResetController` (angles in rad, times in s, accelerations in rad/s^2, commands in SPI
+    counts)."""
 
     balance_band: float = math.radians(5.0)
     hold_time_s: float = 0.5
     timeout_s: float = 15.0
-    max_command_swing: int = 400  # about 9.6 V
-    max_command_hold: int = 500  # about 12 V
-    catch_angle: float = math.radians(20.0)
+    max_command: int = MAX_COMMAND  # every command of the reset (10 V)
+    catch_angle: float = math.radians(21.0)
     arm_band: float = math.radians(45.0)  # |theta| must also be inside it to count as holding
+    catch_arm_limit: float = math.radians(57.0)  # a catch starts only with the arm inside this
     # swing-up
-    swing_accel: float = 100.0  # rad/s^2: largest arm acceleration the energy pump asks for
-    energy_gain: float = 80.0  # rad/s^2 per (rad/s of alpha_dot*cos(alpha)) per unit of (E0 - E)/swing_depth
-    energy_target: float = 0.0  # E0 as a fraction of swing_depth (0: just enough to reach upright)
-    boost_gain: float = 0.3  # E0 += boost_gain * (1 - cos(alpha))/2 at each turnaround above horizontal
-    boost_max: float = 0.3
-    boost_min_angle: float = math.radians(30.0)  # turnarounds closer to the top than this do not boost
+    swing_accel: float = 95.0  # largest arm acceleration the energy pump asks for
+    energy_gain: float = 290.0  # rad/s^2 per (rad/s of alpha_dot*cos(alpha)) per unit of (E0 - E)/swing_depth
     kick_threshold: float = 0.5  # rad/s: |alpha_dot*cos(alpha)| below this while hanging gets a kick
-    arm_wn: float = 6.0  # rad/s: arm centering during swing-up (acceleration PD)
-    arm_zeta: float = 1.0
-    arm_soft_limit: float = 1.2  # rad: past it no pumping outwards, and a spring back
-    arm_barrier: float = 300.0  # rad/s^2 per rad past the soft limit
-    prediction_ticks: float = 2.5  # swing-up acts on the state predicted this many ticks ahead
+    arm_wn: float = 4.0  # rad/s: arm centering during swing-up (critically damped acceleration PD)
+    prediction_ticks: float = 1.75  # swing-up acts on the state predicted this many ticks ahead
+    # adaptive energy target E0 (fractions of swing_depth)
+    boost_gain: float = 0.6  # E0 += boost_gain * (1 - cos(alpha))/2 at a turnaround short of the top
+    boost_min_angle: float = math.radians(22.0)  # turnarounds closer to the top than this do not boost
+    boost_max: float = 0.8
+    overshoot_gain: float = 0.5  # E0 -= overshoot_gain * (excess - overshoot_margin) on a pass over the top
+    overshoot_margin: float = 0.1
+    # the arm's travel
+    arm_soft_limit: float = math.radians(80.0)  # the swing-up keeps the arm inside (the bridge faults at 110)
+    brake_accel: float = 100.0  # braking assumed available at full voltage
+    brake_delay_ticks: float = 1.3  # latency between a reading and the command acting
+    catch_abandon: float = 0.75  # fraction of the braking budget a catch may use before it is abandoned
     # hold
     gains: tuple[float, float, float, float] = LQR_GAINS
     theta_error_limit: float = 0.6  # rad: the hold controller sees at most this arm error
     velocity_cutoff: float | None = 100.0  # own alpha_dot filter (rad/s); None: use the alpha_dot passed in
     model: PlantModel = field(default_factory=PlantModel)
+
+    def __post_init__(self) -> None:
+        if not 0 < self.max_command <= MAX_COMMAND:
+            raise ValueError(f"max_command must be in 1..{MAX_COMMAND} (+-10 V), got {self.max_command}")
+        if not 0 < self.catch_angle < self.boost_min_angle < math.pi / 2:
+            raise ValueError("need 0 < catch_angle < boost_min_angle < pi/2")
+        if not 0 < self.arm_soft_limit < math.pi:
+            raise ValueError(f"arm_soft_limit must be in (0, pi), got {self.arm_soft_limit}")
+        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
 
 
 class ResetController:
@@ -137,32 +162,53 @@ class ResetController:
         self.reset()
 
     def reset(self) -> None:
-        """Start a new reset attempt (clears the timer, the energy boost and a latched failure)."""
+        """Start a new reset attempt (clears the timer, the energy target and a latched failure)."""
         self.elapsed = 0.0
         self.in_band_time = 0.0
         self.phase = "swing_up"
-        self.boost = 0.0
+        self.energy_target = 0.0
+        self.failure = ""
+        self.catches = 0  # catches started this attempt
+        self._arrival_energy = 0.0  # pendulum energy when the current catch started
+        self.max_arm = 0.0  # largest |theta| seen this attempt
         self._alpha_filter: VelocityFilter | None = None
+        self._last_alpha: float | None = None
         self._last_alpha_dot = 0.0
 
+    # -- the pieces ----------------------------------------------------------------------------------------------
+
+    def normalised_energy(self, alpha: float, alpha_dot: float) -> float:
+        """Pendulum energy / swing_depth: -1 hanging at rest, 0 upright at rest."""
+        model = self.config.model
+        return model.pendulum_energy(alpha, alpha_dot) / model.swing_depth
+
+    def must_brake(self, theta: float, theta_dot: float, dt: float, budget: float = 1.0) -> int:
+        """+1 / -1 when the arm moving that way could not stop inside the soft limit with ``budget`` *
+        ``brake_accel`` (after the actuation delay); 0 when it can."""
+        cfg = self.config
+        for direction in (1, -1):
+            outward = direction * theta_dot
+            if outward <= 0:
+                continue
+            room = cfg.arm_soft_limit - direction * theta - outward * cfg.brake_delay_ticks * dt
+            if room <= 0 or outward * outward >= 2.0 * cfg.brake_accel * budget * room:
+                return direction
+        return 0
+
     def swing_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
-        """Energy pump plus arm centering, as an arm acceleration turned into counts through the model."""
+        """Energy pump plus arm centering, as an arm acceleration turned into counts through the model; never
+        outwards past the soft limit."""
         cfg, model = self.config, self.config.model
-        shortfall = (
-            cfg.energy_target + self.boost - model.pendulum_energy(alpha, alpha_dot) / model.swing_depth
-        )
+        shortfall = self.energy_target - self.normalised_energy(alpha, alpha_dot)
         s = alpha_dot * math.cos(alpha)
         if abs(s) < cfg.kick_threshold and shortfall > 0.9:
             pump = cfg.swing_accel  # hanging (almost) at rest: kick it to get a swing going
         else:
             pump = max(-cfg.swing_accel, min(cfg.swing_accel, cfg.energy_gain * shortfall * s))
-        accel = pump - cfg.arm_wn**2 * theta - 2.0 * cfg.arm_zeta * cfg.arm_wn * theta_dot
-        excess = abs(theta) - cfg.arm_soft_limit
-        if excess > 0.0:  # past the soft limit: no pumping outwards, and a stiff spring back
-            if pump * theta > 0.0:
-                accel -= pump
-            accel -= math.copysign(cfg.arm_barrier * excess, theta)
-        return clamp_command(model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command_swing)
+        accel = pump - cfg.arm_wn**2 * theta - 2.0 * cfg.arm_wn * theta_dot
+        if abs(theta) >= cfg.arm_soft_limit and accel * theta > 0:
+            accel = 0.0
+        return clamp_command(model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command)
 
     def hold_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
         """Linear state feedback -K.x around upright (arm error clipped to ``theta_error_limit``)."""
@@ -170,7 +216,21 @@ class ResetController:
         k_theta, k_alpha, k_theta_dot, k_alpha_dot = cfg.gains
         theta_err = max(-cfg.theta_error_limit, min(cfg.theta_error_limit, theta))
         u = -(k_theta * theta_err + k_alpha * alpha + k_theta_dot * theta_dot + k_alpha_dot * alpha_dot)
-        return clamp_command(u, cfg.max_command_hold)
+        return clamp_command(u, cfg.max_command)
+
+    def _adapt(self, alpha: float, alpha_dot: float) -> None:
+        """Raise E0 after a turnaround short of the top, lower it after a pass over the top."""
+        cfg = self.config
+        if alpha_dot * self._last_alpha_dot < 0.0 and cfg.boost_min_angle < abs(alpha) < math.pi / 2:
+            self.energy_target = min(cfg.boost_max,
+                                     self.energy_target + cfg.boost_gain * (1.0 - math.cos(alpha)) / 2.0)
+        last = self._last_alpha
+        if last is not None and abs(alpha) < 0.3 and alpha * last < 0.0:
+            excess = self.normalised_energy(0.0, alpha_dot) - cfg.overshoot_margin
+            if excess > 0:
+                self.energy_target = max(0.0, self.energy_target - cfg.overshoot_gain * excess)
+
+    # -- one tick ------------------------------------------------------------------------------------------------
 
     def step(self, state: tuple[float, float, float, float], dt: float) -> tuple[int, str]:
         """One tick: ``state`` = (theta, alpha, theta_dot, alpha_dot), ``dt`` = time since the last tick (>
@@ -183,8 +243,7 @@ class ResetController:
         if self.phase == "failed":
             return 0, "failed"
         if not all(math.isfinite(v) for v in (theta, alpha, theta_dot, alpha_dot)):
-            self.phase = "failed"
-            return 0, "failed"
+            return self._fail("a non-finite state reached the reset controller")
         alpha = wrap_angle(alpha)
         if cfg.velocity_cutoff is not None:
             if self._alpha_filter is None:
@@ -193,7 +252,18 @@ class ResetController:
             else:
                 alpha_dot = self._alpha_filter.update(alpha, dt)
 
-        if abs(alpha) < cfg.catch_angle:
+        brake = self.must_brake(theta, theta_dot, dt)
+        self.max_arm = max(self.max_arm, abs(theta))
+        caught = self.phase in ("catch", "holding", "ready")
+        catchable = (
+            abs(alpha) < cfg.catch_angle
+            and (caught or abs(theta) < cfg.catch_arm_limit)
+            and not self.must_brake(theta, theta_dot, dt, cfg.catch_abandon)
+        )
+        if catchable and not brake:
+            if not caught:
+                self.catches += 1
+                self._arrival_energy = self.normalised_energy(alpha, alpha_dot)
             command = self.hold_command(theta, alpha, theta_dot, alpha_dot)
             inside = abs(alpha) <= cfg.balance_band and abs(theta) <= cfg.arm_band
             self.in_band_time = self.in_band_time + dt if inside else 0.0
@@ -202,18 +272,27 @@ class ResetController:
             else:
                 self.phase = "holding" if inside else "catch"
         else:
+            if caught:  # a catch that did not hold: if the pendulum came in too fast, aim lower next time
+                excess = self._arrival_energy - cfg.overshoot_margin
+                if excess > 0:
+                    self.energy_target = max(0.0, self.energy_target - cfg.overshoot_gain * excess)
             self.in_band_time = 0.0
             self.phase = "swing_up"
-            turned = alpha_dot * self._last_alpha_dot < 0.0
-            if (
-                turned and cfg.boost_min_angle < abs(alpha) < math.pi / 2
-            ):  # turned back clearly short of the top
-                self.boost = min(cfg.boost_max, self.boost + cfg.boost_gain * (1.0 - math.cos(alpha)) / 2.0)
-            h = cfg.prediction_ticks * dt
-            command = self.swing_command(theta + theta_dot * h, alpha + alpha_dot * h, theta_dot, alpha_dot)
-        self._last_alpha_dot = alpha_dot
+            self._adapt(alpha, alpha_dot)
+            if brake:  # full voltage against the outward motion (+command drives theta negative)
+                command = brake * cfg.max_command
+            else:
+                h = cfg.prediction_ticks * dt
+                command = self.swing_command(theta + theta_dot * h, alpha + alpha_dot * h, theta_dot, alpha_dot)
+        self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 
         if self.phase != "ready" and self.elapsed >= cfg.timeout_s:
-            self.phase = "failed"
-            return 0, "failed"
+            return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s ({self.catches} catches "
+                              f"started, arm up to {math.degrees(self.max_arm):.0f} deg, energy target "
+                              f"{self.energy_target:+.2f})")
         return command, self.phase
+
+    def _fail(self, reason: str) -> tuple[int, str]:
+        self.phase = "failed"
+        self.failure = reason
+        return 0, "failed"

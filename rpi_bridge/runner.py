@@ -1,16 +1,20 @@
-"""The bridge's clock: runs the ControlCore tick by tick, publishes each state, waits for the worker's action
+"""The bridge's loop: runs the ControlCore tick by tick, publishes each state, waits for the worker's action
 until the deadline, and reports loop timing.
 
 - Real time (the rig, or the simulator with ``lockstep=False``): ticks every ``period_s``; the action for state
-  ``seq`` is applied only if it arrives within ``deadline_s`` of that state's read. A late action is counted and
-  dropped, never applied to a later state; a miss applies the safe action.
+  ``seq`` is applied only if it arrives within ``deadline_s`` of that state's read and its write to the motor
+  starts within that deadline too (the core checks the clock right before the SPI transfer). A late action is
+  counted and dropped, never applied to a later state; a miss applies the safe action.
 - Lockstep (simulator only): simulated time advances one period per tick and the next state waits for the
-  action (up to ``lockstep_stall_s`` of wall time), so training runs as fast as the worker answers.
+  action (up to ``lockstep_stall_s`` of wall time), so training runs as fast as the worker answers. With an
+  :class:`InjectedTiming`, each action reaches the motor a random delay after its state's read (simulated time)
+  and a fraction of them is lost, as on a real loop.
 """
 
 from __future__ import annotations
 
 import logging
+import random
 import threading
 import time
 from collections import deque
@@ -24,6 +28,43 @@ from rpi_bridge.control import ControlCore
 log = logging.getLogger("rpi_bridge")
 
 Publish = Callable[[str, bytes, int], object]
+
+
+class InjectedTiming:
+    """The real loop's timing for a lockstep rig: each action reaches the motor ``delay_s`` (uniform in [lo, hi]
+    seconds) after its state's read, and with probability ``miss_rate`` not at all (the safe action instead).
+    Deterministic in ``seed``."""
+
+    def __init__(self, delay_s: tuple[float, float] = (0.0, 0.007), miss_rate: float = 0.003, seed: int = 0) -> None:
+        lo, hi = delay_s
+        if not 0 <= lo <= hi:
+            raise ValueError(f"delays must satisfy 0 <= lo <= hi, got {delay_s}")
+        if not 0 <= miss_rate < 1:
+            raise ValueError(f"miss_rate must be in [0, 1), got {miss_rate}")
+        self.delay_s = (lo, hi)
+        self.miss_rate = miss_rate
+        self._rng = random.Random(seed)
+        self.injected_misses = 0
+
+    def draw(self) -> float | None:
+        """The delay of the next action (s), or None when it is lost."""
+        if self.miss_rate and self._rng.random() < self.miss_rate:
+            self.injected_misses += 1
+            return None
+        return self._rng.uniform(*self.delay_s)
+
+    @classmethod
+    def parse(cls, delay_ms: str, miss_rate: float, seed: int = 0) -> InjectedTiming:
+        """From ``"LO:HI"`` milliseconds (or a single number) and a miss rate; ValueError on bad input."""
+        parts = delay_ms.split(":")
+        if len(parts) not in (1, 2):
+            raise ValueError(f"delay must be LO:HI in ms (e.g. 0:7), got {delay_ms!r}")
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            raise ValueError(f"delay must be LO:HI in ms (e.g. 0:7), got {delay_ms!r}") from None
+        lo, hi = values[0], values[-1]
+        return cls((lo / 1e3, hi / 1e3), miss_rate, seed)
 
 
 class ActionSlot:
@@ -99,9 +140,16 @@ class BridgeRunner:
         telemetry_interval_s: float = 1.0,
         clock: Callable[[], float] = time.perf_counter,
         window: int = 20_000,
+        timing: InjectedTiming | None = None,
     ) -> None:
+        """``clock`` measures wall time (latency, jitter); deadlines use the core's clock, which in real time must
+        be the same clock. ``timing`` (lockstep only) injects the real loop's delays and misses."""
         if deadline_s <= 0 or deadline_s > core.cfg.period_s:
             raise ValueError(f"deadline {deadline_s * 1e3:.2f} ms must be in (0, period {core.cfg.period_s * 1e3} ms]")
+        if timing is not None and not lockstep:
+            raise ValueError("injected timing is for a lockstep rig (a real-time loop has its own)")
+        if timing is not None and timing.delay_s[1] > core.cfg.period_s:
+            raise ValueError(f"injected delays must not exceed the period ({core.cfg.period_s * 1e3:.1f} ms)")
         topics.check_id(rig_id, "rig id")
         self.core = core
         self.rig_id = rig_id
@@ -112,7 +160,9 @@ class BridgeRunner:
         self.lockstep_stall_s = lockstep_stall_s
         self.telemetry_interval_s = telemetry_interval_s
         self.clock = clock
-        self.slot = ActionSlot(clock)
+        self.timing = timing
+        self.slot = ActionSlot(core.clock)
+        self._advanced = 0.0
         self.latencies: deque[float] = deque(maxlen=window)
         self.jitters: deque[float] = deque(maxlen=window)
         self.overruns = 0
@@ -148,7 +198,8 @@ class BridgeRunner:
                 ticks += 1
                 if self.lockstep:
                     if self.advance is not None:
-                        self.advance(period)
+                        self.advance(period - self._advanced)
+                    self._advanced = 0.0
                     if phase in ("idle", "fallen", "fault"):
                         time.sleep(period)  # nobody is waiting: do not spin
                     continue
@@ -172,8 +223,9 @@ class BridgeRunner:
         sensed = core.sense()
         self._drain_events()
         publish_state = sensed.awaits_action or not self.lockstep or sensed.phase != before
+        deadline = sensed.t + self.deadline_s  # core clock: the state's read + the deadline
         if sensed.awaits_action:
-            self.slot.open(sensed.seq, None if self.lockstep else start + self.deadline_s)
+            self.slot.open(sensed.seq, None if self.lockstep else deadline)
         if publish_state:
             state = QubeState(rig_id=self.rig_id, seq=sensed.seq, t=start, theta=sensed.theta, alpha=sensed.alpha,
                               theta_dot=sensed.theta_dot, alpha_dot=sensed.alpha_dot, episode=sensed.episode,
@@ -184,8 +236,17 @@ class BridgeRunner:
             timeout = self.lockstep_stall_s if self.lockstep else start + self.deadline_s - self.clock()
             command, arrived = self.slot.wait(timeout)
             if command is not None:
-                self.latencies.append(arrived - published_at)
-            core.act(command)
+                self.latencies.append(arrived - published_at if not self.lockstep else self.clock() - published_at)
+            if self.lockstep and self.timing is None:
+                core.act(command)  # simulated time stands still: written at the instant of the read
+            elif self.lockstep:
+                delay = self.timing.draw() if command is not None else None  # type: ignore[union-attr]
+                if delay is not None and self.advance is not None:
+                    self.advance(delay)
+                    self._advanced = delay
+                core.act(command if delay is not None else None, deadline)
+            else:
+                core.act(command, deadline)
         return core.phase
 
     # -- reporting -------------------------------------------------------------------------------------------
@@ -195,6 +256,8 @@ class BridgeRunner:
             state, request_id, detail = self.core.events.pop(0)
             if state == "fault":
                 log.error("rig %s fault: %s (amplifier disabled)", self.rig_id, detail)
+            elif state in ("calibrating", "self_test", "idle") and detail:
+                log.info("rig %s %s: %s", self.rig_id, state, detail)
             elif state == "reset_failed":
                 log.warning("rig %s reset %d failed: %s", self.rig_id, request_id, detail)
             self._publish_status(state, detail, request_id)
@@ -208,7 +271,9 @@ class BridgeRunner:
         c = self.core.counters
         return QubeTelemetry(rig_id=self.rig_id, ticks=c.ticks, deadline_misses=c.misses, late_actions=self.slot.late,
                              faults=c.faults, jitter_ms=percentiles(self.jitters),
-                             latency_ms=percentiles(self.latencies))
+                             latency_ms=percentiles(self.latencies), late_at_motor=c.late_at_motor,
+                             motor_ms=percentiles(self.core.write_latencies),
+                             period_ms=percentiles(self.core.periods))
 
     def _maybe_telemetry(self) -> None:
         now = self.clock()

@@ -10,15 +10,17 @@ from __future__ import annotations
 import logging
 import signal
 import threading
+import time
 from collections.abc import Callable
 
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import QubeAction, QubeReset, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
+from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.device import QubeDevice
-from rpi_bridge.runner import BridgeRunner
+from rpi_bridge.runner import BridgeRunner, InjectedTiming
 
 log = logging.getLogger("rpi_bridge")
 
@@ -36,15 +38,21 @@ class BridgeService:
         lockstep: bool = False,
         advance: Callable[[float], None] | None = None,
         client_prefix: str = "bridge",
+        clock: Callable[[], float] = time.perf_counter,
+        store: CalibrationStore | None = None,
+        recalibrate: bool = False,
+        timing: InjectedTiming | None = None,
     ) -> None:
+        """``clock`` is the core's clock (the device's time base: perf_counter on a rig, a virtual clock for a
+        lockstep simulator); ``store`` keeps the calibration across restarts."""
         self.rig_id = topics.check_id(rig_id, "rig id")
         self.rejects = RejectCounter(log)
         will = encode(QubeStatus(rig_id=rig_id, state="offline", detail="connection lost"))
         self.conn = MqttConnection(broker, client_id=f"{client_prefix}-{rig_id}",
                                    will=(topics.rig(rig_id, topics.STATUS), will))
-        self.core = ControlCore(device, control)
+        self.core = ControlCore(device, control, clock=clock, store=store, recalibrate=recalibrate)
         self.runner = BridgeRunner(self.core, rig_id, self._publish, deadline_s=deadline_s, lockstep=lockstep,
-                                   advance=advance)
+                                   advance=advance, timing=timing)
         self.stop_event = threading.Event()
 
     def _publish(self, topic: str, payload: bytes, qos: int) -> object:
@@ -72,15 +80,20 @@ class BridgeService:
         self.conn.subscribe(topics.rig(self.rig_id, topics.RESET), self._on_reset, qos=1)
         self.conn.publish(topics.rig(self.rig_id, topics.STATUS),
                           encode(QubeStatus(rig_id=self.rig_id, state="idle", detail="bridge up")), qos=1)
-        log.info("rig %s: control loop at %.1f ms, deadline %.1f ms, %s clock", self.rig_id,
-                 self.core.cfg.period_s * 1e3, self.runner.deadline_s * 1e3,
-                 "lockstep" if self.runner.lockstep else "real-time")
+        timing = self.runner.timing
+        mode = "real-time" if not self.runner.lockstep else (
+            "lockstep" if timing is None else f"lockstep with delays of {timing.delay_s[0] * 1e3:g}-"
+            f"{timing.delay_s[1] * 1e3:g} ms and {timing.miss_rate:.2%} misses")
+        log.info("rig %s: control loop at %.1f ms, deadline %.1f ms, %s clock; calibration %s", self.rig_id,
+                 self.core.cfg.period_s * 1e3, self.runner.deadline_s * 1e3, mode,
+                 self.core.store.path if self.core.store is not None else "not stored")
         try:
             self.runner.run(self.stop_event, max_ticks=max_ticks)
         finally:
             t = self.runner.telemetry()
-            log.info("rig %s stopped: %d ticks, %d deadline misses, %d late actions, %d faults, latency %s ms",
-                     self.rig_id, t.ticks, t.deadline_misses, t.late_actions, t.faults, t.latency_ms)
+            log.info("rig %s stopped: %d ticks, %d deadline misses, %d late actions, %d late at the motor, %d faults, "
+                     "latency %s ms, read to motor write %s ms", self.rig_id, t.ticks, t.deadline_misses,
+                     t.late_actions, t.late_at_motor, t.faults, t.latency_ms, t.motor_ms)
             self.conn.stop()
 
     def install_signal_handlers(self) -> None:

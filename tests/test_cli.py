@@ -9,7 +9,7 @@ import sys
 import pytest
 
 MODULES = ["services.broker", "chief", "worker", "rpi_bridge", "services.qube_sim", "deploy.run_local",
-           "deploy.docker", "bench.policies", "bench.latency"]
+           "deploy.docker", "bench.policies", "bench.latency", "bench.reset", "bench.loop_cost"]
 
 
 @pytest.mark.parametrize("module", MODULES)
@@ -28,6 +28,8 @@ def test_help(module: str) -> None:
         ("services.qube_sim", "FEDRL_QUBE_CLOCK", "sundial", "invalid choice 'sundial'"),
         ("chief", "FEDRL_WORKERS", "0", "--workers must be at least 1"),
         ("rpi_bridge", "FEDRL_DEADLINE_MS", "9", "must be in (0, --period-ms"),
+        ("rpi_bridge", "FEDRL_MAX_COMMAND", "999", "--max-command must be in 1..416"),
+        ("services.qube_sim", "FEDRL_QUBE_MISS_RATE", "1.5", "miss_rate must be in [0, 1)"),
     ],
 )
 def test_bad_settings_are_clear_errors(module: str, var: str, value: str, message: str) -> None:

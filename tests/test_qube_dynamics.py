@@ -223,3 +223,64 @@ def test_sim_stall_at_the_end_stop() -> None:
     assert not r.stall_error and not r.stall_detected
     sim.forced_status = 0x01
     assert parse_reply(sim.transfer(build_command(0))).amplifier_fault
+
+
+# --- options for realism: Coulomb friction, rig spread, wiring faults ---------------------------------------
+
+
+def test_coulomb_friction_only_removes_energy_and_stops_a_swing() -> None:
+    frictionless = replace(QubeParams(), Dr=0.0, Dp=0.0)
+    d = QubeDynamics(replace(frictionless, Cr=1.5e-3, Cp=1e-4))
+    d.set_state(0.3, math.pi - 0.5, 2.0, 0.0)
+    last = d.energy()
+    for _ in range(round(8.0 / 0.007)):
+        d.step(0.0, 0.007, amplifier_on=False)
+        assert d.energy() <= last + 1e-12
+        last = d.energy()
+    assert abs(d.state[3]) < 0.05 and abs(d.state[2]) < 0.05  # at rest after 8 s
+    free = QubeDynamics(frictionless)
+    free.set_state(0.3, math.pi - 0.5, 2.0, 0.0)
+    run(free, 8.0, amplifier_on=False)
+    assert abs(wrap_angle(free.state[1] - math.pi)) + abs(free.state[3]) > 0.3  # without friction: still swinging
+
+
+def test_coulomb_friction_holds_the_arm_against_a_small_voltage() -> None:
+    stiff = QubeDynamics(replace(QubeParams(), Cr=1.5e-3))  # 1.5 mN m is 0.3 V at stall (kt/Rm = 5 mN m/V)
+    loose = QubeDynamics()
+    for d in (stiff, loose):
+        d.set_state(0.0, math.pi)
+        run(d, 1.0, voltage=0.2)
+    assert abs(stiff.theta) < 0.5 * abs(loose.theta)
+
+
+def test_spread_params_are_deterministic_and_bounded() -> None:
+    base = QubeParams()
+    assert QubeParams.spread(4, 0.15) == QubeParams.spread(4, 0.15) != QubeParams.spread(5, 0.15)
+    ratios = [getattr(QubeParams.spread(i, 0.15), n) / getattr(base, n) for i in range(50)
+              for n in ("mr", "Lr", "mp", "Lp", "Dr", "Dp", "km")]
+    assert min(ratios) >= 0.85 and max(ratios) <= 1.15 and max(ratios) - min(ratios) > 0.25
+    with pytest.raises(ValueError):
+        QubeParams.spread(1, 1.5)
+
+
+@pytest.mark.parametrize(("fault", "arm_sign", "pendulum_sign"), [
+    ({}, 1, 1),
+    ({"reverse_motor": True}, -1, -1),
+    ({"reverse_encoder0": True}, -1, 1),
+    ({"reverse_encoder1": True}, 1, -1),
+    ({"dead_encoder1": True}, 1, 0),
+])
+def test_wiring_faults(fault: dict, arm_sign: int, pendulum_sign: int) -> None:
+    """A positive command counts encoder 0 up and first swings the pendulum's count up; each fault flips what it
+    should (the tachometer follows encoder 0)."""
+    sim = SimulatedQube(period_s=0.007, **fault)
+    r0 = parse_reply(sim.transfer(build_command(0)))
+    assert (r0.encoder0, r0.encoder1) == (0, 0)
+    first_pendulum = 0
+    for _ in range(6):
+        r = parse_reply(sim.transfer(build_command(100)))
+        if not first_pendulum and abs(r.encoder1) >= 2:
+            first_pendulum = r.encoder1
+    assert math.copysign(1, r.encoder0) == arm_sign and abs(r.encoder0) > 5
+    assert (first_pendulum > 0) - (first_pendulum < 0) == pendulum_sign
+    assert math.copysign(1, r.tach_counts_per_s) == arm_sign

@@ -105,7 +105,66 @@ def test_local_env_retries_a_failed_swing_up_then_gives_up() -> None:
     from rpi_bridge.reset import ResetConfig
 
     env = QubeLocalEnv(seed=4)
-    env.core = ControlCore(env.device, ControlConfig(reset=ResetConfig(timeout_s=0.05)))  # no swing-up can succeed
+    env.core = ControlCore(env.device, ControlConfig(reset=ResetConfig(timeout_s=0.05)),  # no swing-up can succeed
+                           clock=env.clock)
     with pytest.raises(RuntimeError, match="could not reset"):
         env.reset()
-    assert sum(1 for e in env.core.events if e[0] == "reset_failed") == 5
+    assert env.failed_resets == 5
+
+
+def test_the_first_action_of_every_episode_over_mqtt_is_applied(amqtt_broker: str) -> None:
+    """The rig's first ``ready`` state opens an action slot, so the env's first answer of an episode is applied as
+    in process (it used to be dropped as late, every episode)."""
+    import threading
+
+    from rpi_bridge.service import BridgeService
+    from services.qube_sim.clock import VirtualClock
+    from services.qube_sim.spi_peer import SimulatedQube
+
+    clock = VirtualClock()
+    device = SimulatedQube(seed=4, period_s=0, clock=clock)
+    service = BridgeService(device, "rigF", BrokerAddress.parse(amqtt_broker), lockstep=True, advance=clock.advance,
+                            clock=clock, client_prefix="qube-first")
+    loop = threading.Thread(target=service.run, daemon=True)
+    loop.start()
+    conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="qube-first-env").start()
+    try:
+        env = QubeMqttEnv(conn, "rigF", reset_timeout_s=30)
+        for _ in range(3):
+            ret, *_ = play(env, steps=20)
+            assert ret == 20.0
+        counters = service.core.counters  # (the lockstep rig now waits for the next answer)
+        assert service.runner.slot.late == 0 and counters.misses == 0
+        assert counters.applied == 60  # every answer of every episode, the first ones included
+    finally:
+        conn.stop()
+        service.stop_event.set()
+        loop.join(10)
+
+
+def test_the_env_retries_a_reset_that_ends_in_a_fault() -> None:
+    """A rig that faults during the reset (e.g. its arm limit) answers with a ``fault`` status for that request:
+    the env treats it as a failed swing-up and retries, instead of waiting for the reset timeout."""
+    from protocol.codec import decode, encode
+    from protocol.messages import QubeReset, QubeStatus
+
+    class FaultingRig:
+        def __init__(self) -> None:
+            self.callbacks: dict[str, object] = {}
+            self.resets = 0
+
+        def subscribe(self, topic: str, callback, qos: int = 0) -> None:
+            self.callbacks[topic] = callback
+
+        def publish(self, topic: str, payload: bytes, qos: int = 0) -> None:
+            request = decode(payload, QubeReset)
+            self.resets += 1
+            status = QubeStatus(rig_id="rigX", state="fault", request_id=request.request_id,
+                                detail="arm at 114 deg, past the 110 deg limit")
+            self.callbacks["qube/rigX/status"]("qube/rigX/status", encode(status))
+
+    rig = FaultingRig()
+    env = QubeMqttEnv(rig, "rigX", reset_timeout_s=1.0, reset_attempts=3, settle_s=0.0)
+    with pytest.raises(RuntimeError, match="reset fault: arm at 114 deg"):
+        env.reset()
+    assert rig.resets == 3 and env.failed_resets == 3

@@ -133,8 +133,8 @@ class QubeMqttEnv(_QubeTask):
                 continue
             if isinstance(msg, QubeStatus) and msg.request_id == self._request:
                 acknowledged = True
-                if msg.state == "reset_failed":
-                    raise ResetFailed(f"rig {self.rig_id}: reset failed: {msg.detail}")
+                if msg.state in ("reset_failed", "fault"):  # a fault during the reset (e.g. the arm limit)
+                    raise ResetFailed(f"rig {self.rig_id}: reset {msg.state.replace('_', ' ')}: {msg.detail}")
             if isinstance(msg, QubeState) and msg.episode == self._request and msg.phase == "ready":
                 self._last = msg
                 return observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot), {"seq": msg.seq}
@@ -179,8 +179,9 @@ class QubeLocalEnv(_QubeTask):
         params = QubeParams.varied(seed, scale=variation) if variation > 0 else QubeParams()
         self.clock = VirtualClock()
         self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock)
-        self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S))
+        self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S), clock=self.clock)
         self.reset_ticks = reset_ticks
+        self.failed_resets = 0
         self._requests = itertools.count(1)
 
     def _sense(self) -> Sensed:
@@ -193,6 +194,7 @@ class QubeLocalEnv(_QubeTask):
             try:
                 return self._reset_once()
             except ResetFailed:
+                self.failed_resets += 1
                 if attempt == 5:
                     raise
                 for _ in range(round(3.0 / PERIOD_S)):
@@ -201,17 +203,21 @@ class QubeLocalEnv(_QubeTask):
         raise AssertionError("unreachable")
 
     def _reset_once(self) -> tuple[np.ndarray, dict]:
+        """As over MQTT: the episode starts with the first state of the rig's ``ready`` phase (actionable)."""
         self.episode_return = 0.0
-        self.core.request_reset(next(self._requests))
+        request = next(self._requests)
+        self.core.events.clear()
+        self.core.request_reset(request)
         for _ in range(self.reset_ticks):
             s = self.core.sense()
             if s.awaits_action:
                 self.core.events.clear()
                 return observation(s.alpha, s.alpha_dot, s.theta, s.theta_dot), {"seq": s.seq}
+            failed = [e for e in self.core.events if (e[0] == "reset_failed" and e[1] == request) or e[0] == "fault"]
+            if failed:
+                raise ResetFailed(f"simulated rig could not reset: {failed[-1][0]}: {failed[-1][2]}")
             self.core.act(None)
             self.clock.advance(PERIOD_S)
-            if self.core.phase in ("idle", "fault"):
-                raise ResetFailed(f"simulated rig could not reset: {self.core.events[-1:]}")
         raise ResetFailed("simulated rig did not reset in time")
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:

@@ -37,6 +37,9 @@ class QubeParams:
     Dr: float = 0.00027  # arm viscous damping, N m s/rad
     Dp: float = 0.00005  # pendulum viscous damping, N m s/rad
     g: float = 9.81
+    Cr: float = 0.0  # arm Coulomb friction torque, N m (0: none; real rigs have some, the manual gives no value)
+    Cp: float = 0.0  # pendulum Coulomb friction torque, N m
+    coulomb_speed: float = 0.02  # rad/s: friction = -C*tanh(speed/coulomb_speed), a smooth sign for the integrator
     full_scale_voltage: float = 24.0  # 999 SPI counts = 100 % duty, about 24 V ([DS] p.2)
     max_voltage: float = 15.0  # amplifier maximum, +-15 V ([UM] Table 2.2)
 
@@ -66,6 +69,21 @@ class QubeParams:
         changes.update(km=base.km * motor, kt=base.kt * motor)
         return replace(base, **changes)
 
+    @classmethod
+    def spread(cls, seed: int, fraction: float = 0.15, base: QubeParams | None = None) -> QubeParams:
+        """A rig at the edge of a +-``fraction`` spread: masses, lengths, damping and the motor constant (km and kt
+        together) each scaled by a factor drawn uniformly from [1 - fraction, 1 + fraction]. Deterministic in
+        ``seed``; friction and voltages are kept."""
+        if not 0 <= fraction < 1:
+            raise ValueError(f"fraction must be in [0, 1), got {fraction}")
+        base = base or cls()
+        rng = random.Random(seed)
+        changes = {name: getattr(base, name) * rng.uniform(1 - fraction, 1 + fraction)
+                   for name in ("mr", "Lr", "mp", "Lp", "Dr", "Dp")}
+        motor = rng.uniform(1 - fraction, 1 + fraction)
+        changes.update(km=base.km * motor, kt=base.kt * motor)
+        return replace(base, **changes)
+
     def as_dict(self) -> dict[str, float]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
@@ -85,14 +103,19 @@ def motor_torque(p: QubeParams, voltage: float, theta_dot: float) -> float:
 def derivatives(
     p: QubeParams, theta_dot: float, alpha: float, alpha_dot: float, tau: float
 ) -> tuple[float, float]:
-    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2)."""
+    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2), plus Coulomb
+    friction (``Cr``, ``Cp``) next to the viscous terms: the arm's generalised force is tau - Dr*theta_dot -
+    Cr*sgn(theta_dot), the pendulum's -Dp*alpha_dot - Cp*sgn(alpha_dot), with sgn smoothed by tanh."""
     mp, Lp, Lr = p.mp, p.Lp, p.Lr
+    if p.Cr:
+        tau -= p.Cr * math.tanh(theta_dot / p.coulomb_speed)
+    friction_p = p.Cp * math.tanh(alpha_dot / p.coulomb_speed) if p.Cp else 0.0
     s, c = math.sin(alpha), math.cos(alpha)
     s2 = 2.0 * s * c  # sin(2 alpha)
     P = 4.0 * p.Jp + Lp * Lp * mp
     Q = 4.0 * p.Jr + Lp * Lp * mp * s * s + 4.0 * Lr * Lr * mp
     D = 4.0 * Lp * Lp * Lr * Lr * mp * mp * c * c - P * Q
-    A = -8.0 * p.Dp * alpha_dot + Lp * Lp * mp * theta_dot * theta_dot * s2 + 4.0 * Lp * p.g * mp * s
+    A = -8.0 * (p.Dp * alpha_dot + friction_p) + Lp * Lp * mp * theta_dot * theta_dot * s2 + 4.0 * Lp * p.g * mp * s
     B = (
         4.0 * p.Dr * theta_dot
         + Lp * Lp * mp * alpha_dot * theta_dot * s2

@@ -15,7 +15,10 @@ So, as on the rig, a command computed from one reply acts from the next transfer
 Faults: the arm stops dead at +-``arm_limit`` (the physical end stops); a command of at least
 ``stall_voltage`` pushing the arm into a stop sets "stall detected", and after ``stall_error_after_s`` "stall
 error", which disables the amplifier until a frame writes the enable bit off (Quanser's reset sequence).
-``device_id`` and ``forced_status`` can be changed to inject communication faults or an amplifier fault.
+``device_id`` and ``forced_status`` can be changed to inject communication faults or an amplifier fault; wiring
+faults: ``reverse_motor`` (motor leads swapped: the arm turns the other way), ``reverse_encoder0`` /
+``reverse_encoder1`` (an encoder counting backwards; the tachometer follows encoder 0) and ``dead_encoder1`` (the
+pendulum encoder unplugged: its count never changes).
 """
 
 from __future__ import annotations
@@ -65,6 +68,10 @@ class SimulatedQube:
         stall_error_after_s: float = 5.0,
         max_elapsed_s: float = 1.0,
         initial_noise: float = 0.0,
+        reverse_motor: bool = False,
+        reverse_encoder0: bool = False,
+        reverse_encoder1: bool = False,
+        dead_encoder1: bool = False,
     ) -> None:
         self.params = params or QubeParams()
         self.dynamics = QubeDynamics(self.params, arm_limit=arm_limit)
@@ -76,6 +83,10 @@ class SimulatedQube:
         self.max_elapsed_s = max_elapsed_s
         self.device_id = DEVICE_ID
         self.forced_status = 0
+        self.reverse_motor = reverse_motor
+        self.reverse_encoder0 = reverse_encoder0
+        self.reverse_encoder1 = reverse_encoder1
+        self.dead_encoder1 = dead_encoder1
         self.command = 0
         self.enabled = False
         self.leds = (0, 0, 0)
@@ -106,7 +117,7 @@ class SimulatedQube:
         self.dynamics.set_state(
             theta + jitter(), alpha + jitter(), theta_dot + jitter(), alpha_dot + jitter()
         )
-        self._offsets = [0, pendulum_rad_to_counts(math.pi)]
+        self._offsets = list(self._raw_counts(0.0, math.pi))
         self.stall_time, self.stall_detected, self.stall_error = 0.0, False, False
 
     @property
@@ -126,11 +137,17 @@ class SimulatedQube:
     def voltage(self) -> float:
         return command_to_voltage(self.command, self.params) if self.amplifier_active else 0.0
 
+    def _raw_counts(self, theta: float | None = None, alpha: float | None = None) -> tuple[int, int]:
+        """The counters before any set (zeroing), with the wiring faults applied (at the current state, or at
+        ``theta``/``alpha``)."""
+        raw0 = arm_rad_to_counts(self.dynamics.theta if theta is None else theta)
+        raw1 = 0 if self.dead_encoder1 else pendulum_rad_to_counts(self.dynamics.alpha if alpha is None else alpha)
+        return (-raw0 if self.reverse_encoder0 else raw0), (-raw1 if self.reverse_encoder1 else raw1)
+
     def encoder_counts(self) -> tuple[int, int]:
         """(encoder0, encoder1) as the rig would count them now."""
-        enc0 = arm_rad_to_counts(self.dynamics.theta) - self._offsets[0]
-        enc1 = pendulum_rad_to_counts(self.dynamics.alpha) - self._offsets[1]
-        return enc0, enc1
+        raw0, raw1 = self._raw_counts()
+        return raw0 - self._offsets[0], raw1 - self._offsets[1]
 
     # -- time ------------------------------------------------------------------------------------------
     def advance(self, dt: float) -> None:
@@ -141,6 +158,8 @@ class SimulatedQube:
         h = dt / n
         for _ in range(n):
             voltage, active = self.voltage, self.amplifier_active
+            if self.reverse_motor:
+                voltage = -voltage
             self.dynamics.step(voltage, h, substeps=1, amplifier_on=active)
             self._update_stall(voltage if active else 0.0, h)
 
@@ -182,14 +201,17 @@ class SimulatedQube:
         status |= STATUS_STALL_DETECTED if self.stall_detected else 0
         status |= STATUS_STALL_ERROR if self.stall_error else 0
         amps = (
-            (self.voltage + self.params.km * d.theta_dot) / self.params.Rm if self.amplifier_active else 0.0
+            (self.voltage + self.params.km * d.theta_dot * (-1 if self.reverse_motor else 1)) / self.params.Rm
+            if self.amplifier_active
+            else 0.0
         )
         current = max(0, min(0xFFFF, CURRENT_ZERO + round(amps * CURRENT_SCALE)))
         return build_reply(
             device_id=self.device_id,
             encoder0=enc0,
             encoder1=enc1,
-            tach=encode_tach(-d.theta_dot / RAD_PER_COUNT),  # encoder0 counts/s (theta = -counts)
+            # encoder0 counts/s (theta = -counts); the tachometer times encoder 0's edges, so it follows its wiring
+            tach=encode_tach((1 if self.reverse_encoder0 else -1) * d.theta_dot / RAD_PER_COUNT),
             status=status,
             current=current,
         )

@@ -1,0 +1,128 @@
+"""Reset trials: the bridge's control core (calibration, self-test, safety checks, swing-up) driving a simulated
+rig from varied starts, as the bridge would drive a real one. Used by tests/test_qube_reset.py and
+``python -m bench.reset``.
+
+A trial: a fresh core calibrates and self-tests the rig hanging at rest, then the rig is put into a start state
+(the arm anywhere within +-60 deg, the pendulum up to 90 deg from hanging, both moving, like a rig after a fall or
+a failed swing-up), a reset is requested, and the trial records whether and when the core reported ready, the
+largest arm angle the (true) simulated arm reached, whether it touched an end stop and what the core reported.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+from dataclasses import dataclass, replace
+
+from rpi_bridge.control import ControlConfig, ControlCore
+from services.qube_sim.clock import VirtualClock
+from services.qube_sim.dynamics import QubeParams
+from services.qube_sim.spi_peer import SimulatedQube
+
+PERIOD_S = 0.007
+END_STOP = math.radians(115.0)  # the QUBE's arm stops (ARCHITECTURE.md: the bridge's limit is 110, stops ~115)
+
+
+@dataclass(frozen=True)
+class Start:
+    theta: float
+    alpha: float
+    theta_dot: float
+    alpha_dot: float
+
+
+def varied_start(index: int) -> Start:
+    """Start ``index`` of a fixed, reproducible set: arm in +-60 deg at up to 2 rad/s, pendulum up to 90 deg from
+    hanging at up to 3 rad/s."""
+    rng = random.Random(1000 + index)
+    return Start(theta=math.radians(rng.uniform(-60.0, 60.0)), alpha=math.pi + math.radians(rng.uniform(-90.0, 90.0)),
+                 theta_dot=rng.uniform(-2.0, 2.0), alpha_dot=rng.uniform(-3.0, 3.0))
+
+
+@dataclass(frozen=True)
+class Condition:
+    """A family of rigs: pendulum damping x ``damping``, parameters spread +-``spread`` (uniform, per rig),
+    Coulomb friction torques ``coulomb`` = (arm, pendulum) in N m."""
+
+    name: str
+    damping: float = 1.0
+    spread: float = 0.0
+    coulomb: tuple[float, float] = (0.0, 0.0)
+
+    def params(self, index: int) -> QubeParams:
+        base = QubeParams()
+        p = QubeParams.spread(index, self.spread, base) if self.spread > 0 else base
+        return replace(p, Dp=p.Dp * self.damping, Cr=self.coulomb[0], Cp=self.coulomb[1])
+
+
+@dataclass(frozen=True)
+class TrialResult:
+    ready: bool
+    seconds: float  # from the reset request to ready (or to the end of the trial)
+    max_arm_deg: float  # largest |theta| of the simulated arm during the reset
+    hit_end_stop: bool
+    outcome: str  # "ready", "reset_failed: <detail>", "fault: <reason>" or "timeout"
+
+
+def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = None,
+              max_seconds: float = 16.0) -> TrialResult:
+    """One reset from ``start`` on a rig with ``params`` (see the module docstring)."""
+    clock = VirtualClock()
+    device = SimulatedQube(params, seed=0, period_s=0, clock=clock, arm_limit=END_STOP)
+    # the simulated rig is exactly at rest: a short stillness window is enough (the bridge uses 1 s)
+    config = replace(config or ControlConfig(period_s=PERIOD_S), calibration_window_s=0.05)
+    core = ControlCore(device, config, clock=clock)
+    for _ in range(round(5.0 / PERIOD_S)):  # start-up: calibrate and self-test at rest
+        core.sense()
+        core.act(None)
+        clock.advance(PERIOD_S)
+        if core.phase != "calibrating" and core.phase != "self_test":
+            break
+    if core.phase != "idle":
+        return TrialResult(False, 0.0, 0.0, False, f"start-up ended in {core.phase}: {core.fault_reason}")
+    device.reset_state(theta=start.theta, alpha=start.alpha, theta_dot=start.theta_dot, alpha_dot=start.alpha_dot)
+    for _ in range(10):  # idle while the velocity filters catch up with the new state
+        core.sense()
+        clock.advance(PERIOD_S)
+    core.events.clear()
+    core.request_reset(1)
+    max_arm, hit, outcome, elapsed = 0.0, False, "timeout", 0.0
+    for _ in range(round(max_seconds / PERIOD_S)):
+        sensed = core.sense()
+        theta = device.state[0]
+        max_arm = max(max_arm, abs(theta))
+        hit = hit or abs(theta) >= END_STOP - 1e-9
+        if sensed.awaits_action:
+            outcome = "ready"
+            break
+        failed = [e for e in core.events if e[0] == "reset_failed"]
+        if failed:
+            outcome = f"reset_failed: {failed[0][2]}"
+            break
+        if core.phase == "fault":
+            outcome = f"fault: {core.fault_reason}"
+            break
+        core.act(None)
+        clock.advance(PERIOD_S)
+        elapsed += PERIOD_S
+    return TrialResult(outcome == "ready", round(elapsed, 3), math.degrees(max_arm), hit, outcome)
+
+
+def run_condition(condition: Condition, trials: int = 50, config: ControlConfig | None = None) -> list[TrialResult]:
+    """``trials`` resets, rig ``i`` (its parameters drawn from ``i``) from start ``i``."""
+    return [run_trial(condition.params(i), varied_start(i), config) for i in range(trials)]
+
+
+def summary(results: list[TrialResult]) -> dict[str, float | int]:
+    ready = [r for r in results if r.ready]
+    times = sorted(r.seconds for r in ready)
+    return {
+        "trials": len(results),
+        "ready": len(ready),
+        "max_arm_deg": round(max((r.max_arm_deg for r in results), default=0.0), 1),
+        "past_110_deg": sum(r.max_arm_deg > 110.0 for r in results),
+        "end_stop_hits": sum(r.hit_end_stop for r in results),
+        "faults": sum(r.outcome.startswith("fault") for r in results),
+        "mean_s": round(sum(times) / len(times), 2) if times else 0.0,
+        "p90_s": round(times[min(len(times) - 1, int(0.9 * len(times)))], 2) if times else 0.0,
+    }

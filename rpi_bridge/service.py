@@ -12,15 +12,18 @@ import signal
 import threading
 import time
 from collections.abc import Callable
+from typing import TypeVar
 
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
-from protocol.messages import QubeAction, QubeReset, QubeStatus
+from protocol.messages import Message, QubeAction, QubeReset, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.device import QubeDevice
 from rpi_bridge.runner import BridgeRunner, InjectedTiming
+
+M = TypeVar("M", bound=Message)
 
 log = logging.getLogger("rpi_bridge")
 
@@ -49,7 +52,7 @@ class BridgeService:
         self.rejects = RejectCounter(log)
         will = encode(QubeStatus(rig_id=rig_id, state="offline", detail="connection lost"))
         self.conn = MqttConnection(broker, client_id=f"{client_prefix}-{rig_id}",
-                                   will=(topics.rig(rig_id, topics.STATUS), will))
+                                   will=(topics.rig(rig_id, topics.STATUS), will), rejects=self.rejects)
         self.core = ControlCore(device, control, clock=clock, store=store, recalibrate=recalibrate)
         self.runner = BridgeRunner(self.core, rig_id, self._publish, deadline_s=deadline_s, lockstep=lockstep,
                                    advance=advance, timing=timing)
@@ -58,17 +61,26 @@ class BridgeService:
     def _publish(self, topic: str, payload: bytes, qos: int) -> object:
         return self.conn.publish(topic, payload, qos=qos)
 
-    def _on_action(self, topic: str, payload: bytes) -> None:
+    def _decode(self, topic: str, payload: bytes, kind: type[M]) -> M | None:
+        """The message, if it is a valid one of ``kind`` for this rig on its topic; else counted and None."""
         try:
-            self.runner.on_action(decode(payload, QubeAction))
+            msg = decode(payload, kind, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
+            return None
+        if msg.rig_id != self.rig_id:  # type: ignore[attr-defined]
+            self.rejects.reject(topic, "spoofed", f"payload names rig {msg.rig_id!r}, this is {self.rig_id!r}")  # type: ignore[attr-defined]
+            return None
+        return msg
+
+    def _on_action(self, topic: str, payload: bytes) -> None:
+        msg = self._decode(topic, payload, QubeAction)
+        if msg is not None:
+            self.runner.on_action(msg)
 
     def _on_reset(self, topic: str, payload: bytes) -> None:
-        try:
-            msg = decode(payload, QubeReset)
-        except DecodeError as err:
-            self.rejects.reject_error(topic, err)
+        msg = self._decode(topic, payload, QubeReset)
+        if msg is None:
             return
         log.info("rig %s: reset %d requested", self.rig_id, msg.request_id)
         self.runner.on_reset(msg.request_id)

@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from protocol.codec import encode
+from protocol.messages import QubeState, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
 from worker.qube_env import ACTIONS, MAX_RETURN, QubeLocalEnv, QubeMqttEnv
 
@@ -85,15 +87,23 @@ def test_local_env_is_the_same_task() -> None:
     assert terminated and 0 < total < 2000
 
 
-@pytest.mark.parametrize("bad", [b"\x00junk", b""])
-def test_env_ignores_garbage_on_its_topics(amqtt_broker: str, tmp_path: Path, bad: bytes) -> None:
+SPOOF = QubeState(rig_id="rigX", seq=1, t=0.0, theta=0.0, alpha=0.0, theta_dot=0.0, alpha_dot=0.0)
+
+
+@pytest.mark.parametrize(("bad", "reason"), [
+    (b"\x00junk", "malformed"),
+    (b"", "malformed"),
+    (encode(QubeStatus(rig_id="rigG", state="ready")), "wrong_topic"),  # a status on the state topic
+    (encode(SPOOF), "spoofed"),  # another rig's state on this rig's topic
+])
+def test_env_ignores_garbage_on_its_topics(amqtt_broker: str, tmp_path: Path, bad: bytes, reason: str) -> None:
     rig = start_rig(amqtt_broker, "rigG", "lockstep", tmp_path)
     conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="qube-garbage").start()
     try:
         env = QubeMqttEnv(conn, "rigG", reset_timeout_s=30)
         conn.publish("qube/rigG/state", bad, qos=1).wait_for_publish(5)
         ret, *_ = play(env, steps=50)
-        assert ret == 50.0 and env.rejected >= 1
+        assert ret == 50.0 and env.rejects.as_dict().get(reason) == 1
     finally:
         conn.stop()
         rig.terminate()
@@ -168,3 +178,23 @@ def test_the_env_retries_a_reset_that_ends_in_a_fault() -> None:
     with pytest.raises(RuntimeError, match="reset fault: arm at 114 deg"):
         env.reset()
     assert rig.resets == 3 and env.failed_resets == 3
+
+
+def test_the_rig_refuses_actions_on_the_wrong_topic_or_for_another_rig(amqtt_broker: str, tmp_path: Path) -> None:
+    from protocol.messages import QubeAction
+
+    rig = start_rig(amqtt_broker, "rigH", "lockstep", tmp_path)
+    conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="qube-spoof").start()
+    try:
+        env = QubeMqttEnv(conn, "rigH", reset_timeout_s=30)
+        play(env, steps=5)  # the rig is up and subscribed
+        conn.publish("qube/rigH/action", encode(QubeAction(rig_id="rigZ", seq=1, command=999))).wait_for_publish(5)
+        conn.publish("qube/rigH/action", encode(QubeStatus(rig_id="rigH", state="fault"))).wait_for_publish(5)
+        ret, *_ = play(env, steps=20)
+        assert ret == 20.0
+    finally:
+        conn.stop()
+        rig.terminate()
+        rig.wait(10)
+    log = (tmp_path / "rigH.log").read_text()
+    assert "(spoofed): payload names rig 'rigZ'" in log and "(unexpected_kind)" in log

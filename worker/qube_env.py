@@ -15,6 +15,7 @@ the last 10 episodes reaches 2450 (protocol.tasks, "qube").
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 import queue
 import time
@@ -25,9 +26,11 @@ import numpy as np
 from gymnasium import spaces
 
 from protocol import topics
-from protocol.codec import DecodeError, decode, encode
+from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
 from rpi_bridge.control import ControlConfig, ControlCore, Sensed
+
+log = logging.getLogger("worker.qube")
 
 ACTIONS = (-60, 0, 60)  # SPI motor counts: turn left, stop, turn right
 BALANCE_BAND = math.radians(7.5)
@@ -79,7 +82,7 @@ class QubeMqttEnv(_QubeTask):
         self.reset_timeout_s = reset_timeout_s
         self.step_timeout_s = step_timeout_s
         self.inbox: queue.Queue[QubeState | QubeStatus] = queue.Queue()
-        self.rejected = 0
+        self.rejects = RejectCounter(log)
         self.timeouts = 0
         self._request_ids = itertools.count(int(time.time() * 1000) % 1_000_000_000)
         self._request = -1
@@ -87,11 +90,21 @@ class QubeMqttEnv(_QubeTask):
         conn.subscribe(topics.rig(rig_id, topics.STATE), self._on_message, qos=0)
         conn.subscribe(topics.rig(rig_id, topics.STATUS), self._on_message, qos=1)
 
+    @property
+    def rejected(self) -> int:
+        """Messages from the rig's topics that were refused (counted by reason in ``rejects``)."""
+        return self.rejects.total
+
     def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            self.inbox.put(decode(payload, QubeState, QubeStatus))
-        except DecodeError:
-            self.rejected += 1
+            msg = decode(payload, QubeState, QubeStatus, topic=topic)
+        except DecodeError as err:
+            self.rejects.reject_error(topic, err)
+            return
+        if msg.rig_id != self.rig_id:
+            self.rejects.reject(topic, "spoofed", f"payload names rig {msg.rig_id!r}, this env drives {self.rig_id!r}")
+            return
+        self.inbox.put(msg)
 
     def _next(self, deadline: float) -> QubeState | QubeStatus | None:
         remaining = deadline - time.monotonic()

@@ -4,13 +4,14 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint venv bench clean help test-docker docker-dev
+.PHONY: run test lint venv bench soak clean help test-docker docker-dev
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
 	@echo "make test   - the whole test suite (creates the virtual environment first)"
 	@echo "make lint   - ruff"
 	@echo "make bench  - benchmarks into bench/results/"
+	@echo "make soak   - 16 workers over Mosquitto to the end, memory and round latency watched (bench/results/soak.*)"
 	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
 	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
 
@@ -33,6 +34,9 @@ lint: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python -m bench
+
+soak: $(STAMP)
+	$(BIN)/python -m bench.soak
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache

@@ -11,12 +11,13 @@ folder cannot be read. The invariants:
   submission belongs to a round (a run that was aborted may leave some in the round it never closed);
 - ``round-pis``: the PIs a round used are the PIs of its counted submissions;
 - ``mature``: a mature actor was accepted only with PI >= TC over PI_WINDOW episodes, PI the mean of its returns;
+  nothing of a worker was counted after it finished (unless its strategy lets finishers go on sharing);
 - ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
   sum to 1;
 - ``transfer``: in every round where a worker finished while others were still learning, the best finisher's actor
   went to each of them, with keep weights = Eq. 10 of each recipient's PI at that round (strategies that share);
-- ``delivery``: each worker's next submission confirms it applied that round's answer (same tensor digest, same
-  keep weight);
+- ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
+  answer (same tensor digest, same keep weight);
 - ``summary``: the summary's solve episodes, steps and totals agree with the records.
 """
 
@@ -173,6 +174,10 @@ def audit(run_dir: Path) -> AuditReport:
                      f"{known and known['return']}")
         _require(w not in solved_at, "mature", f"{w} finished twice (episodes {solved_at.get(w)} and {ep})")
         solved_at[w] = ep
+    if not strategy.finishers_help:
+        late = sorted((w, int(e["episode"])) for (w, _), e in by_round.items() if int(e["episode"]) > solved_at.get(
+            w, math.inf))
+        _require(not late, "mature", f"submissions counted after their worker had finished: {late[:3]}")
 
     # eq8-weights and transfer
     counted_eps = {w: sorted(ep for (x, ep) in by_key if x == w) for w in workers}
@@ -226,10 +231,11 @@ def audit(run_dir: Path) -> AuditReport:
             _require(math.isclose(sum(r["weights"].values()), 1.0, abs_tol=1e-9), "eq8-weights",
                      f"round {n}'s weights sum to {sum(r['weights'].values())}")
 
-    # delivery: every worker's next counted submission confirms what it applied
+    # delivery: every worker that took part in a round (and did not finish in it) confirms, with its next counted
+    # submission, what it applied of that round's answer
     for r in rounds:
         n = int(r["round"])
-        for w in workers:
+        for w in sorted(set(r["contributors"]) - set(r["finished"])):
             nxt = by_round.get((w, n + 1))
             if nxt is None:
                 continue

@@ -70,7 +70,8 @@ def keeper_state(k: RoundKeeper) -> dict[str, Any]:
     workers = []
     for rec in k.workers.values():
         workers.append({**{f: getattr(rec, f) for f in ("worker_id", "state", "pi", "last_episode", "solved_episode",
-                                                         "steps", "steps_at_solve", "last_round", "excused")},
+                                                         "steps", "steps_at_solve", "last_round", "excused",
+                                                         "helping")},
                         "returns": sorted(rec.returns.items()), "pis": sorted(rec.pis.items())})
     last = sorted(k.answers)[-ANSWERS_SAVED:]
     return {
@@ -97,7 +98,7 @@ def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
     for w in state["workers"]:
         rec = WorkerRecord(w["worker_id"], w["state"], w["pi"], w["last_episode"], w["solved_episode"], w["steps"],
                            w["steps_at_solve"], dict(map(tuple, w["returns"])), dict(map(tuple, w["pis"])),
-                           w["last_round"], w["excused"])
+                           w["last_round"], w["excused"], w["helping"])
         k.workers[rec.worker_id] = rec
     k.round = state["round"]
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state["pending"]}

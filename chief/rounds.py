@@ -195,6 +195,7 @@ class WorkerRecord:
     pis: dict[int, float] = field(default_factory=dict)
     last_round: int = 0
     excused: bool = False  # not waited for (timed out, or said it stopped) until it submits again
+    helping: bool = False  # finished, and still playing and sharing (a strategy whose finishers help)
 
     def pi_at(self, episode: int) -> float | None:
         """The PI of this worker's latest accepted submission for an episode <= ``episode``."""
@@ -280,8 +281,9 @@ class RoundKeeper:
 
     def waiting_for(self) -> list[str]:
         """Active workers whose submission for the current round is still missing (not those already past it)."""
-        return [w for w in self.ids_in("active", "offline")
-                if not self.workers[w].excused and w not in self.pending and self.workers[w].last_round <= self.round]
+        return [w for w, rec in self.workers.items()
+                if (rec.state in ("active", "offline") or rec.helping) and not rec.excused
+                and w not in self.pending and rec.last_round <= self.round]
 
     def progress(self, pi: float | None) -> float:
         """Sign-safe progress of a PI (the floor when the worker has none yet)."""
@@ -307,7 +309,7 @@ class RoundKeeper:
                            submission=sub, round=r, ack=ack, replay=self.answers.get(r))
         if self.done:
             return self._reject(sub, r, "run_over", f"the run is over ({self.done_reason})")
-        if rec.state == "finished":
+        if rec.state == "finished" and (sub.mature or not rec.helping):
             return self._reject(sub, r, "finished", f"{sub.worker_id} finished at episode {rec.solved_episode}")
         if r < self.round:
             verdict = self._reject(sub, r, "stale", f"round {r} is closed (open round {self.round})")
@@ -437,7 +439,7 @@ class RoundKeeper:
         rec.last_round = max(rec.last_round, r)
         if rec.state in ("lagging", "offline") or rec.excused:
             log.info("worker %s is back (state was %s)", sub.worker_id, rec.state)
-            rec.state, rec.excused = "active", False
+            rec.state, rec.excused = "active" if rec.state != "finished" else "finished", False
         if r == self.round:
             self.pending[sub.worker_id] = sub
         else:
@@ -496,9 +498,14 @@ class RoundKeeper:
                 critics, _ = bound_norms({w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
                 outcome.critic_gradient = self.strategy.aggregate(critics, progress).gradient
         for w in finished:
-            rec = self.workers[w]
-            rec.state, rec.solved_episode, rec.steps_at_solve = "finished", subs[w].episode, rec.steps
+            self._finish(self.workers[w], subs[w].episode)
         return outcome
+
+    def _finish(self, rec: WorkerRecord, episode: int) -> None:
+        rec.state, rec.solved_episode, rec.steps_at_solve = "finished", episode, rec.steps
+        rec.helping = self.strategy.finishers_help
+        # Not waited for in the rest of its finishing episode's rounds; a helper is from the next episode on.
+        rec.last_round = max(rec.last_round, self.round_of(episode + 1))
 
     def _transfer(self, r: int, subs: dict[str, Submission], mature: dict[str, Submission]) -> RoundOutcome | None:
         """The transfer of the best finisher's actor (Eq. 10-11), or None when nobody is left to receive it or the
@@ -510,8 +517,7 @@ class RoundKeeper:
         if not recipients or any(k is None for k in keep.values()):
             return None
         for w, s in mature.items():
-            rec = self.workers[w]
-            rec.state, rec.solved_episode, rec.steps_at_solve = "finished", s.episode, rec.steps
+            self._finish(self.workers[w], s.episode)
         best = federation.best_mature({w: s.pi for w, s in mature.items()})
         outcome = self._outcome(r, "transfer", subs)
         outcome.source_worker, outcome.source_pi, outcome.params = best, mature[best].pi, mature[best].params

@@ -195,7 +195,8 @@ class ChiefService:
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env_id, policy=self.cfg.policy, seed=self.cfg.seed,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
-                       session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode)
+                       session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode,
+                       finishers_help=self.keeper.strategy.finishers_help)
         self.conn.publish(topics.chief(self.cfg.run_id, topics.START), encode(msg), qos=1)
 
     def _federate(self) -> None:

@@ -52,14 +52,17 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     assert keeper is not None
     metrics = MetricsLog(run_dir)
     t0 = time.monotonic()
-    open_: dict[str, WorkerUpdate | MatureParams] = {}  # each learning worker's submission for the open round
+    open_: dict[str, WorkerUpdate | MatureParams] = {}  # each worker's submission for its open round
+    sent: set[str] = set()  # workers whose open submission the chief has counted: they wait for its answer
+    answers: dict[int, ChiefAggregate | ChiefTransfer] = {}  # closed rounds' answers, as the wire carries them
     try:
         while not keeper.done:
-            answers: dict[int, ChiefAggregate | ChiefTransfer] = {}
-            for wid in [w for w in ids if keeper.workers[w].state != "finished"]:
+            for wid in [w for w in ids if keeper.workers[w].state != "finished" or keeper.workers[w].helping]:
                 algo = algos[wid]
                 if wid not in open_:
                     open_[wid] = _wire(algo.play(), WorkerUpdate, MatureParams)
+                if wid in sent:
+                    continue
                 while True:
                     msg = open_[wid]
                     verdict = keeper.submit(submission_of(msg), time.monotonic() - t0)
@@ -72,16 +75,26 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                         open_[wid] = _wire(algo.refused(msg), WorkerUpdate)  # refused: it learns on
                         continue
                     break
+                sent.add(wid)
+                if keeper.done:
+                    break
             for wid in list(open_):
                 algo = algos[wid]
                 if isinstance(open_[wid], MatureParams):
-                    del open_[wid]  # finished (accepted)
+                    del open_[wid]  # finished (accepted); it plays on if its finish lets it help
+                    sent.discard(wid)
+                    algo.finished = True
                     continue
-                nxt = algo.apply(answers.get(algo.round))
+                if algo.round not in answers:
+                    continue  # its round is still open (it went ahead of the others): it waits, as over MQTT
+                sent.discard(wid)
+                nxt = algo.apply(answers[algo.round])
                 if nxt is None:
                     del open_[wid]  # its episode's rounds are done: it plays the next one
                 else:
                     open_[wid] = _wire(nxt, WorkerUpdate)
+            for old in [r for r in answers if r < keeper.round - AHEAD_ROUNDS_KEPT]:
+                del answers[old]
             if progress and keeper.step_of(keeper.round - 1) == keeper.rounds_per_episode - 1:
                 cells = " | ".join(f"{w} PI {algos[w].pi:.1f}" for w in ids if algos[w].pi is not None)
                 print(f"episode {keeper.episode_of(keeper.round - 1):4d} | {cells}", flush=True)
@@ -96,6 +109,10 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         plot_learning_curves(run_dir, metrics.curves, spec.tc,
                              f"{env_id}, {workers} workers, policy {policy}, seed {seed} (in-process)")
     return summary
+
+
+#: Closed rounds whose answers the runner keeps for workers that are behind.
+AHEAD_ROUNDS_KEPT = 1000
 
 
 def _wire(message: Any, *kinds: type) -> Any:

@@ -164,6 +164,7 @@ class RunStart(Message):
     names this run of the chief (kept when it resumes): a worker acts only on a RunStop of the same session. ``epoch``
     counts the chief's restarts: a worker waiting for an answer sends its submission again when it sees a new one.
     ``rounds_per_episode`` is 1 for the paper's strategies and K for a per-step strategy (see WorkerUpdate).
+    ``finishers_help``: a worker whose mature actor was acknowledged goes on playing and sharing until the RunStop.
     """
 
     kind: Literal["run_start"] = "run_start"
@@ -179,6 +180,7 @@ class RunStart(Message):
     session: str = Field(default="", max_length=32)
     epoch: int = Field(default=0, ge=0)
     rounds_per_episode: int = Field(default=1, ge=1, le=1000)
+    finishers_help: bool = False
 
 
 class RunStop(Message):

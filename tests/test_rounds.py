@@ -389,7 +389,7 @@ def test_a_per_step_strategy_has_k_rounds_per_episode() -> None:
     assert outs[0].round == 6 and k.done and "maximum of 2 episodes" in (k.done_reason or "")
 
 
-def test_a_per_step_strategy_lets_a_finisher_leave_and_the_others_go_on() -> None:
+def test_a_per_step_strategy_keeps_its_finishers_sharing_until_all_have_finished() -> None:
     from dataclasses import replace
 
     k, w = sync_keeper(max_episodes=100, k=2), fakes("w0", "w1")
@@ -400,7 +400,20 @@ def test_a_per_step_strategy_lets_a_finisher_leave_and_the_others_go_on() -> Non
     finish = w["w0"].sub(PI_WINDOW, 200.0, mature=True)
     assert k.submit(replace(finish, step=1), now=0.0).reason == "invalid"  # a finish comes at step 0
     k.submit(finish, now=0.0)
-    [out] = outcomes(k.submit(steps_of(w["w1"], PI_WINDOW, 20.0, 2)[0], now=0.0))
+    w1_steps = steps_of(w["w1"], PI_WINDOW, 20.0, 2)
+    [out] = outcomes(k.submit(w1_steps[0], now=0.0))
     assert out.kind == "aggregate" and out.finished == ["w0"] and out.contributors == ["w0", "w1"]
     assert out.weights == {"w1": 1.0} and out.gradient is not None  # the learner's step is shared, not dropped
-    assert k.workers["w0"].state == "finished" and k.waiting_for() == ["w1"]
+    rec = k.workers["w0"]
+    assert rec.state == "finished" and rec.helping and rec.solved_episode == PI_WINDOW
+    assert k.waiting_for() == ["w1"]  # round (10, 1): the finisher has no step 1 in its finishing episode
+    k.submit(w1_steps[1], now=0.0)
+    # From the next episode on the finisher is waited for again and its steps count (it helps) ...
+    helper, learner = steps_of(w["w0"], PI_WINDOW + 1, 200.0, 2), steps_of(w["w1"], PI_WINDOW + 1, 20.0, 2)
+    k.submit(learner[0], now=0.0)
+    assert k.waiting_for() == ["w0"]
+    [help_out] = outcomes(k.submit(helper[0], now=0.0))
+    assert help_out.contributors == ["w0", "w1"] and help_out.weights == {"w0": 0.5, "w1": 0.5}
+    # ... but it cannot finish twice, and its solve episode stays.
+    again = k.submit(w["w0"].sub(PI_WINDOW + 2, 200.0, mature=True), now=0.0)
+    assert again.reason == "finished" and rec.solved_episode == PI_WINDOW

@@ -61,6 +61,7 @@ class Algorithm2:
         self._own: StepGradients | None = None  # this step's own gradients (applied if no answer comes)
         self._last = (0.0, 0)  # the episode's return and env steps
         self.refused_answer: str | None = None  # why the last answer was not applied
+        self.finished = False  # the chief holds this worker's mature actor (it may go on helping)
 
     @property
     def pi(self) -> float | None:
@@ -90,7 +91,7 @@ class Algorithm2:
         self.returns.append(ret)
         self.total_steps += steps
         self._last = (ret, steps)
-        if solved(self.returns, self.tc):
+        if not self.finished and solved(self.returns, self.tc):
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,
                                 params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt)

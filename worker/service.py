@@ -182,7 +182,11 @@ class WorkerService:
                         self._status("finished", episode=submission.episode, pi=submission.pi)
                         log.info("solved at episode %d with PI %.1f; the chief holds the mature actor",
                                  submission.episode, submission.pi)
-                        return EXIT_OK
+                        if not start.finishers_help:
+                            return EXIT_OK
+                        algo.finished = True  # under this strategy it goes on sharing until the run ends
+                        log.info("going on playing and sharing until every worker has finished")
+                        continue
                     if ack is None:
                         if self.stop is not None:
                             break
@@ -196,9 +200,10 @@ class WorkerService:
                     submission = algo.apply(reply)
                     if algo.refused_answer is not None and reply is not None:
                         self.rejects.reject(topics.chief(cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
-            self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
-                         detail=self.stop.reason if self.stop else "episode limit")
-            if self.stop is not None and self.stop.aborted:
+            if not algo.finished:
+                self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
+                             detail=self.stop.reason if self.stop else "episode limit")
+            if self.stop is not None and self.stop.aborted and not algo.finished:
                 log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
                 return EXIT_ABORTED
             return EXIT_OK

@@ -48,6 +48,9 @@ class Strategy:
     #: Share every mini-batch step (K rounds per episode, actor and critic gradients) instead of one gradient per
     #: episode.
     per_step: bool = False
+    #: A worker that finished keeps playing and sharing (without transferring anything) until every worker has
+    #: finished; its own solve episode stays the one it finished at.
+    finishers_help: bool = False
 
 
 def no_gradient(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:

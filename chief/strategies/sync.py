@@ -3,7 +3,10 @@ mini-batch steps of an episode is a round: each worker computes its actor's and 
 mini-batch, the chief averages them, and every worker applies the same mean through its optimizers. Workers start
 from the same networks, so they stay identical: one learner with an N times larger batch, fed by N devices.
 
-Nothing is transferred when a worker finishes (its actor is everyone's); it simply leaves, and the others go on.
+Nothing is transferred when a worker finishes (its actor is everyone's). It keeps playing and sharing until every
+worker has finished (its solve episode stays the one it finished at): a worker left alone with the shared policy
+learns from a quarter of the data, and on CartPole-v0 (tuning seeds 1, 2, 4, 6) the last worker then needed 55-71
+episodes against 28-42 with the finished workers still sharing.
 """
 
 from __future__ import annotations
@@ -23,10 +26,11 @@ def aggregate(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) ->
 STRATEGY = Strategy(
     name="sync",
     summary="every mini-batch step's actor and critic gradients averaged, the same update applied by all "
-    "(DD-PPO style); no transfer needed",
+    "(DD-PPO style); finished workers keep sharing until all have finished; no transfer needed",
     aggregate=aggregate,
     keep_weight=lambda progress: None,
     tolerates=lambda n: 0,
     robustness="a linear mean: one worker's gradient can move every step",
     per_step=True,
+    finishers_help=True,
 )

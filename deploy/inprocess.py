@@ -7,11 +7,17 @@ episodes one after another, so a run takes about as long as one worker's episode
 process start-up. It writes the same run folder (summary.json with ``"mode": "in-process"``, metrics.jsonl,
 learning_curve.png), which ``python -m chief.audit`` checks like any other. For a given seed it gives the same
 per-worker episodes as a federation over MQTT (a test checks this).
+
+It also writes ``timing.json``: per worker, the seconds each of its episodes took in its own code (playing the
+episode, its K PPO updates, applying the chief's answer), and per round the seconds the chief's side took (the
+message encoding both ways and the round state machine). bench.paper derives each worker's env steps per second
+and the time it would wait for the chief and the slower workers with a core of its own.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -47,12 +53,19 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     metrics = MetricsLog(run_dir)
     t0 = time.monotonic()
     learning = list(ids)
+    worker_s: dict[str, list[float]] = {wid: [] for wid in ids}  # per episode: the worker's own seconds
+    chief_s: list[float] = []  # per round: the chief side's seconds (encoding both ways, the state machine)
     try:
         while not keeper.done:
             answers: dict[int, ChiefAggregate | ChiefTransfer] = {}
+            chief_round = 0.0
             for wid in list(learning):
                 algo = algos[wid]
-                msg = _wire(algo.play(), WorkerUpdate, MatureParams)
+                start = time.perf_counter()
+                played = algo.play()
+                mid = time.perf_counter()
+                worker_s[wid].append(mid - start)
+                msg = _wire(played, WorkerUpdate, MatureParams)
                 while True:
                     verdict = keeper.submit(submission_of(msg), time.monotonic() - t0)
                     if verdict.status == "accepted":
@@ -61,13 +74,21 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                         metrics.round({**outcome.record(), "t": round(time.monotonic() - t0, 3)})
                         answers[outcome.episode] = _wire(answer_of(outcome), ChiefAggregate, ChiefTransfer)
                     if isinstance(msg, MatureParams) and verdict.ack is not None and not verdict.ack.accepted:
-                        msg = _wire(algo.refused(msg), WorkerUpdate)  # refused: it learns on
+                        refused_at = time.perf_counter()
+                        again = algo.refused(msg)  # refused: it learns on
+                        worker_s[wid][-1] += time.perf_counter() - refused_at
+                        mid += time.perf_counter() - refused_at
+                        msg = _wire(again, WorkerUpdate)
                         continue
                     break
+                chief_round += time.perf_counter() - mid
                 if isinstance(msg, MatureParams):
                     learning.remove(wid)
+            chief_s.append(chief_round)
             for wid in learning:
+                start = time.perf_counter()
                 algos[wid].apply(answers.get(algos[wid].episode))
+                worker_s[wid][-1] += time.perf_counter() - start
             if progress:
                 cells = " | ".join(f"{w} PI {algos[w].pi:.1f}" for w in learning if algos[w].pi is not None)
                 print(f"round {keeper.episode - 1:4d} | {cells}", flush=True)
@@ -78,6 +99,9 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     summary = run_summary(keeper, keeper.done_reason or "stopped", run_id=run_dir.name, seed=seed, mode="in-process",
                           wall_s=round(time.monotonic() - t0, 2), rejected_messages={})
     write_summary(run_dir, summary)
+    (run_dir / "timing.json").write_text(json.dumps(
+        {"worker_s": {w: [round(x, 5) for x in v] for w, v in worker_s.items()},
+         "chief_s": [round(x, 5) for x in chief_s]}) + "\n")
     if plot:
         plot_learning_curves(run_dir, metrics.curves, spec.tc,
                              f"{env_id}, {workers} workers, policy {policy}, seed {seed} (in-process)")

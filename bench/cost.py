@@ -15,6 +15,9 @@ worker and the share of a worker's time spent waiting for the chief).
   own records (metrics.jsonl) also: the time from the round's first to its last accepted update (receiving and
   decoding) and from the last update to the aggregate (aggregating and recording). The first round is left out
   (connections warming up). Growth with the worker count: the exponent b of t ~ N^b between the smallest and largest N.
+- **Workers against N**: in-process federations of CartPole-v0 (``weighted``, seed 101) with 4, 16 and 64 workers for
+  a fixed number of rounds: each worker's env steps per second and its waiting share, modelled as if every worker
+  had its own core (bench/runs.py), and the chief side's seconds per round without a broker.
 """
 
 from __future__ import annotations
@@ -311,6 +314,39 @@ def growth(points: dict[int, float]) -> dict[str, float | None]:
     return out
 
 
+# -- workers: env steps per second and waiting, against the worker count ------------------------------------------
+
+
+def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNTS, rounds: int = 30,
+                   task: str = "CartPole-v0", strategy: str = "weighted", seed: int = 101) -> dict[str, Any]:
+    """In-process federations of N workers for ``rounds`` rounds (one seed): each worker's env steps per second and
+    modelled waiting share (bench.runs), and the chief side's seconds per round (encoding both ways and the round
+    state machine, no broker), for each N."""
+    from bench.runs import Job, collect
+    from bench.stats import spread
+    from deploy.inprocess import run_federation
+
+    points = []
+    for n in worker_counts:
+        print(f"cost: {n} workers in process, {rounds} rounds of {task}", flush=True)
+        job = Job("federation", task, strategy, seed, n, rounds)
+        run_dir = runs_dir / f"scaling-{job.name}"
+        run_federation(task, strategy, seed, n, rounds, run_dir, plot=False)
+        result = collect(run_dir, job)
+        chief_s = json.loads((run_dir / "timing.json").read_text())["chief_s"]
+        workers = result["per_worker"]
+        points.append({"workers": n, "rounds": result["rounds"], "audit_passed": result["audit"]["passed"],
+                       "steps_per_s": spread([w["steps_per_s"] for w in workers if w["steps_per_s"]]),
+                       "wait_share": spread([w["wait_share"] for w in workers if w["wait_share"] is not None]),
+                       "chief_s_per_round": _summary(chief_s[1:])})
+    return {"task": task, "strategy": strategy, "seed": seed, "rounds": rounds, "time_basis": "modelled",
+            "points": points,
+            "growth": {"steps_per_s": growth({p["workers"]: p["steps_per_s"]["median"] for p in points}),
+                       "wait_share": growth({p["workers"]: p["wait_share"]["median"] for p in points}),
+                       "chief_s_per_round": growth({p["workers"]: p["chief_s_per_round"]["median"]
+                                                    for p in points})}}
+
+
 # -- from bench.paper's runs ----------------------------------------------------------------------------------
 
 
@@ -336,9 +372,10 @@ def from_runs(paper_reports: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 def run_all(out: Path, rounds: int = ROUNDS, worker_counts: tuple[int, ...] = WORKER_COUNTS,
             brokers: tuple[str, ...] = ("mosquitto", "amqtt"), strategy: str = "weighted",
-            paper_reports: dict[str, dict[str, Any]] | None = None, size_tasks: tuple[str, ...] = SIZE_TASKS
+            paper_reports: dict[str, dict[str, Any]] | None = None, size_tasks: tuple[str, ...] = SIZE_TASKS,
+            scaling_rounds: int = 0, runs_dir: Path | None = None, scaling_workers: tuple[int, ...] | None = None
             ) -> dict[str, Any]:
-    """Everything; written to ``out/cost.json`` and returned."""
+    """Everything; written to ``out/cost.json`` and returned (``scaling_rounds`` 0: no worker scaling runs)."""
     t0 = time.monotonic()
     cartpole = actor_arrays("CartPole-v0")
     result: dict[str, Any] = {"bytes": {t: bytes_per_round(t, worker_counts, cartpole if t == "CartPole-v0" else None)
@@ -358,6 +395,8 @@ def run_all(out: Path, rounds: int = ROUNDS, worker_counts: tuple[int, ...] = WO
                                   for b in brokers}}
     if paper_reports:
         result["workers"] = from_runs(paper_reports)
+    if scaling_rounds:
+        result["scaling"] = worker_scaling(runs_dir or out / "runs", scaling_workers or worker_counts, scaling_rounds)
     result["wall_s"] = round(time.monotonic() - t0, 1)
     out.mkdir(parents=True, exist_ok=True)
     (out / "cost.json").write_text(json.dumps(result, indent=1) + "\n")
@@ -370,9 +409,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, nargs="+", default=list(WORKER_COUNTS))
     parser.add_argument("--brokers", nargs="+", default=["mosquitto", "amqtt"], choices=["mosquitto", "amqtt"])
     parser.add_argument("--strategy", default="weighted")
+    parser.add_argument("--scaling-rounds", type=int, default=30,
+                        help="rounds of the in-process worker scaling runs (0: none)")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))
     args = parser.parse_args(argv)
-    result = run_all(args.out, args.rounds, tuple(args.workers), tuple(args.brokers), args.strategy)
+    result = run_all(args.out, args.rounds, tuple(args.workers), tuple(args.brokers), args.strategy,
+                     scaling_rounds=args.scaling_rounds, runs_dir=Path("bench/results/runs/cost"))
     print(json.dumps(result["chief"]["growth"], indent=1))
     for p in result["chief"]["points"]:
         print(f"{p['broker']:>9} N={p['workers']:>3}: round {p['round_s']['median'] * 1000:.1f} ms median "

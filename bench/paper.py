@@ -59,11 +59,15 @@ TARGETS: dict[str, dict[str, float]] = {
     "qube": {"balance_s": 240.0},
 }
 
-#: The quick variant (make bench-quick), for under 15 minutes on the 2-core VM. What it leaves out: Pendulum-v1 and
-#: the QUBE (minutes per run), seeds 104-110, episodes past 300 (a run still learning then is unfinished), SB3 on
-#: Acrobot (16 envs, about 50k steps per run), and most rounds of the chief load benchmark.
+#: The quick variant (make bench-quick), for under 15 minutes on the 2-core VM. What it leaves out: MountainCar-
+#: Continuous-v0, Pendulum-v1 and the QUBE (the slow tasks), seeds 104-110, episodes past 300 (a run still learning
+#: then is unfinished), SB3 on Acrobot (16 envs, about 50k steps per run), most rounds of the chief load benchmark,
+#: and the 64-worker in-process scaling run (bench.cost.worker_scaling).
 QUICK: dict[str, Any] = {"tasks": ("CartPole-v0", "Acrobot-v1"), "seeds": (101, 102, 103), "max_episodes": 300,
-                         "sb3_tasks": ("CartPole-v0",), "cost_rounds": 6, "cost_workers": (4, 16, 64)}
+                         "sb3_tasks": ("CartPole-v0",), "cost_rounds": 6, "cost_workers": (4, 16, 64),
+                         "scaling_workers": (4, 16), "scaling_rounds": 10}
+#: The full variant's worker scaling runs (bench.cost.worker_scaling): CartPole-v0 for 30 rounds with 4, 16, 64.
+FULL_SCALING: dict[str, Any] = {"scaling_workers": (4, 16, 64), "scaling_rounds": 30}
 #: Relative cost of a run, to start the longest first.
 _COST = {"qube-local": 20.0, "qube": 20.0, "Pendulum-v1": 8.0, "MountainCarContinuous-v0": 2.0}
 
@@ -335,9 +339,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.no_cost:
         from bench import cost as cost_bench
 
+        scaling = QUICK if args.quick else FULL_SCALING
         cost = cost_bench.run_all(args.out, rounds=QUICK["cost_rounds"] if args.quick else cost_bench.ROUNDS,
                                   worker_counts=QUICK["cost_workers"] if args.quick else cost_bench.WORKER_COUNTS,
-                                  paper_reports=reports)
+                                  paper_reports=reports, scaling_rounds=scaling["scaling_rounds"],
+                                  scaling_workers=scaling["scaling_workers"], runs_dir=args.runs_dir)
     cfg["wall_s"] = round(time.monotonic() - started, 1)
     cfg["finished_at"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     index = {"config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},

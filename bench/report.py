@@ -174,7 +174,26 @@ def cost_section(cost: dict[str, Any]) -> list[str]:
         if chief.get("skipped"):
             lines.append(f"\nNot measured: {', '.join(chief['skipped'])}.")
         lines.append("")
+    scaling = cost.get("scaling")
+    if scaling and scaling.get("points"):
+        g = scaling["growth"]
+        lines += [f"Workers against the worker count (in process, {scaling['task']}, `{scaling['strategy']}`, seed "
+                  f"{scaling['seed']}, {scaling['rounds']} rounds; waiting modelled as if each worker had its own "
+                  "core; the chief's seconds per round without a broker):", "",
+                  "| workers | env steps/s per worker | waiting share | chief s per round | audit |",
+                  "| --- | --- | --- | --- | --- |"]
+        for p in scaling["points"]:
+            lines.append(f"| {p['workers']} | {cell(p['steps_per_s'], True)} | {_share(p['wait_share'])} | "
+                         f"{_secs(p['chief_s_per_round'].get('median'))} | "
+                         f"{'passed' if p['audit_passed'] else 'FAILED'} |")
+        lines += ["", "Growth between the smallest and largest worker count (t ~ N^b): " + "; ".join(
+            f"{name.replace('_', ' ')} b = {v['exponent']:.2f}" for name, v in g.items() if "exponent" in v) + ".",
+            ""]
     return lines
+
+
+def _secs(v: float | None) -> str:
+    return "-" if v is None else f"{v * 1000:.1f} ms"
 
 
 def _share(s: dict[str, Any] | None) -> str:

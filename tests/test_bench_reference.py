@@ -73,3 +73,12 @@ def test_chief_load_over_the_embedded_broker(tmp_path: Path) -> None:
     p = cost.chief_load("amqtt", workers=2, rounds=3, arrays={"w": __import__("numpy").zeros((3, 2), "float32")})
     assert p["workers"] == 2 and p["rounds"] == 3
     assert p["round_s"]["median"] > 0 and p["chief_aggregate_s"]["median"] is not None
+
+
+def test_worker_scaling_in_process(tmp_path: Path) -> None:
+    s = cost.worker_scaling(tmp_path, worker_counts=(1, 2), rounds=3)
+    assert [p["workers"] for p in s["points"]] == [1, 2]
+    for p in s["points"]:
+        assert p["rounds"] == 3 and p["audit_passed"] and p["steps_per_s"]["median"] > 0
+        assert 0.0 <= p["wait_share"]["median"] < 1.0
+    assert s["time_basis"] == "modelled"

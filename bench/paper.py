@@ -354,8 +354,9 @@ def main(argv: list[str] | None = None) -> int:
     figures.draw_all(reports, args.out)
     print(report.markdown(index, args.out))
     if not args.no_readme:
-        report.write_readme(index, args.out, Path("README.md"))
-        print("README.md results section updated")
+        folders = list(dict.fromkeys([args.out, *report.default_folders()]))
+        report.write_readme(folders, Path("README.md"))
+        print(f"README.md results section rewritten from {', '.join(map(str, folders))}")
     print(f"done in {cfg['wall_s']:.0f} s; results in {args.out}")
     return 0
 

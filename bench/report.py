@@ -1,5 +1,6 @@
-"""``python -m bench.report [--results DIR] [--readme]``: the benchmark's results as markdown, from ``paper.json`` (and
-``cost.json``) alone; ``--readme`` replaces the block between BEGIN and END in README.md with it."""
+"""``python -m bench.report [--results DIR ...] [--readme]``: the benchmark's results as markdown, from ``paper.json``
+alone (by default of bench/results, the full variant, and bench/results/quick, those that exist); ``--readme``
+replaces the block between BEGIN and END in README.md with it."""
 
 from __future__ import annotations
 
@@ -54,7 +55,9 @@ def markdown(index: dict[str, Any], results: Path, readme_dir: Path | None = Non
         f"{seeds['tuning'][0]}-{seeds['tuning'][-1]}. M = {cfg['max_episodes']} episodes. Every number below is the "
         "last worker's (the episode or env step at which the last worker of a run met the stop rule: mean of its "
         "last 10 returns >= TC), median [interquartile range] over seeds; an unfinished run counts as worse than "
-        "any finished one.",
+        "any finished one. \"1 worker of ours alone\" is worker w0 of the same base seed learning without a "
+        "federation (so it is also one of the four learners of `independent`); SB3 counts the episodes and steps of "
+        "all its vector envs together.",
         "",
     ]
     for task, rep in index["tasks"].items():
@@ -210,23 +213,43 @@ def replace_block(text: str, block: str) -> str:
     return text[:start + len(BEGIN)] + "\n" + block + text[end:]
 
 
-def write_readme(index: dict[str, Any], results: Path, readme: Path) -> None:
-    readme.write_text(replace_block(readme.read_text(), markdown(index, results, readme.resolve().parent)))
+def default_folders() -> list[Path]:
+    """The committed results folders that exist: the full variant's first, then the quick one's."""
+    return [f for f in (Path("bench/results"), Path("bench/results/quick")) if (f / "paper.json").exists()]
+
+
+def render(folders: list[Path], readme_dir: Path | None = None) -> str:
+    """The section for each folder's paper.json, one after the other, each under a heading naming its variant."""
+    parts = []
+    for folder in folders:
+        index = json.loads((folder / "paper.json").read_text())
+        cfg = index["config"]
+        title = (f"#### {cfg['variant'].capitalize()} variant: {', '.join(cfg['tasks'])}, "
+                 f"{len(cfg['seeds']['report'])} seeds, M = {cfg['max_episodes']}")
+        parts.append(title + "\n\n" + markdown(index, folder, readme_dir))
+    return "\n".join(parts)
+
+
+def write_readme(folders: list[Path], readme: Path) -> None:
+    """Rewrite README's results block from ``folders``."""
+    readme.write_text(replace_block(readme.read_text(), render(folders, readme.resolve().parent)))
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.report", description=__doc__.splitlines()[0])
-    parser.add_argument("--results", type=Path, default=Path("bench/results"),
-                        help="folder with paper.json (default bench/results; bench/results/quick for the quick one)")
+    parser.add_argument("--results", type=Path, nargs="+",
+                        help="folders with paper.json (default: bench/results and bench/results/quick, those present)")
     parser.add_argument("--readme", nargs="?", const=Path("README.md"), type=Path,
                         help="replace the results block of this README (default README.md)")
     args = parser.parse_args(argv)
-    index = json.loads((args.results / "paper.json").read_text())
+    folders = args.results or default_folders()
+    if not folders:
+        parser.error("no paper.json found: run make bench or make bench-quick first")
     if args.readme:
-        write_readme(index, args.results, args.readme)
-        print(f"{args.readme}: results section rewritten from {args.results / 'paper.json'}")
+        write_readme(folders, args.readme)
+        print(f"{args.readme}: results section rewritten from {', '.join(str(f / 'paper.json') for f in folders)}")
     else:
-        print(markdown(index, args.results))
+        print(render(folders))
     return 0
 
 

@@ -28,8 +28,9 @@ def spread(values: Sequence[float]) -> dict[str, float | int | None]:
     vals = sorted(float(v) for v in values)
     if not vals:
         return {"n": 0, "median": None, "q1": None, "q3": None, "min": None, "max": None}
-    return {"n": len(vals), "median": _quantile(vals, 0.5), "q1": _quantile(vals, 0.25), "q3": _quantile(vals, 0.75),
-            "min": vals[0], "max": vals[-1]}
+    out = {"median": _quantile(vals, 0.5), "q1": _quantile(vals, 0.25), "q3": _quantile(vals, 0.75), "min": vals[0],
+           "max": vals[-1]}
+    return {"n": len(vals), **{k: v if math.isinf(v) else round(v, 6) for k, v in out.items()}}
 
 
 def _quantile(sorted_vals: list[float], q: float) -> float:

@@ -174,6 +174,6 @@ def test_figures_and_readme_from_the_fixture(tmp_path: Path) -> None:
     assert "`independent` seeds 103" in text and "[`fig7-episodes.png`](fig7-episodes.png)" in text
     assert "t ~ N^1.00" in text and "| CartPole-v0 | <= 40 episodes | `weighted`: 36.5 episodes" in text
     again = report.markdown(index, tmp_path, tmp_path)
-    assert again in text  # regenerating gives the same block
+    assert again in text and "#### Quick variant: CartPole-v0, 4 seeds, M = 200" in text  # the same block again
     with pytest.raises(ValueError):
         report.replace_block("no markers", "x")

@@ -34,8 +34,9 @@ def cell(s: dict[str, Any], steps: bool = False) -> str:
 def _p(test: dict[str, Any]) -> str:
     if not test or test.get("p") is None:
         return "-"
-    mark = "**" if test["significant"] else ""
-    return f"{mark}p = {test['p']:.3g}, {test['direction']}{mark}"
+    if not test["significant"]:
+        return f"p = {test['p']:.3g}"
+    return f"**p = {test['p']:.3g}, {test['direction']}**"
 
 
 def _rel(link: str, results: Path, readme_dir: Path) -> str:

@@ -4,13 +4,15 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint venv bench soak clean help test-docker docker-dev
+.PHONY: run test lint venv bench bench-quick soak clean help test-docker docker-dev
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
 	@echo "make test   - the whole test suite (creates the virtual environment first)"
 	@echo "make lint   - ruff"
-	@echo "make bench  - benchmarks into bench/results/"
+	@echo "make bench  - the paper's experiment (python -m bench.paper): every task and strategy, 10 seeds, references, cost;"
+	@echo "              JSON + figures into bench/results/, README results section (hours on 2 cores)"
+	@echo "make bench-quick - its reduced variant into bench/results/quick/ (under 15 min on 2 cores)"
 	@echo "make soak   - 16 workers over Mosquitto to the end, memory and round latency watched (bench/results/soak.*)"
 	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
 	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
@@ -19,7 +21,7 @@ venv: $(STAMP)
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev,deploy,video]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev,deploy,video,bench]"
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -33,7 +35,10 @@ lint: $(STAMP)
 	$(BIN)/python -m ruff check .
 
 bench: $(STAMP)
-	$(BIN)/python -m bench
+	$(BIN)/python -m bench.paper
+
+bench-quick: $(STAMP)
+	$(BIN)/python -m bench.paper --quick
 
 soak: $(STAMP)
 	$(BIN)/python -m bench.soak

@@ -1,8 +1,13 @@
 """``python -m bench``: list the benchmarks (each is its own module with --help)."""
 
 BENCHES = {
-    "bench.policies": "episodes until all workers solve, per federation policy and seed (JSON + PNG)",
-    "bench.latency": "state-to-action and read-to-motor latency through the real-time bridge loop, per broker",
+    "bench.paper": "the paper's Section V experiment (make bench; --quick: make bench-quick): every task and "
+                   "strategy, statistics, references, cost, figures, README section",
+    "bench.report": "the README results section from bench/results/paper.json (--readme rewrites it)",
+    "bench.figures": "redraw Figures 5 and 7 (episodes and env steps) from a results folder",
+    "bench.cost": "bytes per round; chief time per round for 4, 16, 64 workers over Mosquitto and amqtt",
+    "bench.policies": "episodes until all workers solve, per federation policy and seed, one task (JSON + PNG)",
+    "bench.latency": "state-to-action latency through the real-time bridge loop, per broker",
     "bench.reset": "swing-up reset success over pendulum damping x rig spread x Coulomb friction",
     "bench.loop_cost": "per-tick cost of the bridge loop (SPI transfer, sense, publish, wait, write)",
     "bench.soak": "16 workers over Mosquitto to the end: broker and chief memory over time, round latency",
@@ -11,4 +16,4 @@ BENCHES = {
 if __name__ == "__main__":
     print("benchmarks (run with python -m <name> --help):")
     for name, what in BENCHES.items():
-        print(f"  {name:<18} {what}")
+        print(f"  {name:<15} {what}")

@@ -12,6 +12,7 @@ per-worker episodes as a federation over MQTT (a test checks this).
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -55,24 +56,37 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     open_: dict[str, WorkerUpdate | MatureParams] = {}  # each worker's submission for its open round
     sent: set[str] = set()  # workers whose open submission the chief has counted: they wait for its answer
     answers: dict[int, ChiefAggregate | ChiefTransfer] = {}  # closed rounds' answers, as the wire carries them
+    worker_s: dict[str, list[float]] = {wid: [] for wid in ids}  # per episode: the worker's own seconds
+    chief_s: list[float] = []  # per round: the chief side's seconds (encoding both ways, the state machine)
+    chief_acc = 0.0
     try:
         while not keeper.done:
             for wid in [w for w in ids if keeper.workers[w].state != "finished" or keeper.workers[w].helping]:
                 algo = algos[wid]
                 if wid not in open_:
-                    open_[wid] = _wire(algo.play(), WorkerUpdate, MatureParams)
+                    start = time.perf_counter()
+                    played = algo.play()
+                    worker_s[wid].append(time.perf_counter() - start)
+                    open_[wid] = _wire(played, WorkerUpdate, MatureParams)
                 if wid in sent:
                     continue
                 while True:
                     msg = open_[wid]
+                    start = time.perf_counter()
                     verdict = keeper.submit(submission_of(msg), time.monotonic() - t0)
                     if verdict.status == "accepted":
                         metrics.episode(verdict.record(time.monotonic() - t0))
                     for outcome in verdict.outcomes:
                         metrics.round({**outcome.record(), "t": round(time.monotonic() - t0, 3)})
                         answers[outcome.round] = _wire(answer_of(outcome), ChiefAggregate, ChiefTransfer)
+                    chief_acc += time.perf_counter() - start
+                    for _ in verdict.outcomes:
+                        chief_s.append(chief_acc / len(verdict.outcomes))
+                    chief_acc = 0.0 if verdict.outcomes else chief_acc
                     if isinstance(msg, MatureParams) and verdict.ack is not None and not verdict.ack.accepted:
+                        start = time.perf_counter()
                         open_[wid] = _wire(algo.refused(msg), WorkerUpdate)  # refused: it learns on
+                        worker_s[wid][-1] += time.perf_counter() - start
                         continue
                     break
                 sent.add(wid)
@@ -88,7 +102,9 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                 if algo.round not in answers:
                     continue  # its round is still open (it went ahead of the others): it waits, as over MQTT
                 sent.discard(wid)
+                start = time.perf_counter()
                 nxt = algo.apply(answers[algo.round])
+                worker_s[wid][-1] += time.perf_counter() - start
                 if nxt is None:
                     del open_[wid]  # its episode's rounds are done: it plays the next one
                 else:
@@ -105,6 +121,9 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     summary = run_summary(keeper, keeper.done_reason or "stopped", run_id=run_dir.name, seed=seed, mode="in-process",
                           wall_s=round(time.monotonic() - t0, 2), rejected_messages={})
     write_summary(run_dir, summary)
+    (run_dir / "timing.json").write_text(json.dumps(
+        {"worker_s": {w: [round(x, 5) for x in v] for w, v in worker_s.items()},
+         "chief_s": [round(x, 5) for x in chief_s]}) + "\n")
     if plot:
         plot_learning_curves(run_dir, metrics.curves, spec.tc,
                              f"{env_id}, {workers} workers, policy {policy}, seed {seed} (in-process)")

@@ -1,0 +1,365 @@
+"""``python -m bench.paper`` (``make bench``): the paper's Section V experiment, with statistics, references and cost.
+
+Every task (the four gymnasium tasks with 4 workers, the simulated QUBE with 3 rigs) under every strategy of the
+registry (chief/strategies/, found automatically), on base seeds never used for tuning. Each run is the same chief
+and worker logic as ``make run``: in process by default (deploy.inprocess), or ``--mode mqtt`` (deploy.run_local:
+embedded broker, chief and workers as separate processes; ``qube-local`` then becomes ``qube``, rigs over MQTT).
+Runs go ``--jobs`` at a time (default: the number of cores), each single-threaded.
+
+In the same run: one worker of ours alone (``independent``, 1 worker) and Stable-Baselines3 PPO with its zoo
+hyperparameters (bench/sb3_ref.py), on the same seeds and under the same stop rule; and the cost benchmark
+(bench/cost.py). Results: ``<out>/paper.json`` (configuration, per task the median [IQR] of the last worker's
+episodes and steps, the rank tests against ``independent``, the references, the targets of issue 8) and
+``<out>/paper-<task>.json`` (the same plus every run), figures ``fig5-*.png`` and ``fig7-*.png``, ``cost.json``;
+finally the README's results section (bench/report.py). Run folders go to ``bench/results/runs/<variant>/``
+(not committed); ``--resume`` reuses the results of runs already there.
+
+``--quick`` (``make bench-quick``) is a reduced variant for a 2-core machine in under 15 minutes: see QUICK.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import math
+import os
+import platform
+import sys
+import time
+from collections.abc import Iterable
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from bench import stats
+from bench.runs import Job, execute
+from chief import strategies as registry
+from protocol.tasks import TASKS as TASK_SPECS
+
+TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1", "qube-local")
+#: Base seeds reported: never used for tuning (their worker seeds are seed*1000 + i, i.e. 101000-110003).
+REPORT_SEEDS = tuple(range(101, 111))
+#: Base seeds used while tuning and checking: worker/envs.py's presets (single workers on seeds 1-10 and on the
+#: worker seeds 1000-1003, 2000-2003, 3000-3003 of base seeds 1-3), bench.policies and the README's earlier tables
+#: (1-5), the end-to-end tests (1-3). Never reported here.
+TUNING_SEEDS = tuple(range(1, 13))
+BASELINE = "independent"
+DEFAULT_M = 2000
+RIG_STEP_S = 0.007  # the QUBE-Servo 2's control period: one env step
+
+#: Issue 8's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
+TARGETS: dict[str, dict[str, float]] = {
+    "CartPole-v0": {"episodes": 40},
+    "Acrobot-v1": {"episodes": 60},
+    "MountainCarContinuous-v0": {"episodes": 20, "solved_share": 0.9},
+    "Pendulum-v1": {"episodes": 100},
+    "qube-local": {"balance_s": 240.0},  # 4 min of simulated balance time per rig (steps of 7 ms)
+    "qube": {"balance_s": 240.0},
+}
+
+#: The quick variant (make bench-quick), for under 15 minutes on the 2-core VM. What it leaves out: MountainCar-
+#: Continuous-v0, Pendulum-v1 and the QUBE (the slow tasks), seeds 104-110, episodes past 300 (a run still learning
+#: then is unfinished), SB3 on Acrobot (16 envs, about 50k steps per run), most rounds of the chief load benchmark,
+#: and the 64-worker in-process scaling run (bench.cost.worker_scaling).
+QUICK: dict[str, Any] = {"tasks": ("CartPole-v0", "Acrobot-v1"), "seeds": (101, 102, 103), "max_episodes": 300,
+                         "sb3_tasks": ("CartPole-v0",), "cost_rounds": 6, "cost_workers": (4, 16, 64),
+                         "scaling_workers": (4, 16), "scaling_rounds": 10}
+#: The full variant's worker scaling runs (bench.cost.worker_scaling): CartPole-v0 for 30 rounds with 4, 16, 64.
+FULL_SCALING: dict[str, Any] = {"scaling_workers": (4, 16, 64), "scaling_rounds": 30}
+#: Relative cost of a run, to start the longest first.
+_COST = {"qube-local": 20.0, "qube": 20.0, "Pendulum-v1": 8.0, "MountainCarContinuous-v0": 2.0}
+
+
+def default_workers(task: str) -> int:
+    return 3 if task.startswith("qube") else 4
+
+
+def plan(tasks: Iterable[str], strategy_names: Iterable[str], seeds: Iterable[int], workers: int | None,
+         max_episodes: int, mode: str, references: Iterable[str], sb3_tasks: Iterable[str] | None = None
+         ) -> list[Job]:
+    """Every run of the experiment: federations, then the references."""
+    from bench.sb3_ref import ZOO
+
+    jobs: list[Job] = []
+    refs = set(references)
+    sb3 = set(ZOO) if sb3_tasks is None else set(sb3_tasks)
+    for task in tasks:
+        n = workers or default_workers(task)
+        for seed in seeds:
+            jobs += [Job("federation", task, s, seed, n, max_episodes, mode) for s in strategy_names]
+            if "single" in refs:
+                jobs.append(Job("single", task, BASELINE, seed, 1, max_episodes, mode))
+            if "sb3" in refs and task in sb3 and task in ZOO:
+                jobs.append(Job("sb3", task, "sb3-zoo-ppo", seed, 1, 0, "inprocess"))
+    return jobs
+
+
+def _init_worker() -> None:
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def run_jobs(jobs: list[Job], parallel: int, runs_dir: Path, resume: bool = False) -> list[dict[str, Any]]:
+    """Run every job, ``parallel`` at a time (1: in this process); results in the jobs' order. Each result is also
+    appended to ``runs_dir/results.jsonl`` as it comes (``resume`` reuses those of the same jobs)."""
+    runs_dir.mkdir(parents=True, exist_ok=True)
+    log_path = runs_dir / "results.jsonl"
+    done: dict[tuple[Any, ...], dict[str, Any]] = {}
+    if resume and log_path.exists():
+        for line in log_path.read_text().splitlines():
+            rec = json.loads(line)
+            if "error" not in rec:
+                done[Job(**rec["job"]).key] = rec
+    todo = [j for j in jobs if j.key not in done]
+    todo.sort(key=lambda j: -_COST.get(j.task, 1.0) * (1 if j.kind == "federation" else 0.5))
+    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} reused, {len(todo)} to run, {parallel} at a time", flush=True)
+    t0 = time.monotonic()
+    with log_path.open("a") as log:
+        def record(result: dict[str, Any]) -> None:
+            done[Job(**result["job"]).key] = result
+            log.write(json.dumps(result) + "\n")
+            log.flush()
+            print(f"[{time.monotonic() - t0:7.1f}s] {len(done)}/{len(jobs)} {_line(result)}", flush=True)
+
+        if parallel <= 1:
+            for job in todo:
+                record(execute(job, runs_dir))
+        else:
+            os.environ.setdefault("OMP_NUM_THREADS", "1")
+            with ProcessPoolExecutor(max_workers=parallel, mp_context=get_context("spawn"),
+                                     initializer=_init_worker) as pool:
+                pending: set[Future] = {pool.submit(execute, job, runs_dir) for job in todo}
+                while pending:
+                    finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        record(future.result())
+    return [done[j.key] for j in jobs]
+
+
+def _line(r: dict[str, Any]) -> str:
+    head = f"{r['task']} {r['kind']} {r['strategy']} s{r['seed']}"
+    if "error" in r:
+        return f"{head}: ERROR {r['error']}"
+    if r["kind"] == "sb3":
+        what = f"solved at episode {r['episodes']} ({r['steps']} steps)" if r["finished"] else "unfinished"
+    else:
+        last = r["last_worker"]
+        what = (f"last worker at episode {last['episodes']} ({last['steps']} steps)" if r["finished"]
+                else f"unfinished ({r['end_reason']})")
+        what += "" if r["audit"]["passed"] else f"; AUDIT FAILED {r['audit']['detail']}"
+    return f"{head}: {what} [{r.get('run_wall_s', 0):.0f} s]"
+
+
+# -- aggregation ----------------------------------------------------------------------------------------------
+
+
+def outcome(r: dict[str, Any]) -> tuple[int | None, int | None]:
+    """(episodes, steps) of a run's last worker (the learner itself for sb3); (None, None) when unfinished."""
+    if "error" in r or not r.get("finished"):
+        return None, None
+    if r["kind"] == "sb3":
+        return r["episodes"], r["steps"]
+    return r["last_worker"]["episodes"], r["last_worker"]["steps"]
+
+
+def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Median [IQR] of the last worker's episodes and steps over every run (unfinished ranked worst), and more."""
+    eps = [outcome(r)[0] for r in runs]
+    steps = [outcome(r)[1] for r in runs]
+    fed = [r for r in runs if r.get("kind") != "sb3" and "error" not in r]
+    workers = [w for r in fed for w in r["per_worker"]]
+    out: dict[str, Any] = {
+        "runs": len(runs), "finished": sum(1 for e in eps if e is not None),
+        "unfinished_seeds": [r["seed"] for r, e in zip(runs, eps, strict=True) if e is None],
+        "errors": {str(r["seed"]): r["error"] for r in runs if "error" in r},
+        "last_worker_episodes": stats.spread_censored(eps), "last_worker_steps": stats.spread_censored(steps),
+        "per_seed": {str(r["seed"]): {"episodes": e, "steps": s} for r, e, s in zip(runs, eps, steps, strict=True)},
+        "modes": sorted({r.get("mode", "?") for r in runs if "error" not in r}),
+    }
+    if fed:
+        out["audits_passed"] = sum(1 for r in fed if r["audit"]["passed"])
+        out["first_worker_episodes"] = stats.spread([r["first_worker_episodes"] for r in fed
+                                                     if r["first_worker_episodes"] is not None])
+        out["last_worker_wall_s"] = stats.spread([r["last_worker"]["wall_s"] for r in fed
+                                                  if r["last_worker"]["wall_s"] is not None])
+        out["steps_per_s"] = stats.spread([w["steps_per_s"] for w in workers if w.get("steps_per_s")])
+        out["wait_share"] = stats.spread([w["wait_share"] for w in workers if w.get("wait_share") is not None])
+        out["time_basis"] = sorted({w.get("time_basis", "?") for w in workers})
+    return out
+
+
+def significance(by_strategy: dict[str, list[dict[str, Any]]], max_episodes: int) -> dict[str, Any]:
+    """Each strategy against BASELINE: two-sided Mann-Whitney U on the last worker's episodes and steps, runs
+    paired by nothing (independent samples), unfinished runs ranked as worse than any finished one."""
+    if BASELINE not in by_strategy:
+        return {}
+    base = by_strategy[BASELINE]
+    out = {}
+    for name, runs in by_strategy.items():
+        if name == BASELINE:
+            continue
+        eps_x, eps_y = [outcome(r)[0] for r in runs], [outcome(r)[0] for r in base]
+        st_x, st_y = [outcome(r)[1] for r in runs], [outcome(r)[1] for r in base]
+        worst_steps = 1 + max([s for s in st_x + st_y if s is not None], default=0)
+        out[name] = {"episodes": stats.compare(eps_x, eps_y, max_episodes + 1),
+                     "steps": stats.compare(st_x, st_y, worst_steps)}
+    return out
+
+
+def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[str, Any], workers: int,
+                    seeds: list[int]) -> dict[str, Any]:
+    """Issue 8's target for this task: the best strategy's median against it, and against half of independent."""
+    target = TARGETS.get(task)
+    if target is None or not summary:
+        return {}
+
+    def key(name: str) -> float:
+        med = summary[name]["last_worker_episodes"]["median"]
+        return math.inf if med is None else med
+
+    best = min(summary, key=key)
+    s = summary[best]
+    med_eps, med_steps = s["last_worker_episodes"]["median"], s["last_worker_steps"]["median"]
+    result: dict[str, Any] = {"target": target, "best_strategy": best, "median_episodes": med_eps,
+                              "median_steps": med_steps,
+                              "comparable": workers == default_workers(task) and len(seeds) >= 10}
+    if "episodes" in target:
+        result["met"] = med_eps is not None and med_eps <= target["episodes"]
+    else:
+        balance = None if med_steps is None else med_steps * RIG_STEP_S
+        result["median_balance_s"] = balance
+        result["met"] = balance is not None and balance <= target["balance_s"]
+    if "solved_share" in target:
+        share = s["finished"] / s["runs"] if s["runs"] else 0.0
+        result["solved_share"] = share
+        result["met"] = result["met"] and share >= target["solved_share"]
+    base = summary.get(BASELINE, {}).get("last_worker_episodes", {}).get("median")
+    test = tests.get(best, {}).get("episodes", {})
+    result["independent_median_episodes"] = base
+    result["half_of_independent"] = (med_eps is not None and (base is None or med_eps <= 0.5 * base)
+                                     and bool(test.get("significant")) and test.get("direction") == "fewer")
+    return result
+
+
+def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -> dict[str, Any]:
+    """Everything about one task: summaries per strategy, tests, references, target, and every run."""
+    mine = [r for r in results if r["task"] == task]
+    fed = [r for r in mine if r["kind"] == "federation"]
+    names = [s for s in cfg["strategies"] if any(r["strategy"] == s for r in fed)]
+    by_strategy = {s: [r for r in fed if r["strategy"] == s] for s in names}
+    summary = {s: summarize(runs) for s, runs in by_strategy.items()}
+    tests = significance(by_strategy, cfg["max_episodes"])
+    workers = fed[0]["workers"] if fed else (cfg["workers"] or default_workers(task))
+    refs = {}
+    for kind in ("single", "sb3"):
+        runs = [r for r in mine if r["kind"] == kind]
+        if runs:
+            refs[kind] = summarize(runs)
+            if kind == "sb3":
+                refs[kind]["zoo_entry"] = next((r["zoo_entry"] for r in runs if "zoo_entry" in r), None)
+                refs[kind]["n_envs"] = next((r["n_envs"] for r in runs if "n_envs" in r), None)
+    return {"task": task, "tc": TASK_SPECS[task].tc, "workers": workers, "max_episodes": cfg["max_episodes"],
+            "mode": cfg["mode"], "seeds": cfg["seeds"], "strategies": names, "summary": summary,
+            "significance": tests, "references": refs,
+            "target": evaluate_target(task, summary, tests, workers, cfg["seeds"]["report"]),
+            "runs": mine}
+
+
+# -- command line -----------------------------------------------------------------------------------------------
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    names = registry.names()
+    parser = argparse.ArgumentParser(prog="python -m bench.paper", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="the reduced variant (make bench-quick): " + ", ".join(
+        f"{k}={v}" for k, v in QUICK.items()))
+    parser.add_argument("--tasks", nargs="+", choices=sorted(TASK_SPECS), help=f"default: {' '.join(TASKS)}")
+    parser.add_argument("--strategies", nargs="+", choices=names, help="default: every registered one")
+    parser.add_argument("--seeds", nargs="+", type=int, help="base seeds (default 101-110, never used for tuning)")
+    parser.add_argument("--workers", type=int, help="workers per federation (default 4; 3 rigs for the QUBE)")
+    parser.add_argument("--max-episodes", type=int, help=f"M, the most rounds a run takes (default {DEFAULT_M})")
+    parser.add_argument("--mode", choices=["inprocess", "mqtt"], default="inprocess",
+                        help="inprocess (default): deploy.inprocess; mqtt: deploy.run_local, as make run")
+    parser.add_argument("--jobs", type=int, help="runs at a time (default: cores for inprocess, 1 for mqtt)")
+    parser.add_argument("--references", nargs="*", default=["single", "sb3"], choices=["single", "sb3"],
+                        help="reference runs on the same seeds (default: single sb3)")
+    parser.add_argument("--no-cost", action="store_true", help="skip the cost benchmark (bench/cost.py)")
+    parser.add_argument("--no-readme", action="store_true", help="do not rewrite the README's results section")
+    parser.add_argument("--resume", action="store_true", help="reuse results of runs already in the runs folder")
+    parser.add_argument("--out", type=Path, help="results folder (default bench/results, or bench/results/quick)")
+    parser.add_argument("--runs-dir", type=Path, help="run folders (default bench/results/runs/<full|quick>)")
+    args = parser.parse_args(argv)
+    quick = args.quick
+    args.tasks = args.tasks or list(QUICK["tasks"] if quick else TASKS)
+    if args.mode == "inprocess" and "qube" in args.tasks:
+        parser.error("the in-process mode has no MQTT rigs: use qube-local (or --mode mqtt)")
+    if args.mode == "mqtt":
+        args.tasks = ["qube" if t == "qube-local" else t for t in args.tasks]
+    args.strategies = args.strategies or names
+    args.seeds = args.seeds or list(QUICK["seeds"] if quick else REPORT_SEEDS)
+    args.max_episodes = args.max_episodes or (QUICK["max_episodes"] if quick else DEFAULT_M)
+    args.jobs = args.jobs or ((os.cpu_count() or 1) if args.mode == "inprocess" else 1)
+    args.out = args.out or (Path("bench/results/quick") if quick else Path("bench/results"))
+    args.runs_dir = args.runs_dir or Path("bench/results/runs") / ("quick" if quick else "full")
+    return args
+
+
+def seeds_block(seeds: list[int]) -> dict[str, Any]:
+    return {"report": list(seeds), "tuning": list(TUNING_SEEDS),
+            "report_seeds_used_for_tuning": sorted(set(seeds) & set(TUNING_SEEDS)),
+            "note": "report seeds are base seeds; worker i of a run uses seed*1000 + i. The tuning seeds were used "
+                    "for worker/envs.py's presets (single workers on seeds 1-10 and on 1000-1003, 2000-2003, "
+                    "3000-3003, the worker seeds of base seeds 1-3), bench.policies, the README's earlier tables "
+                    "and the end-to-end tests."}
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    started = time.monotonic()
+    cfg = {"variant": "quick" if args.quick else "full", "mode": args.mode, "strategies": args.strategies,
+           "tasks": args.tasks, "seeds": seeds_block(args.seeds), "workers": args.workers,
+           "max_episodes": args.max_episodes, "jobs": args.jobs, "references": args.references,
+           "baseline": BASELINE, "command": "python -m bench.paper " + " ".join(argv if argv is not None
+                                                                                 else sys.argv[1:]),
+           "machine": {"cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}}
+    if cfg["seeds"]["report_seeds_used_for_tuning"]:
+        print(f"WARNING: seeds {cfg['seeds']['report_seeds_used_for_tuning']} were used for tuning", file=sys.stderr)
+    jobs = plan(args.tasks, args.strategies, args.seeds, args.workers, args.max_episodes, args.mode,
+                args.references, QUICK["sb3_tasks"] if args.quick else None)
+    results = run_jobs(jobs, args.jobs, args.runs_dir, resume=args.resume)
+    cfg["runs_wall_s"] = round(time.monotonic() - started, 1)
+    args.out.mkdir(parents=True, exist_ok=True)
+    reports = {task: task_report(task, results, cfg) for task in args.tasks}
+    for task, rep in reports.items():
+        (args.out / f"paper-{task}.json").write_text(json.dumps({"config": cfg, **rep}, indent=1) + "\n")
+    cost = None
+    if not args.no_cost:
+        from bench import cost as cost_bench
+
+        scaling = QUICK if args.quick else FULL_SCALING
+        cost = cost_bench.run_all(args.out, rounds=QUICK["cost_rounds"] if args.quick else cost_bench.ROUNDS,
+                                  worker_counts=QUICK["cost_workers"] if args.quick else cost_bench.WORKER_COUNTS,
+                                  paper_reports=reports, scaling_rounds=scaling["scaling_rounds"],
+                                  scaling_workers=scaling["scaling_workers"], runs_dir=args.runs_dir)
+    cfg["wall_s"] = round(time.monotonic() - started, 1)
+    cfg["finished_at"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
+    index = {"config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},
+             "cost": cost}
+    (args.out / "paper.json").write_text(json.dumps(index, indent=1) + "\n")
+    from bench import figures, report
+
+    figures.draw_all(reports, args.out)
+    print(report.markdown(index, args.out))
+    if not args.no_readme:
+        folders = list(dict.fromkeys([args.out, *report.default_folders()]))
+        report.write_readme(folders, Path("README.md"))
+        print(f"README.md results section rewritten from {', '.join(map(str, folders))}")
+    print(f"done in {cfg['wall_s']:.0f} s; results in {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

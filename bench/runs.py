@@ -1,0 +1,245 @@
+"""One benchmark run and what is measured from its run folder.
+
+A run is a federation (``kind: federation``), one worker of ours alone (``kind: single``) or Stable-Baselines3's
+PPO (``kind: sb3``, bench/sb3_ref.py). Federations run either in process (``deploy.inprocess``, the default for
+sweeps) or as ``make run`` does (``deploy.run_local``: embedded broker, chief and workers as separate processes);
+each result names its mode. Every federation's run folder is audited (chief.audit).
+
+Per worker, from the run folder:
+
+- ``episodes`` and ``steps``: until it finished (its MatureParams), or so far when it did not;
+- ``own_s``: seconds spent in its own code (in process: timing.json, playing episodes, PPO updates and applying the
+  chief's answers; over MQTT: from the chief's accept times, each episode from the answer to the previous round to
+  the next submission, i.e. including the answer's and the submission's trip through the broker);
+- ``wall_s``: seconds until it finished. Over MQTT: the chief's accept time of its mature actor, counted from the
+  run's first accepted submission. In process the workers take turns on one core, so wall time is modelled as if
+  each had a core of its own: every round lasts as long as its slowest worker plus the chief's part;
+- ``wait_share``: the share of its wall time spent waiting for the chief's answer (and so for the slower workers):
+  1 - own_s / wall_s in process; over MQTT the time from its submission to the round's answer, over that plus own_s,
+  for the rounds it took part in before finishing;
+- ``steps_per_s``: env steps per second of its own time.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import time
+import traceback
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+#: Most points a run's learning curve keeps (evenly spaced, the last one always).
+CURVE_POINTS = 250
+
+
+@dataclass(frozen=True)
+class Job:
+    """One run of the benchmark."""
+
+    kind: str  # federation | single | sb3
+    task: str
+    strategy: str
+    seed: int
+    workers: int
+    max_episodes: int
+    mode: str = "inprocess"  # inprocess | mqtt (federations and single workers)
+
+    @property
+    def key(self) -> tuple[Any, ...]:
+        return (self.kind, self.task, self.strategy, self.seed, self.workers, self.max_episodes, self.mode)
+
+    @property
+    def name(self) -> str:
+        return f"{self.task}-{self.kind}-{self.strategy}-s{self.seed}-n{self.workers}-m{self.max_episodes}-{self.mode}"
+
+
+def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
+    """Run one job (in this process, or its launcher as a child process); never raises: errors are results."""
+    t0 = time.monotonic()
+    try:
+        if job.kind == "sb3":
+            from bench import sb3_ref
+
+            result = sb3_ref.run(job.task, job.seed)
+            result["mode"] = "in-process"
+        else:
+            run_dir = runs_dir / job.name
+            shutil.rmtree(run_dir, ignore_errors=True)
+            if job.mode == "inprocess":
+                from deploy.inprocess import run_federation
+
+                run_federation(job.task, job.strategy, job.seed, job.workers, job.max_episodes, run_dir,
+                               plot=False)
+            else:
+                _run_mqtt(job, run_dir)
+            result = collect(run_dir, job)
+    except Exception as err:  # a failed run is reported, never dropped
+        result = {"kind": job.kind, "task": job.task, "strategy": job.strategy, "seed": job.seed,
+                  "workers": job.workers, "max_episodes": job.max_episodes, "finished": False,
+                  "error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-3000:]}
+    result["job"] = asdict(job)
+    result["run_wall_s"] = round(time.monotonic() - t0, 2)
+    return result
+
+
+def _run_mqtt(job: Job, run_dir: Path) -> None:
+    env = "qube" if job.task == "qube-local" else job.task
+    proc = subprocess.run(
+        [sys.executable, "-m", "deploy.run_local", "--env", env, "--policy", job.strategy, "--seed", str(job.seed),
+         "--workers", str(job.workers), "--max-episodes", str(job.max_episodes), "--run-dir", str(run_dir),
+         "--run-id", f"bench-{job.strategy}-s{job.seed}-n{job.workers}"],
+        capture_output=True, text=True)
+    if not (run_dir / "summary.json").exists():
+        raise RuntimeError(f"deploy.run_local exited {proc.returncode} without a summary: "
+                           f"{proc.stdout[-1500:]} {proc.stderr[-1500:]}")
+
+
+def read_records(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
+    """summary.json, the episode records and the round records of metrics.jsonl (the later-step records of a
+    per-step strategy are left out: the episode record has what the benchmark needs)."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    episodes, rounds = [], []
+    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+        if line.strip():
+            rec = json.loads(line)
+            if rec.get("type") == "round":
+                rounds.append(rec)
+            elif rec.get("type") == "episode":
+                episodes.append(rec)
+    return summary, episodes, rounds
+
+
+def collect(run_dir: Path, job: Job) -> dict[str, Any]:
+    """A federation's result from its run folder (summary, records, timing), with its audit."""
+    from chief.audit import AuditFailure, audit
+
+    summary, episodes, rounds = read_records(run_dir)
+    try:
+        audited = {"passed": True, "detail": str(audit(run_dir))}
+    except AuditFailure as failure:
+        audited = {"passed": False, "detail": str(failure)}
+    timing_path = run_dir / "timing.json"
+    timing = json.loads(timing_path.read_text()) if timing_path.exists() else None
+    mode = summary.get("mode", "mqtt")
+    workers = per_worker(summary, episodes, rounds, timing, int(summary.get("rounds_per_episode", 1)))
+    finished = summary["episodes_to_all_solved"] is not None
+    last = max(workers, key=lambda w: (w["episodes"], w["steps"]))
+    solved = [w for w in workers if w["solved"]]
+    return {
+        "kind": job.kind, "task": job.task, "strategy": job.strategy, "seed": job.seed, "workers": job.workers,
+        "max_episodes": job.max_episodes, "mode": mode, "finished": finished, "end_reason": summary["end_reason"],
+        "rounds": summary["rounds"],
+        "last_worker": {"episodes": last["episodes"] if finished else None,
+                        "steps": last["steps"] if finished else None,
+                        "wall_s": max((w["wall_s"] for w in workers if w["wall_s"] is not None), default=None)
+                        if finished else None,
+                        "episodes_reached": last["episodes"], "steps_reached": last["steps"]},
+        "first_worker_episodes": min((w["episodes"] for w in solved), default=None),
+        "solved_workers": len(solved), "total_steps": summary["total_steps"], "per_worker": workers,
+        "audit": audited, "curve": learning_curve(episodes), "run_dir": str(run_dir),
+    }
+
+
+def per_worker(summary: dict[str, Any], episodes: list[dict[str, Any]], rounds: list[dict[str, Any]],
+               timing: dict[str, Any] | None, per_episode: int = 1) -> list[dict[str, Any]]:
+    """Each worker's episodes, steps, own time, wall time, waiting share and env steps per second."""
+    out = []
+    for w in summary["workers"]:
+        n, steps = int(w["episodes"]), int(w["steps"])
+        row = {"id": w["id"], "solved": bool(w["solved"]), "episodes": n, "steps": steps}
+        if timing is not None:
+            row.update(_modelled_times(w["id"], n, timing, per_episode))
+        else:
+            row.update(_mqtt_times(w["id"], n, episodes, rounds, per_episode))
+        own = row.get("own_s")
+        row["steps_per_s"] = round(row.pop("timed_steps", steps) / own, 1) if own else None
+        if not w["solved"]:
+            row["wall_s"] = None if timing is None else row["wall_s"]
+        out.append(row)
+    return out
+
+
+def _modelled_times(wid: str, n: int, timing: dict[str, Any], per_episode: int = 1) -> dict[str, Any]:
+    """In process: the worker's own seconds, and its wall time as if every worker had its own core (the chief's
+    seconds per round summed per episode when an episode has several rounds)."""
+    mine = timing["worker_s"][wid][:n]
+    per_round = timing["chief_s"]
+    chief = [sum(per_round[i:i + per_episode]) for i in range(0, len(per_round), per_episode)]
+    everyone = timing["worker_s"].values()
+    wall = 0.0
+    for r in range(len(mine)):
+        wall += max(s[r] for s in everyone if len(s) > r) + (chief[r] if r < len(chief) else 0.0)
+    own = sum(mine)
+    return {"own_s": round(own, 3), "wall_s": round(wall, 3),
+            "wait_share": round(1.0 - own / wall, 4) if wall > 0 else None, "time_basis": "modelled"}
+
+
+def _mqtt_times(wid: str, n: int, episodes: list[dict[str, Any]], rounds: list[dict[str, Any]],
+                per_episode: int = 1) -> dict[str, Any]:
+    """Over MQTT, from the chief's clock: accept times of the worker's episode submissions and of the answer to each
+    episode's last round (an episode's later-step exchanges count as waiting)."""
+    sent = {r["episode"]: r for r in episodes if r["worker"] == wid}
+    answered = {(r["round"] - 1) // per_episode + 1: r["t"] for r in rounds
+                if (r["round"] - 1) % per_episode == per_episode - 1}
+    start = min((r["t"] for r in episodes), default=0.0)
+    own = wait = 0.0
+    steps = 0
+    for e in range(1, n + 1):
+        if e not in sent:
+            continue
+        t = sent[e]["t"]
+        if e >= 2 and (e - 1) in answered:  # from the previous answer to this submission: the worker's own time
+            own += max(0.0, t - answered[e - 1])
+            steps += int(sent[e]["steps"])
+        if e < n and e in answered:  # from this submission to the round's answer: waiting
+            wait += max(0.0, answered[e] - t)
+    end = sent[n]["t"] if n in sent else None
+    return {"own_s": round(own, 3), "wall_s": round(end - start, 3) if end is not None else None,
+            "wait_share": round(wait / (wait + own), 4) if wait + own > 0 else None, "timed_steps": steps,
+            "time_basis": "chief clock"}
+
+
+def learning_curve(episodes: list[dict[str, Any]]) -> dict[str, list[float]]:
+    """The run's mean over workers of PI (last-10 average return) and of env steps, per episode.
+
+    A worker that finished keeps its last PI and step count (it keeps its mature actor). At most CURVE_POINTS
+    points, evenly spaced, always the last.
+    """
+    by_worker: dict[str, dict[int, tuple[float, int]]] = {}
+    for rec in sorted(episodes, key=lambda r: r["episode"]):
+        by_worker.setdefault(rec["worker"], {})[int(rec["episode"])] = (float(rec["pi"]), int(rec["steps"]))
+    if not by_worker:
+        return {"episode": [], "pi": [], "steps": []}
+    last = max(max(v) for v in by_worker.values())
+    pis, steps = [], []
+    for records in by_worker.values():
+        pi_row, step_row, pi, total = [], [], float("nan"), 0
+        for e in range(1, last + 1):
+            if e in records:
+                pi, inc = records[e]
+                total += inc
+            pi_row.append(pi)
+            step_row.append(total)
+        pis.append(pi_row)
+        steps.append(step_row)
+    keep = _evenly(last, CURVE_POINTS)
+    mean_pi = [_nanmean([row[i] for row in pis]) for i in keep]
+    mean_steps = [sum(row[i] for row in steps) / len(steps) for i in keep]
+    return {"episode": [i + 1 for i in keep], "pi": [None if v != v else round(v, 2) for v in mean_pi],
+            "steps": [round(v, 1) for v in mean_steps]}
+
+
+def _evenly(n: int, most: int) -> list[int]:
+    if n <= most:
+        return list(range(n))
+    picks = {round(i * (n - 1) / (most - 1)) for i in range(most)}
+    return sorted(picks)
+
+
+def _nanmean(values: list[float]) -> float:
+    finite = [v for v in values if v == v]
+    return sum(finite) / len(finite) if finite else float("nan")

@@ -348,10 +348,21 @@ def main(argv: list[str] | None = None) -> int:
     cfg["finished_at"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
     index = {"config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},
              "cost": cost}
+    previous = args.out / "paper.json"
+    if previous.exists():
+        # Tasks measured by an earlier invocation into the same folder (e.g. with another M or other seeds) stay,
+        # each with its own configuration in paper-<task>.json; so does the cost benchmark when skipped now.
+        old = json.loads(previous.read_text())
+        kept = {t: rep for t, rep in old.get("tasks", {}).items() if t not in index["tasks"]}
+        index["tasks"] = {**kept, **index["tasks"]}
+        if cost is None:
+            index["cost"] = old.get("cost")
+        if kept:
+            cfg["earlier_tasks"] = sorted(kept)
     (args.out / "paper.json").write_text(json.dumps(index, indent=1) + "\n")
     from bench import figures, report
 
-    figures.draw_all(reports, args.out)
+    figures.draw_all(figures.load_reports(args.out), args.out)
     print(report.markdown(index, args.out))
     if not args.no_readme:
         folders = list(dict.fromkeys([args.out, *report.default_folders()]))

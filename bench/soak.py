@@ -38,8 +38,9 @@ def rss_mib(pid: int) -> float | None:
     return None
 
 
-def find_chief(run_id: str) -> int | None:
-    """The pid of this run's ``python -m chief`` (found by its FEDRL_RUN_ID)."""
+def chief_pids(run_id: str) -> list[int]:
+    """The running ``python -m chief`` processes of a run (found by their FEDRL_RUN_ID), from /proc."""
+    pids = []
     for proc in Path("/proc").iterdir():
         if not proc.name.isdigit():
             continue
@@ -48,9 +49,9 @@ def find_chief(run_id: str) -> int | None:
             environ = (proc / "environ").read_bytes().split(b"\0")
         except OSError:
             continue
-        if b"chief" in cmdline and f"FEDRL_RUN_ID={run_id}".encode() in environ:
-            return int(proc.name)
-    return None
+        if b"chief" in cmdline and b"-m" in cmdline and f"FEDRL_RUN_ID={run_id}".encode() in environ:
+            pids.append(int(proc.name))
+    return pids
 
 
 def slope_per_minute(samples: list[tuple[float, float]]) -> float | None:
@@ -90,7 +91,7 @@ def main(argv: list[str] | None = None) -> int:
     def sample() -> None:
         chief = None
         while not stop.wait(1.0):
-            chief = chief or find_chief(run_id)
+            chief = chief or next(iter(chief_pids(run_id)), None)
             for name, pid in (("broker", broker.pid), ("chief", chief)):
                 value = rss_mib(pid) if pid else None
                 if value is not None:

@@ -14,28 +14,13 @@ from pathlib import Path
 
 import pytest
 
+from bench.soak import chief_pids
 from chief.audit import audit
 from chief.checkpoint import FILENAME
 
 pytestmark = pytest.mark.slow
 
 RUN = "resume"
-
-
-def chief_pids(run_id: str) -> list[int]:
-    """The running `python -m chief` processes of this run (found by their FEDRL_RUN_ID)."""
-    pids = []
-    for proc in Path("/proc").iterdir():
-        if not proc.name.isdigit():
-            continue
-        try:
-            cmdline = (proc / "cmdline").read_bytes().split(b"\0")
-            environ = (proc / "environ").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        if b"chief" in cmdline and b"-m" in cmdline and f"FEDRL_RUN_ID={run_id}".encode() in environ:
-            pids.append(int(proc.name))
-    return pids
 
 
 def rounds_closed(metrics: Path) -> int:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 
 from protocol import topics
 from protocol.codec import decode, encode
@@ -53,25 +54,19 @@ def worker(broker: str) -> WorkerService:
     return svc
 
 
-def test_a_lost_mature_actor_is_sent_again_until_acknowledged(amqtt_broker: str) -> None:
-    chief = ScriptedChief(amqtt_broker, drop=1, accept=True)
+@pytest.mark.parametrize(("drop", "accept", "received"), [
+    (1, True, [12, 12]),  # the first copy was lost (as in a broker restart), the second acknowledged
+    (0, False, [12]),  # refused, with the reason
+])
+def test_the_mature_actor_is_sent_until_the_chief_answers(amqtt_broker: str, drop: int, accept: bool,
+                                                            received: list[int]) -> None:
+    chief = ScriptedChief(amqtt_broker, drop=drop, accept=accept)
     svc = worker(amqtt_broker)
     try:
         ack = svc._hand_over(mature())
     finally:
         svc.conn.stop()
         chief.conn.stop()
-    assert ack is not None and ack.accepted and ack.worker_id == "w0" and ack.episode == 12
-    assert chief.received == [12, 12]  # the first copy was lost, the second acknowledged
-
-
-def test_a_refusal_comes_back_with_its_reason(amqtt_broker: str) -> None:
-    chief = ScriptedChief(amqtt_broker, drop=0, accept=False)
-    svc = worker(amqtt_broker)
-    try:
-        ack = svc._hand_over(mature())
-    finally:
-        svc.conn.stop()
-        chief.conn.stop()
-    assert ack is not None and not ack.accepted and "not_mature" in ack.reason
-    assert chief.received == [12]
+    assert ack is not None and ack.worker_id == "w0" and ack.episode == 12 and ack.accepted == accept
+    assert accept or "not_mature" in ack.reason
+    assert chief.received == received

@@ -63,7 +63,8 @@ class AuditReport:
         text = (f"{self.rounds} rounds, {self.submissions} counted submissions, {self.transfers} transfers "
                 f"({self.transfer_deliveries} recipients), {self.receipts} receipts confirmed")
         if self.uncounted:
-            text += f"; {len(self.uncounted)} submissions left in the round the aborted run never closed"
+            text += (f"; {len(self.uncounted)} submissions left in a round the run never closed (an aborted run, "
+                     "or a finished helper's after the last finish)")
         return text
 
 
@@ -137,9 +138,14 @@ def audit(run_dir: Path) -> AuditReport:
     for (w, r), e in by_round.items():
         per_round[r][w] = e
     aborted = not str(summary.get("end_reason", "")).startswith(("all workers solved", "reached the maximum"))
+    finished_in = {w["id"]: round_of(int(w["episodes"]), 0) for w in summary["workers"] if w.get("solved")}
     for r in sorted(per_round):
         if r > last_round:
-            _require(aborted, "contributors", f"round {r} of {sorted(per_round[r])} was counted but never closed, "
+            # A worker that finished and keeps helping (finishers_help) may have its next submission accepted
+            # before the last learner's finish ends the run: that round is legitimately never closed.
+            helpers_only = strategy.finishers_help and all(finished_in.get(w, r) < r for w in per_round[r])
+            _require(aborted or helpers_only, "contributors",
+                     f"round {r} of {sorted(per_round[r])} was counted but never closed, "
                      f"although the run ended normally ({summary.get('end_reason')})")
             report.uncounted += [(w, r) for w in sorted(per_round[r])]
     for r in rounds:

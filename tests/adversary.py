@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import os
 import sys
+from typing import Any
 
 from protocol.messages import WorkerUpdate
 from protocol.tensors import pack_arrays, unpack_arrays
@@ -16,10 +17,17 @@ SCALE = float(os.environ.get("FEDRL_LIE_SCALE", "-5"))
 _honest_update = federated.Algorithm2._update
 
 
-def _lying_update(self: federated.Algorithm2, ret: float, steps: int) -> WorkerUpdate:
-    msg = _honest_update(self, ret, steps)
-    poisoned = {k: (SCALE * v).astype(v.dtype) for k, v in unpack_arrays(msg.gradient).items()}
-    return msg.model_copy(update={"gradient": pack_arrays(poisoned)})
+def _lying_update(self: federated.Algorithm2, *args: Any, **kwargs: Any) -> WorkerUpdate:
+    """The honest update with its gradients poisoned (whatever the honest ``_update`` takes)."""
+    msg = _honest_update(self, *args, **kwargs)
+    update = {"gradient": _poison(msg.gradient)}
+    if msg.critic_gradient is not None:
+        update["critic_gradient"] = _poison(msg.critic_gradient)
+    return msg.model_copy(update=update)
+
+
+def _poison(packed: Any) -> Any:
+    return pack_arrays({k: (SCALE * v).astype(v.dtype) for k, v in unpack_arrays(packed).items()})
 
 
 federated.Algorithm2._update = _lying_update  # type: ignore[method-assign]

@@ -207,3 +207,26 @@ def test_the_command_exits_non_zero_naming_the_invariant(honest: Path, tmp_path:
     missing = subprocess.run([sys.executable, "-m", "chief.audit", str(tmp_path / "nope")], capture_output=True,
                              text=True)
     assert missing.returncode == 2 and "cannot read" in missing.stderr
+
+
+@pytest.mark.parametrize("policy", ["sync", "weighted"])
+def test_a_finished_helpers_submission_may_outlive_the_run(tmp_path: Path, policy: str) -> None:
+    """Under a strategy whose finishers keep helping (sync), a finished worker's next submission can be accepted
+    just before the last learner's finish ends the run; its round is never closed, and that is no violation. Under
+    any other strategy a counted submission in a round that never closed is one."""
+    simulate(tmp_path / policy, policy)
+    lines = records(tmp_path / policy)
+    last = max(int(x["round"]) for x in lines if x["type"] == "round")
+    per_episode = 3 if strategies.get(policy).per_step else 1
+    episode, step = divmod(last, per_episode)
+    early = [x for x in lines if x["type"] in ("episode", "step") and x["worker"] == "w0"][-1]
+    closing = first(lines, type="round", round=last)
+    receipt = {"round": last, "applied": closing["kind"], "digest": closing["digest"], "keep": None}
+    lines.append({**early, "type": "step" if step else "episode", "episode": episode + 1, "step": step,
+                  "round": last + 1, "receipt": receipt})
+    rewrite(tmp_path / policy, lines)
+    if not strategies.get(policy).finishers_help:
+        with pytest.raises(AuditFailure, match=r"contributors: round .* was counted but never closed"):
+            audit(tmp_path / policy)
+        return
+    assert audit(tmp_path / policy).uncounted == [("w0", last + 1)]

@@ -20,6 +20,7 @@ from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    STAT_BOUNDS,
     ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
@@ -363,7 +364,8 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
     return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return, recent_returns=tuple(msg.recent_returns),
                       steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
                       receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
-                      step=0 if mature else msg.step, critic_gradient=critic)  # type: ignore[union-attr]
+                      step=0 if mature else msg.step, critic_gradient=critic,  # type: ignore[union-attr]
+                      stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS})
 
 
 def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chief import checkpoint, strategies
+from chief import checkpoint, strategies, tensorboard
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
@@ -133,6 +133,9 @@ class ChiefService:
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
                                           rounds_per_episode=self.roster.update_steps if per_step else 1)
                 self._save()
+            assert self.metrics is not None and self.keeper is not None
+            self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
+                cfg.run_dir, self.keeper.rounds_per_episode, wall_start=time.time() - (time.monotonic() - self.t0)))
             self._announce()
             self._federate()
             return self._finish()

@@ -331,7 +331,7 @@ def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNT
         print(f"cost: {n} workers in process, {rounds} rounds of {task}", flush=True)
         job = Job("federation", task, strategy, seed, n, rounds)
         run_dir = runs_dir / f"scaling-{job.name}"
-        run_federation(task, strategy, seed, n, rounds, run_dir, plot=False)
+        run_federation(task, strategy, seed, n, rounds, run_dir, plot=False, tensorboard_files=False)
         result = collect(run_dir, job)
         chief_s = json.loads((run_dir / "timing.json").read_text())["chief_s"]
         workers = result["per_worker"]

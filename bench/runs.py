@@ -73,7 +73,7 @@ def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
                 from deploy.inprocess import run_federation
 
                 run_federation(job.task, job.strategy, job.seed, job.workers, job.max_episodes, run_dir,
-                               plot=False)
+                               plot=False, tensorboard_files=False)
             else:
                 _run_mqtt(job, run_dir)
             result = collect(run_dir, job)

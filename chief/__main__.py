@@ -16,11 +16,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(
         prog="python -m chief",
         description="Chief of a federated RL run: waits for the workers, runs the rounds of Algorithm 1 (PI-weighted "
-        "gradient sharing and soft transfer), then writes summary.json, metrics.jsonl and learning_curve.png "
-        "into the run folder. Started again with the same --run-id and --run-dir, it resumes the run from its saved "
-        "state (chief-state.msgpack). Exit code 0 when the run ended normally (all solved or the episode limit), 2 on "
-        "a bad option or an unusable run folder, 3 when no worker came, 4 when the run was aborted (every unfinished "
-        "worker offline for --idle-timeout s). FEDRL_MAX_PAYLOAD (bytes) splits larger messages into chunks.",
+        "gradient sharing and soft transfer), writing metrics.jsonl and TensorBoard event files (tensorboard/, with "
+        "the tb extra) as it goes, then summary.json and learning_curve.png into the run folder. Started again with "
+        "the same --run-id and --run-dir, it resumes the run from its saved state (chief-state.msgpack). Exit code 0 "
+        "when the run ended normally (all solved or the episode limit), 2 on a bad option or an unusable run folder, "
+        "3 when no worker came, 4 when the run was aborted (every unfinished worker offline for --idle-timeout s). "
+        "FEDRL_MAX_PAYLOAD (bytes) splits larger messages into chunks.",
     )
     add_common(parser)
     parser.add_argument("--workers", type=int, default=int(env("FEDRL_WORKERS", "4")),

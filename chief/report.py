@@ -7,21 +7,31 @@ from __future__ import annotations
 import json
 import logging
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any, Protocol, TextIO
 
 from chief.rounds import RoundKeeper
 
 log = logging.getLogger(__name__)
 
 
+class RecordSink(Protocol):
+    """Something fed every record as it is written (chief/tensorboard.py's Board)."""
+
+    def record(self, record: dict[str, Any]) -> None: ...
+
+    def close(self) -> None: ...
+
+
 class MetricsLog:
-    """Appends JSON lines to ``metrics.jsonl`` and keeps each worker's PI curve for the plot."""
+    """Appends JSON lines to ``metrics.jsonl``, keeps each worker's PI curve for the plot and passes every record on
+    to the attached sinks."""
 
     def __init__(self, run_dir: Path, resume_at: int | None = None) -> None:
         """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
         run_dir.mkdir(parents=True, exist_ok=True)
         self.path = run_dir / "metrics.jsonl"
         self.curves: dict[str, list[tuple[int, float]]] = {}
+        self.sinks: list[RecordSink] = []
         if resume_at is None:
             self._file: TextIO = self.path.open("w", encoding="utf-8")
             return
@@ -48,12 +58,22 @@ class MetricsLog:
     def round(self, record: dict[str, Any]) -> None:
         self._write({"type": "round", **record})
 
+    def attach(self, sink: RecordSink | None) -> None:
+        """Pass every record written from now on to ``sink`` too (None: nothing), and close it with the log."""
+        if sink is not None:
+            self.sinks.append(sink)
+
     def _write(self, record: dict[str, Any]) -> None:
         self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
         self._file.flush()
+        for sink in self.sinks:
+            sink.record(record)
 
     def close(self) -> None:
         self._file.close()
+        for sink in self.sinks:
+            sink.close()
+        self.sinks.clear()
 
 
 def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]:

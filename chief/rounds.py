@@ -79,6 +79,8 @@ class Submission:
     ``recent_returns`` are the returns its PI is the mean of, oldest first, ending with this episode's.
     ``receipt`` is what it did with the answer to the round before (see protocol.messages.Receipt).
     ``step`` is the mini-batch step of a per-step strategy (0 otherwise); ``critic_gradient`` its critic's gradient.
+    ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not sent): they decide
+    nothing and are only recorded.
     """
 
     worker_id: str
@@ -92,6 +94,7 @@ class Submission:
     receipt: dict[str, Any] | None = None
     step: int = 0
     critic_gradient: Arrays | None = None
+    stats: dict[str, float | None] | None = None
 
     @property
     def mature(self) -> bool:
@@ -166,17 +169,22 @@ class Verdict:
     replay: RoundOutcome | None = None
 
     def record(self, t: float) -> dict[str, Any]:
-        """An accepted submission's line in metrics.jsonl: the episode (at its step 0) or one later step."""
+        """An accepted submission's line in metrics.jsonl: the episode (at its step 0) or one later step, with the
+        PPO statistics it carried (``ppo``, null where not sent; absent for a mature actor, which had no update)."""
         sub = self.submission
         assert sub is not None and self.status == "accepted"
+        line: dict[str, Any]
         if sub.step > 0:
-            return {"type": "step", "worker": sub.worker_id, "round": self.round, "episode": sub.episode,
+            line = {"type": "step", "worker": sub.worker_id, "round": self.round, "episode": sub.episode,
                     "step": sub.step, "receipt": sub.receipt, "t": round(t, 3)}
-        line: dict[str, Any] = {"type": "episode", "worker": sub.worker_id, "round": self.round,
-                                "episode": sub.episode, "return": sub.episode_return, "pi": sub.pi,
-                                "steps": sub.steps, "kind": sub.kind, "receipt": sub.receipt, "t": round(t, 3)}
+        else:
+            line = {"type": "episode", "worker": sub.worker_id, "round": self.round, "episode": sub.episode,
+                    "return": sub.episode_return, "pi": sub.pi, "steps": sub.steps, "kind": sub.kind,
+                    "receipt": sub.receipt, "t": round(t, 3)}
         if sub.mature:
             line["recent_returns"] = list(sub.recent_returns)
+        elif sub.stats is not None:
+            line["ppo"] = dict(sub.stats)
         return line
 
 

@@ -13,13 +13,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from chief import checkpoint, strategies
+from chief import checkpoint, strategies, tensorboard
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    STAT_BOUNDS,
     ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
@@ -132,6 +133,9 @@ class ChiefService:
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
                                           rounds_per_episode=self.roster.update_steps if per_step else 1)
                 self._save()
+            assert self.metrics is not None and self.keeper is not None
+            self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
+                cfg.run_dir, self.keeper.rounds_per_episode, wall_start=time.time() - (time.monotonic() - self.t0)))
             self._announce()
             self._federate()
             return self._finish()
@@ -363,7 +367,8 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
     return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return, recent_returns=tuple(msg.recent_returns),
                       steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
                       receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
-                      step=0 if mature else msg.step, critic_gradient=critic)  # type: ignore[union-attr]
+                      step=0 if mature else msg.step, critic_gradient=critic,  # type: ignore[union-attr]
+                      stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS})
 
 
 def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:

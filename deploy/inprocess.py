@@ -20,7 +20,7 @@ from typing import Any
 
 import torch
 
-from chief import strategies
+from chief import strategies, tensorboard
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.rounds import RoundKeeper
 from chief.service import answer_of, submission_of
@@ -33,8 +33,10 @@ from worker.federated import Algorithm2
 
 
 def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
-                   device_noise: float = 1.0, plot: bool = True, progress: bool = False) -> dict[str, Any]:
-    """Run one federation to its end; returns its summary (also written to ``run_dir``)."""
+                   device_noise: float = 1.0, plot: bool = True, progress: bool = False,
+                   tensorboard_files: bool = True) -> dict[str, Any]:
+    """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
+    write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing)."""
     torch.set_num_threads(1)
     spec = task(env_id)
     strategy = strategies.get(policy)
@@ -53,6 +55,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     assert keeper is not None
     metrics = MetricsLog(run_dir)
     t0 = time.monotonic()
+    if tensorboard_files:
+        metrics.attach(tensorboard.open_board(run_dir, keeper.rounds_per_episode, wall_start=time.time()))
     open_: dict[str, WorkerUpdate | MatureParams] = {}  # each worker's submission for its open round
     sent: set[str] = set()  # workers whose open submission the chief has counted: they wait for its answer
     answers: dict[int, ChiefAggregate | ChiefTransfer] = {}  # closed rounds' answers, as the wire carries them

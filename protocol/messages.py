@@ -25,6 +25,21 @@ PolicyName = Annotated[str, StringConstraints(min_length=1, max_length=32, patte
 #: PI is the mean of at most this many recent returns (protocol.tasks.PI_WINDOW).
 RecentReturns = Annotated[tuple[float, ...], Field(min_length=1, max_length=PI_WINDOW)]
 
+#: The largest magnitude of a PPO training statistic on the wire (every float is also finite).
+STAT_LIMIT = 1e9
+#: The PPO statistics a WorkerUpdate may carry, with their bounds (the fields below use the same ones): a worker
+#: sends None for a value outside them, and the chief refuses a message that carries one.
+STAT_BOUNDS: dict[str, tuple[float, float]] = {
+    "actor_loss": (-STAT_LIMIT, STAT_LIMIT),
+    "critic_loss": (0.0, STAT_LIMIT),
+    "entropy": (-STAT_LIMIT, STAT_LIMIT),
+    "approx_kl": (0.0, STAT_LIMIT),
+    "clip_fraction": (0.0, 1.0),
+}
+Stat = Annotated[float, Field(ge=-STAT_LIMIT, le=STAT_LIMIT)]
+NonNegativeStat = Annotated[float, Field(ge=0.0, le=STAT_LIMIT)]
+Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+
 
 class Strict(BaseModel):
     """Unknown fields are errors, floats must be finite, values are immutable."""
@@ -85,6 +100,10 @@ class WorkerUpdate(Message):
     check PI against the returns it was told before. Under a per-step strategy (RunStart.rounds_per_episode = K)
     a worker sends K of them per episode, ``step`` 0..K-1, each with that mini-batch step's actor and critic
     gradients; the episode's fields are repeated.
+
+    The PPO statistics (``actor_loss`` = -L^CLIP minus the entropy bonus, ``critic_loss`` = L^V, ``entropy``,
+    ``approx_kl``, ``clip_fraction``) are the means over the episode's K mini-batch steps (that step's own under a
+    per-step strategy); None when not sent (an older worker) or not usable (not finite, or outside STAT_BOUNDS).
     """
 
     kind: Literal["update"] = "update"
@@ -98,9 +117,11 @@ class WorkerUpdate(Message):
     receipt: Receipt | None = None
     step: int = Field(default=0, ge=0)
     critic_gradient: TensorDict | None = None
-    actor_loss: float | None = None
-    critic_loss: float | None = None
-    entropy: float | None = None
+    actor_loss: Stat | None = None
+    critic_loss: NonNegativeStat | None = None
+    entropy: Stat | None = None
+    approx_kl: NonNegativeStat | None = None
+    clip_fraction: Fraction | None = None
 
 
 class MatureParams(Message):

@@ -12,6 +12,7 @@ import pytest
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    STAT_BOUNDS,
     ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
@@ -147,6 +148,30 @@ def test_rejects_nan_scalars_missing_fields_and_extra_fields() -> None:
     assert reason_of(msgpack.packb(obj, use_bin_type=True)) == "invalid"
     assert reason_of(msgpack.packb(raw_update(surprise=1), use_bin_type=True)) == "invalid"
     assert reason_of(msgpack.packb(raw_update(worker_id="w0/#"), use_bin_type=True)) == "invalid"
+
+
+@pytest.mark.parametrize("stat", sorted(STAT_BOUNDS))
+def test_ppo_statistics_must_be_finite_and_within_their_bounds(stat: str) -> None:
+    low, high = STAT_BOUNDS[stat]
+    for value in (low, high, None):
+        assert decode(msgpack.packb(raw_update(**{stat: value}), use_bin_type=True), WorkerUpdate) == update(
+            **{stat: value})
+    for bad in (float("nan"), float("inf"), float("-inf"), low - 1.0, high * 1.5 + 1.0):
+        with pytest.raises(DecodeError, match=stat) as info:
+            decode(msgpack.packb(raw_update(**{stat: bad}), use_bin_type=True), WorkerUpdate)
+        assert info.value.reason == "invalid"
+    assert reason_of(msgpack.packb(raw_update(**{stat: "0.5"}), use_bin_type=True)) == "invalid"  # no coercion
+
+
+def test_an_update_without_ppo_statistics_still_counts() -> None:
+    """An older worker sends none (or only the first three): the missing ones decode as None."""
+    obj = raw_update()
+    for stat in STAT_BOUNDS:
+        del obj[stat]
+    msg = decode(msgpack.packb(obj, use_bin_type=True), WorkerUpdate)
+    assert all(getattr(msg, stat) is None for stat in STAT_BOUNDS)
+    full = update(actor_loss=-0.1, critic_loss=2.0, entropy=0.6, approx_kl=0.01, clip_fraction=0.25)
+    assert decode(encode(full), WorkerUpdate) == full
 
 
 def test_error_message_names_the_field() -> None:

@@ -26,7 +26,7 @@ import gymnasium as gym
 import numpy as np
 import torch
 
-from protocol.messages import ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
+from protocol.messages import STAT_BOUNDS, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
 from worker.episode import run_episode
@@ -182,9 +182,13 @@ def _numpy(grads: dict[str, torch.Tensor] | None, net: torch.nn.Module) -> dict[
 
 
 def _loss_fields(stats: Any) -> dict[str, float | None]:
-    """Finite loss numbers from the learner's update stats (None where absent or not finite)."""
+    """The PPO statistics of the learner's update (or step) as the wire takes them: None where absent, not finite or
+    outside the wire's bounds (protocol.messages.STAT_BOUNDS). approx_kl is >= 0 in exact arithmetic; float32
+    rounding can leave it at about -1e-8, which is sent as 0."""
     out: dict[str, float | None] = {}
-    for key in ("actor_loss", "critic_loss", "entropy"):
+    for key, (low, high) in STAT_BOUNDS.items():
         value = getattr(stats, key, None)
-        out[key] = float(value) if value is not None and math.isfinite(value) else None
+        if value is not None and key == "approx_kl" and -1e-6 < value < 0:
+            value = 0.0
+        out[key] = float(value) if value is not None and math.isfinite(value) and low <= value <= high else None
     return out

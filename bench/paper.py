@@ -122,7 +122,8 @@ def run_jobs(jobs: list[Job], parallel: int, runs_dir: Path, resume: bool = Fals
             done[Job(**result["job"]).key] = result
             log.write(json.dumps(result) + "\n")
             log.flush()
-            print(f"[{time.monotonic() - t0:7.1f}s] {len(done)}/{len(jobs)} {_line(result)}", flush=True)
+            count = sum(1 for j in jobs if j.key in done)
+            print(f"[{time.monotonic() - t0:7.1f}s] {count}/{len(jobs)} {_line(result)}", flush=True)
 
         if parallel <= 1:
             for job in todo:

@@ -31,6 +31,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 
@@ -112,8 +113,8 @@ class ChiefService:
         cfg = self.cfg
         run = cfg.run_id
         self.conn.start()
-        for leaf in (topics.HELLO, topics.STATUS, topics.UPDATE):
-            self.conn.subscribe(topics.all_workers(run, leaf), self._on_message, qos=1)
+        for route in received_by(CHIEF):  # the workers' hello, status and update
+            self.conn.subscribe(route.filter(run=run), self._on_message, qos=route.qos)
         try:
             if self.saved is not None:
                 self._resume(*self.saved)
@@ -197,7 +198,8 @@ class ChiefService:
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode,
                        finishers_help=self.keeper.strategy.finishers_help)
-        self.conn.publish(topics.chief(self.cfg.run_id, topics.START), encode(msg), qos=1)
+        topic = topics.chief(self.cfg.run_id, topics.START)
+        self.conn.publish(topic, encode(msg), qos=qos_of(topic))
 
     def _federate(self) -> None:
         keeper = self.keeper
@@ -275,7 +277,7 @@ class ChiefService:
     def _flush(self) -> None:
         """Send the acknowledgements and repeated answers held back until the state was saved."""
         for topic, payload in self._outbox:
-            self.conn.publish(topic, payload, qos=1)
+            self.conn.publish(topic, payload, qos=qos_of(topic))
         self._outbox.clear()
 
     def _close_rounds(self, outcomes: list[RoundOutcome]) -> None:
@@ -291,7 +293,8 @@ class ChiefService:
 
     def _publish(self, outcome: RoundOutcome) -> None:
         msg = answer_of(outcome)
-        self.conn.publish(topics.chief(self.cfg.run_id, msg.kind), encode(msg), qos=1)
+        topic = topics.chief(self.cfg.run_id, msg.kind)
+        self.conn.publish(topic, encode(msg), qos=qos_of(topic))
 
     def _log_outcome(self, outcome: RoundOutcome) -> None:
         if outcome.kind == "transfer":
@@ -331,10 +334,10 @@ class ChiefService:
         all_solved = all(r.state == "finished" for r in keeper.workers.values())
         rounds = keeper.round - 1
         self._save()
-        self.conn.publish(topics.chief(cfg.run_id, topics.STOP),
-                          encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
-                                         aborted=aborted, session=self.session)),
-                          qos=1).wait_for_publish(timeout=5)
+        stop = topics.chief(cfg.run_id, topics.STOP)
+        self.conn.publish(stop, encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
+                                               aborted=aborted, session=self.session)),
+                          qos=qos_of(stop)).wait_for_publish(timeout=5)
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
         plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,

@@ -34,11 +34,14 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from protocol.codec import MAX_PAYLOAD_BYTES, DecodeError, RejectCounter, decode, encode
 from protocol.messages import Chunk
+from protocol.routes import route_of
 
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
 DEFAULT_BROKER = "mqtt://127.0.0.1:1883"
+#: Keep-alive seconds; sessions are persistent, so the broker queues QoS 1 messages for us while we are away.
+KEEPALIVE, CLEAN_SESSION = 15, False
 #: Chunk assembly limits: partial messages held at once, and seconds before a partial message is dropped.
 MAX_PARTIAL, CHUNK_TTL = 64, 60.0
 #: Bytes of a Chunk message around its data (msgpack keys, id, counters), kept below max_payload.
@@ -186,7 +189,7 @@ class MqttConnection:
         address: BrokerAddress,
         client_id: str,
         will: tuple[str, bytes] | None = None,
-        keepalive: int = 15,
+        keepalive: int = KEEPALIVE,
         max_payload: int | None = None,
         rejects: RejectCounter | None = None,
     ) -> None:
@@ -207,7 +210,7 @@ class MqttConnection:
             CallbackAPIVersion.VERSION2,
             client_id=self.client_id,
             protocol=paho.MQTTv311,
-            clean_session=False,
+            clean_session=CLEAN_SESSION,
             reconnect_on_failure=True,
         )
         self._client.on_socket_open = _set_nodelay
@@ -216,7 +219,8 @@ class MqttConnection:
         self._client.reconnect_delay_set(min_delay=0.2, max_delay=5)
         self._client.max_queued_messages_set(10_000)
         if will is not None:
-            self._client.will_set(will[0], will[1], qos=1, retain=False)
+            route = route_of(will[0])  # a status topic of the contract; QoS 1 for any other (tests)
+            self._client.will_set(will[0], will[1], qos=route.qos if route else 1, retain=False)
         if address.username:
             self._client.username_pw_set(address.username, address.password)
         if address.tls:

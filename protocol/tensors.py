@@ -27,7 +27,7 @@ class TensorBlob(BaseModel):
 
     model_config = ConfigDict(frozen=True)
 
-    dtype: str
+    dtype: str = Field(json_schema_extra={"enum": sorted(ALLOWED_DTYPES)})  # checked by _check
     shape: tuple[int, ...] = Field(max_length=MAX_NDIM)
     data: bytes
 

@@ -134,14 +134,14 @@ def audit(run_dir: Path) -> AuditReport:
 
     # contributors
     per_round: dict[int, dict[str, dict[str, Any]]] = defaultdict(dict)
-    for (w, r), e in by_round.items():
-        per_round[r][w] = e
+    for (w, n), e in by_round.items():
+        per_round[n][w] = e
     aborted = not str(summary.get("end_reason", "")).startswith(("all workers solved", "reached the maximum"))
-    for r in sorted(per_round):
-        if r > last_round:
-            _require(aborted, "contributors", f"round {r} of {sorted(per_round[r])} was counted but never closed, "
+    for n in sorted(per_round):
+        if n > last_round:
+            _require(aborted, "contributors", f"round {n} of {sorted(per_round[n])} was counted but never closed, "
                      f"although the run ended normally ({summary.get('end_reason')})")
-            report.uncounted += [(w, r) for w in sorted(per_round[r])]
+            report.uncounted += [(w, n) for w in sorted(per_round[n])]
     for r in rounds:
         n = int(r["round"])
         counted = sorted(per_round.get(n, {}))
@@ -240,8 +240,9 @@ def audit(run_dir: Path) -> AuditReport:
             if nxt is None:
                 continue
             receipt = nxt.get("receipt")
-            _require(receipt is not None and int(receipt.get("round", -1)) == n, "delivery",
-                     f"{w}'s submission for round {n + 1} carries no receipt of round {n} ({receipt})")
+            if receipt is None or int(receipt.get("round", -1)) != n:
+                raise AuditFailure("delivery", f"{w}'s submission for round {n + 1} carries no receipt of round {n} "
+                                   f"({receipt})")
             _require(receipt["applied"] != "missed", "delivery", f"round {n}'s {r['kind']} never reached {w}")
             _require(receipt["applied"] == r["kind"] and receipt.get("digest", "") == r["digest"], "delivery",
                      f"{w} applied {receipt['applied']} {receipt.get('digest')!r} as round {n}'s answer, the chief "

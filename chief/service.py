@@ -11,7 +11,7 @@ import secrets
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from chief import checkpoint, strategies
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
@@ -97,7 +97,8 @@ class ChiefService:
 
     def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
+            msg = cast("WorkerHello | WorkerStatus | WorkerUpdate | MatureParams",  # decode returns one of them
+                       decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic))
             sender = topics.worker_id_of(topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)

@@ -13,10 +13,10 @@ import re
 import sys
 from typing import Any
 
-import yaml  # type: ignore[import-untyped]  # PyYAML ships no type stubs
+import yaml
 
 from protocol import contract, topics
-from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Chunk
+from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Chunk, Message
 from protocol.mqtt import CLEAN_SESSION, DEFAULT_BROKER, KEEPALIVE, BrokerAddress
 from protocol.routes import PARAMETERS, PROCESSES, ROUTES, Route
 
@@ -39,6 +39,11 @@ def channel_id(route: Route) -> str:
 def address(route: Route) -> str:
     """The topic with its open levels as AsyncAPI parameters: ``fedrl/{run}/worker/{id}/hello``."""
     return re.sub(r"<(\w+)>", r"{\1}", route.topic)
+
+
+def carried(route: Route) -> tuple[type[Message], ...]:
+    """The messages a route's topic carries: its payloads, and chunks of them."""
+    return (*route.payloads, Chunk)
 
 
 def schemas() -> dict[str, Any]:
@@ -79,7 +84,7 @@ def _operation(route: Route, process: str, action: str) -> dict[str, Any]:
         "channel": ref("channels", cid),
         "summary": text,
         "tags": [ref("components", "tags", process)],
-        "messages": [ref("channels", cid, "messages", m.__name__) for m in (*route.payloads, Chunk)],
+        "messages": [ref("channels", cid, "messages", m.__name__) for m in carried(route)],
         "bindings": {"mqtt": {**mqtt, "bindingVersion": MQTT_BINDING_VERSION}},
     }
 
@@ -112,7 +117,7 @@ def document() -> dict[str, Any]:
                 "description": f"Published by {r.publisher}, subscribed by {', '.join(r.subscribers)}; "
                 f"QoS {r.qos}, {'retained' if r.retain else 'not retained'}; {r.remarks}.",
                 "parameters": {p: ref("components", "parameters", p) for p in r.parameters},
-                "messages": {m.__name__: ref("components", "messages", m.__name__) for m in (*r.payloads, Chunk)},
+                "messages": {m.__name__: ref("components", "messages", m.__name__) for m in carried(r)},
             }
             for r in ROUTES
         },

@@ -265,7 +265,7 @@ class BridgeRunner:
             self._publish_status(state, detail, request_id)
 
     def _publish_status(self, state: str, detail: str = "", request_id: int = -1) -> None:
-        msg = QubeStatus(rig_id=self.rig_id, state=state, request_id=request_id, episode=self.core.episode,  # type: ignore[arg-type]
+        msg = QubeStatus(rig_id=self.rig_id, state=state, request_id=request_id, episode=self.core.episode,
                          detail=detail[:2000])
         self.publish(self._status_topic, encode(msg), qos_of(self._status_topic))
 

@@ -69,7 +69,7 @@ class MqttFeed:
     def on_message(self, topic: str, payload: bytes) -> None:
         self.received += 1
         try:
-            msg = decode(payload, topic=topic)
+            msg: Message = decode(payload, topic=topic)
         except DecodeError as err:
             if err.reason == "unknown_kind":  # a newer peer's message: not ours to judge
                 self.unknown[err.detail.removeprefix("unknown message kind ")] += 1

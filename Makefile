@@ -46,7 +46,7 @@ soak: $(STAMP)
 	$(BIN)/python -m bench.soak
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache
 
 # Containerised end-to-end tests: compose up + python -m deploy.docker, 2-worker CartPole (needs Docker + Compose).
 test-docker: $(STAMP)

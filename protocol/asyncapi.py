@@ -58,7 +58,7 @@ def schemas() -> dict[str, Any]:
 
 
 def _servers() -> dict[str, Any]:
-    plain, tls = BrokerAddress.parse(DEFAULT_BROKER), BrokerAddress.parse("mqtts://{host}")
+    plain, tls = BrokerAddress.parse(DEFAULT_BROKER), BrokerAddress.parse("mqtts://broker")
     binding = {"mqtt": {"cleanSession": CLEAN_SESSION, "keepAlive": KEEPALIVE,
                         "bindingVersion": MQTT_BINDING_VERSION}}
     return {

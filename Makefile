@@ -9,7 +9,7 @@ STAMP  := $(VENV)/.installed
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
 	@echo "make test   - the whole test suite (creates the virtual environment first)"
-	@echo "make lint   - ruff"
+	@echo "make lint   - ruff and mypy (the torch-free packages)"
 	@echo "make bench  - the paper's experiment (python -m bench.paper): every task and strategy, 10 seeds, references, cost;"
 	@echo "              JSON + figures into bench/results/, README results section (hours on 2 cores)"
 	@echo "make bench-quick - its reduced variant into bench/results/quick/ (under 15 min on 2 cores)"
@@ -29,10 +29,12 @@ run: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m ruff check .
+	$(BIN)/python -m mypy
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
 	$(BIN)/python -m ruff check .
+	$(BIN)/python -m mypy
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.paper
@@ -44,7 +46,7 @@ soak: $(STAMP)
 	$(BIN)/python -m bench.soak
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache
 
 # Containerised end-to-end tests: compose up + python -m deploy.docker, 2-worker CartPole (needs Docker + Compose).
 test-docker: $(STAMP)

@@ -135,19 +135,19 @@ def audit(run_dir: Path) -> AuditReport:
 
     # contributors
     per_round: dict[int, dict[str, dict[str, Any]]] = defaultdict(dict)
-    for (w, r), e in by_round.items():
-        per_round[r][w] = e
+    for (w, n), e in by_round.items():
+        per_round[n][w] = e
     aborted = not str(summary.get("end_reason", "")).startswith(("all workers solved", "reached the maximum"))
     finished_in = {w["id"]: round_of(int(w["episodes"]), 0) for w in summary["workers"] if w.get("solved")}
-    for r in sorted(per_round):
-        if r > last_round:
+    for n in sorted(per_round):
+        if n > last_round:
             # A worker that finished and keeps helping (finishers_help) may have its next submission accepted
             # before the last learner's finish ends the run: that round is legitimately never closed.
-            helpers_only = strategy.finishers_help and all(finished_in.get(w, r) < r for w in per_round[r])
+            helpers_only = strategy.finishers_help and all(finished_in.get(w, n) < n for w in per_round[n])
             _require(aborted or helpers_only, "contributors",
-                     f"round {r} of {sorted(per_round[r])} was counted but never closed, "
+                     f"round {n} of {sorted(per_round[n])} was counted but never closed, "
                      f"although the run ended normally ({summary.get('end_reason')})")
-            report.uncounted += [(w, r) for w in sorted(per_round[r])]
+            report.uncounted += [(w, n) for w in sorted(per_round[n])]
     for r in rounds:
         n = int(r["round"])
         counted = sorted(per_round.get(n, {}))
@@ -246,8 +246,9 @@ def audit(run_dir: Path) -> AuditReport:
             if nxt is None:
                 continue
             receipt = nxt.get("receipt")
-            _require(receipt is not None and int(receipt.get("round", -1)) == n, "delivery",
-                     f"{w}'s submission for round {n + 1} carries no receipt of round {n} ({receipt})")
+            if receipt is None or int(receipt.get("round", -1)) != n:
+                raise AuditFailure("delivery", f"{w}'s submission for round {n + 1} carries no receipt of round {n} "
+                                   f"({receipt})")
             _require(receipt["applied"] != "missed", "delivery", f"round {n}'s {r['kind']} never reached {w}")
             _require(receipt["applied"] == r["kind"] and receipt.get("digest", "") == r["digest"], "delivery",
                      f"{w} applied {receipt['applied']} {receipt.get('digest')!r} as round {n}'s answer, the chief "

@@ -11,7 +11,7 @@ import secrets
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 from chief import checkpoint, strategies, tensorboard
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
@@ -32,6 +32,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 
@@ -97,7 +98,8 @@ class ChiefService:
 
     def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
+            msg = cast("WorkerHello | WorkerStatus | WorkerUpdate | MatureParams",  # decode returns one of them
+                       decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic))
             sender = topics.worker_id_of(topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
@@ -113,8 +115,8 @@ class ChiefService:
         cfg = self.cfg
         run = cfg.run_id
         self.conn.start()
-        for leaf in (topics.HELLO, topics.STATUS, topics.UPDATE):
-            self.conn.subscribe(topics.all_workers(run, leaf), self._on_message, qos=1)
+        for route in received_by(CHIEF):  # the workers' hello, status and update
+            self.conn.subscribe(route.filter(run=run), self._on_message, qos=route.qos)
         try:
             if self.saved is not None:
                 self._resume(*self.saved)
@@ -201,7 +203,8 @@ class ChiefService:
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode,
                        finishers_help=self.keeper.strategy.finishers_help)
-        self.conn.publish(topics.chief(self.cfg.run_id, topics.START), encode(msg), qos=1)
+        topic = topics.chief(self.cfg.run_id, topics.START)
+        self.conn.publish(topic, encode(msg), qos=qos_of(topic))
 
     def _federate(self) -> None:
         keeper = self.keeper
@@ -279,7 +282,7 @@ class ChiefService:
     def _flush(self) -> None:
         """Send the acknowledgements and repeated answers held back until the state was saved."""
         for topic, payload in self._outbox:
-            self.conn.publish(topic, payload, qos=1)
+            self.conn.publish(topic, payload, qos=qos_of(topic))
         self._outbox.clear()
 
     def _close_rounds(self, outcomes: list[RoundOutcome]) -> None:
@@ -295,7 +298,8 @@ class ChiefService:
 
     def _publish(self, outcome: RoundOutcome) -> None:
         msg = answer_of(outcome)
-        self.conn.publish(topics.chief(self.cfg.run_id, msg.kind), encode(msg), qos=1)
+        topic = topics.chief(self.cfg.run_id, msg.kind)
+        self.conn.publish(topic, encode(msg), qos=qos_of(topic))
 
     def _log_outcome(self, outcome: RoundOutcome) -> None:
         if outcome.kind == "transfer":
@@ -335,10 +339,10 @@ class ChiefService:
         all_solved = all(r.state == "finished" for r in keeper.workers.values())
         rounds = keeper.round - 1
         self._save()
-        self.conn.publish(topics.chief(cfg.run_id, topics.STOP),
-                          encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
-                                         aborted=aborted, session=self.session)),
-                          qos=1).wait_for_publish(timeout=5)
+        stop = topics.chief(cfg.run_id, topics.STOP)
+        self.conn.publish(stop, encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
+                                               aborted=aborted, session=self.session)),
+                          qos=qos_of(stop)).wait_for_publish(timeout=5)
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
         plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,

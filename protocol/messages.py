@@ -8,14 +8,14 @@ Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import TensorDict
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION: Final = 1
 
 #: Ids appear inside topic names, so MQTT wildcards and separators are not allowed in them.
 Ident = Annotated[str, StringConstraints(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.:-]+$")]

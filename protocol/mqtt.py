@@ -34,11 +34,14 @@ from paho.mqtt.enums import CallbackAPIVersion
 
 from protocol.codec import MAX_PAYLOAD_BYTES, DecodeError, RejectCounter, decode, encode
 from protocol.messages import Chunk
+from protocol.routes import route_of
 
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
 DEFAULT_BROKER = "mqtt://127.0.0.1:1883"
+#: Keep-alive seconds; sessions are persistent, so the broker queues QoS 1 messages for us while we are away.
+KEEPALIVE, CLEAN_SESSION = 15, False
 #: Chunk assembly limits: partial messages held at once, and seconds before a partial message is dropped.
 MAX_PARTIAL, CHUNK_TTL = 64, 60.0
 #: Bytes of a Chunk message around its data (msgpack keys, id, counters), kept below max_payload.
@@ -170,8 +173,10 @@ class BrokerAddress:
         return f"{'mqtts' if self.tls else 'mqtt'}://{self.host}:{self.port}"
 
 
-def _set_nodelay(client: paho.Client, userdata: object, sock: socket.socket) -> None:
+def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -> None:
     """Nagle + delayed ACK turn a 0.6 ms round trip into 40-90 ms (reference/mqtt.md), so disable Nagle."""
+    if not isinstance(sock, socket.socket):  # e.g. paho's websocket wrapper: nothing to tune
+        return
     try:
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
     except OSError:  # not a TCP socket (e.g. websockets proxy): nothing to tune
@@ -186,7 +191,7 @@ class MqttConnection:
         address: BrokerAddress,
         client_id: str,
         will: tuple[str, bytes] | None = None,
-        keepalive: int = 15,
+        keepalive: int = KEEPALIVE,
         max_payload: int | None = None,
         rejects: RejectCounter | None = None,
     ) -> None:
@@ -207,16 +212,17 @@ class MqttConnection:
             CallbackAPIVersion.VERSION2,
             client_id=self.client_id,
             protocol=paho.MQTTv311,
-            clean_session=False,
+            clean_session=CLEAN_SESSION,
             reconnect_on_failure=True,
         )
         self._client.on_socket_open = _set_nodelay
         self._client.on_connect = self._on_connect
         self._client.on_disconnect = self._on_disconnect
-        self._client.reconnect_delay_set(min_delay=0.2, max_delay=5)
+        self._client.reconnect_delay_set(min_delay=0.2, max_delay=5)  # type: ignore[arg-type]  # paho says int; any seconds do
         self._client.max_queued_messages_set(10_000)
         if will is not None:
-            self._client.will_set(will[0], will[1], qos=1, retain=False)
+            route = route_of(will[0])  # a status topic of the contract; QoS 1 for any other (tests)
+            self._client.will_set(will[0], will[1], qos=route.qos if route else 1, retain=False)
         if address.username:
             self._client.username_pw_set(address.username, address.password)
         if address.tls:
@@ -287,7 +293,7 @@ class MqttConnection:
                 if msg.retain:
                     self.rejects.reject(msg.topic, "retained", "a retained message (left on the broker earlier)")
                     return
-                payload = msg.payload
+                payload = bytes(msg.payload)  # paho reads bytes, and bytes() of bytes is the same object
                 if _CHUNK_SNIFF in payload[:48]:
                     try:
                         whole = self._assembler.add(msg.topic, decode(payload, Chunk), time.monotonic())

@@ -1,5 +1,6 @@
-"""Which messages travel on which topic, with which QoS: the table the codec checks a message's ``kind`` against
-(a message on the wrong topic is refused) and docs/wire-contract.md is generated from."""
+"""Which messages travel on which topic, who publishes and who subscribes, with which QoS: the table the codec checks a
+message's ``kind`` against (a message on the wrong topic is refused), the services read their QoS from (``qos_of``),
+and docs/wire-contract.md and docs/asyncapi.yaml are generated from."""
 
 from __future__ import annotations
 
@@ -8,27 +9,69 @@ from dataclasses import dataclass
 from protocol import topics
 from protocol.messages import MESSAGE_TYPES, Message
 
+CHIEF, WORKER, BRIDGE, DASHBOARD = "chief", "worker", "rpi_bridge", "dashboard"
+#: The processes on the wire, by the package each runs from.
+PROCESSES: dict[str, str] = {
+    CHIEF: "`python -m chief`: mediates the federation (Algorithm 1)",
+    WORKER: "`python -m worker`: learns on its own environment (Algorithm 2), drives a rig for the QUBE tasks",
+    BRIDGE: "`python -m rpi_bridge` on a rig's Raspberry Pi, or the simulated rig `python -m services.qube_sim` "
+    "(the same BridgeService)",
+    DASHBOARD: "`python -m services.dashboard`: the live web view; it only listens",
+}
+#: The topic levels a route's pattern leaves open (``<name>``), and what goes there.
+PARAMETERS: dict[str, str] = {"run": "the run id", "id": "the worker id", "rig": "the rig id"}
+
 
 @dataclass(frozen=True)
 class Route:
-    """One topic: who publishes what on it, and how."""
+    """One topic: who publishes what on it, and how, and who subscribes to it."""
 
     topic: str
     publisher: str
+    subscribers: tuple[str, ...]
     payloads: tuple[type[Message], ...]
     qos: int
     note: str = ""
     retain: bool = False
+    will: bool = False  # the publisher's MQTT last will is a message on this topic
 
     @property
     def kinds(self) -> frozenset[str]:
         return frozenset(p.model_fields["kind"].default for p in self.payloads)
 
+    @property
+    def remarks(self) -> str:
+        """The note, and whether the publisher's last will comes here."""
+        will = "the publisher's MQTT last will (`offline`) comes here too" if self.will else ""
+        return "; ".join(text for text in (self.note, will) if text)
+
+    @property
+    def parameters(self) -> tuple[str, ...]:
+        """The names of the pattern's open levels, in order (``run``, ``id``, ``rig``)."""
+        return tuple(level[1:-1] for level in self.topic.split("/") if level.startswith("<"))
+
     def matches(self, topic: str) -> bool:
-        """Whether a concrete topic is an instance of this route's pattern (``<...>`` is one level)."""
+        """Whether a concrete topic is an instance of this route's pattern (``<...>`` is one level), or a
+        subscription filter (``+``, ``#``) takes in messages of this route."""
         pattern, levels = self.topic.split("/"), topic.split("/")
-        return len(pattern) == len(levels) and all(p.startswith("<") or p == x for p, x in zip(pattern, levels,
-                                                                                                strict=True))
+        for i, level in enumerate(levels):
+            if level == "#":
+                return True
+            if i >= len(pattern) or not (level == "+" or pattern[i].startswith("<") or pattern[i] == level):
+                return False
+        return len(levels) == len(pattern)
+
+    def filter(self, **levels: str) -> str:
+        """This route's topic with the given levels filled in (checked ids) and the other open levels as ``+``."""
+        unknown = set(levels) - set(self.parameters)
+        if unknown:
+            raise ValueError(f"{self.topic} has no level {sorted(unknown)}")
+        out = []
+        for level in self.topic.split("/"):
+            name = level[1:-1] if level.startswith("<") else None
+            out.append(level if name is None else topics.check_id(levels[name], PARAMETERS[name]) if name in levels
+                       else "+")
+        return "/".join(out)
 
 
 def _w(leaf: str) -> str:
@@ -44,25 +87,43 @@ def _r(leaf: str) -> str:
 
 
 M = MESSAGE_TYPES
+_FEDERATION = (CHIEF, DASHBOARD)
+_WORKERS = (WORKER, DASHBOARD)
 ROUTES: tuple[Route, ...] = (
-    Route(_w(topics.HELLO), "worker", (M["hello"],), 1, "every second until a RunStart names the worker"),
-    Route(_w(topics.STATUS), "worker", (M["status"],), 1, "its MQTT last will is `offline`"),
-    Route(_w(topics.UPDATE), "worker", (M["update"], M["mature"]), 1,
+    Route(_w(topics.HELLO), WORKER, _FEDERATION, (M["hello"],), 1, "every second until a RunStart names the worker"),
+    Route(_w(topics.STATUS), WORKER, _FEDERATION, (M["status"],), 1, "every change of its state", will=True),
+    Route(_w(topics.UPDATE), WORKER, _FEDERATION, (M["update"], M["mature"]), 1,
           "one per episode; sent again after a reconnect or a chief restart until answered; MatureParams until a "
           "ChiefAck for its episode arrives"),
-    Route(_c(topics.START), "chief", (M["run_start"],), 1, "again whenever a worker of the run says hello"),
-    Route(_c(topics.AGGREGATE), "chief", (M["aggregate"],), 1, "the answer to a round without a finisher"),
-    Route(_c(topics.TRANSFER), "chief", (M["transfer"],), 1, "the answer to a round in which a worker finished"),
-    Route(_c(topics.ACK), "chief", (M["ack"],), 1, "the answer to every MatureParams"),
-    Route(_c(topics.STOP), "chief", (M["run_stop"],), 1, "the run is over"),
-    Route(_r(topics.STATE), "bridge / qube-sim", (M["qube_state"],), 0, "every control tick (7 ms)"),
-    Route(_r(topics.ACTION), "worker", (M["qube_action"],), 0, "applied only within the deadline of its state"),
-    Route(_r(topics.RESET), "worker", (M["qube_reset"],), 1, "start an episode: swing up and hold"),
-    Route(_r(topics.STATUS), "bridge / qube-sim", (M["qube_status"],), 1, "its MQTT last will is `offline`"),
-    Route(_r(topics.TELEMETRY), "bridge / qube-sim", (M["qube_telemetry"],), 0, "every second"),
+    Route(_c(topics.START), CHIEF, _WORKERS, (M["run_start"],), 1, "again whenever a worker of the run says hello"),
+    Route(_c(topics.AGGREGATE), CHIEF, _WORKERS, (M["aggregate"],), 1, "the answer to a round without a finisher"),
+    Route(_c(topics.TRANSFER), CHIEF, _WORKERS, (M["transfer"],), 1,
+          "the answer to a round in which a worker finished"),
+    Route(_c(topics.ACK), CHIEF, _WORKERS, (M["ack"],), 1, "the answer to every MatureParams"),
+    Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
+    Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0, "every control tick (7 ms)"),
+    Route(_r(topics.ACTION), WORKER, (BRIDGE,), (M["qube_action"],), 0,
+          "applied only within the deadline of its state"),
+    Route(_r(topics.RESET), WORKER, (BRIDGE,), (M["qube_reset"],), 1, "start an episode: swing up and hold"),
+    Route(_r(topics.STATUS), BRIDGE, _WORKERS, (M["qube_status"],), 1, "every change of its state",
+          will=True),
+    Route(_r(topics.TELEMETRY), BRIDGE, (DASHBOARD,), (M["qube_telemetry"],), 0, "every second"),
 )
 
 
 def route_of(topic: str) -> Route | None:
     """The route a concrete topic belongs to (None: not a topic of the contract)."""
     return next((r for r in ROUTES if r.matches(topic)), None)
+
+
+def qos_of(topic_filter: str) -> int:
+    """The QoS to publish on a topic, or to subscribe with to a filter: the highest of the routes it takes in."""
+    matched = [r.qos for r in ROUTES if r.matches(topic_filter)]
+    if not matched:
+        raise ValueError(f"{topic_filter!r} is no topic of the contract (protocol/routes.py)")
+    return max(matched)
+
+
+def received_by(process: str) -> tuple[Route, ...]:
+    """The routes a process subscribes to."""
+    return tuple(r for r in ROUTES if process in r.subscribers)

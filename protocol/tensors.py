@@ -27,7 +27,7 @@ class TensorBlob(BaseModel):
 
     model_config = ConfigDict(frozen=True)
 
-    dtype: str
+    dtype: str = Field(json_schema_extra={"enum": [*sorted(ALLOWED_DTYPES)]})  # for the schema; _check checks it
     shape: tuple[int, ...] = Field(max_length=MAX_NDIM)
     data: bytes
 
@@ -89,7 +89,7 @@ def check_spec(arrays: Mapping[str, object], expected: Mapping[str, tuple[int, .
             raise ValueError(f"{what}: {name} has shape {got[name]}, expected {tuple(shape)}")
 
 
-def digest(arrays: Mapping[str, np.ndarray] | Mapping[str, TensorBlob]) -> str:
+def digest(arrays: Mapping[str, np.ndarray | TensorBlob]) -> str:
     """A short fingerprint of named tensors (names, dtypes, shapes and bytes as they travel), for receipts and
     audits: the same tensors give the same digest on the chief and on every worker."""
     h = hashlib.sha256()

@@ -1,22 +1,7 @@
 """Every MQTT topic name, in one place.
 
-Federation topics live under ``fedrl/<run>/``; rig topics under ``qube/<rig>/``:
-
-| topic | publisher | payload |
-| --- | --- | --- |
-| ``fedrl/<run>/worker/<id>/hello`` | worker | WorkerHello |
-| ``fedrl/<run>/worker/<id>/status`` | worker (last will: offline) | WorkerStatus |
-| ``fedrl/<run>/worker/<id>/update`` | worker | WorkerUpdate or MatureParams |
-| ``fedrl/<run>/chief/start`` | chief | RunStart |
-| ``fedrl/<run>/chief/aggregate`` | chief | ChiefAggregate |
-| ``fedrl/<run>/chief/transfer`` | chief | ChiefTransfer |
-| ``fedrl/<run>/chief/ack`` | chief | ChiefAck |
-| ``fedrl/<run>/chief/stop`` | chief | RunStop |
-| ``qube/<rig>/state`` | bridge / qube-sim | QubeState |
-| ``qube/<rig>/action`` | worker | QubeAction |
-| ``qube/<rig>/reset`` | worker | QubeReset |
-| ``qube/<rig>/status`` | bridge / qube-sim (last will: offline) | QubeStatus |
-| ``qube/<rig>/telemetry`` | bridge / qube-sim | QubeTelemetry |
+Federation topics live under ``fedrl/<run>/``; rig topics under ``qube/<rig>/``. Which messages travel on which topic,
+who publishes and who subscribes, and with which QoS is protocol/routes.py (docs/wire-contract.md, docs/asyncapi.yaml).
 """
 
 from __future__ import annotations
@@ -25,7 +10,9 @@ import re
 
 FEDRL = "fedrl"
 QUBE = "qube"
-_ID = re.compile(r"^[A-Za-z0-9_.:-]{1,64}$")
+#: What a run, worker or rig id (a topic level) may be.
+ID_PATTERN = r"^[A-Za-z0-9_.:-]{1,64}$"
+_ID = re.compile(ID_PATTERN)
 
 
 def check_id(value: str, what: str = "id") -> str:

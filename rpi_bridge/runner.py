@@ -23,6 +23,7 @@ from collections.abc import Callable
 from protocol import topics
 from protocol.codec import encode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
+from protocol.routes import qos_of
 from rpi_bridge.control import ControlCore
 
 log = logging.getLogger("rpi_bridge")
@@ -167,6 +168,7 @@ class BridgeRunner:
         self.jitters: deque[float] = deque(maxlen=window)
         self.overruns = 0
         self._state_topic = topics.rig(rig_id, topics.STATE)
+        self._state_qos = qos_of(self._state_topic)  # looked up once: states go out every tick
         self._status_topic = topics.rig(rig_id, topics.STATUS)
         self._telemetry_topic = topics.rig(rig_id, topics.TELEMETRY)
         self._last_telemetry = clock()
@@ -231,7 +233,7 @@ class BridgeRunner:
                               theta_dot=sensed.theta_dot, alpha_dot=sensed.alpha_dot, episode=sensed.episode,
                               phase=sensed.phase)
             published_at = self.clock()
-            self.publish(self._state_topic, encode(state), 0)
+            self.publish(self._state_topic, encode(state), self._state_qos)
         if sensed.awaits_action:
             timeout = self.lockstep_stall_s if self.lockstep else start + self.deadline_s - self.clock()
             command, arrived = self.slot.wait(timeout)
@@ -263,9 +265,9 @@ class BridgeRunner:
             self._publish_status(state, detail, request_id)
 
     def _publish_status(self, state: str, detail: str = "", request_id: int = -1) -> None:
-        msg = QubeStatus(rig_id=self.rig_id, state=state, request_id=request_id, episode=self.core.episode,  # type: ignore[arg-type]
+        msg = QubeStatus(rig_id=self.rig_id, state=state, request_id=request_id, episode=self.core.episode,
                          detail=detail[:2000])
-        self.publish(self._status_topic, encode(msg), 1)
+        self.publish(self._status_topic, encode(msg), qos_of(self._status_topic))
 
     def telemetry(self) -> QubeTelemetry:
         c = self.core.counters
@@ -281,7 +283,7 @@ class BridgeRunner:
             return
         self._last_telemetry = now
         t = self.telemetry()
-        self.publish(self._telemetry_topic, encode(t), 0)
+        self.publish(self._telemetry_topic, encode(t), qos_of(self._telemetry_topic))
         self._reports += 1
         level = logging.INFO if self._reports % 10 == 0 else logging.DEBUG  # the log gets one line per 10 reports
         log.log(level, "rig %s: %d ticks, %d misses, %d late, latency p50 %.2f p99 %.2f max %.2f ms, "

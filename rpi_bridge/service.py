@@ -1,8 +1,8 @@
 """The bridge's MQTT adapter: connects the BridgeRunner of one rig to the broker.
 
 Subscribes ``qube/<rig>/action`` (QoS 0: a late retransmission is useless) and ``qube/<rig>/reset`` (QoS 1);
-publishes ``state`` (QoS 0), ``status`` (QoS 1, last will ``offline``) and ``telemetry``. Bad payloads are logged,
-counted and dropped.
+publishes ``state`` (QoS 0), ``status`` (QoS 1, last will ``offline``) and ``telemetry`` (QoS 0), each with the QoS
+of its route in protocol/routes.py. Bad payloads are logged, counted and dropped.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import Message, QubeAction, QubeReset, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import qos_of
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.device import QubeDevice
@@ -88,10 +89,12 @@ class BridgeService:
     def run(self, max_ticks: int | None = None) -> None:
         """Connect, then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
         self.conn.start()
-        self.conn.subscribe(topics.rig(self.rig_id, topics.ACTION), self._on_action, qos=0)
-        self.conn.subscribe(topics.rig(self.rig_id, topics.RESET), self._on_reset, qos=1)
-        self.conn.publish(topics.rig(self.rig_id, topics.STATUS),
-                          encode(QubeStatus(rig_id=self.rig_id, state="idle", detail="bridge up")), qos=1)
+        for leaf, handler in ((topics.ACTION, self._on_action), (topics.RESET, self._on_reset)):
+            topic = topics.rig(self.rig_id, leaf)
+            self.conn.subscribe(topic, handler, qos=qos_of(topic))
+        status = topics.rig(self.rig_id, topics.STATUS)
+        self.conn.publish(status, encode(QubeStatus(rig_id=self.rig_id, state="idle", detail="bridge up")),
+                          qos=qos_of(status))
         timing = self.runner.timing
         mode = "real-time" if not self.runner.lockstep else (
             "lockstep" if timing is None else f"lockstep with delays of {timing.delay_s[0] * 1e3:g}-"

@@ -28,6 +28,7 @@ from gymnasium import spaces
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
+from protocol.routes import qos_of
 from rpi_bridge.control import ControlConfig, ControlCore, Sensed
 
 log = logging.getLogger("worker.qube")
@@ -87,8 +88,10 @@ class QubeMqttEnv(_QubeTask):
         self._request_ids = itertools.count(int(time.time() * 1000) % 1_000_000_000)
         self._request = -1
         self._last: QubeState | None = None
-        conn.subscribe(topics.rig(rig_id, topics.STATE), self._on_message, qos=0)
-        conn.subscribe(topics.rig(rig_id, topics.STATUS), self._on_message, qos=1)
+        self._action_topic, self._reset_topic = topics.rig(rig_id, topics.ACTION), topics.rig(rig_id, topics.RESET)
+        self._action_qos = qos_of(self._action_topic)  # looked up once: an action goes out every step
+        for topic in (topics.rig(rig_id, topics.STATE), topics.rig(rig_id, topics.STATUS)):
+            conn.subscribe(topic, self._on_message, qos=qos_of(topic))
 
     @property
     def rejected(self) -> int:
@@ -137,7 +140,7 @@ class QubeMqttEnv(_QubeTask):
         acknowledged, next_send = False, 0.0
         while True:
             if not acknowledged and time.monotonic() >= next_send:  # the rig may not be listening yet: repeat
-                self.conn.publish(topics.rig(self.rig_id, topics.RESET), request, qos=1)
+                self.conn.publish(self._reset_topic, request, qos=qos_of(self._reset_topic))
                 next_send = time.monotonic() + 1.0
             msg = self._next(min(deadline, next_send) if not acknowledged else deadline)
             if msg is None:
@@ -159,8 +162,8 @@ class QubeMqttEnv(_QubeTask):
         if last is None:
             raise RuntimeError("call reset() first")
         command = ACTIONS[int(action)]
-        self.conn.publish(topics.rig(self.rig_id, topics.ACTION),
-                          encode(QubeAction(rig_id=self.rig_id, seq=last.seq, command=command)), qos=0)
+        self.conn.publish(self._action_topic, encode(QubeAction(rig_id=self.rig_id, seq=last.seq, command=command)),
+                          qos=self._action_qos)
         deadline = time.monotonic() + self.step_timeout_s
         while (msg := self._next(deadline)) is not None:
             if isinstance(msg, QubeStatus):

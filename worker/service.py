@@ -33,6 +33,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
 from worker.episode import build_learner_and_env
@@ -91,6 +92,11 @@ class WorkerService:
     def _topic(self, leaf: str) -> str:
         return topics.worker(self.cfg.run_id, self.cfg.worker_id, leaf)
 
+    def _send(self, leaf: str, payload: bytes) -> None:
+        """Publish on one of this worker's topics, with its route's QoS."""
+        topic = self._topic(leaf)
+        self.conn.publish(topic, payload, qos=qos_of(topic))
+
     def _on_chief(self, topic: str, payload: bytes) -> None:
         try:
             msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic)
@@ -110,7 +116,7 @@ class WorkerService:
 
     def _status(self, state: str, episode: int = 0, pi: float | None = None, detail: str = "") -> None:
         msg = WorkerStatus(worker_id=self.cfg.worker_id, state=state, episode=episode, pi=pi, detail=detail)  # type: ignore[arg-type]
-        self.conn.publish(self._topic(topics.STATUS), encode(msg), qos=1)
+        self._send(topics.STATUS, encode(msg))
 
     # -- main ------------------------------------------------------------------------------------------------
 
@@ -118,7 +124,8 @@ class WorkerService:
         cfg = self.cfg
         torch.set_num_threads(1)
         self.conn.start()
-        self.conn.subscribe(topics.chief(cfg.run_id, "+"), self._on_chief, qos=1)
+        chief = topics.chief(cfg.run_id, "+")
+        self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
         try:
             start = self._join()
             if start is None:
@@ -146,7 +153,7 @@ class WorkerService:
         next_hello = 0.0
         while time.monotonic() < deadline:
             if time.monotonic() >= next_hello:
-                self.conn.publish(self._topic(topics.HELLO), encode(hello), qos=1)
+                self._send(topics.HELLO, encode(hello))
                 next_hello = time.monotonic() + 1.0
             try:
                 topic, msg = self.inbox.get(timeout=0.2)
@@ -217,7 +224,7 @@ class WorkerService:
         deadline = time.monotonic() + self.cfg.ack_timeout
         interval = 2.0
         while self.stop is None and time.monotonic() < deadline:
-            self.conn.publish(self._topic(topics.UPDATE), payload, qos=1)
+            self._send(topics.UPDATE, payload)
             resend_at = min(deadline, time.monotonic() + interval)
             while self.stop is None and mature.episode not in self.acks and time.monotonic() < resend_at:
                 self._receive(timeout=min(0.5, max(0.0, resend_at - time.monotonic())))
@@ -278,7 +285,7 @@ class WorkerService:
                 if connects != -1:
                     log.info("sending round %d again (%s)", round_, "reconnected" if self.conn.connects != connects
                              else "the chief restarted" if self.restarted else "no answer yet")
-                self.conn.publish(self._topic(topics.UPDATE), payload, qos=1)
+                self._send(topics.UPDATE, payload)
                 sent_at, connects, self.restarted = now, self.conn.connects, False
             self._receive(timeout=min(deadline - now, 0.5))
         for old in [r for r in self.replies if r < round_]:

@@ -59,7 +59,7 @@ def install_packet_limit(max_bytes: int) -> None:
     """Make amqtt close a connection whose next packet announces more than ``max_bytes`` (before reading it)."""
     from amqtt.mqtt.packet import MQTTFixedHeader
 
-    original = MQTTFixedHeader.from_stream.__func__  # type: ignore[attr-defined]
+    original = MQTTFixedHeader.from_stream.__func__
     if getattr(original, "_fedrl_limit", None) is not None:
         original = original._fedrl_original
 
@@ -73,7 +73,7 @@ def install_packet_limit(max_bytes: int) -> None:
 
     from_stream._fedrl_limit = max_bytes  # type: ignore[attr-defined]
     from_stream._fedrl_original = original  # type: ignore[attr-defined]
-    MQTTFixedHeader.from_stream = classmethod(from_stream)  # type: ignore[method-assign, assignment]
+    MQTTFixedHeader.from_stream = classmethod(from_stream)
 
 
 async def serve(host: str, port: int, stop: asyncio.Event, password_file: Path | None = None,

@@ -18,6 +18,7 @@ from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode
 from protocol.messages import Message
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import qos_of
 from services.dashboard.hub import Hub
 
 log = logging.getLogger("dashboard")
@@ -25,11 +26,11 @@ log = logging.getLogger("dashboard")
 
 def subscriptions(run_id: str, rigs: list[str] | None) -> list[tuple[str, int]]:
     """Topic filters and QoS: everything of the run, and status + telemetry of the given rigs (None = all)."""
-    subs = [(f"{topics.FEDRL}/{topics.check_id(run_id, 'run id')}/#", 1)]
+    filters = [f"{topics.FEDRL}/{topics.check_id(run_id, 'run id')}/#"]
     for rig in rigs if rigs else ["+"]:
         name = rig if rig == "+" else topics.check_id(rig, "rig id")
-        subs += [(f"{topics.QUBE}/{name}/{topics.STATUS}", 1), (f"{topics.QUBE}/{name}/{topics.TELEMETRY}", 0)]
-    return subs
+        filters += [f"{topics.QUBE}/{name}/{topics.STATUS}", f"{topics.QUBE}/{name}/{topics.TELEMETRY}"]
+    return [(f, qos_of(f)) for f in filters]
 
 
 def sender_mismatch(topic: str, msg: Message) -> str | None:
@@ -68,7 +69,7 @@ class MqttFeed:
     def on_message(self, topic: str, payload: bytes) -> None:
         self.received += 1
         try:
-            msg = decode(payload, topic=topic)
+            msg: Message = decode(payload, topic=topic)
         except DecodeError as err:
             if err.reason == "unknown_kind":  # a newer peer's message: not ours to judge
                 self.unknown[err.detail.removeprefix("unknown message kind ")] += 1

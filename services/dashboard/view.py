@@ -17,6 +17,7 @@ Events (``type`` plus fields):
 from __future__ import annotations
 
 from collections import Counter, deque
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -60,7 +61,7 @@ class WorkerView:
     detail: str = ""
     host: str = ""
     last_seen: float = 0.0
-    points: list[list[float]] = field(default_factory=list)  # [episode, PI, return], thinned past max_points
+    points: list[list[float | None]] = field(default_factory=list)  # [episode, PI, return], thinned past max_points
 
     def summary(self, last_round: int, last_contributors: frozenset[str]) -> Event:
         state = self.status
@@ -106,7 +107,7 @@ class RunView:
         self.max_rounds = max_rounds
         self.kinds: Counter[str] = Counter()  # messages applied, by kind
         self.ignored: Counter[str] = Counter()  # valid messages of kinds the page does not show
-        self._handlers = {
+        self._handlers: dict[str, Callable[[Any, float], list[Event]]] = {
             "hello": self._on_hello, "status": self._on_status, "update": self._on_update,
             "mature": self._on_mature, "ack": self._on_ack, "run_start": self._on_run_start,
             "run_stop": self._on_run_stop, "aggregate": self._on_aggregate, "transfer": self._on_transfer,
@@ -243,7 +244,7 @@ class RunView:
                 w.status = "stopped"
         return [self.run_summary(), *self._all_workers()]
 
-    def _close_round(self, episode: int, record: Event, contributors: list[str]) -> None:
+    def _close_round(self, episode: int, record: Event, contributors: Iterable[str]) -> None:
         self.round_count += 1
         self.last_round = max(self.last_round, episode)
         self.last_contributors = frozenset(contributors)
@@ -259,11 +260,12 @@ class RunView:
         return [record, self.run_summary(), *self._all_workers()]
 
     def _on_transfer(self, msg: ChiefTransfer, now: float) -> list[Event]:
+        contributors = sorted({*msg.keep_weights, *msg.finished})
         record = {"type": "round", "round": msg.episode, "kind": "transfer", "t": round(now, 3),
                   "source": msg.source_worker, "source_pi": _round(msg.source_pi),
                   "keep_weights": {k: _round(v) for k, v in msg.keep_weights.items()},
-                  "finished": list(msg.finished), "contributors": sorted({*msg.keep_weights, *msg.finished})}
-        self._close_round(msg.episode, record, record["contributors"])
+                  "finished": list(msg.finished), "contributors": contributors}
+        self._close_round(msg.episode, record, contributors)
         self.transfers.append(record)
         for wid, keep in msg.keep_weights.items():
             self._worker(wid).keep = keep

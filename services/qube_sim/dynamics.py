@@ -166,7 +166,7 @@ class QubeDynamics:
         return kinetic + p.mp * p.g * p.Lp / 2.0 * (1.0 + c)
 
     # -- integration -----------------------------------------------------------------------------------
-    def _rates(self, x: tuple[float, float, float, float], voltage: float, motor: bool) -> tuple[float, ...]:
+    def _rates(self, x: tuple[float, ...], voltage: float, motor: bool) -> tuple[float, ...]:
         _, alpha, theta_dot, alpha_dot = x
         tau = motor_torque(self.params, voltage, theta_dot) if motor else 0.0
         theta_ddot, alpha_ddot = derivatives(self.params, theta_dot, alpha, alpha_dot, tau)
@@ -182,7 +182,7 @@ class QubeDynamics:
         voltage = max(-p.max_voltage, min(p.max_voltage, voltage))
         n = substeps if substeps is not None else max(1, math.ceil(dt / 1e-3 - 1e-9))
         h = dt / n
-        x = (self.theta, self.alpha, self.theta_dot, self.alpha_dot)
+        x: tuple[float, ...] = (self.theta, self.alpha, self.theta_dot, self.alpha_dot)
         for _ in range(n):
             k1 = self._rates(x, voltage, amplifier_on)
             k2 = self._rates(

@@ -48,12 +48,16 @@ def markdown(index: dict[str, Any], results: Path, readme_dir: Path | None = Non
     cfg = index["config"]
     readme_dir = readme_dir or Path(".")
     seeds = cfg["seeds"]
+    runs = "; ".join(f"{', '.join(tasks)}: `{c['command'].strip()}`, {c.get('runs_wall_s', 0):.0f} s of runs on "
+                     f"{c['machine']['cores']} cores"
+                     + (" (--resume: runs already in the runs folder were reused, not run again)"
+                        if "--resume" in c["command"] else "")
+                     + f", M = {c['max_episodes']}, report seeds {', '.join(map(str, c['seeds']['report']))}"
+                     for c, tasks in invocations(index, results))
     lines = [
-        f"Generated from `{_rel('paper.json', results, readme_dir)}` ({cfg['variant']} variant, "
-        f"`{cfg['command'].strip()}`, finished {cfg.get('finished_at', '?')}, {cfg['wall_s']:.0f} s on "
-        f"{cfg['machine']['cores']} cores). Mode: {cfg['mode']} (the same chief and worker logic as `make run`). "
-        f"Report seeds (base): {', '.join(map(str, seeds['report']))}; tuning seeds, never reported: "
-        f"{seeds['tuning'][0]}-{seeds['tuning'][-1]}. M = {cfg['max_episodes']} episodes. Every number below is the "
+        f"Generated from `{_rel('paper.json', results, readme_dir)}` ({cfg['variant']} variant; {runs}). "
+        f"Mode: {cfg['mode']} (the same chief and worker logic as `make run`). "
+        f"Tuning seeds, never reported: {seeds['tuning'][0]}-{seeds['tuning'][-1]}. Every number below is the "
         "last worker's (the episode or env step at which the last worker of a run met the stop rule: mean of its "
         "last 10 returns >= TC), median [interquartile range] over seeds; an unfinished run counts as worse than "
         "any finished one. \"1 worker of ours alone\" is worker w0 of the same base seed learning without a "
@@ -73,6 +77,17 @@ def markdown(index: dict[str, Any], results: Path, readme_dir: Path | None = Non
                   + ", ".join(f"[`{f}`]({_rel(f, results, readme_dir)})" for f in figs) + ".", ""]
         lines += [f"![{f}]({_rel(f, results, readme_dir)})" for f in figs[:2]] + [""]
     return "\n".join(lines).rstrip() + "\n"
+
+
+def invocations(index: dict[str, Any], results: Path) -> list[tuple[dict[str, Any], list[str]]]:
+    """The ``bench.paper`` invocations behind an index, each with the tasks it measured (a task keeps the
+    configuration of the invocation that measured it, saved in its ``paper-<task>.json``)."""
+    groups: dict[str, tuple[dict[str, Any], list[str]]] = {}
+    for task in index["tasks"]:
+        path = results / f"paper-{task}.json"
+        cfg = json.loads(path.read_text()).get("config", index["config"]) if path.exists() else index["config"]
+        groups.setdefault(cfg["command"], (cfg, []))[1].append(task)
+    return list(groups.values())
 
 
 def task_section(task: str, rep: dict[str, Any]) -> list[str]:
@@ -225,8 +240,9 @@ def render(folders: list[Path], readme_dir: Path | None = None) -> str:
     for folder in folders:
         index = json.loads((folder / "paper.json").read_text())
         cfg = index["config"]
-        title = (f"#### {cfg['variant'].capitalize()} variant: {', '.join(cfg['tasks'])}, "
-                 f"{len(cfg['seeds']['report'])} seeds, M = {cfg['max_episodes']}")
+        shapes = sorted({(len(rep["seeds"]["report"]), rep["max_episodes"]) for rep in index["tasks"].values()})
+        title = (f"#### {cfg['variant'].capitalize()} variant: {', '.join(index['tasks'])}, "
+                 + "; ".join(f"{n} seeds, M = {m}" for n, m in shapes))
         parts.append(title + "\n\n" + markdown(index, folder, readme_dir))
     return "\n".join(parts)
 

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from chief import federation, strategies
-from protocol.settings import returns_code
+from protocol.settings import program, returns_code
 from protocol.tasks import PI_WINDOW, performance_index
 
 
@@ -277,7 +277,7 @@ def audit(run_dir: Path) -> AuditReport:
 
 @returns_code
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m chief.audit", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=program("python -m chief.audit"), description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a run folder (summary.json + metrics.jsonl)")
     args = parser.parse_args(argv)
     try:

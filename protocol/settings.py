@@ -97,8 +97,12 @@ class OneOf:
 
 
 def _words(value: Any) -> Any:
-    """``"a,b c"`` -> ``["a", "b", "c"]`` (a variable holding a list); lists pass through."""
-    return [w for w in re.split(r"[,\s]+", value) if w] if isinstance(value, str) else value
+    """``"a,b c"`` or ``["a,b", "c"]`` -> ``["a", "b", "c"]``: a list from a variable or from words after a flag."""
+    if isinstance(value, str):
+        return [w for w in re.split(r"[,\s]+", value) if w]
+    if isinstance(value, list):
+        return [w for item in value for w in (_words(item) if isinstance(item, str) else [item])]
+    return value
 
 
 #: A task of protocol/tasks.py.

@@ -294,7 +294,7 @@ class Settings(BaseSettings):
         prog = program(prog)
         argv = list(sys.argv[1:] if argv is None else argv)
         parser = cls.parser(prog, description, epilog)
-        pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+        pre = _OneLineParser(prog=prog, add_help=False, allow_abbrev=False)
         pre.add_argument(*cls.env_file_flags, dest="env_file", default=None)
         pre.add_argument("-h", "--help", action="store_true")
         early, _ = pre.parse_known_args(argv)

@@ -78,6 +78,7 @@ def test_old_flags_are_aliases_of_the_derived_ones(clean_env: pytest.MonkeyPatch
         ([], {"FEDRL_ENV_FILE": "missing.env"}, None,
          "python -m chief: bad setting FEDRL_ENV_FILE=missing.env: no such file"),
         (["--wokers", "2"], {}, None, "python -m chief: unrecognized arguments: --wokers 2"),
+        (["--env-file"], {}, None, "python -m chief: argument --env-file: expected one argument"),
     ],
 )
 def test_a_bad_setting_is_one_line_and_exit_2(argv: list[str], env: dict[str, str], env_file: str | None,

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from chief import federation, strategies
+from protocol.settings import program, returns_code
 from protocol.tasks import PI_WINDOW, performance_index
 
 
@@ -281,8 +282,9 @@ def audit(run_dir: Path) -> AuditReport:
     return report
 
 
+@returns_code
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m chief.audit", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog=program("python -m chief.audit"), description=__doc__.splitlines()[0])
     parser.add_argument("run_dir", type=Path, help="a run folder (summary.json + metrics.jsonl)")
     args = parser.parse_args(argv)
     try:

@@ -9,7 +9,6 @@ Needs ``pip install .[deploy]`` and a reachable Docker engine (DOCKER_HOST is ho
 
 from __future__ import annotations
 
-import argparse
 import io
 import json
 import signal
@@ -29,50 +28,20 @@ import docker
 import requests
 from docker.errors import APIError, BuildError, DockerException, NotFound
 
-from chief import strategies
-from protocol.cli import add_device_noise, add_run_options, env, parse_checked
+from chief.settings import ChiefSettings
+from deploy.settings import DockerSettings
+from protocol.settings import Settings, returns_code, to_env
 from protocol.tasks import worker_seed
+from services.qube_sim.settings import SimRigSettings
+from worker.settings import WorkerSettings
 
 ROOT = Path(__file__).resolve().parent.parent
 MOSQUITTO_DIR = ROOT / "deploy" / "mosquitto"
 LABEL = "org.fedrl.launcher"
-
-
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    p = argparse.ArgumentParser(
-        prog="python -m deploy.docker",
-        description="Build the images and run one federation per worker count in Docker containers (Mosquitto, "
-        "chief, N workers), copying each run folder to --out. Options fall back to the FEDRL_* variables of "
-        ".env.example.",
-    )
-    p.add_argument("--workers", type=int, nargs="+", default=[int(env("FEDRL_WORKERS", "4"))],
-                   help="worker count(s); several make a sweep, one run each (env FEDRL_WORKERS, default 4)")
-    add_run_options(p, strategies.names())
-    add_device_noise(p)
-    p.add_argument("--out", type=Path, default=Path("runs/docker"),
-                   help="folder that receives one run folder per run (default runs/docker)")
-    p.add_argument("--network", choices=("bridge", "host"), default=env("FEDRL_DOCKER_NETWORK", "bridge"),
-                   help="bridge: a private network per run; host: the host's loopback, for engines without bridge "
-                   "networking (env FEDRL_DOCKER_NETWORK, default bridge)")
-    p.add_argument("--mqtt-port", type=int, default=int(env("FEDRL_MQTT_PORT", "1883")),
-                   help="broker port with --network host (env FEDRL_MQTT_PORT, default 1883)")
-    p.add_argument("--mosquitto-image", default=env("FEDRL_MOSQUITTO_IMAGE", "eclipse-mosquitto:2"),
-                   help="broker image (env FEDRL_MOSQUITTO_IMAGE)")
-    p.add_argument("--base-image", default=env("FEDRL_BASE_IMAGE", "python:3.11-slim"),
-                   help="base of the built images (env FEDRL_BASE_IMAGE)")
-    p.add_argument("--torch-index-url", default=env("FEDRL_TORCH_INDEX_URL", ""),
-                   help="wheel index holding the CPU torch (env FEDRL_TORCH_INDEX_URL)")
-    p.add_argument("--build-network", default=env("FEDRL_BUILD_NETWORK", "default"),
-                   help="network of the build containers: default, or host where the engine has no bridge "
-                   "(env FEDRL_BUILD_NETWORK)")
-    p.add_argument("--image-prefix", default=env("FEDRL_IMAGE_PREFIX", "fedrl"), help="env FEDRL_IMAGE_PREFIX")
-    p.add_argument("--image-tag", default=env("FEDRL_IMAGE_TAG", "latest"), help="env FEDRL_IMAGE_TAG")
-    p.add_argument("--no-build", action="store_true", help="use the images as they are")
-    p.add_argument("--timeout", type=float, default=3600.0, help="seconds one run may take (default 3600)")
-    args = parse_checked(p, argv)
-    if min(args.workers) < 1:
-        p.error("--workers must be at least 1")
-    return args
+DESCRIPTION = (
+    "Build the images and run one federation per worker count in Docker containers (Mosquitto, chief, N workers), "
+    "copying each run folder to --out. Settings also come from the FEDRL_* variables of .env.example."
+)
 
 
 @dataclass
@@ -88,7 +57,7 @@ class RunResult:
 class Launcher:
     """One Docker client, the images it built and the containers/networks it still owns."""
 
-    args: argparse.Namespace
+    args: DockerSettings
     client: docker.DockerClient = field(default_factory=docker.from_env)
     session: str = field(default_factory=lambda: uuid.uuid4().hex[:8])
     containers: list[Any] = field(default_factory=list)
@@ -107,7 +76,7 @@ class Launcher:
                 path=str(ROOT), dockerfile="deploy/Dockerfile", target=role, tag=self.image(role), rm=True,
                 forcerm=True, decode=True,
                 network_mode=None if self.args.build_network == "default" else self.args.build_network,
-                buildargs={"BASE_IMAGE": self.args.base_image, "TORCH_INDEX_URL": self.args.torch_index_url},
+                buildargs={"BASE_IMAGE": self.args.base_image, "TORCH_INDEX_URL": self.args.torch_index_url or ""},
             )
             for chunk in stream:
                 if "error" in chunk:
@@ -165,43 +134,45 @@ class Launcher:
     def run(self, workers: int) -> RunResult:
         a = self.args
         run = f"d{self.session}-w{workers}"
-        run_dir = a.out / f"{time.strftime('%Y%m%d-%H%M%S')}-{a.env}-{a.policy}-w{workers}-s{a.seed}"
+        run_dir = a.sweep_dir / f"{time.strftime('%Y%m%d-%H%M%S')}-{a.env}-{a.policy}-w{workers}-s{a.seed}"
         t0 = time.monotonic()
         network = "host"
-        if a.network == "bridge":
+        if a.docker_network == "bridge":
             net = self.client.networks.create(f"fedrl-{run}", driver="bridge", labels={LABEL: self.session})
             self.networks.append(net)
             network = net.name
         broker = self.start_broker(run, network)
-        common = {"FEDRL_BROKER": broker, "FEDRL_RUN_ID": run, "FEDRL_ENV": a.env, "PYTHONUNBUFFERED": "1"}
+        common = {"broker": broker, "run_id": run}
         print(f"== run {run}: {workers} workers on {a.env}, policy {a.policy}, seed {a.seed}, broker {broker}",
               flush=True)
         for i in range(workers):
-            wenv = {**common, "FEDRL_WORKER_ID": f"w{i}", "FEDRL_DEVICE_NOISE": str(a.device_noise),
-                    "FEDRL_REPLY_TIMEOUT": str(max(120.0, 4 * a.round_timeout))}
-            if a.env == "qube":
-                wenv["FEDRL_RIG_ID"] = f"rig{i}"
-                self.start(f"fedrl-{run}-qube-sim-{i}", self.image("qube-sim"), network,
-                           environment={**common, "FEDRL_RIG_ID": f"rig{i}", "FEDRL_SEED": str(worker_seed(a.seed, i))},
-                           command=["--rig-id", f"rig{i}"])
-            self.start(f"fedrl-{run}-worker-{i}", self.image("worker"), network, environment=wenv)
-        chief = self.start(f"fedrl-{run}-chief", self.image("chief"), network, environment={
-            **common, "FEDRL_WORKERS": str(workers), "FEDRL_POLICY": a.policy, "FEDRL_SEED": str(a.seed),
-            "FEDRL_MAX_EPISODES": str(a.max_episodes), "FEDRL_ROUND_TIMEOUT": str(a.round_timeout),
-            "FEDRL_RUN_DIR": "/runs/run"})
+            rig = f"rig{i}" if a.env == "qube" else None
+            if rig is not None:
+                self.start(f"fedrl-{run}-qube-sim-{i}", self.image("qube-sim"), network, environment=container_env(
+                    a.child(SimRigSettings, inherit=False, **common, rig_id=rig, seed=worker_seed(a.seed, i))))
+            self.start(f"fedrl-{run}-worker-{i}", self.image("worker"), network, environment=container_env(
+                a.child(WorkerSettings, inherit=False, **common, worker_id=f"w{i}", rig_id=rig,
+                        reply_timeout=max(120.0, 4 * a.round_timeout))))
+        chief = self.start(f"fedrl-{run}-chief", self.image("chief"), network, environment=container_env(
+            a.child(ChiefSettings, inherit=False, **common, workers=workers, run_dir=Path("/runs/run"))))
         run_dir.mkdir(parents=True, exist_ok=True)
         relay = threading.Thread(target=stream_logs, args=(chief, run_dir / "chief.log"), daemon=True)
         relay.start()
         try:
-            code = int(chief.wait(timeout=a.timeout)["StatusCode"])
+            code = int(chief.wait(timeout=a.run_timeout)["StatusCode"])
         except requests.exceptions.ConnectionError:
-            raise TimeoutError(f"run {run} took longer than {a.timeout:.0f} s") from None
+            raise TimeoutError(f"run {run} took longer than {a.run_timeout:.0f} s") from None
         relay.join(timeout=5)
         copy_out(chief, "/runs/run", run_dir)
         save_logs(self.containers, run_dir / "logs")
         summary_path = run_dir / "summary.json"
         summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
         return RunResult(workers, code, time.monotonic() - t0, run_dir, summary)
+
+
+def container_env(settings: Settings) -> dict[str, str]:
+    """A container's environment: its settings as FEDRL_* variables, output unbuffered."""
+    return {**to_env(settings), "PYTHONUNBUFFERED": "1"}
 
 
 def wait_healthy(container: Any, timeout: float) -> None:
@@ -289,8 +260,9 @@ def print_table(results: list[RunResult]) -> None:
               f"{s.get('end_reason', 'no summary'):<20}  {r.wall_s:>7.1f}  {r.run_dir}")
 
 
+@returns_code
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
+    args = DockerSettings.load(argv, prog="python -m deploy.docker", description=DESCRIPTION)
     try:
         launcher = Launcher(args)
     except DockerException as err:
@@ -299,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
     results: list[RunResult] = []
     with interrupts_as_exceptions():
         try:
-            if not args.no_build:
+            if args.build:
                 launcher.build(["chief", "worker"] + (["qube-sim"] if args.env == "qube" else []))
             for workers in args.workers:
                 try:

@@ -11,7 +11,6 @@ per-worker episodes as a federation over MQTT (a test checks this).
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -24,9 +23,10 @@ from chief import strategies, tensorboard
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.rounds import RoundKeeper
 from chief.service import answer_of, submission_of
-from protocol.cli import add_device_noise, add_run_options, parse_checked
+from deploy.settings import InprocessSettings
 from protocol.codec import decode, encode
 from protocol.messages import ChiefAggregate, ChiefTransfer, MatureParams, WorkerUpdate
+from protocol.settings import returns_code
 from protocol.tasks import task, worker_seed
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
@@ -143,24 +143,16 @@ def _wire(message: Any, *kinds: type) -> Any:
     return decode(encode(message), *kinds)
 
 
+@returns_code
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m deploy.inprocess", description=__doc__.splitlines()[0])
-    parser.add_argument("--workers", type=int, default=4, help="number of workers (default 4)")
-    add_run_options(parser, strategies.names())
-    add_device_noise(parser)
-    parser.add_argument("--run-dir", type=Path, required=True, help="the run folder to write")
-    args = parse_checked(parser, argv)
-    if args.env in ("qube",):
-        parser.error("the in-process mode has no MQTT for rigs: use --env qube-local")
-    summary = run_federation(args.env, args.policy, args.seed, args.workers, args.max_episodes, args.run_dir,
-                             device_noise=args.device_noise, progress=True)
+    s = InprocessSettings.load(argv, prog="python -m deploy.inprocess", description=__doc__.splitlines()[0])
+    summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
+                             device_noise=s.device_noise, progress=True)
     last = summary["episodes_to_all_solved"]
     reason = summary["end_reason"]
     outcome = f"all workers solved by episode {last}" if last is not None else f"not all solved ({reason})"
-    print(f"{args.env} / {args.policy} / seed {args.seed}: {outcome}; {summary['wall_s']:.1f} s; "
-          f"results in {args.run_dir}")
+    print(f"{s.env} / {s.policy} / seed {s.seed}: {outcome}; {summary['wall_s']:.1f} s; results in {s.run_dir}")
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

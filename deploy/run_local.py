@@ -9,7 +9,6 @@ metrics.jsonl, learning_curve.png, the workers' mature models and every process'
 
 from __future__ import annotations
 
-import argparse
 import datetime as dt
 import json
 import os
@@ -18,63 +17,27 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import IO
+from typing import IO, Any
 
-from chief import strategies
-from protocol.cli import add_device_noise, add_run_options, env, parse_checked
+from chief.settings import ChiefSettings
+from deploy.settings import LocalRunSettings
 from protocol.mqtt import BrokerAddress
+from protocol.settings import Settings, returns_code, to_env
 from protocol.tasks import worker_seed
 from services.broker.embedded import make_credentials, start_broker_process
+from services.dashboard.settings import DashboardSettings
+from services.qube_sim.settings import SimRigSettings
+from worker.settings import WorkerSettings
 
 
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(
-        prog="python -m deploy.run_local",
-        description="Run a federation on this machine: embedded MQTT broker, chief and N workers as separate "
-        "processes. Every option also reads the FEDRL_* variable named in its help.",
-    )
-    parser.add_argument("--workers", type=int, default=int(w) if (w := env("FEDRL_WORKERS", "")) else None,
-                        help="number of workers (env FEDRL_WORKERS; default 4, or 3 for qube as in the paper)")
-    add_run_options(parser, strategies.names())
-    add_device_noise(parser)
-    parser.add_argument("--broker", default=env("FEDRL_BROKER", ""),
-                        help="use this broker (mqtt://host:port) instead of starting the embedded one "
-                        "(env FEDRL_BROKER)")
-    parser.add_argument("--run-id", default=env("FEDRL_RUN_ID", ""),
-                        help="run id / topic prefix (env FEDRL_RUN_ID; default: derived from the start time)")
-    parser.add_argument("--run-dir", type=Path, default=Path(p) if (p := env("FEDRL_RUN_DIR", "")) else None,
-                        help="run folder (env FEDRL_RUN_DIR; default runs/<time>-<env>-<policy>-s<seed>)")
-    parser.add_argument("--dashboard-port", type=dashboard_port, default=env("FEDRL_DASHBOARD_PORT", "0"),
-                        help="port of the live dashboard on 127.0.0.1 (env FEDRL_DASHBOARD_PORT; default 0 = any "
-                        "free port, its URL is printed; 'off' = no dashboard)")
-    parser.add_argument("--dashboard-linger", type=float, default=float(env("FEDRL_DASHBOARD_LINGER", "0")),
-                        help="keep the dashboard up this many seconds after the run ended, to look at the final "
-                        "state (env FEDRL_DASHBOARD_LINGER, default 0)")
-    args = parse_checked(parser, argv)
-    if args.dashboard_linger < 0:
-        parser.error("--dashboard-linger must be >= 0")
-    if args.workers is None:
-        args.workers = 3 if args.env == "qube" else 4
-    if args.workers < 1:
-        parser.error("--workers must be at least 1")
+def load(argv: list[str] | None = None) -> LocalRunSettings:
+    """The launcher's settings, with the run's defaults filled in (worker count, run id, run folder)."""
+    s = LocalRunSettings.load(argv, prog="python -m deploy.run_local")
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-    args.run_id = args.run_id or f"r{stamp}"
-    if args.run_dir is None:
-        args.run_dir = Path("runs") / f"{stamp}-{args.env}-{args.policy}-s{args.seed}"
-    return args
-
-
-def dashboard_port(text: str) -> int | None:
-    """A port 0-65535 (0 = any free one), or None for 'off'."""
-    if text.strip().lower() in ("off", "none", "no", "false"):
-        return None
-    try:
-        port = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a port 0-65535 or 'off', got {text!r}") from None
-    if not 0 <= port <= 65535:
-        raise argparse.ArgumentTypeError(f"expected a port 0-65535 or 'off', got {port}")
-    return port
+    return s.model_copy(update={
+        "workers": s.workers or (3 if s.env == "qube" else 4),
+        "run_id": s.run_id or f"r{stamp}",
+        "run_dir": s.run_dir or Path("runs") / f"{stamp}-{s.env}-{s.policy}-s{s.seed}"})
 
 
 class Fleet:
@@ -85,14 +48,15 @@ class Fleet:
         self.procs: dict[str, subprocess.Popen] = {}
         self._files: list[IO[bytes]] = []
 
-    def start(self, name: str, argv: list[str], env_vars: dict[str, str], stream: bool = False) -> subprocess.Popen:
+    def start(self, name: str, module: str, settings: Settings, stream: bool = False) -> subprocess.Popen:
+        """``python -m module`` with ``settings`` as its FEDRL_* variables."""
         out: int | IO[bytes] = subprocess.PIPE
         if not stream:
             fh = (self.log_dir / f"{name}.log").open("wb")
             self._files.append(fh)
             out = fh
-        proc = subprocess.Popen([sys.executable, *argv], stdout=out, stderr=subprocess.STDOUT,
-                                env={**os.environ, **env_vars})
+        proc = subprocess.Popen([sys.executable, "-m", module], stdout=out, stderr=subprocess.STDOUT,
+                                env={**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"})
         self.procs[name] = proc
         return proc
 
@@ -114,61 +78,55 @@ class Fleet:
             fh.close()
 
 
+@returns_code
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    run_dir: Path = args.run_dir
+    s = load(argv)
+    assert s.workers is not None and s.run_id is not None and s.run_dir is not None  # load fills them in
+    run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
     fleet = Fleet(log_dir)
     t0 = time.monotonic()
-    worker_ids = [f"w{i}" for i in range(args.workers)]
-    rigs = {i: f"rig{i}" for i in range(args.workers)} if args.env == "qube" else {}
-    login: Callable[[str], dict[str, str]] = lambda user: {}  # noqa: E731  (an external broker: the caller's env)
+    worker_ids = [f"w{i}" for i in range(s.workers)]
+    rigs = {i: f"rig{i}" for i in range(s.workers)} if s.env == "qube" else {}
+    login: Callable[[str], dict[str, Any]] = lambda user: {}  # noqa: E731  (an external broker: the caller's login)
     try:
-        if args.broker:
-            broker = str(BrokerAddress.from_env(args.broker))
-            print(f"using the broker at {broker}")
+        if s.broker:
+            broker = s.broker
+            print(f"using the broker at {BrokerAddress.parse(broker)}")
         else:
             # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
-            creds = make_credentials(run_dir / "broker", args.run_id, worker_ids,
+            creds = make_credentials(run_dir / "broker", s.run_id, worker_ids,
                                      {worker_ids[i]: rig for i, rig in rigs.items()})
-            login = creds.env
+            login = creds.login
             with (log_dir / "broker.log").open("wb") as broker_log:
                 proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT)
             fleet.add("broker", proc)
             broker = f"mqtt://127.0.0.1:{port}"
             print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
-        common = {"FEDRL_BROKER": broker, "FEDRL_RUN_ID": args.run_id, "FEDRL_ENV": args.env,
-                  "PYTHONUNBUFFERED": "1"}
+        common: dict[str, Any] = {"broker": broker, "run_id": s.run_id}
         url_file = log_dir / "dashboard.url"
-        if args.dashboard_port is not None:  # first, so that it sees the run start
+        if s.dashboard_port is not None:  # first, so that it sees the run start
             url_file.unlink(missing_ok=True)
-            dashboard = fleet.start("dashboard", ["-m", "services.dashboard", "--host", "127.0.0.1", "--port",
-                                                  str(args.dashboard_port), "--url-file", str(url_file)],
-                                    {**common, **login("observer")})
+            dashboard = fleet.start("dashboard", "services.dashboard", s.child(
+                DashboardSettings, **common, **login("observer"), dashboard_host="127.0.0.1",
+                dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
         for i, rig in rigs.items():
-            fleet.start(f"qube-sim-{rig}", ["-m", "services.qube_sim"], {
-                **common, **login(rig), "FEDRL_RIG_ID": rig, "FEDRL_SEED": str(worker_seed(args.seed, i)),
-                "FEDRL_QUBE_CLOCK": env("FEDRL_QUBE_CLOCK", "lockstep")})
+            fleet.start(f"qube-sim-{rig}", "services.qube_sim", s.child(
+                SimRigSettings, **common, **login(rig), rig_id=rig, seed=worker_seed(s.seed, i)))
         for i, wid in enumerate(worker_ids):
-            fleet.start(f"worker-{wid}", ["-m", "worker"], {
-                **common, **login(wid), "FEDRL_WORKER_ID": wid, "FEDRL_DEVICE_NOISE": str(args.device_noise),
-                "FEDRL_MODEL_DIR": str(run_dir / "models"), "FEDRL_RIG_ID": rigs.get(i, ""),
-                "FEDRL_REPLY_TIMEOUT": str(max(120.0, 4 * args.round_timeout))})
-        print(f"run {args.run_id}: {args.workers} workers on {args.env}, policy {args.policy}, seed {args.seed}; "
-              f"logs in {log_dir}")
-        if args.dashboard_port is not None:
+            fleet.start(f"worker-{wid}", "worker", s.child(
+                WorkerSettings, **common, **login(wid), worker_id=wid, model_dir=run_dir / "models",
+                rig_id=rigs.get(i), reply_timeout=max(120.0, 4 * s.round_timeout)))
+        print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
+        if s.dashboard_port is not None:
             url = wait_for_url(dashboard, url_file)
             print(f"dashboard: {url}" if url else f"!! the dashboard did not start; see {log_dir / 'dashboard.log'}",
                   flush=True)
-        chief_env = {
-            **common, **login("chief"), "FEDRL_WORKERS": str(args.workers), "FEDRL_POLICY": args.policy,
-            "FEDRL_SEED": str(args.seed), "FEDRL_MAX_EPISODES": str(args.max_episodes),
-            "FEDRL_ROUND_TIMEOUT": str(args.round_timeout), "FEDRL_RUN_DIR": str(run_dir)}
+        chief = s.child(ChiefSettings, **common, **login("chief"), run_dir=run_dir)
         restarts = 0
         while True:
-            chief = fleet.start("chief", ["-m", "chief"], chief_env, stream=True)
-            code = relay(chief, log_dir / "chief.log", fleet)
+            code = relay(fleet.start("chief", "chief", chief, stream=True), log_dir / "chief.log", fleet)
             if code in CHIEF_FINAL_CODES or (run_dir / "summary.json").exists() or restarts >= MAX_CHIEF_RESTARTS:
                 break
             restarts += 1
@@ -180,9 +138,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"the chief exited with code {code} and wrote no summary; see {log_dir}", file=sys.stderr)
             return code or 1
         print_summary(json.loads(summary_path.read_text()), run_dir, wall)
-        if args.dashboard_port is not None and args.dashboard_linger > 0 and dashboard.poll() is None:
-            print(f"the dashboard stays up for {args.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
-            time.sleep(args.dashboard_linger)
+        if s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
+            print(f"the dashboard stays up for {s.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
+            time.sleep(s.dashboard_linger)
         return code
     except KeyboardInterrupt:
         print("\ninterrupted; stopping every process", file=sys.stderr)

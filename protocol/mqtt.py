@@ -19,7 +19,6 @@ logged and counted; it never kills the network loop.
 from __future__ import annotations
 
 import logging
-import os
 import secrets
 import socket
 import ssl
@@ -47,20 +46,6 @@ MAX_PARTIAL, CHUNK_TTL = 64, 60.0
 #: Bytes of a Chunk message around its data (msgpack keys, id, counters), kept below max_payload.
 CHUNK_OVERHEAD = 160
 _CHUNK_SNIFF = b"\xa4kind\xa5chunk"
-
-
-def max_payload_from_env() -> int | None:
-    """FEDRL_MAX_PAYLOAD in bytes (unset or 0: no chunking); a ValueError names a bad value."""
-    raw = os.environ.get("FEDRL_MAX_PAYLOAD", "").strip()
-    if not raw or raw == "0":
-        return None
-    try:
-        value = int(raw)
-    except ValueError:
-        raise ValueError(f"FEDRL_MAX_PAYLOAD must be a number of bytes, not {raw!r}") from None
-    if value < 1024:
-        raise ValueError(f"FEDRL_MAX_PAYLOAD must be at least 1024 bytes (or 0 for no chunking), not {value}")
-    return value
 
 
 @dataclass
@@ -157,16 +142,6 @@ class BrokerAddress:
             username=username or (unquote(parts.username) if parts.username else None),
             password=password or (unquote(parts.password) if parts.password else None),
             ca_file=ca_file,
-        )
-
-    @classmethod
-    def from_env(cls, url: str | None = None) -> BrokerAddress:
-        """``url`` (or FEDRL_BROKER) plus FEDRL_MQTT_USERNAME / FEDRL_MQTT_PASSWORD / FEDRL_MQTT_CA_FILE."""
-        return cls.parse(
-            url or os.environ.get("FEDRL_BROKER", DEFAULT_BROKER),
-            username=os.environ.get("FEDRL_MQTT_USERNAME") or None,
-            password=os.environ.get("FEDRL_MQTT_PASSWORD") or None,
-            ca_file=os.environ.get("FEDRL_MQTT_CA_FILE") or None,
         )
 
     def __str__(self) -> str:

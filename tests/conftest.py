@@ -14,6 +14,9 @@ from services.broker.embedded import free_port, start_broker_process, stop_proce
 
 HOST = "127.0.0.1"
 
+# Hermetic settings: no developer's ./.env (docker compose reads one too) reaches the processes the tests start.
+os.environ["FEDRL_ENV_FILE"] = os.devnull
+
 
 @pytest.fixture
 def amqtt_broker(tmp_path: Path) -> Iterator[str]:

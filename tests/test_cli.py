@@ -23,14 +23,17 @@ def test_help(module: str) -> None:
 @pytest.mark.parametrize(
     ("module", "var", "value", "message"),
     [
-        ("chief", "FEDRL_POLICY", "fedavg", "invalid choice 'fedavg'"),
+        ("chief", "FEDRL_POLICY", "fedavg", "FEDRL_POLICY='fedavg' (environment): invalid choice 'fedavg'"),
         ("worker", "FEDRL_ENV", "Breakout", "invalid choice 'Breakout'"),
         ("deploy.run_local", "FEDRL_ENV", "Breakout", "invalid choice 'Breakout'"),
-        ("services.qube_sim", "FEDRL_QUBE_CLOCK", "sundial", "invalid choice 'sundial'"),
-        ("chief", "FEDRL_WORKERS", "0", "--workers must be at least 1"),
+        ("services.qube_sim", "FEDRL_QUBE_CLOCK", "sundial", "FEDRL_QUBE_CLOCK='sundial' (environment): input should "
+         "be 'lockstep', 'delayed' or 'realtime'"),
+        ("chief", "FEDRL_WORKERS", "0", "FEDRL_WORKERS='0' (environment): input should be greater than or equal to 1"),
         ("rpi_bridge", "FEDRL_DEADLINE_MS", "9", "must be in (0, --period-ms"),
-        ("rpi_bridge", "FEDRL_MAX_COMMAND", "999", "--max-command must be in 1..416"),
-        ("services.qube_sim", "FEDRL_QUBE_MISS_RATE", "1.5", "miss_rate must be in [0, 1)"),
+        ("rpi_bridge", "FEDRL_MAX_COMMAND", "999", "FEDRL_MAX_COMMAND='999' (environment): must be in 1..416"),
+        ("services.qube_sim", "FEDRL_QUBE_MISS_RATE", "1.5", "FEDRL_QUBE_MISS_RATE='1.5' (environment): input should "
+         "be less than 1"),
+        ("deploy.docker", "FEDRL_WORKERS", "2,x", "FEDRL_WORKERS='2,x' (environment): input should be a valid integer"),
     ],
 )
 def test_bad_settings_are_clear_errors(module: str, var: str, value: str, message: str) -> None:
@@ -38,3 +41,4 @@ def test_bad_settings_are_clear_errors(module: str, var: str, value: str, messag
                          env={**os.environ, var: value})
     assert out.returncode == 2
     assert message in out.stderr and "Traceback" not in out.stderr
+    assert len(out.stderr.strip().splitlines()) == 1, out.stderr

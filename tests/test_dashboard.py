@@ -369,11 +369,12 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
 def test_command_line_errors_are_one_line(tmp_path: Path) -> None:
     import subprocess
 
-    for argv, needle in ((["--port", "70000"], "port must be 0-65535"), (["--run-id", "a/b"], "run id")):
+    for argv, needle in ((["--port", "70000"], "--port '70000' (command line): input should be less than or equal to "
+                          "65535"), (["--run-id", "a/b"], "--run-id 'a/b' (command line): run id")):
         out = subprocess.run([sys.executable, "-m", "services.dashboard", "--broker", "mqtt://127.0.0.1:9", *argv],
                              capture_output=True, text=True, timeout=60)
         assert out.returncode == 2, out.stderr
-        assert needle in out.stderr and "Traceback" not in out.stderr
+        assert needle in out.stderr and "Traceback" not in out.stderr and len(out.stderr.splitlines()) == 1
 
 
 # -- deployment ------------------------------------------------------------------------------------------------

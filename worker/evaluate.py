@@ -17,25 +17,24 @@ fit (one line on stderr), 1 the broker or rig could not be reached.
 
 from __future__ import annotations
 
-import argparse
 import importlib.util
 import json
-import math
 import os
 import sys
 import uuid
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from protocol.cli import add_device_noise, env, parse_checked, setup_logging
-from protocol.mqtt import DEFAULT_BROKER, BrokerAddress, MqttConnection
-from protocol.tasks import TASKS
+from protocol.cli import setup_logging
+from protocol.mqtt import MqttConnection
+from protocol.settings import returns_code
 from worker.envs import DeviceNoise, env_spec, make_env
 from worker.ppo import PPOConfig, PPOLearner
+from worker.settings import EvaluateSettings
 
 
 class EvalError(ValueError):
@@ -187,68 +186,32 @@ def check_video_support(env_id: str) -> None:
 # -- command line ------------------------------------------------------------------------------------------------
 
 
-class OneLineParser(argparse.ArgumentParser):
-    """An option error is one line on stderr and exit code 2 (no usage dump)."""
-
-    def error(self, message: str) -> NoReturn:
-        self.exit(2, f"{self.prog}: {message} (--help lists the options)\n")
-
-
-def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
-    parser = OneLineParser(prog="python -m worker.evaluate", description=__doc__.split("\n")[0],
-                                     epilog="Exit codes: 0 evaluated, 2 bad option or model, 1 broker/rig unreachable.")
-    parser.add_argument("model", type=Path, help="a models/<worker>.pt saved by a worker")
-    parser.add_argument("--env", default=env("FEDRL_ENV", "") or None, choices=sorted(TASKS),
-                        help="task to run it on (env FEDRL_ENV)")
-    parser.add_argument("--episodes", type=int, default=10, help="number of episodes (default 10)")
-    parser.add_argument("--seed", type=int, default=0, help="episode i is seeded with seed + i (default 0)")
-    add_device_noise(parser)
-    parser.add_argument("--json", type=Path, default=None, help="also write the results to this JSON file")
-    parser.add_argument("--video", type=Path, default=None, metavar="DIR",
-                        help="write an animated GIF of the first --video-episodes episodes here (gymnasium tasks)")
-    parser.add_argument("--video-episodes", type=int, default=1, help="episodes to record with --video (default 1)")
-    parser.add_argument("--rig-id", default=env("FEDRL_RIG_ID", "") or None,
-                        help="the rig to drive with --env qube (env FEDRL_RIG_ID)")
-    parser.add_argument("--broker", default=env("FEDRL_BROKER", DEFAULT_BROKER),
-                        help=f"broker of the rig with --env qube (env FEDRL_BROKER, default {DEFAULT_BROKER})")
-    parser.add_argument("--log-level", default=env("FEDRL_LOG_LEVEL", "WARNING"), help="default WARNING")
-    args = parse_checked(parser, argv)
-    if args.env is None:
-        parser.error("--env is required (or set FEDRL_ENV)")
-    if args.episodes < 1:
-        parser.error("--episodes must be at least 1")
-    if args.video_episodes < 1:
-        parser.error("--video-episodes must be at least 1")
-    if not (args.device_noise >= 0 and math.isfinite(args.device_noise)):
-        parser.error("--device-noise must be >= 0")
-    if args.env == "qube" and not args.rig_id:
-        parser.error("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
-    return args
-
-
 def report(result: Evaluation) -> str:
     verdict = "reached" if result.reached_tc else "not reached"
     return (f"mean return {result.mean:.2f} ± {result.std:.2f} (min {result.min:.2f}, max {result.max:.2f}) over "
             f"{result.episodes} episodes; TC {result.tc:g}: {verdict}")
 
 
+@returns_code
 def main(argv: list[str] | None = None) -> int:
-    args = parse_args(argv)
-    setup_logging(args.log_level, "evaluate")
+    s = EvaluateSettings.load(argv, prog="python -m worker.evaluate", description=__doc__.split("\n")[0],
+                              epilog="Exit codes: 0 evaluated, 2 bad setting or model, 1 broker/rig unreachable.")
+    assert s.env is not None  # the settings require it
+    setup_logging(s.log_level, "evaluate")
     import torch
 
     torch.set_num_threads(1)
     conn = None
     try:
-        if args.video is not None:
-            check_video_support(args.env)
-        if not args.model.is_file():
-            raise EvalError(f"no model file at {args.model}")
-        if args.env == "qube":
-            conn = MqttConnection(BrokerAddress.from_env(args.broker),
-                                  client_id=f"fedrl-eval-{args.rig_id}-{uuid.uuid4().hex[:6]}").start()
-        result = evaluate(args.model, args.env, args.episodes, args.seed, args.device_noise, args.video,
-                          args.video_episodes, args.rig_id if conn else None, conn)
+        if s.eval_video is not None:
+            check_video_support(s.env)
+        if not s.model.is_file():
+            raise EvalError(f"no model file at {s.model}")
+        if s.env == "qube":
+            conn = MqttConnection(s.address(), client_id=f"fedrl-eval-{s.rig_id}-{uuid.uuid4().hex[:6]}",
+                                  max_payload=s.max_payload).start()
+        result = evaluate(s.model, s.env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
+                          s.eval_video_episodes, s.rig_id if conn else None, conn)
     except EvalError as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2
@@ -261,12 +224,11 @@ def main(argv: list[str] | None = None) -> int:
         if conn is not None:
             conn.stop()
     print(report(result), flush=True)
-    if args.json is not None:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(asdict(result), indent=2) + "\n")
-        print(f"results: {args.json}", flush=True)
+    if s.eval_json is not None:
+        s.eval_json.parent.mkdir(parents=True, exist_ok=True)
+        s.eval_json.write_text(json.dumps(asdict(result), indent=2) + "\n")
+        print(f"results: {s.eval_json}", flush=True)
     return 0
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -9,20 +9,18 @@ returns; stop once PI >= TC (with at least 10 episodes); otherwise ``update()`` 
 
 from __future__ import annotations
 
-import argparse
-import ast
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import fields
-from typing import Any
 
 import torch
 
+from protocol.settings import returns_code
 from protocol.tasks import performance_index, solved
 from worker.envs import DeviceNoise, env_spec, make_env
 from worker.episode import run_episode
 from worker.ppo import PPOConfig, PPOLearner, UpdateStats
+from worker.settings import TrainLocalSettings
 
 
 def train(
@@ -59,50 +57,29 @@ def train(
     return returns
 
 
-def _parse_override(text: str) -> tuple[str, Any]:
-    key, sep, raw = text.partition("=")
-    names = {f.name for f in fields(PPOConfig)}
-    if not sep or key not in names:
-        raise argparse.ArgumentTypeError(f"expected KEY=VALUE with KEY one of {sorted(names)}, got {text!r}")
-    lowered = raw.strip().lower()
-    if lowered in ("true", "false", "none"):
-        return key, {"true": True, "false": False, "none": None}[lowered]
-    try:
-        return key, ast.literal_eval(raw)
-    except (ValueError, SyntaxError):
-        return key, raw
-
-
+@returns_code
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m worker.train_local", description=__doc__.split("\n")[0])
-    parser.add_argument("--env", default="CartPole-v0")
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--episodes", type=int, default=2000, help="maximum episodes (the paper's M)")
-    parser.add_argument("--device-noise", type=float, default=1.0, help="DeviceNoise scale; 0 turns it off")
-    parser.add_argument("--set", dest="overrides", action="append", type=_parse_override, default=[],
-                        metavar="KEY=VALUE", help="override a PPOConfig field of the preset (repeatable)")
-    parser.add_argument("--every", type=int, default=10, help="print every N episodes")
-    args = parser.parse_args(argv)
+    s = TrainLocalSettings.load(argv, prog="python -m worker.train_local", description=__doc__.split("\n")[0])
     torch.set_num_threads(1)
 
-    spec = env_spec(args.env)
-    config = spec.ppo_config(**dict(args.overrides))
-    print(f"{args.env} seed {args.seed}: TC {spec.tc}, {config}", flush=True)
+    spec = env_spec(s.env)
+    config = spec.ppo_config(**s.ppo_overrides())
+    print(f"{s.env} seed {s.seed}: TC {spec.tc}, {config}", flush=True)
     start, total_steps = time.monotonic(), 0
 
     def report(episode: int, ret: float, pi: float, steps: int, stats: UpdateStats | None) -> None:
         nonlocal total_steps
         total_steps += steps
-        if stats is None or episode % args.every == 0:
+        if stats is None or episode % s.print_every == 0:
             extra = "" if stats is None else (
                 f" | actor {stats.actor_loss:+.3f} critic {stats.critic_loss:.3f} entropy {stats.entropy:.3f}"
                 f" kl {stats.approx_kl:.4f}")
             print(f"ep {episode:5d} steps {total_steps:8d} return {ret:9.2f} PI {pi:9.2f}"
                   f" t {time.monotonic() - start:6.1f}s{extra}", flush=True)
 
-    returns = train(args.env, args.seed, args.episodes, config, DeviceNoise(scale=args.device_noise), report)
+    returns = train(s.env, s.seed, s.max_episodes, config, DeviceNoise(scale=s.device_noise), report)
     ok = solved(returns, spec.tc)
-    print(f"RESULT env={args.env} seed={args.seed} solved={ok} episodes={len(returns)} steps={total_steps} "
+    print(f"RESULT env={s.env} seed={s.seed} solved={ok} episodes={len(returns)} steps={total_steps} "
           f"PI={performance_index(returns):.2f} wall={time.monotonic() - start:.1f}s", flush=True)
     return 0 if ok else 1
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import json
 import logging
+import os
 import secrets
 import signal
 import socket
@@ -23,12 +24,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.codec import MAX_PAYLOAD_BYTES
+from protocol.settings import to_env
+from services.broker.settings import MAX_PACKET_SIZE, BrokerSettings
 
 log = logging.getLogger(__name__)
-
-#: The largest MQTT packet the broker takes: the codec's payload limit plus room for the topic and headers.
-MAX_PACKET_SIZE = MAX_PAYLOAD_BYTES + 64 * 1024
 
 
 class PacketTooLarge(Exception):
@@ -121,9 +120,9 @@ class Credentials:
     def acl_file(self) -> Path:
         return self.folder / "acl.json"
 
-    def env(self, user: str) -> dict[str, str]:
-        """FEDRL_MQTT_USERNAME / FEDRL_MQTT_PASSWORD for one process."""
-        return {"FEDRL_MQTT_USERNAME": user, "FEDRL_MQTT_PASSWORD": self.users[user]}
+    def login(self, user: str) -> dict[str, str]:
+        """The MQTT settings (``mqtt_username``, ``mqtt_password``) of one process."""
+        return {"mqtt_username": user, "mqtt_password": self.users[user]}
 
 
 def run_acl(run_id: str, workers: list[str], rigs: dict[str, str]) -> dict[str, dict[str, list[str]]]:
@@ -202,13 +201,11 @@ def start_broker_process(
 ) -> tuple[subprocess.Popen, int]:
     """Start ``python -m services.broker`` on a free (or given) port and wait until it listens."""
     port = port or free_port(host)
-    extra = ([] if credentials is None else
-             ["--password-file", str(credentials.password_file), "--acl-file", str(credentials.acl_file)])
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "services.broker", "--host", host, "--port", str(port), "--log-level", "WARNING",
-         *extra],
-        **popen,
-    )
+    settings = BrokerSettings(broker_host=host, broker_port=port, log_level="WARNING",
+                              broker_password_file=credentials.password_file if credentials else None,
+                              broker_acl_file=credentials.acl_file if credentials else None)
+    env = {**popen.pop("env", os.environ), **to_env(settings)}
+    proc = subprocess.Popen([sys.executable, "-m", "services.broker"], env=env, **popen)
     try:
         wait_for_port(host, port, proc=proc)
     except Exception:

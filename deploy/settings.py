@@ -1,0 +1,86 @@
+"""Settings of the launchers: ``deploy.run_local`` (make run), ``deploy.inprocess`` and ``deploy.docker``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, PositiveInt, field_validator
+
+from chief.settings import FederationSettings
+from protocol.mqtt import BrokerAddress
+from protocol.settings import Counts, Port, setting
+from protocol.topics import check_id
+from services.qube_sim.settings import Clock
+from worker.settings import DeviceNoiseSettings
+
+OFF = ("off", "none", "no", "false")
+
+
+def _off(value: Any) -> Any:
+    return None if isinstance(value, str) and value.strip().lower() in OFF else value
+
+
+#: A port, 0 for any free one, or ``off`` (None).
+PortOrOff = Annotated[Port | None, BeforeValidator(_off), PlainSerializer(lambda v: "off" if v is None else v)]
+
+
+class LocalRunSettings(DeviceNoiseSettings, FederationSettings):
+    """A federation on this machine: embedded MQTT broker, chief and N workers as separate processes (make run)."""
+
+    workers: PositiveInt | None = setting(None, "number of workers (unset: 4, or 3 for qube as in the paper)")
+    broker: str | None = setting(None, "use this broker (mqtt://host:port) instead of starting the embedded one")
+    run_id: str | None = setting(None, "run id, the topic prefix fedrl/<run>/ (unset: from the start time)")
+    run_dir: Path | None = setting(None, "run folder (unset: runs/<time>-<env>-<policy>-s<seed>)")
+    dashboard_port: PortOrOff = setting(0, "port of the live dashboard on 127.0.0.1 (0 = any free port, its URL is "
+                                        "printed; off = no dashboard)")
+    dashboard_linger: NonNegativeFloat = setting(0.0, "keep the dashboard up this many seconds after the run ended, "
+                                                 "to look at the final state")
+    qube_clock: Clock = setting("lockstep", "clock of the simulated rigs when --env qube (python -m services.qube_sim "
+                                "--help)")
+
+    @field_validator("broker")
+    @classmethod
+    def _broker_parses(cls, value: str | None) -> str | None:
+        if value:
+            BrokerAddress.parse(value)
+        return value or None
+
+    @field_validator("run_id")
+    @classmethod
+    def _run_id(cls, value: str | None) -> str | None:
+        return check_id(value, "run id") if value else None
+
+
+class InprocessSettings(DeviceNoiseSettings, FederationSettings):
+    """A whole federation in one process, for sweeps: the same chief and worker logic as make run, without MQTT."""
+
+    workers: int = setting(4, "number of workers", ge=1)
+    run_dir: Path = setting(help="the run folder to write")
+
+    @field_validator("env")
+    @classmethod
+    def _no_rigs(cls, value: str) -> str:
+        if value == "qube":
+            raise ValueError("the in-process mode has no MQTT for rigs: use --env qube-local")
+        return value
+
+
+class DockerSettings(DeviceNoiseSettings, FederationSettings):
+    """Federations in Docker containers (Mosquitto, chief, N workers), one per worker count, through the Docker SDK."""
+
+    workers: Counts = setting([4], "worker count(s); several make a sweep, one run each")
+    sweep_dir: Path = setting(Path("runs/docker"), "folder that receives one run folder per run", aliases=["--out"])
+    docker_network: Literal["bridge", "host"] = setting(
+        "bridge", "bridge: a private network per run; host: the host's loopback, for engines without bridge "
+        "networking", aliases=["--network"])
+    mqtt_port: Port = setting(1883, "broker port with --network host")
+    mosquitto_image: str = setting("eclipse-mosquitto:2", "broker image")
+    base_image: str = setting("python:3.11-slim", "base of the built images")
+    torch_index_url: str | None = setting(None, "wheel index holding the CPU torch")
+    build_network: str = setting("default", "network of the build containers: default, or host where the engine "
+                                 "has no bridge")
+    image_prefix: str = setting("fedrl", "images are <prefix>/<role>:<tag>")
+    image_tag: str = setting("latest", "images are <prefix>/<role>:<tag>")
+    build: bool = setting(True, "build the images first (--no-build: use them as they are)")
+    run_timeout: float = setting(3600.0, "seconds one run may take", aliases=["--timeout"], gt=0)

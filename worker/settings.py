@@ -1,0 +1,105 @@
+"""Settings of a worker, of ``worker.evaluate`` and of ``worker.train_local`` (torch-free: launchers import them)."""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+from typing import Any
+
+from pydantic import field_validator, model_validator
+
+from protocol.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
+from protocol.topics import check_id
+
+
+class DeviceNoiseSettings(Settings):
+    """The per-device action noise of the paper."""
+
+    device_noise: float = setting(1.0, "scale of the per-device action noise N(0.002, 0.0005) of the paper; 0 turns "
+                                  "it off", ge=0, allow_inf_nan=False)
+
+
+class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
+    """A federated RL worker (paper Algorithm 2)."""
+
+    worker_id: str = setting("auto", "worker id, unique in the run ('auto' = hostname plus a random suffix)",
+                             aliases=["--id"])
+    env: TaskName = setting("CartPole-v0", "task to learn; must match the chief's")
+    rig_id: str | None = setting(None, "QUBE-Servo 2 rig to drive when --env qube")
+    reply_timeout: float = setting(120.0, "seconds to wait for the chief's answer to an episode before going on "
+                                   "alone", gt=0)
+    ack_timeout: float = setting(600.0, "after solving, seconds to keep sending the mature actor until the chief "
+                                 "acknowledges it", gt=0)
+    resend_interval: float = setting(30.0, "send an unanswered submission again after this many seconds (also at "
+                                     "once after a reconnect or a chief restart)", gt=0)
+    start_timeout: float = setting(600.0, "seconds to wait for the chief to start the run", gt=0)
+    model_dir: Path | None = setting(None, "save the mature model here as <id>.pt (unset: not saved)")
+
+    @field_validator("worker_id")
+    @classmethod
+    def _worker_id(cls, value: str) -> str:
+        return value if value == "auto" else check_id(value, "worker id")
+
+
+class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
+    """Run a saved controller greedily and report its returns."""
+
+    model: Path = setting(help="a models/<worker>.pt saved by a worker", positional=True, env=False)
+    env: TaskName | None = setting(None, "task to run it on (required)")
+    eval_episodes: int = setting(10, "number of episodes", aliases=["--episodes"], ge=1)
+    eval_seed: int = setting(0, "episode i is seeded with seed + i", aliases=["--seed"])
+    eval_json: Path | None = setting(None, "also write the results to this JSON file", aliases=["--json"])
+    eval_video: Path | None = setting(None, "write an animated GIF of the first --video-episodes episodes into this "
+                                      "folder (gymnasium tasks)", aliases=["--video"], metavar="DIR")
+    eval_video_episodes: int = setting(1, "episodes to record with --video", aliases=["--video-episodes"], ge=1)
+    rig_id: str | None = setting(None, "the rig to drive with --env qube (give --broker too)")
+    log_level: LogLevel = setting("WARNING", "DEBUG, INFO, WARNING or ERROR")
+
+    @model_validator(mode="after")
+    def _task_given(self) -> EvaluateSettings:
+        if self.env is None:
+            raise ValueError("--env is required (or set FEDRL_ENV)")
+        if self.env == "qube" and not self.rig_id:
+            raise ValueError("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
+        return self
+
+
+class TrainLocalSettings(DeviceNoiseSettings):
+    """One worker, no federation: Algorithm 2 without the chief, for experiments and tuning."""
+
+    env: TaskName = setting("CartPole-v0", "task to learn")
+    seed: int = setting(1, "seed of the networks, the sampling and the env")
+    max_episodes: int = setting(2000, "the most episodes (the paper's M)", aliases=["--episodes"], ge=1)
+    overrides: list[str] = setting([], "override a PPOConfig field of the task's preset (repeatable)",
+                                   aliases=["--set"], env=False, append=True, metavar="KEY=VALUE")
+    print_every: int = setting(10, "print every N episodes", aliases=["--every"], ge=1)
+
+    @field_validator("overrides")
+    @classmethod
+    def _overrides_parse(cls, value: list[str]) -> list[str]:
+        for text in value:
+            parse_override(text)
+        return value
+
+    def ppo_overrides(self) -> dict[str, Any]:
+        return dict(parse_override(text) for text in self.overrides)
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """``KEY=VALUE`` of a PPOConfig field; the value as a Python literal where it is one."""
+    from dataclasses import fields
+
+    from worker.ppo import PPOConfig  # torch: only where overrides are given
+
+    key, sep, raw = text.partition("=")
+    names = {f.name for f in fields(PPOConfig)}
+    if not sep or key not in names:
+        raise ValueError(f"expected KEY=VALUE with KEY one of {sorted(names)}, got {text!r}")
+    lowered = raw.strip().lower()
+    if lowered in ("true", "false", "none"):
+        return key, {"true": True, "false": False, "none": None}[lowered]
+    try:
+        return key, ast.literal_eval(raw)
+    except (ValueError, SyntaxError):
+        return key, raw
+

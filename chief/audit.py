@@ -260,6 +260,24 @@ def audit(run_dir: Path) -> AuditReport:
                          f"{r['keep_weights'].get(w)}")
             report.receipts += 1
 
+    # delivery to helpers: a finisher that goes on sharing (finishers_help) skipped the other rounds of its finishing
+    # episode; its first submission after them confirms the round just before, so it applied every answer it missed
+    # and its networks are the others' again
+    if strategy.finishers_help:
+        closed = {int(r["round"]): r for r in rounds}
+        for (w, n), e in by_round.items():
+            if e.get("kind") != "mature":
+                continue
+            later = min((m for (x, m) in by_round if x == w and m > n), default=None)
+            if later is None or later - 1 not in closed:
+                continue
+            receipt, before = by_round[(w, later)].get("receipt") or {}, closed[later - 1]
+            _require(int(receipt.get("round", -1)) == later - 1 and receipt.get("applied") == before["kind"]
+                     and receipt.get("digest", "") == before["digest"], "delivery",
+                     f"{w} finished in round {n} and rejoined in round {later} without confirming round "
+                     f"{later - 1}'s answer ({receipt or None}): it missed the answers of its finishing episode")
+            report.receipts += 1
+
     # summary
     steps: dict[str, int] = defaultdict(int)
     for (w, ep), e in sorted(by_key.items(), key=lambda kv: kv[0][1]):

@@ -63,10 +63,16 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     worker_s: dict[str, list[float]] = {wid: [] for wid in ids}  # per episode: the worker's own seconds
     chief_s: list[float] = []  # per round: the chief side's seconds (encoding both ways, the state machine)
     chief_acc = 0.0
+    catching_up: dict[str, range] = {}  # helpers that apply their finishing episode's answers before playing on
     try:
         while not keeper.done:
             for wid in [w for w in ids if keeper.workers[w].state != "finished" or keeper.workers[w].helping]:
                 algo = algos[wid]
+                if wid in catching_up:
+                    if keeper.round <= catching_up[wid][-1]:
+                        continue  # those rounds are still open: it waits for their answers, as over MQTT
+                    skipped = catching_up.pop(wid)
+                    algo.catch_up({r: a for r in skipped if isinstance(a := answers.get(r), ChiefAggregate)})
                 if wid not in open_:
                     start = time.perf_counter()
                     played = algo.play()
@@ -102,6 +108,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                     del open_[wid]  # finished (accepted); it plays on if its finish lets it help
                     sent.discard(wid)
                     algo.finished = True
+                    if algo.per_step and keeper.workers[wid].helping:
+                        catching_up[wid] = algo.skipped_rounds
                     continue
                 if algo.round not in answers:
                     continue  # its round is still open (it went ahead of the others): it waits, as over MQTT

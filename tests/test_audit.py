@@ -90,7 +90,10 @@ def test_an_honest_federation_passes(tmp_path: Path, policy: str) -> None:
         # 20 episodes of 3 steps and a last step 0, all three workers (finishers help), less the steps 1-2 of
         # w0's and w1's finishing episodes.
         assert report.rounds == 20 * 3 + 1 and report.submissions == 3 * (20 * 3 + 1) - 2 * 2
-        assert report.transfers == 0 and report.receipts == 174
+        # every answer confirmed but the first round's: 3 workers x 61 rounds - 4 skipped submissions - 3 first
+        # rounds; w0's and w1's finishing rounds are confirmed by their rejoining submissions (the answers they
+        # caught up with)
+        assert report.transfers == 0 and report.receipts == 176
         return
     assert report.rounds == 21 and report.submissions == 12 + 15 + 21
     # w0 and w1 finished while others were learning: one transfer each, to 2 and then 1 recipients.
@@ -230,3 +233,17 @@ def test_a_finished_helpers_submission_may_outlive_the_run(tmp_path: Path, polic
             audit(tmp_path / policy)
         return
     assert audit(tmp_path / policy).uncounted == [("w0", last + 1)]
+
+
+def test_a_helper_that_did_not_catch_up_fails_delivery(tmp_path: Path) -> None:
+    """Under sync a finisher skips the other steps of its finishing episode; rejoining with the receipt of the round
+    before its finish (the answers it skipped never applied, so its networks differ from the others') is caught."""
+    simulate(tmp_path / "sync", "sync")
+    lines = records(tmp_path / "sync")
+    mature = first(lines, type="episode", kind="mature", worker="w0")
+    rejoin = next(x for x in lines if x["type"] in ("episode", "step") and x["worker"] == "w0"
+                  and x["round"] > mature["round"])
+    rejoin["receipt"] = dict(mature["receipt"])
+    rewrite(tmp_path / "sync", lines)
+    with pytest.raises(AuditFailure, match=r"delivery: w0 finished in round .* without confirming"):
+        audit(tmp_path / "sync")

@@ -69,12 +69,9 @@ def test_four_workers_learn_and_the_audit_passes(runs: dict[str, Path], policy: 
     report = audit(run_dir)  # raises AuditFailure naming the first violated invariant
     if not strategies.get(policy).per_step:
         assert report.submissions == sum(w["episodes"] for w in summary["workers"])
-    # Every answer but the first round's is confirmed by the worker's next submission. Under sync, a finisher skips
-    # the remaining steps of its finishing episode and rejoins (helping) at the next episode's first step, so its
-    # finishing round's answer is confirmed by nobody (the rejoining submission carries the receipt of the round
-    # before its finish).
-    helpers = len(early_finishers(run_dir)) if strategies.get(policy).finishers_help else 0
-    assert report.receipts == report.submissions - WORKERS - helpers
+    # Every answer but the first round's was confirmed (under sync, a finisher confirms the rounds of its finishing
+    # episode, whose answers it caught up with, by the receipt of its rejoining submission).
+    assert report.receipts == report.submissions - WORKERS
 
 
 @pytest.mark.parametrize("policy", [p for p in strategies.names() if strategies.get(p).keep_weight(0.5) is not None])

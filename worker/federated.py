@@ -155,6 +155,32 @@ class Algorithm2:
         self._batch = self._own = None
         return None
 
+    @property
+    def skipped_rounds(self) -> range:
+        """Under a per-step strategy whose finishers help: the rounds of the episode this worker finished in, which
+        it took no step of (its MatureParams was the first); :meth:`catch_up` applies their answers."""
+        first = (self.episode - 1) * self.rounds_per_episode + 1
+        return range(first, first + self.rounds_per_episode)
+
+    def catch_up(self, answers: dict[int, ChiefAggregate]) -> list[int]:
+        """Apply, in order, the answers of the rounds of the finishing episode (``skipped_rounds``) that every other
+        worker applied, so that this helper's networks and optimizers are again the others'. Stops at the first
+        missing or unusable answer; returns the rounds applied. The receipt then names the last of them."""
+        applied: list[int] = []
+        for round_ in self.skipped_rounds:
+            reply = answers.get(round_)
+            if not isinstance(reply, ChiefAggregate):
+                break
+            try:
+                self._apply_aggregate(reply)
+            except ValueError as err:
+                self.refused_answer = str(err)
+                break
+            self.receipt = Receipt(round=round_, applied="aggregate",
+                                   digest=answer_digest(reply.gradient, reply.critic_gradient))
+            applied.append(round_)
+        return applied
+
     def _apply_aggregate(self, reply: ChiefAggregate) -> None:
         if not self.per_step:
             if reply.gradient is not None:

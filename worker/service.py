@@ -193,6 +193,8 @@ class WorkerService:
                             return EXIT_OK
                         algo.finished = True  # under this strategy it goes on sharing until the run ends
                         log.info("going on playing and sharing until every worker has finished")
+                        if algo.per_step:
+                            self._catch_up(algo)
                         continue
                     if ack is None:
                         if self.stop is not None:
@@ -216,6 +218,23 @@ class WorkerService:
             return EXIT_OK
         finally:
             algo.close()
+
+    def _catch_up(self, algo: Algorithm2) -> None:
+        """A finisher that goes on helping under a per-step strategy: wait for the answers of its finishing
+        episode's rounds (published to every worker) and apply them, as the others did, before it plays on."""
+        rounds = algo.skipped_rounds
+        deadline = time.monotonic() + self.cfg.reply_timeout
+        while self.stop is None and time.monotonic() < deadline and any(r not in self.replies for r in rounds):
+            self._receive(timeout=0.5)
+        applied = algo.catch_up({r: m for r in rounds if isinstance(m := self.replies.get(r), ChiefAggregate)})
+        for r in rounds:
+            if self.replies.pop(r, None) is not None:
+                self.answered.add(r)
+        if len(applied) < len(rounds) and self.stop is None:
+            missing = [r for r in rounds if r not in applied]
+            log.warning("applied the answers of rounds %s of the finishing episode, not %s (%s): this worker's "
+                        "networks now differ from the others'", applied, missing,
+                        algo.refused_answer or "no answer in time")
 
     def _hand_over(self, mature: MatureParams) -> ChiefAck | None:
         """Send the mature actor until the chief acknowledges it (accepted or refused); None on RunStop or when no

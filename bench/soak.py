@@ -3,7 +3,8 @@
 Starts Mosquitto on a free loopback port, runs ``deploy.run_local`` with 16 CartPole-v0 workers (by default) against
 it, and samples every second the resident memory of the broker and of the chief (from /proc), while the chief's
 records give each round's latency (time between consecutive round closes). Writes ``bench/results/soak.json`` and
-``soak.png``. "No growth" is judged on the second half of the run: the memory slope there, in MiB per minute.
+``soak.png``. "No growth" is judged on the second half of the rounds (not the start, nor the summary and plot at
+the end): the memory slope there, in MiB per minute.
 """
 
 from __future__ import annotations
@@ -87,11 +88,13 @@ def main(argv: list[str] | None = None) -> int:
     memory: dict[str, list[tuple[float, float]]] = {"broker": [], "chief": []}
     stop = threading.Event()
     t0 = time.monotonic()
+    chief_seen: list[float] = []  # when the sampler first found the chief (its records count from its start)
 
     def sample() -> None:
         chief = None
         while not stop.wait(1.0):
-            chief = chief or next(iter(chief_pids(run_id)), None)
+            if chief is None and (chief := next(iter(chief_pids(run_id)), None)) is not None:
+                chief_seen.append(time.monotonic() - t0)
             for name, pid in (("broker", broker.pid), ("chief", chief)):
                 value = rss_mib(pid) if pid else None
                 if value is not None:
@@ -115,7 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     summary = json.loads((run_dir / "summary.json").read_text())
     rounds = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if '"type":"round"' in x]
     latency = [b["t"] - a["t"] for a, b in itertools.pairwise(rounds)]
-    half = {name: [s for s in xs if s[0] >= wall / 2] for name, xs in memory.items()}
+    # Steady state: the second half of the rounds (on the sampler's clock), not the start (imports, the workers'
+    # hellos) nor the end (the chief's summary and plot).
+    offset = chief_seen[0] if chief_seen else 0.0
+    round_t = [offset + r["t"] for r in rounds]
+    window = (round_t[len(round_t) // 2], round_t[-1]) if len(round_t) >= 4 else (wall / 2, wall)
+    half = {name: [s for s in xs if window[0] <= s[0] <= window[1]] for name, xs in memory.items()}
     report: dict[str, Any] = {
         "workers": args.workers, "env": args.env, "policy": args.policy, "seed": args.seed, "broker": "mosquitto",
         "launcher_exit": launcher.returncode, "wall_s": round(wall, 1), "rounds": summary["rounds"],
@@ -125,9 +133,12 @@ def main(argv: list[str] | None = None) -> int:
                             "max": max(latency)} if latency else None,
         "memory_mib": {name: {"first": xs[0][1] if xs else None, "last": xs[-1][1] if xs else None,
                               "max": max(v for _, v in xs) if xs else None,
+                              "steady_first": half[name][0][1] if half[name] else None,
+                              "steady_last": half[name][-1][1] if half[name] else None,
                               "slope_second_half_mib_per_min": slope_per_minute(half[name])}
                        for name, xs in memory.items()},
-        "samples": memory, "round_t": [r["t"] for r in rounds],
+        "steady_window_s": [round(window[0], 1), round(window[1], 1)],
+        "samples": memory, "round_t": [round(t, 3) for t in round_t],
     }
     try:
         report["audit"] = f"passed: {audit(run_dir)}"
@@ -149,12 +160,14 @@ def plot(report: dict[str, Any], path: Path) -> None:
     fig, (mem, lat) = plt.subplots(2, 1, figsize=(8, 6), dpi=110)
     for name, xs in report["samples"].items():
         mem.plot([s[0] for s in xs], [s[1] for s in xs], label=name)
+    mem.axvspan(*report["steady_window_s"], color="0.9", label="second half of the rounds")
     mem.set_ylabel("resident memory (MiB)")
     mem.legend()
-    mem.set_title(f"soak: {report['workers']} workers, {report['env']}, Mosquitto")
+    mem.set_title(f"soak: {report['workers']} workers, {report['env']}, {report['policy']}, Mosquitto")
     ts = report["round_t"]
     lat.plot(ts[1:], [b - a for a, b in itertools.pairwise(ts)], linewidth=0.8)
-    lat.set_xlabel("seconds since the chief started")
+    lat.set_xlabel("seconds since the soak started")
+    lat.set_xlim(mem.get_xlim())
     lat.set_ylabel("round latency (s)")
     fig.tight_layout()
     fig.savefig(path)

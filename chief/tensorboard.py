@@ -210,11 +210,21 @@ class Board:
 
 
 def _writer_class() -> Any:
-    """tensorboardX's SummaryWriter, or None when it is not installed."""
+    """tensorboardX's SummaryWriter, or None when it is not installed.
+
+    tensorboardX imports torch where it is installed (only to accept tensors, which the chief never passes); in a
+    process that has not imported torch (the chief) that import is made to fail, which tensorboardX allows for, so the
+    chief stays torch-free: 185 MiB less resident memory (measured with ``bench.soak``)."""
+    block = "torch" not in sys.modules
+    if block:
+        sys.modules["torch"] = None  # type: ignore[assignment]  # `import torch` raises ImportError
     try:
         from tensorboardX import SummaryWriter
     except ImportError:
         return None
+    finally:
+        if block:
+            del sys.modules["torch"]
     return SummaryWriter
 
 

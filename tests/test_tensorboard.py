@@ -241,3 +241,15 @@ def test_a_worker_sends_only_what_the_wire_takes() -> None:
                       "clip_fraction": None}
     WorkerUpdate(worker_id="w0", episode=1, episode_return=1.0, pi=1.0, recent_returns=[1.0], steps=1,
                  gradient=pack_arrays({"g": np.ones(1, np.float32)}), **fields)
+
+
+def test_the_writer_keeps_the_chief_torch_free() -> None:
+    """tensorboardX would import torch (185 MiB) into the torch-free chief; the chief's writer does without it, and
+    torch still imports afterwards in the same process."""
+    code = ("import sys, tempfile\n"
+            "from chief import tensorboard\n"
+            "w = tensorboard._writer_class()(tempfile.mkdtemp()); w.add_scalar('a', 1.0, 1); w.close()\n"
+            "assert 'torch' not in sys.modules, 'tensorboardX pulled torch into the chief'\n"
+            "import torch\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]

@@ -218,9 +218,15 @@ class MqttConnection:
         return self
 
     def stop(self) -> None:
-        """Disconnect cleanly (no last will) and stop the network thread."""
+        """Disconnect cleanly (no last will) and stop the network thread. The session is persistent, but this
+        client id is never used again: its subscriptions go first, so the broker queues nothing more for it."""
         self._stopping = True
         try:
+            if self.connected.is_set():
+                with self._lock:
+                    filters = list(self._subscriptions)
+                for topic_filter in filters:  # sent before the DISCONNECT, on the same connection
+                    self._client.unsubscribe(topic_filter)
             self._client.disconnect()
         finally:
             self._client.loop_stop()

@@ -81,3 +81,34 @@ def test_reconnects_and_resubscribes_after_a_broker_restart(tmp_path: Path) -> N
         conn.stop()
         stop_process(proc)
         log.close()
+
+
+def test_a_stopped_client_leaves_no_session_that_queues_messages(any_broker: str) -> None:
+    """Sessions are persistent (clean session off) so that a reconnect loses nothing; but a client id is never used
+    again once its process stops, so a stopped connection must not leave the broker queueing every later QoS 1
+    message for it (a soak saw Mosquitto grow 22 MiB a minute with finished workers' sessions). Reconnecting under
+    the stopped id shows what the broker kept for it: nothing."""
+    import paho.mqtt.client as paho
+    from paho.mqtt.enums import CallbackAPIVersion
+
+    address = BrokerAddress.parse(any_broker)
+    gone = MqttConnection(address, client_id="finished").start()
+    gone.subscribe("t/broadcast", lambda t, p: None)
+    time.sleep(0.5)  # the SUBSCRIBE is through
+    gone.stop()
+    sender = MqttConnection(address, client_id="sender").start()
+    for i in range(5):
+        sender.publish("t/broadcast", f"m{i}".encode()).wait_for_publish(5)
+    got: queue.Queue = queue.Queue()
+    probe = paho.Client(CallbackAPIVersion.VERSION2, client_id=gone.client_id, protocol=paho.MQTTv311,
+                        clean_session=False)
+    probe.on_message = lambda c, u, m: got.put(m.payload)
+    probe.connect(address.host, address.port)
+    probe.loop_start()
+    try:
+        time.sleep(2.0)
+        assert got.empty(), f"the broker kept {got.qsize()} messages for a stopped client"
+    finally:
+        probe.disconnect()
+        probe.loop_stop()
+        sender.stop()

@@ -66,15 +66,19 @@ def mean_curve(runs: list[dict[str, Any]], axis: str) -> tuple[np.ndarray, np.nd
             return x, np.nanmean(data, 0), np.nanpercentile(data, 25, 0), np.nanpercentile(data, 75, 0)
 
 
+def run_groups(rep: dict[str, Any], references: tuple[str, ...]) -> list[tuple[str, list[dict[str, Any]]]]:
+    """A task's runs by strategy, then by each reference kind, labelled as the figures show them."""
+    groups = [(s, [r for r in rep["runs"] if r["kind"] == "federation" and r["strategy"] == s])
+              for s in rep["strategies"]]
+    return groups + [(REFERENCE_LABELS[k], [r for r in rep["runs"] if r["kind"] == k]) for k in references]
+
+
 def fig5(reports: dict[str, dict[str, Any]], path: Path, axis: str = "episodes") -> Path:
     plt = _plt()
     rows, cols = _grid(len(reports))
     fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 3.8 * rows), dpi=100, squeeze=False)
     for ax, (task, rep) in zip(axes.flat, reports.items(), strict=False):
-        groups = [(s, [r for r in rep["runs"] if r["kind"] == "federation" and r["strategy"] == s])
-                  for s in rep["strategies"]]
-        groups.append((REFERENCE_LABELS["single"], [r for r in rep["runs"] if r["kind"] == "single"]))
-        for label, runs in groups:
+        for label, runs in run_groups(rep, ("single",)):
             curve = mean_curve(runs, axis)
             if curve is None:
                 continue
@@ -102,10 +106,7 @@ def fig7(reports: dict[str, dict[str, Any]], path: Path, axis: str = "episodes")
     rows, cols = _grid(len(reports))
     fig, axes = plt.subplots(rows, cols, figsize=(5.6 * cols, 3.9 * rows), dpi=100, squeeze=False)
     for ax, (task, rep) in zip(axes.flat, reports.items(), strict=False):
-        groups = [(s, [r for r in rep["runs"] if r["kind"] == "federation" and r["strategy"] == s])
-                  for s in rep["strategies"]]
-        groups += [(REFERENCE_LABELS[k], [r for r in rep["runs"] if r["kind"] == k]) for k in ("single", "sb3")]
-        groups = [(label, runs) for label, runs in groups if runs]
+        groups = [(label, runs) for label, runs in run_groups(rep, ("single", "sb3")) if runs]
         done_all = []
         for i, (_, runs) in enumerate(groups):
             values = [_value(r, axis) for r in runs]

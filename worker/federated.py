@@ -142,9 +142,7 @@ class Algorithm2:
                     log.info("%s blended in %s's mature actor (keep %.3f)", self.worker_id, reply.source_worker, keep)
                 self.receipt = Receipt(round=round_, applied="transfer", digest=digest(reply.params), keep=keep)
             elif reply is not None:
-                self._apply_aggregate(reply)
-                self.receipt = Receipt(round=round_, applied="aggregate",
-                                       digest=answer_digest(reply.gradient, reply.critic_gradient))
+                self._apply_aggregate(reply, round_)
         except ValueError as err:
             self.refused_answer = str(err)
         if self.receipt.applied == "missed" and self.per_step and self._own is not None:
@@ -172,28 +170,30 @@ class Algorithm2:
             if not isinstance(reply, ChiefAggregate):
                 break
             try:
-                self._apply_aggregate(reply)
+                self._apply_aggregate(reply, round_)
             except ValueError as err:
                 self.refused_answer = str(err)
                 break
-            self.receipt = Receipt(round=round_, applied="aggregate",
-                                   digest=answer_digest(reply.gradient, reply.critic_gradient))
             applied.append(round_)
         return applied
 
-    def _apply_aggregate(self, reply: ChiefAggregate) -> None:
+    def _apply_aggregate(self, reply: ChiefAggregate, round_: int) -> None:
+        """Apply round ``round_``'s aggregate and confirm it in the receipt (a ValueError, nothing applied, when it
+        does not fit this worker's networks)."""
         if not self.per_step:
             if reply.gradient is not None:
                 check_spec(reply.gradient, self.actor_spec, "aggregate")
                 self.learner.apply_gradient(unpack_arrays(reply.gradient))  # Algorithm 2: update pi_theta with g_bar
-            return
-        if reply.gradient is None or reply.critic_gradient is None:
-            raise ValueError(f"round {self.round}: a per-step aggregate without its actor and critic gradients")
-        check_spec(reply.gradient, self.actor_spec, "aggregate")
-        check_spec(reply.critic_gradient, self.learner.critic_spec(), "aggregate critic")
-        as_torch = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.gradient).items()}
-        critic = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.critic_gradient).items()}
-        self.learner.apply_step(critic, as_torch)  # the same mean step as every other worker
+        else:
+            if reply.gradient is None or reply.critic_gradient is None:
+                raise ValueError(f"round {round_}: a per-step aggregate without its actor and critic gradients")
+            check_spec(reply.gradient, self.actor_spec, "aggregate")
+            check_spec(reply.critic_gradient, self.learner.critic_spec(), "aggregate critic")
+            as_torch = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.gradient).items()}
+            critic = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.critic_gradient).items()}
+            self.learner.apply_step(critic, as_torch)  # the same mean step as every other worker
+        self.receipt = Receipt(round=round_, applied="aggregate",
+                               digest=answer_digest(reply.gradient, reply.critic_gradient))
 
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)

@@ -139,7 +139,10 @@ def audit(run_dir: Path) -> AuditReport:
     for (w, n), e in by_round.items():
         per_round[n][w] = e
     aborted = not str(summary.get("end_reason", "")).startswith(("all workers solved", "reached the maximum"))
-    finished_in = {w["id"]: round_of(int(w["episodes"]), 0) for w in summary["workers"] if w.get("solved")}
+    finished_in: dict[str, int] = {}  # the round of each worker's counted mature actor
+    for (w, n), e in sorted(by_round.items(), key=lambda kv: kv[0][1]):
+        if e.get("kind") == "mature":
+            finished_in.setdefault(w, n)
     for n in sorted(per_round):
         if n > last_round:
             # A worker that finished and keeps helping (finishers_help) may have its next submission accepted
@@ -265,9 +268,7 @@ def audit(run_dir: Path) -> AuditReport:
     # and its networks are the others' again
     if strategy.finishers_help:
         closed = {int(r["round"]): r for r in rounds}
-        for (w, n), e in by_round.items():
-            if e.get("kind") != "mature":
-                continue
+        for w, n in finished_in.items():
             later = min((m for (x, m) in by_round if x == w and m > n), default=None)
             if later is None or later - 1 not in closed:
                 continue

@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
+import socket
 import subprocess
 import sys
 import time
@@ -93,7 +94,13 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if s.broker:
             broker = s.broker
-            print(f"using the broker at {BrokerAddress.parse(broker)}")
+            address = BrokerAddress.parse(broker)
+            problem = unreachable(address)
+            if problem is not None:  # before anything starts: restarts and resumes are for brokers lost mid-run
+                print(f"cannot reach the MQTT broker at {address}: {problem} (check FEDRL_BROKER / --broker)",
+                      file=sys.stderr)
+                return 1
+            print(f"using the broker at {address}")
         else:
             # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
             creds = make_credentials(run_dir / "broker", s.run_id, worker_ids,
@@ -148,6 +155,22 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         fleet.stop()
+
+
+#: Seconds the launcher waits for the broker's TCP port before it gives up (the run has not started yet).
+BROKER_PROBE_S = 10.0
+
+
+def unreachable(address: BrokerAddress, timeout: float = BROKER_PROBE_S) -> str | None:
+    """Why a TCP connection to the broker fails within ``timeout`` seconds, or None when it opens."""
+    try:
+        with socket.create_connection((address.host, address.port), timeout=timeout):
+            return None
+    except TimeoutError:
+        return f"no answer within {timeout:g} s"
+    except OSError as err:  # refused, no route, unknown host
+        return err.strerror or type(err).__name__
+
 
 
 def wait_for_url(proc: subprocess.Popen, url_file: Path, timeout: float = 20.0) -> str | None:

@@ -65,7 +65,7 @@ def test_the_bridge_user_reads_its_files_and_nobody_else_does(host: tuple[Path, 
 
 
 def test_bad_arguments_are_one_line_and_exit_2(host: tuple[Path, str], tmp_path: Path) -> None:
-    root, user = host
+    root, _ = host
     for args in (["--user", "x/+"], ["--ca", str(tmp_path / "missing.crt")], ["--bogus"]):
         done = subprocess.run([str(SCRIPT), "--root", str(root), *args], capture_output=True, text=True)
         assert done.returncode == 2

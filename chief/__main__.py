@@ -6,8 +6,8 @@ import sys
 
 from chief.service import ChiefConfig, ChiefService
 from chief.settings import ChiefSettings
-from protocol.cli import run_service, setup_logging
-from protocol.settings import returns_code
+from runtime.cli import run_service, setup_logging
+from runtime.settings import returns_code
 
 DESCRIPTION = (
     "Chief of a federated RL run: waits for the workers, runs the rounds of Algorithm 1 (PI-weighted gradient "

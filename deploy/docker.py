@@ -30,8 +30,8 @@ from docker.errors import APIError, BuildError, DockerException, NotFound
 
 from chief.settings import ChiefSettings
 from deploy.settings import DockerSettings
-from protocol.settings import Settings, returns_code, to_env
 from protocol.tasks import worker_seed
+from runtime.settings import Settings, returns_code, to_env
 from services.qube_sim.settings import SimRigSettings
 from worker.settings import WorkerSettings
 

@@ -8,10 +8,10 @@ from typing import ClassVar
 
 from pydantic import ValidationInfo, field_validator
 
-from protocol.settings import ENV_FILE_VAR, MqttSettings, Settings, setting
 from protocol.topics import check_id
 from rpi_bridge.control import ControlConfig
 from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT
+from runtime.settings import ENV_FILE_VAR, MqttSettings, Settings, setting
 
 
 class LoopSettings(Settings):

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import sys
 
-from protocol.cli import run_service, setup_logging
-from protocol.settings import returns_code
+from runtime.cli import run_service, setup_logging
+from runtime.settings import returns_code
 from worker.service import WorkerConfig, WorkerService, auto_worker_id
 from worker.settings import WorkerSettings
 

@@ -8,8 +8,8 @@ from typing import Any
 
 from pydantic import field_validator, model_validator
 
-from protocol.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
 from protocol.topics import check_id
+from runtime.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
 
 
 class DeviceNoiseSettings(Settings):

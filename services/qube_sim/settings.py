@@ -7,9 +7,9 @@ from typing import Literal
 
 from pydantic import field_validator
 
-from protocol.settings import MqttSettings, setting
 from rpi_bridge.runner import InjectedTiming
 from rpi_bridge.settings import LoopSettings
+from runtime.settings import MqttSettings, setting
 
 Clock = Literal["lockstep", "delayed", "realtime"]
 

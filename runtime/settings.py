@@ -356,6 +356,16 @@ class Settings(BaseSettings):
             where = f"{names[0] if names else var or name} (default {field.default!r})"
         return f"bad setting {where}: {reason}{more}"
 
+    @classmethod
+    def given(cls: type[S], **values: Any) -> S:
+        """Settings of ``values`` and the defaults only, nothing read from the environment or a .env file (tests,
+        a process built inside another). A bad value raises pydantic's ValidationError."""
+        token = _ONLY_GIVEN.set(True)
+        try:
+            return cls(**values)
+        finally:
+            _ONLY_GIVEN.reset(token)
+
     # -- handing on ----------------------------------------------------------------------------------------------
 
     def child(self, cls: type[S], *, inherit: bool = True, **values: Any) -> S:

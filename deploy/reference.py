@@ -67,7 +67,9 @@ def markdown() -> str:
         "`./.env` where it exists), and the defaults below. A flag's variable is `FEDRL_` and the field's name "
         "in capitals (`--round-timeout`: `FEDRL_ROUND_TIMEOUT`); older flag spellings are kept as aliases. A bad "
         "value is one line on stderr naming the setting, where it came from and the value, and exit code 2. Lists "
-        "are comma-separated in a variable, separate words after a flag; booleans also take `--no-<flag>`.",
+        "are comma-separated, in a variable and after a flag (`--workers 2,4`), or the flag is repeated "
+        "(`--workers 2 --workers 4`; `--set` takes each value whole); booleans also take `--no-<flag>`. The "
+        "flags come from pydantic-settings' command-line source; `--help` lists them with their variables.",
         "",
     ]
     for command, script, cls in PROCESSES:

@@ -7,6 +7,7 @@ one-line errors and the reference ``docs/settings.md`` (``python -m deploy.refer
 
 - Precedence: command line > environment > .env file > default.
 - The .env file (KEY=VALUE lines) is ``--env-file PATH`` or ``FEDRL_ENV_FILE``, else ``./.env`` when it exists.
+- The flags are pydantic-settings' own (``CliSettingsSource``, on a parser whose errors are one line).
 - A bad value is one line on stderr naming the setting, where it came from and the value, and exit code 2.
 - A launcher builds its children's settings with :meth:`Settings.child` and hands them over with :func:`to_env`,
   the one function that turns a model back into variables.
@@ -43,12 +44,17 @@ from pydantic import (
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined, core_schema
 from pydantic_settings import (
+    CLI_SUPPRESS,
     BaseSettings,
+    CliPositionalArg,
+    CliSettingsSource,
+    CliSuppress,
     DotEnvSettingsSource,
     EnvSettingsSource,
     NoDecode,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
+    SettingsError,
 )
 
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
@@ -66,16 +72,16 @@ S = TypeVar("S", bound="Settings")
 
 
 def setting(default: Any = PydanticUndefined, help: str = "", *, aliases: Sequence[str] = (), env: bool = True,
-            flag: bool = True, positional: bool = False, append: bool = False, metavar: str | None = None,
-            **constraints: Any) -> Any:
+            metavar: str | None = None, **constraints: Any) -> Any:
     """A settings field: its default, its help, and how it is reached.
 
-    ``aliases`` are further flags (older spellings) beside the one derived from the field's name; ``env=False``
-    makes it a flag only, ``flag=False`` a variable only (secrets); ``positional`` and ``append`` (a repeatable
-    flag) shape the command line. ``constraints`` go to pydantic's ``Field`` (``ge=1``, ...).
+    ``aliases`` are further flags (older spellings) beside ``--the-name`` that pydantic-settings derives from the
+    field's name; ``env=False`` makes it a flag only. A variable-only setting (a secret) is typed
+    ``CliSuppress[...]``, a positional argument ``CliPositionalArg[...]`` (pydantic-settings' markers). A
+    ``CliSuppress`` list with ``aliases`` is a repeatable flag whose every value is one item, taken whole
+    (``--set KEY=VALUE``; ``metavar`` names it). ``constraints`` go to pydantic's ``Field`` (``ge=1``, ...).
     """
-    extra = {"aliases": list(aliases), "env": env, "flag": flag, "positional": positional, "append": append,
-             "metavar": metavar}
+    extra = {"aliases": list(aliases), "env": env, "metavar": metavar}
     return Field(default, description=help, json_schema_extra=cast(Any, extra), **constraints)
 
 
@@ -115,8 +121,7 @@ LogLevel = Annotated[str, OneOf(lambda: ["DEBUG", "INFO", "WARNING", "ERROR"]), 
 
 def _meta(field: FieldInfo) -> dict[str, Any]:
     extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
-    return {"aliases": [], "env": True, "flag": True, "positional": False, "append": False, "metavar": None,
-            **extra}
+    return {"aliases": [], "env": True, "metavar": None, **extra}
 
 
 def env_name(name: str, field: FieldInfo) -> str | None:
@@ -124,14 +129,17 @@ def env_name(name: str, field: FieldInfo) -> str | None:
     return ENV_PREFIX + name.upper() if _meta(field)["env"] else None
 
 
+#: The marker of CliPositionalArg, as it appears in a field's metadata.
+_POSITIONAL = typing.get_args(CliPositionalArg[int])[1]
+
+
 def flags(name: str, field: FieldInfo) -> list[str]:
-    """The flags of field ``name``: ``--the-name`` and its aliases (empty for a variable-only setting)."""
-    meta = _meta(field)
-    if not meta["flag"]:
-        return []
-    if meta["positional"]:
-        return [name]
-    return ["--" + name.replace("_", "-"), *(a for a in meta["aliases"] if a != "--" + name.replace("_", "-"))]
+    """The command line of field ``name``: ``--the-name`` (as pydantic-settings derives it) and its aliases, the
+    name of a positional argument, a repeatable flag's own names, or nothing for a variable-only setting."""
+    aliases = _meta(field)["aliases"]
+    if CLI_SUPPRESS in field.metadata:
+        return aliases
+    return [name] if _POSITIONAL in field.metadata else ["--" + name.replace("_", "-"), *aliases]
 
 
 def _bare(annotation: Any) -> Any:
@@ -174,21 +182,6 @@ def type_name(field: FieldInfo) -> str:
     if typing.get_origin(bare) is list:
         return f"list of {_bare(typing.get_args(bare)[0]).__name__}"
     return {Path: "path"}.get(bare, getattr(bare, "__name__", str(bare)))
-
-
-def _metavar(field: FieldInfo) -> str:
-    bare = _bare(field.annotation)
-    if typing.get_origin(bare) is list:
-        bare = _bare(typing.get_args(bare)[0])
-    return {int: "INT", float: "NUM", Path: "PATH"}.get(bare, "TEXT")
-
-
-def _is_bool(field: FieldInfo) -> bool:
-    return _bare(field.annotation) is bool
-
-
-def _is_list(field: FieldInfo) -> bool:
-    return typing.get_origin(_bare(field.annotation)) is list
 
 
 def encode(value: Any) -> str:
@@ -253,34 +246,27 @@ class Settings(BaseSettings):
     # -- reading -------------------------------------------------------------------------------------------------
 
     @classmethod
-    def parser(cls, prog: str, description: str | None = None, epilog: str | None = None) -> argparse.ArgumentParser:
-        """The command line of this model: one flag per field (its default left to the model)."""
+    def parser(cls, prog: str, description: str | None = None,
+               epilog: str | None = None) -> tuple[argparse.ArgumentParser, CliSettingsSource[Any]]:
+        """The command line of this model, as pydantic-settings derives it from the fields (``--the-name``,
+        ``--no-the-name`` for a boolean), with ``--env-file`` and the repeatable flags (see :func:`setting`)."""
         parser = _OneLineParser(prog=prog, description=description or (cls.__doc__ or "").strip(), epilog=epilog)
         parser.add_argument(*cls.env_file_flags, dest="env_file", metavar="PATH", default=argparse.SUPPRESS,
                             help=f"read FEDRL_* settings from this KEY=VALUE file (env {', '.join(cls.env_file_vars)}"
                             f"; default ./{DEFAULT_ENV_FILE} where it exists; the environment wins over it)")
+        shortcuts: dict[str, str | list[str]] = {}
         for name, field in cls.model_fields.items():
             names = flags(name, field)
-            if not names:
-                continue
-            meta = _meta(field)
-            kwargs: dict[str, Any] = {"default": argparse.SUPPRESS, "help": _help(name, field).replace("%", "%%")}
-            options = choices(field)
-            if meta["positional"]:
-                kwargs["metavar"] = meta["metavar"] or name.upper()
-                if not field.is_required():
-                    kwargs["nargs"] = "?"
-                parser.add_argument(*names, **kwargs)
-                continue
-            kwargs["dest"] = name
-            if _is_bool(field):
-                kwargs["action"] = argparse.BooleanOptionalAction
-            else:
-                kwargs["metavar"] = meta["metavar"] or ("{" + ",".join(options) + "}" if options else _metavar(field))
-                if _is_list(field):
-                    kwargs["action" if meta["append"] else "nargs"] = "append" if meta["append"] else "+"
-            parser.add_argument(*names, **kwargs)
-        return parser
+            if CLI_SUPPRESS not in field.metadata:
+                shortcuts[name.replace("_", "-")] = [a.lstrip("-") for a in names[1:]]
+            elif names:  # a repeatable flag, its values taken whole
+                parser.add_argument(*names, dest=name, action="append", default=argparse.SUPPRESS,
+                                    metavar=_meta(field)["metavar"], help=f"{field.description} (repeatable)")
+        source: CliSettingsSource[Any] = CliSettingsSource(
+            cls, root_parser=parser, cli_kebab_case=True, cli_implicit_flags=True, cli_avoid_json=True,
+            cli_hide_none_type=True, cli_show_env_vars=True, cli_shortcuts=shortcuts, _env_settings_source=_Env(cls),
+            add_argument_method=_add_argument)
+        return parser, source
 
     @classmethod
     def load(cls: type[S], argv: Sequence[str] | None = None, *, prog: str, description: str | None = None,
@@ -292,7 +278,7 @@ class Settings(BaseSettings):
         """
         prog = program(prog)
         argv = list(sys.argv[1:] if argv is None else argv)
-        parser = cls.parser(prog, description, epilog)
+        parser, source = cls.parser(prog, description, epilog)
         pre = _OneLineParser(prog=prog, add_help=False, allow_abbrev=False)
         pre.add_argument(*cls.env_file_flags, dest="env_file", default=None)
         pre.add_argument("-h", "--help", action="store_true")
@@ -302,9 +288,14 @@ class Settings(BaseSettings):
             cls._build(prog, env_file, {}, ignore_missing=True)
             parser.print_help()
             raise SystemExit(0)
-        given = vars(parser.parse_args(argv))
-        given.pop("env_file", None)
-        return cls._build(prog, env_file, given, argv=argv)
+        parsed = vars(parser.parse_args(argv))
+        own = {name: parsed[name] for name, field in cls.model_fields.items()
+               if name in parsed and CLI_SUPPRESS in field.metadata}
+        try:
+            given = source(parsed_args={k: v for k, v in parsed.items() if k not in own})()
+        except SettingsError as err:
+            fail(prog, f"{err} (--help lists the options)")
+        return cls._build(prog, env_file, {**given, **own}, argv=argv)
 
     @classmethod
     def _env_file_path(cls, prog: str, flag_value: str | None) -> Path:
@@ -422,22 +413,18 @@ def program(default: str) -> str:
     return name if name.startswith("fedrl-") else default
 
 
+def _add_argument(parser: Any, *names: str, **kwargs: Any) -> Any:
+    """pydantic-settings' add_argument, except that a ``CliSuppress`` field (help suppressed) gets no flag at all."""
+    if kwargs.get("help") == argparse.SUPPRESS:
+        return None
+    return parser.add_argument(*names, **kwargs)
+
+
 class _OneLineParser(argparse.ArgumentParser):
     """An option error is one line on stderr and exit code 2 (no usage dump)."""
 
     def error(self, message: str) -> NoReturn:
         fail(self.prog, f"{message} (--help lists the options)")
-
-
-def _help(name: str, field: FieldInfo) -> str:
-    """The field's help with its variable and default: ``... (env FEDRL_X, default 30)``."""
-    notes = []
-    if var := env_name(name, field):
-        notes.append(f"env {var}")
-    if not field.is_required() and field.default is not None and field.default != []:
-        default = encode(field.default) if not isinstance(field.default, Path) else str(field.default)
-        notes.append(f"default {default or repr('')}")
-    return f"{field.description} ({', '.join(notes)})" if notes else field.description or ""
 
 
 # -- settings every MQTT client shares -----------------------------------------------------------------------------
@@ -448,8 +435,8 @@ class MqttSettings(Settings):
 
     broker: str = setting(DEFAULT_BROKER, "broker URL mqtt://[user:pass@]host:port, or mqtts:// for TLS")
     mqtt_username: str | None = setting(None, "broker user name (make-users.sh writes one per process)")
-    mqtt_password: str | None = setting(None, "broker password (a variable only: flags show in the process list)",
-                                        flag=False)
+    mqtt_password: CliSuppress[str | None] = setting(None, "broker password (a variable only: flags show in the "
+                                                     "process list)")
     mqtt_ca_file: Path | None = setting(None, "CA certificate of a TLS broker")
     max_payload: int | None = setting(None, "bytes; larger messages travel in chunks (e.g. 131072 for AWS IoT "
                                       "Core's 128 KB cap); 0 or unset: no chunking")

@@ -61,7 +61,7 @@ def test_old_flags_are_aliases_of_the_derived_ones(clean_env: pytest.MonkeyPatch
     s = WorkerSettings.load(["--id", "w3", "--rig-id", "rig3"], prog="worker")
     assert (s.worker_id, s.rig_id) == ("w3", "rig3")
     assert WorkerSettings.load(["--worker-id", "w4"], prog="worker").worker_id == "w4"
-    d = DashboardSettings.load(["--port", "0", "--rigs", "a,b", "c"], prog="dashboard")
+    d = DashboardSettings.load(["--port", "0", "--rigs", "a,b", "--dashboard-rigs", "c"], prog="dashboard")
     assert (d.dashboard_port, d.dashboard_rigs) == (0, ["a", "b", "c"])
     clean_env.setenv("FEDRL_DASHBOARD_RIGS", "r0, r1")
     assert DashboardSettings.load([], prog="dashboard").dashboard_rigs == ["r0", "r1"]
@@ -111,7 +111,7 @@ def test_to_env_reads_back_into_the_same_settings(cls: type[Settings], clean_env
 def test_non_default_values_survive_the_trip(clean_env: pytest.MonkeyPatch) -> None:
     launcher = LocalRunSettings.load(["--dashboard-port", "off", "--workers", "3", "--qube-clock", "delayed"],
                                      prog="run")
-    docker = DockerSettings.load(["--workers", "2", "4", "--no-build"], prog="docker")
+    docker = DockerSettings.load(["--workers", "2,4", "--no-build"], prog="docker")
     for settings in (launcher, docker):
         for name, value in to_env(settings).items():
             clean_env.setenv(name, value)

@@ -7,12 +7,17 @@ from __future__ import annotations
 
 import argparse
 import sys
+import types
+import typing
 from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic.fields import FieldInfo
 
 from chief.settings import ChiefSettings
 from deploy.settings import DockerSettings, InprocessSettings, LocalRunSettings
 from rpi_bridge.settings import BridgeSettings
-from runtime.settings import Settings, choices, encode, env_name, flags, type_name
+from runtime.settings import OneOf, Settings, encode, env_name, flags
 from services.broker.settings import BrokerSettings
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings
@@ -32,6 +37,48 @@ PROCESSES: tuple[tuple[str, str, type[Settings]], ...] = (
     ("python -m deploy.inprocess", "fedrl-inprocess", InprocessSettings),
     ("python -m deploy.docker", "fedrl-docker", DockerSettings),
 )
+def _bare(annotation: Any) -> Any:
+    """``int | None`` -> ``int``; ``Annotated[X, ...]`` -> ``X``."""
+    while typing.get_origin(annotation) is Annotated:
+        annotation = typing.get_args(annotation)[0]
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(args) == 1:
+            return _bare(args[0])
+    return annotation
+
+
+def _markers(annotation: Any) -> list[Any]:
+    """The ``Annotated`` metadata anywhere in ``annotation`` (``Annotated[str, OneOf(...)] | None``)."""
+    found: list[Any] = []
+    if typing.get_origin(annotation) is Annotated:
+        found += list(annotation.__metadata__)
+    for arg in typing.get_args(annotation):
+        found += _markers(arg)
+    return found
+
+
+def choices(field: FieldInfo) -> list[str] | None:
+    """The allowed values of a field (a ``Literal`` or :class:`OneOf`), or None."""
+    for item in [*field.metadata, *_markers(field.annotation)]:
+        if isinstance(item, OneOf):
+            return list(item.options())
+    bare = _bare(field.annotation)
+    if typing.get_origin(bare) is Literal:
+        return [str(a) for a in typing.get_args(bare)]
+    return None
+
+
+def type_name(field: FieldInfo) -> str:
+    """A short name of a field's type for help and docs."""
+    bare = _bare(field.annotation)
+    if choices(field) is not None:
+        return "choice"
+    if typing.get_origin(bare) is list:
+        return f"list of {_bare(typing.get_args(bare)[0]).__name__}"
+    return {Path: "path"}.get(bare, getattr(bare, "__name__", str(bare)))
+
+
 def _cell(text: str) -> str:
     return text.replace("|", "\\|").replace("\n", " ")
 

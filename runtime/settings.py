@@ -23,13 +23,12 @@ import functools
 import os
 import re
 import sys
-import types
 import typing
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal, NoReturn, Protocol, TypeVar, cast
+from typing import Annotated, Any, ClassVar, NoReturn, Protocol, TypeVar, cast
 
 from dotenv import dotenv_values
 from pydantic import (
@@ -140,48 +139,6 @@ def flags(name: str, field: FieldInfo) -> list[str]:
     if CLI_SUPPRESS in field.metadata:
         return aliases
     return [name] if _POSITIONAL in field.metadata else ["--" + name.replace("_", "-"), *aliases]
-
-
-def _bare(annotation: Any) -> Any:
-    """``int | None`` -> ``int``; ``Annotated[X, ...]`` -> ``X``."""
-    while typing.get_origin(annotation) is Annotated:
-        annotation = typing.get_args(annotation)[0]
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        if len(args) == 1:
-            return _bare(args[0])
-    return annotation
-
-
-def _markers(annotation: Any) -> list[Any]:
-    """The ``Annotated`` metadata anywhere in ``annotation`` (``Annotated[str, OneOf(...)] | None``)."""
-    found: list[Any] = []
-    if typing.get_origin(annotation) is Annotated:
-        found += list(annotation.__metadata__)
-    for arg in typing.get_args(annotation):
-        found += _markers(arg)
-    return found
-
-
-def choices(field: FieldInfo) -> list[str] | None:
-    """The allowed values of a field (a ``Literal`` or :class:`OneOf`), or None."""
-    for item in [*field.metadata, *_markers(field.annotation)]:
-        if isinstance(item, OneOf):
-            return list(item.options())
-    bare = _bare(field.annotation)
-    if typing.get_origin(bare) is Literal:
-        return [str(a) for a in typing.get_args(bare)]
-    return None
-
-
-def type_name(field: FieldInfo) -> str:
-    """A short name of a field's type for help and docs."""
-    bare = _bare(field.annotation)
-    if choices(field) is not None:
-        return "choice"
-    if typing.get_origin(bare) is list:
-        return f"list of {_bare(typing.get_args(bare)[0]).__name__}"
-    return {Path: "path"}.get(bare, getattr(bare, "__name__", str(bare)))
 
 
 def encode(value: Any) -> str:

@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import sys
 
-from chief.service import ChiefConfig, ChiefService
+from chief.service import ChiefService
 from chief.settings import ChiefSettings
-from protocol.cli import run_service, setup_logging
-from protocol.settings import returns_code
+from runtime.cli import run_service, setup_logging
+from runtime.settings import returns_code
 
 DESCRIPTION = (
     "Chief of a federated RL run: waits for the workers, runs the rounds of Algorithm 1 (PI-weighted gradient "
@@ -25,13 +25,7 @@ def main(argv: list[str] | None = None) -> int:
     s = ChiefSettings.load(argv, prog="python -m chief", description=DESCRIPTION)
     setup_logging(s.log_level, "chief")
 
-    def build() -> ChiefService:
-        return ChiefService(ChiefConfig(
-            broker=s.address(), run_id=s.run_id, workers=s.workers, env_id=s.env, policy=s.policy, seed=s.seed,
-            max_episodes=s.max_episodes, round_timeout=s.round_timeout, start_timeout=s.start_timeout,
-            idle_timeout=s.idle_timeout, run_dir=s.run_dir, max_payload=s.max_payload))
-
-    return run_service("chief", build)
+    return run_service("chief", lambda: ChiefService(s))
 
 
 if __name__ == "__main__":

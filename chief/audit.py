@@ -36,8 +36,8 @@ from typing import Any
 import numpy as np
 
 from chief import federation, strategies
-from protocol.settings import program, returns_code
 from protocol.tasks import PI_WINDOW, performance_index
+from runtime.settings import program, returns_code
 
 
 class AuditFailure(Exception):

@@ -9,14 +9,13 @@ import logging
 import queue
 import secrets
 import time
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, cast
 
 from chief import checkpoint, strategies, tensorboard
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
+from chief.settings import ChiefSettings
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
@@ -31,7 +30,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import MqttConnection
 from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
@@ -41,40 +40,27 @@ log = logging.getLogger("chief")
 EXIT_OK, EXIT_BAD_SETTING, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 2, 3, 4
 
 
-@dataclass
-class ChiefConfig:
-    broker: BrokerAddress
-    run_id: str = "default"
-    workers: int = 4
-    env_id: str = "CartPole-v0"
-    policy: str = "weighted"
-    seed: int = 1
-    max_episodes: int = 2000
-    round_timeout: float = 30.0
-    start_timeout: float = 300.0
-    idle_timeout: float = 120.0
-    run_dir: Path = Path("runs/default")
-    progress_interval: float = 2.0
-    max_payload: int | None = None
+#: Seconds between two progress lines.
+PROGRESS_INTERVAL = 2.0
 
 
 class ChiefService:
     """Runs one federation from the first hello (or from its saved state) to the summary."""
 
-    def __init__(self, cfg: ChiefConfig) -> None:
+    def __init__(self, cfg: ChiefSettings) -> None:
+        """``cfg``: the chief's settings, already checked (the policy, the task and the run id among them)."""
         self.cfg = cfg
-        self.spec = task(cfg.env_id)
-        strategies.get(cfg.policy)  # a ValueError (exit 2) for an unknown policy before anything starts
-        topics.check_id(cfg.run_id, "run id")
+        self.broker = cfg.address()
+        self.spec = task(cfg.env)
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
-        self.roster = Roster(cfg.env_id)
+        self.roster = Roster(cfg.env)
         self.keeper: RoundKeeper | None = None
         self.session = secrets.token_hex(8)
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
         if self.saved is not None:
             self._check_resumable(*self.saved)
-        self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-chief", max_payload=cfg.max_payload,
+        self.conn = MqttConnection(self.broker, client_id=f"fedrl-{cfg.run_id}-chief", max_payload=cfg.max_payload,
                                    rejects=self.rejects)
         self.metrics: MetricsLog | None = None
         self.t0 = time.monotonic()
@@ -121,8 +107,8 @@ class ChiefService:
             if self.saved is not None:
                 self._resume(*self.saved)
             else:
-                log.info("run %s: waiting for %d workers on %s (env %s, policy %s)", run, cfg.workers, cfg.broker,
-                         cfg.env_id, cfg.policy)
+                log.info("run %s: waiting for %d workers on %s (env %s, policy %s)", run, cfg.workers, self.broker,
+                         cfg.env, cfg.policy)
                 self.metrics = MetricsLog(cfg.run_dir)
                 workers = self._gather_workers()
                 if not workers:
@@ -150,7 +136,7 @@ class ChiefService:
         """Carry on a run from its saved state: the records are cut back to what the state had seen."""
         self.keeper = keeper
         self.session, self.epoch, self.duplicates = service["session"], service["epoch"] + 1, service["duplicates"]
-        self.roster = Roster(self.cfg.env_id, started=True, actor_spec=keeper.actor_spec,
+        self.roster = Roster(self.cfg.env, started=True, actor_spec=keeper.actor_spec,
                              critic_spec=keeper.critic_spec, update_steps=service["update_steps"],
                              hosts=service["hosts"])
         self.rejects.restore(service["rejects"])
@@ -198,7 +184,7 @@ class ChiefService:
 
     def _announce(self) -> None:
         assert self.keeper is not None
-        msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env_id, policy=self.cfg.policy, seed=self.cfg.seed,
+        msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode,
@@ -311,7 +297,7 @@ class ChiefService:
                      "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
 
     def _progress(self, now: float, force: bool = False) -> None:
-        if not force and now - self._last_progress < self.cfg.progress_interval:
+        if not force and now - self._last_progress < PROGRESS_INTERVAL:
             return
         self._last_progress = now
         keeper = self.keeper
@@ -346,7 +332,7 @@ class ChiefService:
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
         plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
-                             f"{cfg.env_id}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
+                             f"{cfg.env}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
         log.info("run over (%s) after %d rounds; results in %s", reason, rounds, cfg.run_dir)
         return EXIT_ABORTED if aborted else EXIT_OK
 
@@ -356,7 +342,7 @@ class ChiefService:
         return run_summary(keeper, reason, run_id=self.cfg.run_id, seed=self.cfg.seed,
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
-                           broker=str(self.cfg.broker), rejected_messages=self.rejects.as_dict(),
+                           broker=str(self.broker), rejected_messages=self.rejects.as_dict(),
                            duplicates=self.duplicates, restarts=self.epoch)
 
 

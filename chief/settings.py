@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Annotated
 
 from chief import strategies
-from protocol.settings import OneOf, RunMqttSettings, Settings, TaskName, setting
+from runtime.settings import OneOf, RunMqttSettings, Settings, TaskName, setting
 
 PolicyName = Annotated[str, OneOf(strategies.names)]
 

@@ -3,7 +3,7 @@
 Builds the images (deploy/Dockerfile), then for each worker count: starts Mosquitto, the chief and N workers (one
 simulated QUBE-Servo 2 per worker when the env is ``qube``) on a private network or the host's loopback, streams the
 chief's progress, copies the run folder out of the chief's container and removes every container and network it
-made, also on Ctrl-C or an error. ``--workers 2 4 8`` is a sweep: one run folder per count and a table at the end.
+made, also on Ctrl-C or an error. ``--workers 2,4,8`` is a sweep: one run folder per count and a table at the end.
 Needs ``pip install .[deploy]`` and a reachable Docker engine (DOCKER_HOST is honoured).
 """
 
@@ -30,8 +30,8 @@ from docker.errors import APIError, BuildError, DockerException, NotFound
 
 from chief.settings import ChiefSettings
 from deploy.settings import DockerSettings
-from protocol.settings import Settings, returns_code, to_env
 from protocol.tasks import worker_seed
+from runtime.settings import Settings, returns_code, to_env
 from services.qube_sim.settings import SimRigSettings
 from worker.settings import WorkerSettings
 

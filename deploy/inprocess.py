@@ -26,8 +26,8 @@ from chief.service import answer_of, submission_of
 from deploy.settings import InprocessSettings
 from protocol.codec import decode, encode
 from protocol.messages import ChiefAggregate, ChiefTransfer, MatureParams, WorkerUpdate
-from protocol.settings import returns_code
 from protocol.tasks import task, worker_seed
+from runtime.settings import returns_code
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
 

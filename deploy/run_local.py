@@ -23,8 +23,8 @@ from typing import IO, Any
 from chief.settings import ChiefSettings
 from deploy.settings import LocalRunSettings
 from protocol.mqtt import BrokerAddress
-from protocol.settings import Settings, returns_code, to_env
 from protocol.tasks import worker_seed
+from runtime.settings import Settings, returns_code, to_env
 from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings

@@ -9,8 +9,8 @@ from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, Positiv
 
 from chief.settings import FederationSettings
 from protocol.mqtt import BrokerAddress
-from protocol.settings import Counts, Port, setting
 from protocol.topics import check_id
+from runtime.settings import Counts, Port, setting
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
 

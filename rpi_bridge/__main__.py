@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from protocol.cli import setup_logging
-from protocol.settings import returns_code
 from rpi_bridge.settings import BridgeSettings
+from runtime.cli import setup_logging
+from runtime.settings import returns_code
 
 DESCRIPTION = (
     "Bridge one QUBE-Servo 2 (SPI) to MQTT: every period it reads the rig, publishes qube/<rig>/state, applies the "

@@ -59,6 +59,14 @@ LEDS: dict[str, tuple[int, int, int]] = {
 DRIVEN = ("self_test", "resetting", "ready", "running")
 
 
+def check_max_command(counts: int) -> int:
+    """The clip of every action, in SPI counts: 1..MAX_COMMAND (the QUBE-Servo 2 manual's +-10 V)."""
+    if not 0 < counts <= MAX_COMMAND:
+        raise ValueError(f"max_command must be in 1..{MAX_COMMAND} (the QUBE-Servo 2 manual's +-10 V is {MAX_COMMAND} "
+                         f"counts; 999 would be about 24 V), got {counts}")
+    return counts
+
+
 @dataclass(frozen=True)
 class ControlConfig:
     """Safety and timing limits of one rig (angles in rad, times in s, commands in SPI counts)."""
@@ -80,9 +88,7 @@ class ControlConfig:
     def __post_init__(self) -> None:
         if not self.period_s > 0:
             raise ValueError(f"period_s must be positive, got {self.period_s}")
-        if not 0 < self.max_command <= MAX_COMMAND:
-            raise ValueError(f"max_command must be in 1..{MAX_COMMAND} (+-10 V, the QUBE-Servo 2 manual's limit), "
-                             f"got {self.max_command}")
+        check_max_command(self.max_command)
         if abs(self.safe_command) > self.max_command:
             raise ValueError(f"safe_command {self.safe_command} exceeds max_command {self.max_command}")
         if not 0 < self.arm_limit < math.pi:

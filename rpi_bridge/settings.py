@@ -3,28 +3,35 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from pathlib import Path
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
-from pydantic import ValidationInfo, field_validator
+from pydantic import AfterValidator, ValidationInfo, field_validator
 
-from protocol.settings import ENV_FILE_VAR, MqttSettings, Settings, setting
 from protocol.topics import check_id
-from rpi_bridge.control import ControlConfig
+from rpi_bridge.control import ControlConfig, check_max_command
 from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT
+from runtime.settings import ENV_FILE_VAR, MqttSettings, Settings, setting
+
+#: The core's defaults, which the settings below start from (each stated once, in rpi_bridge/control.py).
+_CORE = ControlConfig()
 
 
 class LoopSettings(Settings):
     """The control loop of one rig."""
 
     rig_id: str = setting("rig0", "rig id, the topic prefix qube/<rig>/")
-    period_ms: float = setting(7.0, "control period", gt=0)
-    deadline_ms: float = setting(7.0, "an action must arrive this long after its state's read, at most the period")
-    max_command: int = setting(400, f"actions are clipped to +-this many SPI counts, at most {MAX_COMMAND} "
-                               f"(= {MAX_COMMAND * VOLTS_PER_COUNT:.2f} V: the manual's +-10 V)")
-    arm_limit_deg: float = setting(110.0, "arm angle that disables the amplifier", gt=0, lt=180)
-    action_timeout: float = setting(0.5, "watchdog: seconds without an action while running before the amplifier "
-                                    "is disabled", gt=0)
+    period_ms: float = setting(_CORE.period_s * 1e3, "control period", gt=0)
+    deadline_ms: float = setting(_CORE.period_s * 1e3, "an action must arrive this long after its state's read, at "
+                                 "most the period")
+    max_command: Annotated[int, AfterValidator(check_max_command)] = setting(
+        _CORE.max_command, f"actions are clipped to +-this many SPI counts, at most {MAX_COMMAND} "
+        f"(= {MAX_COMMAND * VOLTS_PER_COUNT:.2f} V: the manual's +-10 V)")
+    arm_limit_deg: float = setting(math.degrees(_CORE.arm_limit), "arm angle that disables the amplifier", gt=0,
+                                   lt=180)
+    action_timeout: float = setting(_CORE.action_timeout_s, "watchdog: seconds without an action while running "
+                                    "before the amplifier is disabled", gt=0)
 
     @field_validator("rig_id")
     @classmethod
@@ -39,17 +46,10 @@ class LoopSettings(Settings):
             raise ValueError(f"must be in (0, --period-ms {period:g}]")
         return value
 
-    @field_validator("max_command")
-    @classmethod
-    def _max_command(cls, value: int) -> int:
-        if not 0 < value <= MAX_COMMAND:
-            raise ValueError(f"must be in 1..{MAX_COMMAND} (the QUBE-Servo 2 manual's +-10 V is {MAX_COMMAND} "
-                             "counts; 999 would be about 24 V)")
-        return value
-
     def control(self) -> ControlConfig:
-        return ControlConfig(period_s=self.period_ms / 1e3, max_command=self.max_command,
-                             arm_limit=math.radians(self.arm_limit_deg), action_timeout_s=self.action_timeout)
+        """The control core's limits: these settings over the core's own defaults."""
+        return replace(_CORE, period_s=self.period_ms / 1e3, max_command=self.max_command,
+                       arm_limit=math.radians(self.arm_limit_deg), action_timeout_s=self.action_timeout)
 
 
 class BridgeSettings(MqttSettings, LoopSettings):

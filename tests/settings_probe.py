@@ -4,12 +4,12 @@ them as JSON to PROBE_OUT."""
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 from pathlib import Path
 
-from protocol.settings import model_of
-
 if __name__ == "__main__":
-    settings = model_of(os.environ["PROBE_MODEL"]).load(sys.argv[1:], prog="settings_probe")
+    module, _, name = os.environ["PROBE_MODEL"].partition(":")
+    settings = getattr(importlib.import_module(module), name).load(sys.argv[1:], prog="settings_probe")
     Path(os.environ["PROBE_OUT"]).write_text(settings.model_dump_json())

@@ -228,11 +228,12 @@ def test_one_message_that_breaks_the_chief_is_counted_and_the_run_goes_on(tmp_pa
     and counts it and carries on with the next message."""
     from chief.report import MetricsLog
     from chief.rounds import RoundKeeper
-    from chief.service import ChiefConfig, ChiefService
+    from chief.service import ChiefService
+    from chief.settings import ChiefSettings
     from protocol.tasks import task
 
-    svc = ChiefService(ChiefConfig(broker=BrokerAddress.parse("mqtt://127.0.0.1:9"), run_id=RUN, workers=1,
-                                   run_dir=tmp_path / "run", max_episodes=2))
+    svc = ChiefService(ChiefSettings.given(broker="mqtt://127.0.0.1:9", run_id=RUN, workers=1,
+                                           run_dir=tmp_path / "run", max_episodes=2))
     sent: list[str] = []
     monkeypatch.setattr(svc.conn, "publish", lambda topic, payload, qos=1: sent.append(topic))
     svc.keeper = RoundKeeper(["w0"], "weighted", task("CartPole-v0"), 2, 30.0, actor_spec={"w": (2,)})

@@ -30,7 +30,8 @@ def test_help(module: str) -> None:
          "be 'lockstep', 'delayed' or 'realtime'"),
         ("chief", "FEDRL_WORKERS", "0", "FEDRL_WORKERS='0' (environment): input should be greater than or equal to 1"),
         ("rpi_bridge", "FEDRL_DEADLINE_MS", "9", "must be in (0, --period-ms"),
-        ("rpi_bridge", "FEDRL_MAX_COMMAND", "999", "FEDRL_MAX_COMMAND='999' (environment): must be in 1..416"),
+        ("rpi_bridge", "FEDRL_MAX_COMMAND", "999", "FEDRL_MAX_COMMAND='999' (environment): max_command must be "
+         "in 1..416"),
         ("services.qube_sim", "FEDRL_QUBE_MISS_RATE", "1.5", "FEDRL_QUBE_MISS_RATE='1.5' (environment): input should "
          "be less than 1"),
         ("deploy.docker", "FEDRL_WORKERS", "2,x", "FEDRL_WORKERS='2,x' (environment): input should be a valid integer"),

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from protocol.settings import PROCESSES
+from deploy.reference import PROCESSES
 
 tomllib = pytest.importorskip("tomllib", reason="reading pyproject.toml needs Python 3.11")
 ROOT = Path(__file__).resolve().parent.parent

@@ -17,7 +17,7 @@ import pytest
 import yaml
 
 from deploy.settings import DockerSettings
-from protocol.settings import env_name
+from runtime.settings import env_name
 from services.broker.embedded import free_port, stop_process
 from tests.conftest import HOST, mosquitto_available
 
@@ -173,7 +173,7 @@ def test_dockerignore_is_an_allowlist() -> None:
              if ln.strip() and not ln.startswith("#")]
     assert lines[0] == "*", "start from nothing, then allow what the images need"
     allowed = {ln[1:].rstrip("/") for ln in lines if ln.startswith("!")}
-    assert {"pyproject.toml", "constraints.txt", "protocol", "chief", "worker", "rpi_bridge", "services",
+    assert {"pyproject.toml", "constraints.txt", "protocol", "runtime", "chief", "worker", "rpi_bridge", "services",
             "deploy/wheels"} <= allowed
     assert "COPY constraints.txt deploy/wheel[s] /wheels/" in DOCKERFILE.read_text(), "the wheelhouse is optional"
 

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import ast
+import re
 import subprocess
 import sys
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -28,6 +31,8 @@ from protocol.messages import (
 )
 from protocol.mqtt import BrokerAddress
 from protocol.tensors import TensorBlob, check_spec, digest, pack_arrays, unpack_arrays
+
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def grad(seed: int = 0) -> dict[str, np.ndarray]:
@@ -226,9 +231,24 @@ def test_broker_address_parsing() -> None:
 
 
 def test_protocol_imports_no_torch_or_gymnasium() -> None:
-    code = "import protocol, protocol.mqtt, protocol.cli, protocol.tasks, sys; " \
+    code = "import protocol, protocol.mqtt, protocol.tasks, runtime.cli, runtime.settings, sys; " \
            "assert 'torch' not in sys.modules and 'gymnasium' not in sys.modules"
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_protocol_imports_no_other_project_package() -> None:
+    """The wire contract is the bottom layer: no import of another project package, and no module named by a
+    string for importlib to load."""
+    others = {"runtime", "chief", "worker", "rpi_bridge", "services", "deploy", "bench", "tests"}
+    for path in sorted((ROOT / "protocol").glob("*.py")):
+        tree = ast.parse(path.read_text())
+        for node in ast.walk(tree):
+            names = ([a.name for a in node.names] if isinstance(node, ast.Import)
+                     else [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
+            assert not [n for n in names if n.split(".")[0] in others or n == "importlib"], (path.name, names)
+            if isinstance(node, ast.Constant) and isinstance(node.value, str):  # "chief.settings:ChiefSettings"
+                module = re.fullmatch(r"([a-z_]+)(\.[a-z_]+)+(:\w+)?", node.value)
+                assert not (module and module.group(1) in others), (path.name, node.value)
 
 
 def test_digest_is_the_same_for_arrays_and_their_blobs() -> None:

@@ -327,8 +327,10 @@ def test_spidev_missing_gives_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> 
 def test_bridge_imports_stay_light() -> None:
     code = (
         "import sys, rpi_bridge, rpi_bridge.frame, rpi_bridge.velocity, rpi_bridge.device, rpi_bridge.reset, "
-        "rpi_bridge.control, rpi_bridge.runner, rpi_bridge.service, rpi_bridge.__main__; "
+        "rpi_bridge.control, rpi_bridge.runner, rpi_bridge.service, rpi_bridge.settings, rpi_bridge.__main__; "
         "assert 'torch' not in sys.modules and 'gymnasium' not in sys.modules, 'heavy import'; "
-        "assert 'spidev' not in sys.modules"
+        "assert 'spidev' not in sys.modules; "
+        "upper = sorted(m for m in sys.modules if m.split('.')[0] in ('chief', 'worker', 'services', 'deploy', "
+        "'bench')); assert not upper, f'the bridge needs only protocol, runtime and rpi_bridge: {upper}'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)

@@ -1,4 +1,4 @@
-"""The settings layer (protocol/settings.py): precedence, .env files, one-line errors, handing settings to children,
+"""The settings layer (runtime/settings.py): precedence, .env files, one-line errors, handing settings to children,
 and the generated reference docs/settings.md."""
 
 from __future__ import annotations
@@ -12,10 +12,11 @@ from pathlib import Path
 import pytest
 
 from chief.settings import ChiefSettings
+from deploy.reference import PROCESSES, markdown
 from deploy.run_local import Fleet
 from deploy.settings import DockerSettings, LocalRunSettings
-from protocol.settings import ENV_FILE_VAR, PROCESSES, markdown, model_of, to_env
 from rpi_bridge.settings import BridgeSettings
+from runtime.settings import ENV_FILE_VAR, Settings, to_env
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings
 from worker.settings import WorkerSettings
@@ -60,7 +61,7 @@ def test_old_flags_are_aliases_of_the_derived_ones(clean_env: pytest.MonkeyPatch
     s = WorkerSettings.load(["--id", "w3", "--rig-id", "rig3"], prog="worker")
     assert (s.worker_id, s.rig_id) == ("w3", "rig3")
     assert WorkerSettings.load(["--worker-id", "w4"], prog="worker").worker_id == "w4"
-    d = DashboardSettings.load(["--port", "0", "--rigs", "a,b", "c"], prog="dashboard")
+    d = DashboardSettings.load(["--port", "0", "--rigs", "a,b", "--dashboard-rigs", "c"], prog="dashboard")
     assert (d.dashboard_port, d.dashboard_rigs) == (0, ["a", "b", "c"])
     clean_env.setenv("FEDRL_DASHBOARD_RIGS", "r0, r1")
     assert DashboardSettings.load([], prog="dashboard").dashboard_rigs == ["r0", "r1"]
@@ -99,9 +100,8 @@ def example(cls: type) -> list[str]:
             "deploy.settings:InprocessSettings": ["--run-dir", "runs/x"]}.get(f"{cls.__module__}:{cls.__name__}", [])
 
 
-@pytest.mark.parametrize("path", [p for _, _, p in PROCESSES])
-def test_to_env_reads_back_into_the_same_settings(path: str, clean_env: pytest.MonkeyPatch) -> None:
-    cls = model_of(path)
+@pytest.mark.parametrize("cls", [cls for _, _, cls in PROCESSES], ids=lambda cls: cls.__name__)
+def test_to_env_reads_back_into_the_same_settings(cls: type[Settings], clean_env: pytest.MonkeyPatch) -> None:
     given = cls.load(example(cls), prog="launcher")
     for name, value in to_env(given).items():
         clean_env.setenv(name, value)
@@ -111,7 +111,7 @@ def test_to_env_reads_back_into_the_same_settings(path: str, clean_env: pytest.M
 def test_non_default_values_survive_the_trip(clean_env: pytest.MonkeyPatch) -> None:
     launcher = LocalRunSettings.load(["--dashboard-port", "off", "--workers", "3", "--qube-clock", "delayed"],
                                      prog="run")
-    docker = DockerSettings.load(["--workers", "2", "4", "--no-build"], prog="docker")
+    docker = DockerSettings.load(["--workers", "2,4", "--no-build"], prog="docker")
     for settings in (launcher, docker):
         for name, value in to_env(settings).items():
             clean_env.setenv(name, value)
@@ -163,12 +163,13 @@ def test_a_container_child_reads_nothing_of_the_host(clean_env: pytest.MonkeyPat
 
 def test_the_reference_is_up_to_date() -> None:
     assert (ROOT / "docs" / "settings.md").read_text() == markdown(), (
-        "docs/settings.md is stale: python -m protocol.settings --markdown > docs/settings.md")
+        "docs/settings.md is stale: python -m deploy.reference --markdown > docs/settings.md")
 
 
-def test_protocol_settings_imports_no_torch() -> None:
-    code = ("import sys, protocol.settings, chief.settings, rpi_bridge.settings, services.qube_sim.settings, "
-            "services.dashboard.settings, services.broker.settings, worker.settings, deploy.settings; "
+def test_settings_import_no_torch() -> None:
+    code = ("import sys, runtime.settings, deploy.reference, chief.settings, rpi_bridge.settings, "
+            "services.qube_sim.settings, services.dashboard.settings, services.broker.settings, "
+            "worker.settings, deploy.settings; "
             "bad = [m for m in ('torch', 'gymnasium', 'docker') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 0, out.stdout + out.stderr

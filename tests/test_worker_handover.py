@@ -13,7 +13,8 @@ from protocol.codec import decode, encode
 from protocol.messages import ChiefAck, MatureParams
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tensors import pack_arrays
-from worker.service import WorkerConfig, WorkerService
+from worker.service import WorkerService
+from worker.settings import WorkerSettings
 
 RUN = "handover"
 
@@ -48,7 +49,7 @@ class ScriptedChief:
 
 
 def worker(broker: str) -> WorkerService:
-    svc = WorkerService(WorkerConfig(broker=BrokerAddress.parse(broker), run_id=RUN, worker_id="w0", ack_timeout=30))
+    svc = WorkerService(WorkerSettings.given(broker=broker, run_id=RUN, worker_id="w0", ack_timeout=30))
     svc.conn.start()
     svc.conn.subscribe(topics.chief(RUN, "+"), svc._on_chief)
     return svc

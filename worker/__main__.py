@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from protocol.cli import run_service, setup_logging
-from protocol.settings import returns_code
-from worker.service import WorkerConfig, WorkerService, auto_worker_id
+from runtime.cli import run_service, setup_logging
+from runtime.settings import returns_code
+from worker.service import WorkerService, auto_worker_id
 from worker.settings import WorkerSettings
 
 DESCRIPTION = (
@@ -20,16 +20,10 @@ DESCRIPTION = (
 @returns_code
 def main(argv: list[str] | None = None) -> int:
     s = WorkerSettings.load(argv, prog="python -m worker", description=DESCRIPTION)
-    worker_id = auto_worker_id() if s.worker_id == "auto" else s.worker_id
-    setup_logging(s.log_level, f"worker[{worker_id}]")
-
-    def build() -> WorkerService:
-        return WorkerService(WorkerConfig(
-            broker=s.address(), run_id=s.run_id, worker_id=worker_id, env_id=s.env, device_noise=s.device_noise,
-            reply_timeout=s.reply_timeout, start_timeout=s.start_timeout, ack_timeout=s.ack_timeout,
-            resend_interval=s.resend_interval, max_payload=s.max_payload, model_dir=s.model_dir, rig_id=s.rig_id))
-
-    return run_service("worker", build)
+    if s.worker_id == "auto":
+        s = s.model_copy(update={"worker_id": auto_worker_id()})
+    setup_logging(s.log_level, f"worker[{s.worker_id}]")
+    return run_service("worker", lambda: WorkerService(s))
 
 
 if __name__ == "__main__":

@@ -29,9 +29,9 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from protocol.cli import setup_logging
 from protocol.mqtt import MqttConnection
-from protocol.settings import returns_code
+from runtime.cli import setup_logging
+from runtime.settings import returns_code
 from worker.envs import DeviceNoise, env_spec, make_env
 from worker.ppo import PPOConfig, PPOLearner
 from worker.settings import EvaluateSettings

@@ -13,8 +13,6 @@ import queue
 import socket
 import time
 import uuid
-from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import torch
@@ -32,12 +30,13 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import MqttConnection
 from protocol.routes import qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
+from worker.settings import WorkerSettings
 
 log = logging.getLogger("worker")
 
@@ -50,28 +49,13 @@ def auto_worker_id() -> str:
     return f"{host}-{uuid.uuid4().hex[:6]}"
 
 
-@dataclass
-class WorkerConfig:
-    broker: BrokerAddress
-    run_id: str = "default"
-    worker_id: str = "w0"
-    env_id: str = "CartPole-v0"
-    device_noise: float = 1.0
-    reply_timeout: float = 120.0
-    start_timeout: float = 600.0
-    ack_timeout: float = 600.0
-    resend_interval: float = 30.0
-    model_dir: Path | None = None
-    rig_id: str | None = None
-    max_payload: int | None = None
-
-
 class WorkerService:
     """One worker process: Algorithm 2 over MQTT."""
 
-    def __init__(self, cfg: WorkerConfig) -> None:
-        topics.check_id(cfg.worker_id, "worker id")
-        topics.check_id(cfg.run_id, "run id")
+    def __init__(self, cfg: WorkerSettings) -> None:
+        """``cfg``: the worker's settings, already checked; its worker id is this worker's (not ``auto``)."""
+        if cfg.worker_id == "auto":
+            raise ValueError("resolve worker_id 'auto' before starting the worker (auto_worker_id())")
         self.cfg = cfg
         self.rejects = RejectCounter(log)
         self.inbox: queue.Queue[Any] = queue.Queue()
@@ -85,7 +69,7 @@ class WorkerService:
         self.duplicates = 0
         self.missed_replies = 0
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
-        self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
+        self.conn = MqttConnection(cfg.address(), client_id=f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                    will=(self._topic(topics.STATUS), will), max_payload=cfg.max_payload,
                                    rejects=self.rejects)
 
@@ -143,9 +127,9 @@ class WorkerService:
     def _join(self) -> RunStart | None:
         """Say hello every second until the chief's RunStart names this worker."""
         cfg = self.cfg
-        _, probe = build_learner_and_env(cfg.env_id, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
+        _, probe = build_learner_and_env(cfg.env, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
                                          spec_only=True)
-        hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env_id, actor_spec=probe.actor_spec(),
+        hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env, actor_spec=probe.actor_spec(),
                             critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs,
                             host=socket.gethostname(), pid=os.getpid())
         self.actor_spec = probe.actor_spec()
@@ -160,8 +144,8 @@ class WorkerService:
             except queue.Empty:
                 continue
             if isinstance(msg, RunStart) and cfg.worker_id in msg.workers:
-                if msg.env_id != cfg.env_id:
-                    raise ValueError(f"the chief runs {msg.env_id!r} but this worker was started for {cfg.env_id!r}")
+                if msg.env_id != cfg.env:
+                    raise ValueError(f"the chief runs {msg.env_id!r} but this worker was started for {cfg.env!r}")
                 self.start, self.epoch = msg, msg.epoch
                 return msg
             reason = "not_in_run" if isinstance(msg, RunStart) else "before_start"
@@ -172,10 +156,10 @@ class WorkerService:
         cfg = self.cfg
         index = start.workers.index(cfg.worker_id)
         seed = worker_seed(start.seed, index)
-        env, learner = build_learner_and_env(cfg.env_id, seed=seed, device_noise=cfg.device_noise,
+        env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn)
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
-                 seed, cfg.env_id, start.policy, start.first_episode)
+                 seed, cfg.env, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
                           rounds_per_episode=start.rounds_per_episode)

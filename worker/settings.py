@@ -7,9 +7,10 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import field_validator, model_validator
+from pydantic_settings import CliPositionalArg, CliSuppress
 
-from protocol.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
 from protocol.topics import check_id
+from runtime.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
 
 
 class DeviceNoiseSettings(Settings):
@@ -44,13 +45,13 @@ class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
 class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     """Run a saved controller greedily and report its returns."""
 
-    model: Path = setting(help="a models/<worker>.pt saved by a worker", positional=True, env=False)
+    model: CliPositionalArg[Path] = setting(help="a models/<worker>.pt saved by a worker", env=False)
     env: TaskName | None = setting(None, "task to run it on (required)")
     eval_episodes: int = setting(10, "number of episodes", aliases=["--episodes"], ge=1)
     eval_seed: int = setting(0, "episode i is seeded with seed + i", aliases=["--seed"])
     eval_json: Path | None = setting(None, "also write the results to this JSON file", aliases=["--json"])
     eval_video: Path | None = setting(None, "write an animated GIF of the first --video-episodes episodes into this "
-                                      "folder (gymnasium tasks)", aliases=["--video"], metavar="DIR")
+                                      "folder (gymnasium tasks)", aliases=["--video"])
     eval_video_episodes: int = setting(1, "episodes to record with --video", aliases=["--video-episodes"], ge=1)
     rig_id: str | None = setting(None, "the rig to drive with --env qube (give --broker too)")
     log_level: LogLevel = setting("WARNING", "DEBUG, INFO, WARNING or ERROR")
@@ -70,8 +71,8 @@ class TrainLocalSettings(DeviceNoiseSettings):
     env: TaskName = setting("CartPole-v0", "task to learn")
     seed: int = setting(1, "seed of the networks, the sampling and the env")
     max_episodes: int = setting(2000, "the most episodes (the paper's M)", aliases=["--episodes"], ge=1)
-    overrides: list[str] = setting([], "override a PPOConfig field of the task's preset (repeatable)",
-                                   aliases=["--set"], env=False, append=True, metavar="KEY=VALUE")
+    overrides: CliSuppress[list[str]] = setting([], "override a PPOConfig field of the task's preset",
+                                                aliases=["--set"], env=False, metavar="KEY=VALUE")
     print_every: int = setting(10, "print every N episodes", aliases=["--every"], ge=1)
 
     @field_validator("overrides")

@@ -15,8 +15,8 @@ from collections.abc import Callable
 
 import torch
 
-from protocol.settings import returns_code
 from protocol.tasks import performance_index, solved
+from runtime.settings import returns_code
 from worker.envs import DeviceNoise, env_spec, make_env
 from worker.episode import run_episode
 from worker.ppo import PPOConfig, PPOLearner, UpdateStats

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import sys
 
-from protocol.settings import returns_code
+from runtime.settings import returns_code
 from services.broker.embedded import run
 from services.broker.settings import BrokerSettings
 

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from protocol.settings import to_env
+from runtime.settings import to_env
 from services.broker.settings import MAX_PACKET_SIZE, BrokerSettings
 
 log = logging.getLogger(__name__)

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pydantic import FilePath
 
 from protocol.codec import MAX_PAYLOAD_BYTES
-from protocol.settings import LogLevel, Port, Settings, setting
+from runtime.settings import LogLevel, Port, Settings, setting
 
 #: The largest MQTT packet the broker takes: the codec's payload limit plus room for the topic and headers.
 MAX_PACKET_SIZE = MAX_PAYLOAD_BYTES + 64 * 1024

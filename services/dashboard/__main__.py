@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import sys
 
-from protocol.cli import run_service, setup_logging
-from protocol.settings import returns_code
+from runtime.cli import run_service, setup_logging
+from runtime.settings import returns_code
 from services.dashboard.service import DashboardConfig, DashboardService
 from services.dashboard.settings import DashboardSettings
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from protocol.settings import Port, RunMqttSettings, Words, setting
+from runtime.settings import Port, RunMqttSettings, Words, setting
 
 DEFAULT_PORT = 8050
 

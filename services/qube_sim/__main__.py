@@ -11,11 +11,11 @@ import time
 from collections.abc import Callable
 from dataclasses import replace
 
-from protocol.cli import run_service, setup_logging
-from protocol.settings import returns_code
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.runner import InjectedTiming
 from rpi_bridge.service import BridgeService
+from runtime.cli import run_service, setup_logging
+from runtime.settings import returns_code
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.dynamics import QubeParams
 from services.qube_sim.settings import SimRigSettings

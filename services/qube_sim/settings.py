@@ -7,9 +7,9 @@ from typing import Literal
 
 from pydantic import field_validator
 
-from protocol.settings import MqttSettings, setting
 from rpi_bridge.runner import InjectedTiming
 from rpi_bridge.settings import LoopSettings
+from runtime.settings import MqttSettings, setting
 
 Clock = Literal["lockstep", "delayed", "realtime"]
 
@@ -21,7 +21,7 @@ class SimRigSettings(MqttSettings, LoopSettings):
                                 "simulated time one period per answered state, for fast training; delayed is "
                                 "lockstep with the real loop's timing (--delay-ms, --miss-rate)", aliases=["--clock"])
     qube_delay_ms: str = setting("0:7", "clock 'delayed': each action reaches the motor after a delay drawn "
-                                 "uniformly from LO:HI ms", aliases=["--delay-ms"], metavar="LO:HI")
+                                 "uniformly from LO:HI ms", aliases=["--delay-ms"])
     qube_miss_rate: float = setting(0.003, "clock 'delayed': fraction of actions lost (the safe action instead); "
                                     "the default is the real-time loop's rate in bench/results/latency.json",
                                     aliases=["--miss-rate"], ge=0, lt=1)

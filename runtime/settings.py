@@ -3,10 +3,11 @@
 Each process declares its settings once, as a model whose fields are made with :func:`setting` (type, default,
 help). Everything else comes from that model: the command-line flags (field ``round_timeout`` is the flag
 ``--round-timeout`` and the variable ``FEDRL_ROUND_TIMEOUT``; older spellings stay as aliases), the validation, the
-one-line errors and the reference ``docs/settings.md`` (``python -m protocol.settings --markdown``).
+one-line errors and the reference ``docs/settings.md`` (``python -m deploy.reference --markdown``).
 
 - Precedence: command line > environment > .env file > default.
 - The .env file (KEY=VALUE lines) is ``--env-file PATH`` or ``FEDRL_ENV_FILE``, else ``./.env`` when it exists.
+- The flags are pydantic-settings' own (``CliSettingsSource``, on a parser whose errors are one line).
 - A bad value is one line on stderr naming the setting, where it came from and the value, and exit code 2.
 - A launcher builds its children's settings with :meth:`Settings.child` and hands them over with :func:`to_env`,
   the one function that turns a model back into variables.
@@ -19,17 +20,15 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib
 import os
 import re
 import sys
-import types
 import typing
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, Literal, NoReturn, Protocol, TypeVar, cast
+from typing import Annotated, Any, ClassVar, NoReturn, Protocol, TypeVar, cast
 
 from dotenv import dotenv_values
 from pydantic import (
@@ -44,12 +43,17 @@ from pydantic import (
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined, core_schema
 from pydantic_settings import (
+    CLI_SUPPRESS,
     BaseSettings,
+    CliPositionalArg,
+    CliSettingsSource,
+    CliSuppress,
     DotEnvSettingsSource,
     EnvSettingsSource,
     NoDecode,
     PydanticBaseSettingsSource,
     SettingsConfigDict,
+    SettingsError,
 )
 
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
@@ -67,16 +71,16 @@ S = TypeVar("S", bound="Settings")
 
 
 def setting(default: Any = PydanticUndefined, help: str = "", *, aliases: Sequence[str] = (), env: bool = True,
-            flag: bool = True, positional: bool = False, append: bool = False, metavar: str | None = None,
-            **constraints: Any) -> Any:
+            metavar: str | None = None, **constraints: Any) -> Any:
     """A settings field: its default, its help, and how it is reached.
 
-    ``aliases`` are further flags (older spellings) beside the one derived from the field's name; ``env=False``
-    makes it a flag only, ``flag=False`` a variable only (secrets); ``positional`` and ``append`` (a repeatable
-    flag) shape the command line. ``constraints`` go to pydantic's ``Field`` (``ge=1``, ...).
+    ``aliases`` are further flags (older spellings) beside ``--the-name`` that pydantic-settings derives from the
+    field's name; ``env=False`` makes it a flag only. A variable-only setting (a secret) is typed
+    ``CliSuppress[...]``, a positional argument ``CliPositionalArg[...]`` (pydantic-settings' markers). A
+    ``CliSuppress`` list with ``aliases`` is a repeatable flag whose every value is one item, taken whole
+    (``--set KEY=VALUE``; ``metavar`` names it). ``constraints`` go to pydantic's ``Field`` (``ge=1``, ...).
     """
-    extra = {"aliases": list(aliases), "env": env, "flag": flag, "positional": positional, "append": append,
-             "metavar": metavar}
+    extra = {"aliases": list(aliases), "env": env, "metavar": metavar}
     return Field(default, description=help, json_schema_extra=cast(Any, extra), **constraints)
 
 
@@ -116,8 +120,7 @@ LogLevel = Annotated[str, OneOf(lambda: ["DEBUG", "INFO", "WARNING", "ERROR"]), 
 
 def _meta(field: FieldInfo) -> dict[str, Any]:
     extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
-    return {"aliases": [], "env": True, "flag": True, "positional": False, "append": False, "metavar": None,
-            **extra}
+    return {"aliases": [], "env": True, "metavar": None, **extra}
 
 
 def env_name(name: str, field: FieldInfo) -> str | None:
@@ -125,71 +128,17 @@ def env_name(name: str, field: FieldInfo) -> str | None:
     return ENV_PREFIX + name.upper() if _meta(field)["env"] else None
 
 
+#: The marker of CliPositionalArg, as it appears in a field's metadata.
+_POSITIONAL = typing.get_args(CliPositionalArg[int])[1]
+
+
 def flags(name: str, field: FieldInfo) -> list[str]:
-    """The flags of field ``name``: ``--the-name`` and its aliases (empty for a variable-only setting)."""
-    meta = _meta(field)
-    if not meta["flag"]:
-        return []
-    if meta["positional"]:
-        return [name]
-    return ["--" + name.replace("_", "-"), *(a for a in meta["aliases"] if a != "--" + name.replace("_", "-"))]
-
-
-def _bare(annotation: Any) -> Any:
-    """``int | None`` -> ``int``; ``Annotated[X, ...]`` -> ``X``."""
-    while typing.get_origin(annotation) is Annotated:
-        annotation = typing.get_args(annotation)[0]
-    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
-        args = [a for a in typing.get_args(annotation) if a is not type(None)]
-        if len(args) == 1:
-            return _bare(args[0])
-    return annotation
-
-
-def _markers(annotation: Any) -> list[Any]:
-    """The ``Annotated`` metadata anywhere in ``annotation`` (``Annotated[str, OneOf(...)] | None``)."""
-    found: list[Any] = []
-    if typing.get_origin(annotation) is Annotated:
-        found += list(annotation.__metadata__)
-    for arg in typing.get_args(annotation):
-        found += _markers(arg)
-    return found
-
-
-def choices(field: FieldInfo) -> list[str] | None:
-    """The allowed values of a field (a ``Literal`` or :class:`OneOf`), or None."""
-    for item in [*field.metadata, *_markers(field.annotation)]:
-        if isinstance(item, OneOf):
-            return list(item.options())
-    bare = _bare(field.annotation)
-    if typing.get_origin(bare) is Literal:
-        return [str(a) for a in typing.get_args(bare)]
-    return None
-
-
-def type_name(field: FieldInfo) -> str:
-    """A short name of a field's type for help and docs."""
-    bare = _bare(field.annotation)
-    if choices(field) is not None:
-        return "choice"
-    if typing.get_origin(bare) is list:
-        return f"list of {_bare(typing.get_args(bare)[0]).__name__}"
-    return {Path: "path"}.get(bare, getattr(bare, "__name__", str(bare)))
-
-
-def _metavar(field: FieldInfo) -> str:
-    bare = _bare(field.annotation)
-    if typing.get_origin(bare) is list:
-        bare = _bare(typing.get_args(bare)[0])
-    return {int: "INT", float: "NUM", Path: "PATH"}.get(bare, "TEXT")
-
-
-def _is_bool(field: FieldInfo) -> bool:
-    return _bare(field.annotation) is bool
-
-
-def _is_list(field: FieldInfo) -> bool:
-    return typing.get_origin(_bare(field.annotation)) is list
+    """The command line of field ``name``: ``--the-name`` (as pydantic-settings derives it) and its aliases, the
+    name of a positional argument, a repeatable flag's own names, or nothing for a variable-only setting."""
+    aliases = _meta(field)["aliases"]
+    if CLI_SUPPRESS in field.metadata:
+        return aliases
+    return [name] if _POSITIONAL in field.metadata else ["--" + name.replace("_", "-"), *aliases]
 
 
 def encode(value: Any) -> str:
@@ -254,34 +203,27 @@ class Settings(BaseSettings):
     # -- reading -------------------------------------------------------------------------------------------------
 
     @classmethod
-    def parser(cls, prog: str, description: str | None = None, epilog: str | None = None) -> argparse.ArgumentParser:
-        """The command line of this model: one flag per field (its default left to the model)."""
+    def parser(cls, prog: str, description: str | None = None,
+               epilog: str | None = None) -> tuple[argparse.ArgumentParser, CliSettingsSource[Any]]:
+        """The command line of this model, as pydantic-settings derives it from the fields (``--the-name``,
+        ``--no-the-name`` for a boolean), with ``--env-file`` and the repeatable flags (see :func:`setting`)."""
         parser = _OneLineParser(prog=prog, description=description or (cls.__doc__ or "").strip(), epilog=epilog)
         parser.add_argument(*cls.env_file_flags, dest="env_file", metavar="PATH", default=argparse.SUPPRESS,
                             help=f"read FEDRL_* settings from this KEY=VALUE file (env {', '.join(cls.env_file_vars)}"
                             f"; default ./{DEFAULT_ENV_FILE} where it exists; the environment wins over it)")
+        shortcuts: dict[str, str | list[str]] = {}
         for name, field in cls.model_fields.items():
             names = flags(name, field)
-            if not names:
-                continue
-            meta = _meta(field)
-            kwargs: dict[str, Any] = {"default": argparse.SUPPRESS, "help": _help(name, field).replace("%", "%%")}
-            options = choices(field)
-            if meta["positional"]:
-                kwargs["metavar"] = meta["metavar"] or name.upper()
-                if not field.is_required():
-                    kwargs["nargs"] = "?"
-                parser.add_argument(*names, **kwargs)
-                continue
-            kwargs["dest"] = name
-            if _is_bool(field):
-                kwargs["action"] = argparse.BooleanOptionalAction
-            else:
-                kwargs["metavar"] = meta["metavar"] or ("{" + ",".join(options) + "}" if options else _metavar(field))
-                if _is_list(field):
-                    kwargs["action" if meta["append"] else "nargs"] = "append" if meta["append"] else "+"
-            parser.add_argument(*names, **kwargs)
-        return parser
+            if CLI_SUPPRESS not in field.metadata:
+                shortcuts[name.replace("_", "-")] = [a.lstrip("-") for a in names[1:]]
+            elif names:  # a repeatable flag, its values taken whole
+                parser.add_argument(*names, dest=name, action="append", default=argparse.SUPPRESS,
+                                    metavar=_meta(field)["metavar"], help=f"{field.description} (repeatable)")
+        source: CliSettingsSource[Any] = CliSettingsSource(
+            cls, root_parser=parser, cli_kebab_case=True, cli_implicit_flags=True, cli_avoid_json=True,
+            cli_hide_none_type=True, cli_show_env_vars=True, cli_shortcuts=shortcuts, _env_settings_source=_Env(cls),
+            add_argument_method=_add_argument)
+        return parser, source
 
     @classmethod
     def load(cls: type[S], argv: Sequence[str] | None = None, *, prog: str, description: str | None = None,
@@ -293,7 +235,7 @@ class Settings(BaseSettings):
         """
         prog = program(prog)
         argv = list(sys.argv[1:] if argv is None else argv)
-        parser = cls.parser(prog, description, epilog)
+        parser, source = cls.parser(prog, description, epilog)
         pre = _OneLineParser(prog=prog, add_help=False, allow_abbrev=False)
         pre.add_argument(*cls.env_file_flags, dest="env_file", default=None)
         pre.add_argument("-h", "--help", action="store_true")
@@ -303,9 +245,14 @@ class Settings(BaseSettings):
             cls._build(prog, env_file, {}, ignore_missing=True)
             parser.print_help()
             raise SystemExit(0)
-        given = vars(parser.parse_args(argv))
-        given.pop("env_file", None)
-        return cls._build(prog, env_file, given, argv=argv)
+        parsed = vars(parser.parse_args(argv))
+        own = {name: parsed[name] for name, field in cls.model_fields.items()
+               if name in parsed and CLI_SUPPRESS in field.metadata}
+        try:
+            given = source(parsed_args={k: v for k, v in parsed.items() if k not in own})()
+        except SettingsError as err:
+            fail(prog, f"{err} (--help lists the options)")
+        return cls._build(prog, env_file, {**given, **own}, argv=argv)
 
     @classmethod
     def _env_file_path(cls, prog: str, flag_value: str | None) -> Path:
@@ -356,6 +303,16 @@ class Settings(BaseSettings):
         else:
             where = f"{names[0] if names else var or name} (default {field.default!r})"
         return f"bad setting {where}: {reason}{more}"
+
+    @classmethod
+    def given(cls: type[S], **values: Any) -> S:
+        """Settings of ``values`` and the defaults only, nothing read from the environment or a .env file (tests,
+        a process built inside another). A bad value raises pydantic's ValidationError."""
+        token = _ONLY_GIVEN.set(True)
+        try:
+            return cls(**values)
+        finally:
+            _ONLY_GIVEN.reset(token)
 
     # -- handing on ----------------------------------------------------------------------------------------------
 
@@ -413,22 +370,18 @@ def program(default: str) -> str:
     return name if name.startswith("fedrl-") else default
 
 
+def _add_argument(parser: Any, *names: str, **kwargs: Any) -> Any:
+    """pydantic-settings' add_argument, except that a ``CliSuppress`` field (help suppressed) gets no flag at all."""
+    if kwargs.get("help") == argparse.SUPPRESS:
+        return None
+    return parser.add_argument(*names, **kwargs)
+
+
 class _OneLineParser(argparse.ArgumentParser):
     """An option error is one line on stderr and exit code 2 (no usage dump)."""
 
     def error(self, message: str) -> NoReturn:
         fail(self.prog, f"{message} (--help lists the options)")
-
-
-def _help(name: str, field: FieldInfo) -> str:
-    """The field's help with its variable and default: ``... (env FEDRL_X, default 30)``."""
-    notes = []
-    if var := env_name(name, field):
-        notes.append(f"env {var}")
-    if not field.is_required() and field.default is not None and field.default != []:
-        default = encode(field.default) if not isinstance(field.default, Path) else str(field.default)
-        notes.append(f"default {default or repr('')}")
-    return f"{field.description} ({', '.join(notes)})" if notes else field.description or ""
 
 
 # -- settings every MQTT client shares -----------------------------------------------------------------------------
@@ -439,8 +392,8 @@ class MqttSettings(Settings):
 
     broker: str = setting(DEFAULT_BROKER, "broker URL mqtt://[user:pass@]host:port, or mqtts:// for TLS")
     mqtt_username: str | None = setting(None, "broker user name (make-users.sh writes one per process)")
-    mqtt_password: str | None = setting(None, "broker password (a variable only: flags show in the process list)",
-                                        flag=False)
+    mqtt_password: CliSuppress[str | None] = setting(None, "broker password (a variable only: flags show in the "
+                                                     "process list)")
     mqtt_ca_file: Path | None = setting(None, "CA certificate of a TLS broker")
     max_payload: int | None = setting(None, "bytes; larger messages travel in chunks (e.g. 131072 for AWS IoT "
                                       "Core's 128 KB cap); 0 or unset: no chunking")
@@ -474,90 +427,3 @@ class RunMqttSettings(MqttSettings):
     @classmethod
     def _run_id(cls, value: str) -> str:
         return check_id(value, "run id")
-
-
-# -- the reference -------------------------------------------------------------------------------------------------
-
-#: Every entry point: (command, console script, its settings model by import path). Imported only to write the
-#: reference, so that this package imports none of them.
-PROCESSES: tuple[tuple[str, str, str], ...] = (
-    ("python -m deploy.run_local", "fedrl-run", "deploy.settings:LocalRunSettings"),
-    ("python -m chief", "fedrl-chief", "chief.settings:ChiefSettings"),
-    ("python -m worker", "fedrl-worker", "worker.settings:WorkerSettings"),
-    ("python -m services.broker", "fedrl-broker", "services.broker.settings:BrokerSettings"),
-    ("python -m services.dashboard", "fedrl-dashboard", "services.dashboard.settings:DashboardSettings"),
-    ("python -m services.qube_sim", "fedrl-sim-rig", "services.qube_sim.settings:SimRigSettings"),
-    ("python -m rpi_bridge", "fedrl-bridge", "rpi_bridge.settings:BridgeSettings"),
-    ("python -m worker.evaluate", "fedrl-evaluate", "worker.settings:EvaluateSettings"),
-    ("python -m worker.train_local", "fedrl-train-local", "worker.settings:TrainLocalSettings"),
-    ("python -m deploy.inprocess", "fedrl-inprocess", "deploy.settings:InprocessSettings"),
-    ("python -m deploy.docker", "fedrl-docker", "deploy.settings:DockerSettings"),
-)
-
-
-def model_of(path: str) -> type[Settings]:
-    module, _, name = path.partition(":")
-    return getattr(importlib.import_module(module), name)
-
-
-def _cell(text: str) -> str:
-    return text.replace("|", "\\|").replace("\n", " ")
-
-
-def markdown_table(cls: type[Settings]) -> str:
-    """One row per setting: flag(s), variable, type, default, help."""
-    rows = ["| flag | variable | type | default | help |", "| --- | --- | --- | --- | --- |"]
-    for name, field in cls.model_fields.items():
-        names = ", ".join(f"`{f}`" for f in flags(name, field)) or "-"
-        var = f"`{v}`" if (v := env_name(name, field)) else "-"
-        options = choices(field)
-        kind = type_name(field) + (": " + ", ".join(f"`{c}`" for c in options) if options else "")
-        if field.is_required():
-            default = "required"
-        elif field.default is None or field.default == []:
-            default = "unset"
-        else:
-            default = f"`{encode(field.default) if not isinstance(field.default, Path) else field.default}`"
-        rows.append(f"| {names} | {var} | {_cell(kind)} | {_cell(default)} | {_cell(field.description or '')} |")
-    return "\n".join(rows)
-
-
-def markdown() -> str:
-    """docs/settings.md: every process's settings."""
-    parts = [
-        "# Settings reference",
-        "",
-        "<!-- generated by `python -m protocol.settings --markdown > docs/settings.md`; a test keeps it up to "
-        "date -->",
-        "",
-        "Every process reads its settings from, in this order of precedence: its command-line flags, `FEDRL_*` "
-        "environment variables, a `.env` file (KEY=VALUE lines: `--env-file PATH` or `FEDRL_ENV_FILE`, else "
-        "`./.env` where it exists), and the defaults below. A flag's variable is `FEDRL_` and the field's name "
-        "in capitals (`--round-timeout`: `FEDRL_ROUND_TIMEOUT`); older flag spellings are kept as aliases. A bad "
-        "value is one line on stderr naming the setting, where it came from and the value, and exit code 2. Lists "
-        "are comma-separated in a variable, separate words after a flag; booleans also take `--no-<flag>`.",
-        "",
-    ]
-    for command, script, path in PROCESSES:
-        cls = model_of(path)
-        doc = (cls.__doc__ or "").strip().splitlines()[0]
-        files = ", ".join(f"`{f}`" for f in (*cls.env_file_flags, *cls.env_file_vars))
-        parts += [f"## `{script}` (`{command}`)", "", f"{doc} The .env file: {files}.", "", markdown_table(cls), ""]
-    return "\n".join(parts)
-
-
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m protocol.settings", description="The settings reference.")
-    parser.add_argument("--markdown", action="store_true", help="print docs/settings.md")
-    args = parser.parse_args(argv)
-    if not args.markdown:
-        parser.print_help()
-        return 0
-    sys.stdout.write(markdown())
-    return 0
-
-
-if __name__ == "__main__":
-    from protocol import settings as module  # the models import that module, not this __main__ copy of it
-
-    sys.exit(module.main())

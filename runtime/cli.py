@@ -1,4 +1,4 @@
-"""What every process's ``main`` shares besides its settings (protocol/settings.py): logging and exit codes."""
+"""What every process's ``main`` shares besides its settings (runtime/settings.py): logging and exit codes."""
 
 from __future__ import annotations
 

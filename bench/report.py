@@ -267,7 +267,7 @@ def headline(folder: Path, readme_dir: Path) -> str:
     names = list(dict.fromkeys(n for rep in index["tasks"].values() for n in rep["summary"]))
     lines = [f"Median episodes until the last worker of a run met TC (runs finished of runs), generated from "
              f"[`{_rel('paper.json', folder, readme_dir)}`]({_rel('paper.json', folder, readme_dir)}) "
-             f"({index['config']['variant']} variant, {index['config'].get('finished_at', 'date not recorded')}); "
+             f"({index['config']['variant']} variant, finished {str(index['config'].get('finished_at', '?'))[:10]}); "
              "every table, the statistics and the commands are on the docs site's Results page "
              f"([`{DOCS_PAGE}`]({_rel(str(DOCS_PAGE), Path('.'), readme_dir)})).", "",
              "| task | workers | TC | " + " | ".join(f"`{n}`" for n in names) + " | 1 worker alone |",

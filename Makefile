@@ -4,15 +4,17 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint venv bench bench-quick soak clean help test-docker docker-dev
+.PHONY: run test lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
-	@echo "make test   - the whole test suite (creates the virtual environment first)"
+	@echo "make test   - the whole test suite and the docs built strict (creates the virtual environment first)"
 	@echo "make lint   - ruff and mypy (the torch-free packages)"
 	@echo "make bench  - the paper's experiment (python -m bench.paper): every task and strategy, 10 seeds, references, cost;"
-	@echo "              JSON + figures into bench/results/, README results section (hours on 2 cores)"
+	@echo "              JSON + figures into bench/results/, docs/results.md and README table (hours on 2 cores)"
 	@echo "make bench-quick - its reduced variant into bench/results/quick/ (under 15 min on 2 cores)"
+	@echo "make docs   - serve the documentation site on http://127.0.0.1:8000/ (mkdocs serve; Ctrl-C stops it)"
+	@echo "make docs-build - build it into site/ with warnings as errors (mkdocs build --strict)"
 	@echo "make soak   - 16 workers over Mosquitto to the end, memory and round latency watched (bench/results/soak.*)"
 	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
 	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
@@ -21,7 +23,7 @@ venv: $(STAMP)
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev,deploy,video,bench,tb]"
+	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev,deploy,video,bench,tb,docs]"
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -30,6 +32,7 @@ run: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m ruff check .
 	$(BIN)/python -m mypy
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --quiet
 	$(BIN)/python -m pytest -q
 
 lint: $(STAMP)
@@ -46,7 +49,14 @@ soak: $(STAMP)
 	$(BIN)/python -m bench.soak
 
 clean:
-	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache
+	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache site
+
+# The documentation site (mkdocs.yml, docs/): served with live reload, or built with warnings as errors.
+docs: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs serve -a 127.0.0.1:8000
+
+docs-build: $(STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict
 
 # Containerised end-to-end tests: compose up + python -m deploy.docker, 2-worker CartPole (needs Docker + Compose).
 test-docker: $(STAMP)

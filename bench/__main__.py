@@ -2,8 +2,8 @@
 
 BENCHES = {
     "bench.paper": "the paper's Section V experiment (make bench; --quick: make bench-quick): every task and "
-                   "strategy, statistics, references, cost, figures, README section",
-    "bench.report": "the README results section from bench/results/paper.json (--readme rewrites it)",
+                   "strategy, statistics, references, cost, figures, docs/results.md",
+    "bench.report": "docs/results.md (--docs) and the README table (--readme) from bench/results/paper.json",
     "bench.figures": "redraw Figures 5 and 7 (episodes and env steps) from a results folder",
     "bench.cost": "bytes per round; chief time per round for 4, 16, 64 workers over Mosquitto and amqtt",
     "bench.policies": "episodes until all workers solve, per federation policy and seed, one task (JSON + PNG)",

@@ -11,8 +11,8 @@ hyperparameters (bench/sb3_ref.py), on the same seeds and under the same stop ru
 (bench/cost.py). Results: ``<out>/paper.json`` (configuration, per task the median [IQR] of the last worker's
 episodes and steps, the rank tests against ``independent``, the references, the targets of issue 8) and
 ``<out>/paper-<task>.json`` (the same plus every run), figures ``fig5-*.png`` and ``fig7-*.png``, ``cost.json``;
-finally the README's results section (bench/report.py). Run folders go to ``bench/results/runs/<variant>/``
-(not committed); ``--resume`` reuses the results of runs already there.
+finally docs/results.md and the README's results table (bench/report.py). Run folders go to
+``bench/results/runs/<variant>/`` (not committed); ``--resume`` reuses the results of runs already there.
 
 ``--quick`` (``make bench-quick``) is a reduced variant for a 2-core machine in under 15 minutes: see QUICK.
 """
@@ -288,7 +288,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--references", nargs="*", default=["single", "sb3"], choices=["single", "sb3"],
                         help="reference runs on the same seeds (default: single sb3)")
     parser.add_argument("--no-cost", action="store_true", help="skip the cost benchmark (bench/cost.py)")
-    parser.add_argument("--no-readme", action="store_true", help="do not rewrite the README's results section")
+    parser.add_argument("--no-readme", action="store_true", help="do not rewrite docs/results.md and the README table")
     parser.add_argument("--resume", action="store_true", help="reuse results of runs already in the runs folder")
     parser.add_argument("--out", type=Path, help="results folder (default bench/results, or bench/results/quick)")
     parser.add_argument("--runs-dir", type=Path, help="run folders (default bench/results/runs/<full|quick>)")
@@ -367,8 +367,9 @@ def main(argv: list[str] | None = None) -> int:
     print(report.markdown(index, args.out))
     if not args.no_readme:
         folders = list(dict.fromkeys([args.out, *report.default_folders()]))
+        report.write_docs(folders)
         report.write_readme(folders, Path("README.md"))
-        print(f"README.md results section rewritten from {', '.join(map(str, folders))}")
+        print(f"{report.DOCS_PAGE} and README.md's results table rewritten from {', '.join(map(str, folders))}")
     print(f"done in {cfg['wall_s']:.0f} s; results in {args.out}")
     return 0
 

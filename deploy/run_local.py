@@ -220,6 +220,22 @@ def print_summary(summary: dict, run_dir: Path, wall: float) -> None:
              else f"not all solved ({summary['end_reason']})")
           + f"; chief wall time {summary['wall_s']:.1f} s, launcher {wall:.1f} s")
     print(f"results: {run_dir}/summary.json, metrics.jsonl, learning_curve.png")
+    print_next_steps(summary, run_dir)
+
+
+def print_next_steps(summary: dict, run_dir: Path) -> None:
+    """The footer: how to evaluate a controller, audit the run, view TensorBoard and keep the dashboard up."""
+    py = os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else "python"
+    solved = [w["id"] for w in summary["workers"] if w["solved"]]
+    env = "qube-local" if summary["env"] == "qube" else summary["env"]  # a rig's controller on the in-process rig
+    print("\nnext steps:")
+    if solved:
+        print(f"  evaluate a controller:  {py} -m worker.evaluate {run_dir}/models/{solved[0]}.pt --env {env}")
+    print(f"  audit the run:          {py} -m chief.audit {run_dir}")
+    print(f"  TensorBoard:            {py} -m pip install tensorboard   (the viewer is not installed), then")
+    board = Path(py).parent / "tensorboard" if py != "python" else "tensorboard"
+    print(f"                          {board} --logdir {run_dir}/tensorboard")
+    print("  keep the dashboard up:  FEDRL_DASHBOARD_LINGER=600 make run   (seconds after the run ended)")
 
 
 if __name__ == "__main__":

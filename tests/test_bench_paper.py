@@ -164,16 +164,20 @@ def test_figures_and_readme_from_the_fixture(tmp_path: Path) -> None:
     index = fixture_results(tmp_path)
     paths = figures.draw_all(figures.load_reports(tmp_path), tmp_path)
     assert all(p.stat().st_size > 1000 for p in paths)
-    readme = tmp_path / "README.md"
+    readme, page = tmp_path / "README.md", tmp_path / "docs" / "results.md"
     readme.write_text(f"# x\n\nbefore\n\n{report.BEGIN}\nstale text\n{report.END}\n\nafter\n")
-    assert report.main(["--results", str(tmp_path), "--readme", str(readme)]) == 0
-    text = readme.read_text()
-    assert "stale text" not in text and text.startswith("# x\n\nbefore") and text.rstrip().endswith("after")
-    assert "| `weighted` | 36.5 [33.75-38.5] |" in text
+    assert report.main(["--results", str(tmp_path), "--readme", str(readme), "--docs", str(page),
+                        "--links-from", str(tmp_path)]) == 0
+    head = readme.read_text()
+    assert "stale text" not in head and head.startswith("# x\n\nbefore") and head.rstrip().endswith("after")
+    assert "| CartPole-v0 | 4 | 195 |" in head and "| 36.5 (4/4) |" in head and "[`paper.json`](paper.json)" in head
+    assert "| `weighted` | 36.5 [33.75-38.5] |" not in head  # the full tables are on the docs page only
+    text = page.read_text()
+    assert text.startswith(report.PAGE_HEAD) and "| `weighted` | 36.5 [33.75-38.5] |" in text
     assert "**p = 0.0286, fewer**" in text and "| 1 worker of ours alone | 67.5 [63.75-unfinished] |" in text
     assert "`independent` seeds 103" in text and "[`fig7-episodes.png`](fig7-episodes.png)" in text
     assert "t ~ N^1.00" in text and "| CartPole-v0 | <= 40 episodes | `weighted`: 36.5 episodes" in text
     again = report.markdown(index, tmp_path, tmp_path)
-    assert again in text and "#### Quick variant: CartPole-v0, 4 seeds, M = 200" in text  # the same block again
+    assert again in text and "## Quick variant: CartPole-v0, 4 seeds, M = 200" in text  # the same block again
     with pytest.raises(ValueError):
         report.replace_block("no markers", "x")

@@ -1,5 +1,5 @@
 """The strategy registry: found by scanning chief/strategies/, the single source of names for the CLI, the chief
-and the README, and each strategy's aggregation on hand-computed numbers."""
+and the docs, and each strategy's aggregation on hand-computed numbers."""
 
 from __future__ import annotations
 
@@ -62,12 +62,12 @@ def test_tolerance_is_documented_for_each_n() -> None:
     assert strategies.get("weighted").tolerates(4) == strategies.get("plain").tolerates(4) == 0
 
 
-def test_the_readme_table_is_generated_from_the_registry() -> None:
-    readme = (ROOT / "README.md").read_text(encoding="utf-8")
-    block = re.search(r"<!-- strategies:begin -->\n(.*?)\n<!-- strategies:end -->", readme, re.S)
-    assert block is not None, "README.md lacks the generated strategy table"
+def test_the_docs_table_is_generated_from_the_registry() -> None:
+    page = (ROOT / "docs" / "explanation" / "strategies.md").read_text(encoding="utf-8")
+    block = re.search(r"<!-- strategies:begin -->\n(.*?)\n<!-- strategies:end -->", page, re.S)
+    assert block is not None, "docs/explanation/strategies.md lacks the generated strategy table"
     assert block.group(1).strip() == strategies.markdown_table().strip(), (
-        "the README's strategy table is out of date: python -m chief.strategies --markdown")
+        "the strategy table in docs/explanation/strategies.md is out of date: python -m chief.strategies --markdown")
 
 
 def test_cli_choices_come_from_the_registry() -> None:

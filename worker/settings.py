@@ -53,6 +53,13 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
                                       "folder (gymnasium tasks)", aliases=["--video"], metavar="DIR")
     eval_video_episodes: int = setting(1, "episodes to record with --video", aliases=["--video-episodes"], ge=1)
     rig_id: str | None = setting(None, "the rig to drive with --env qube (give --broker too)")
+    rig_profile: str | None = setting(None, "--env qube-local: the simulated rigs' profile, a built-in (ideal, lab) "
+                                      "or a JSON file (default ideal)", metavar="NAME|FILE")
+    rigs: int = setting(0, "--env qube-local: a robustness test instead, one disturbed episode on each of N rigs "
+                        "drawn from --rig-profile (torque pulses and extra sensor noise, docs/rig-profiles.md)",
+                        ge=0, le=1000)
+    pulse_ms: float = setting(50.0, "--rigs: length of each torque pulse in ms (0: no pulses)", ge=0, le=1000)
+    sensor_noise: float = setting(1.0, "--rigs: extra encoder noise, standard deviation in counts", ge=0, le=20)
     log_level: LogLevel = setting("WARNING", "DEBUG, INFO, WARNING or ERROR")
 
     @model_validator(mode="after")
@@ -61,6 +68,12 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
             raise ValueError("--env is required (or set FEDRL_ENV)")
         if self.env == "qube" and not self.rig_id:
             raise ValueError("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
+        if (self.rigs or self.rig_profile) and self.env != "qube-local":
+            raise ValueError("--rig-profile and --rigs are for the simulated rigs of --env qube-local")
+        if self.rig_profile is not None:
+            from services.qube_sim.profile import load_profile  # torch-free, pydantic only
+
+            load_profile(self.rig_profile)
         return self
 
 

@@ -176,7 +176,7 @@ LAB = RigProfile(
                 "gives each value's source or estimate).",
     coulomb_arm=0.0015, static_arm=0.002, coulomb_pendulum=0.0001, static_pendulum=0.00015,
     deadzone_v=0.05, voltage_offset_v=0.02,
-    cable_stiffness=0.001, cable_rest_rad=0.05,
+    cable_stiffness=0.0002, cable_rest_rad=0.05,
     encoder_noise_counts=0.3, sensing_latency_ms=0.5,
     action_delay_ms=0.14, action_jitter_ms=0.5, missed_actions=0.0,
     spread=0.05, spread_nonideal=0.25,

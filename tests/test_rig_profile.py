@@ -189,3 +189,23 @@ def test_lab_rigs_differ_from_ideal_ones() -> None:
     a, b = make_env("qube-local", 1000), make_env("qube-local", 1000, rig_profile="lab")
     assert a.device.params != b.device.params and b.device.params.Cr > 0  # type: ignore[attr-defined]
     assert RigProfile().model_dump() == IDEAL.model_copy(update={"name": "custom", "description": ""}).model_dump()
+
+
+def test_a_sim_rig_over_mqtt_redraws_its_physics_at_each_reset_request() -> None:
+    from services.qube_sim.__main__ import build_sim_service
+    from services.qube_sim.settings import SimRigSettings
+
+    def draws(seed: int) -> list[QubeParams]:
+        service = build_sim_service(SimRigSettings(rig_profile="lab", randomize=0.2, seed=seed))
+        device = service.core.device
+        out = []
+        for request in (1, 2):
+            service.runner.on_reset(request)
+            out.append(device._next_params)  # type: ignore[attr-defined]
+        return out
+
+    first = draws(3)
+    assert first == draws(3) and first[0] != first[1]
+    assert first == [LAB.episode_params(3, k, 0.2) for k in (1, 2)]
+    plain = build_sim_service(SimRigSettings(rig_profile="lab", seed=3))
+    assert plain.core.device.params == LAB.rig_params(3)  # type: ignore[attr-defined]

@@ -27,7 +27,8 @@ def main(argv: list[str] | None = None) -> int:
         return WorkerService(WorkerConfig(
             broker=s.address(), run_id=s.run_id, worker_id=worker_id, env_id=s.env, device_noise=s.device_noise,
             reply_timeout=s.reply_timeout, start_timeout=s.start_timeout, ack_timeout=s.ack_timeout,
-            resend_interval=s.resend_interval, max_payload=s.max_payload, model_dir=s.model_dir, rig_id=s.rig_id))
+            resend_interval=s.resend_interval, max_payload=s.max_payload, model_dir=s.model_dir, rig_id=s.rig_id,
+            env_options=s.env_options()))
 
     return run_service("worker", build)
 

@@ -260,11 +260,11 @@ class QubeLocalEnv(_QubeTask):
 
 
 def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, conn: Any = None,
-                  probe: bool = False) -> gym.Env:
+                  probe: bool = False, **_: Any) -> gym.Env:
     """Factory for the ``qube`` task: the rig ``rig_id`` over the worker's MQTT connection.
 
-    Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed; real rigs
-    differ anyway), so the paper's simulated action noise is not added here.
+    Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed and its own
+    rig profile; real rigs differ anyway), so the paper's simulated action noise is not added here.
     """
     if probe:
         return _QubeTask()

@@ -13,7 +13,7 @@ import queue
 import socket
 import time
 import uuid
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -64,6 +64,7 @@ class WorkerConfig:
     model_dir: Path | None = None
     rig_id: str | None = None
     max_payload: int | None = None
+    env_options: dict[str, Any] = field(default_factory=dict)  # for the task's factory (qube-local: rig_profile)
 
 
 class WorkerService:
@@ -173,7 +174,8 @@ class WorkerService:
         index = start.workers.index(cfg.worker_id)
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env_id, seed=seed, device_noise=cfg.device_noise,
-                                             init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn)
+                                             init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
+                                             env_options=cfg.env_options)
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env_id, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)

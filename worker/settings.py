@@ -34,11 +34,31 @@ class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
                                      "once after a reconnect or a chief restart)", gt=0)
     start_timeout: float = setting(600.0, "seconds to wait for the chief to start the run", gt=0)
     model_dir: Path | None = setting(None, "save the mature model here as <id>.pt (unset: not saved)")
+    rig_profile: str | None = setting(None, "--env qube-local: the simulated rig's profile, a built-in (ideal, lab) "
+                                      "or a JSON file (default ideal; a qube_sim rig has its own)", metavar="NAME|FILE")
+    randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
+                                      "each reset from +-FRACTION of the profile's values (unset: the profile's)",
+                                      ge=0, le=0.5, metavar="FRACTION")
 
     @field_validator("worker_id")
     @classmethod
     def _worker_id(cls, value: str) -> str:
         return value if value == "auto" else check_id(value, "worker id")
+
+    @field_validator("rig_profile")
+    @classmethod
+    def _profile(cls, value: str | None) -> str | None:
+        if value is not None:
+            from services.qube_sim.profile import load_profile  # pydantic only
+
+            load_profile(value)
+        return value
+
+    def env_options(self) -> dict[str, Any]:
+        """Options for the task's factory: the rig profile and randomisation of qube-local."""
+        if self.env != "qube-local":
+            return {}
+        return {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}
 
 
 class EvaluateSettings(MqttSettings, DeviceNoiseSettings):

@@ -34,9 +34,10 @@ from worker.federated import Algorithm2
 
 def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
-                   tensorboard_files: bool = True) -> dict[str, Any]:
+                   tensorboard_files: bool = True, env_options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
-    write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing)."""
+    write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing).
+    ``env_options`` go to the task's factory (qube-local: ``rig_profile``, ``randomize``)."""
     torch.set_num_threads(1)
     spec = task(env_id)
     strategy = strategies.get(policy)
@@ -45,7 +46,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     keeper: RoundKeeper | None = None
     for i, wid in enumerate(ids):
         env, learner = build_learner_and_env(env_id, seed=worker_seed(seed, i), device_noise=device_noise,
-                                             init_seed=seed)
+                                             init_seed=seed, env_options=env_options)
         if keeper is None:
             keeper = RoundKeeper(ids, policy, spec, max_episodes, round_timeout=float("inf"),
                                  actor_spec=learner.actor_spec(), critic_spec=learner.critic_spec(),

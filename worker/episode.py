@@ -22,16 +22,18 @@ def build_learner_and_env(
     rig_id: str | None = None,
     conn: Any = None,
     spec_only: bool = False,
+    env_options: dict[str, Any] | None = None,
 ) -> tuple[gym.Env, PPOLearner]:
     """The env of this device and a PPO learner with the env's preset, both seeded by ``seed``
     (``init_seed``: the networks' initial weights, shared by the workers of a run).
 
     ``rig_id`` and ``conn`` (an open MqttConnection) are for envs that drive a rig over MQTT; ``spec_only`` builds
-    a throwaway pair just to learn the actor's shape.
+    a throwaway pair just to learn the actor's shape; ``env_options`` go to the factory of such envs too (e.g. the
+    ``rig_profile`` and ``randomize`` of qube-local).
     """
     spec = env_spec(env_id)
     noise = DeviceNoise(scale=device_noise)
-    extra = {"rig_id": rig_id, "conn": conn, "probe": spec_only} if spec.factory is not None else {}
+    extra = {"rig_id": rig_id, "conn": conn, "probe": spec_only, **(env_options or {})} if spec.factory else {}
     env = make_env(env_id, seed, noise, **extra)
     learner = PPOLearner(env.observation_space, env.action_space, spec.ppo_config(), seed=seed, init_seed=init_seed)
     return env, learner

@@ -4,12 +4,18 @@
     python -m worker.evaluate runs/<run>/models/w0.pt --env CartPole-v0 --video videos/
     python -m worker.evaluate model.pt --env qube-local
     python -m worker.evaluate model.pt --env qube --rig-id rig0 --broker mqtt://lab:1883   # a rig over MQTT
+    python -m worker.evaluate model.pt --env qube-local --rig-profile lab --rigs 10 --json robust.json
 
 MODEL is a ``models/<worker>.pt`` that a worker saved when it solved its task (worker/ppo.py ``save``). Each episode
 takes the deterministic action (arg-max for discrete actions, the Gaussian mean for continuous ones), episode i is
 seeded with ``seed + i``, and nothing is learned. The report: every return, mean +- standard deviation, and whether
 the mean reaches the task's TC (protocol/tasks.py). ``--video DIR`` writes an animated GIF per recorded episode
 (gymnasium tasks; needs the ``video`` extra: pygame renders, Pillow writes).
+
+``--rigs N`` (qube-local) tests robustness instead (worker/robustness.py, as RealAIGym does): N rigs drawn from
+``--rig-profile``, one episode each with torque pulses of growing size on the arm at random times and extra encoder
+noise; for each rig it reports whether it balanced to the end, for how many seconds, and the largest pulse it
+survived.
 
 Exit codes: 0 evaluated (whether or not TC was reached: see the report), 2 a bad option or a model that does not
 fit (one line on stderr), 1 the broker or rig could not be reached.
@@ -61,6 +67,21 @@ class Evaluation:
     greedy: bool = True
     rig_id: str | None = None
     videos: list[str] = field(default_factory=list)
+    rig_profile: str | None = None
+
+
+@dataclass
+class Robustness:
+    """What ``robustness`` found; ``asdict`` is the ``--json`` file."""
+
+    model: str
+    env: str
+    rig_profile: str
+    seed: int
+    disturbances: dict[str, Any]
+    stall_torque_nm: float
+    summary: dict[str, Any]
+    rigs: list[dict[str, Any]]
 
 
 # -- the model -------------------------------------------------------------------------------------------------
@@ -131,14 +152,46 @@ def write_gif(frames: list[np.ndarray], path: Path, fps: float) -> Path:
     return path
 
 
+def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, seed: int = 0,
+               disturbances: Any = None) -> Robustness:
+    """The robustness test of ``--rigs`` (see the module docstring and worker/robustness.py)."""
+    from services.qube_sim.profile import ProfileError, load_profile
+    from worker import robustness as rb
+
+    if env_id != "qube-local":
+        raise EvalError("--rigs tests the simulated rigs of --env qube-local")
+    try:
+        profile = load_profile(rig_profile or "ideal")
+    except ProfileError as err:
+        raise EvalError(str(err)) from None
+    probe = make_env(env_id, seed, probe=True)
+    learner = load_learner(model, env_id, probe.observation_space, probe.action_space)
+    d = disturbances or rb.Disturbances()
+    print(f"robustness of {model} on {rigs} {profile.name} rigs (seeds {seed}-{seed + rigs - 1}): pulses of "
+          f"{d.pulse_ms:g} ms, extra encoder noise {d.sensor_noise_counts:g} counts", flush=True)
+    results = []
+    for i in range(rigs):
+        r = rb.run_rig(learner.act_greedy, profile, i, seed + i, d)
+        results.append(r)
+        verdict = "balanced to the end" if r.balanced_to_end else "fell"
+        print(f"rig {i + 1:3d}: {verdict:19s} after {r.balance_s:6.2f} s; largest pulse survived "
+              f"{r.largest_pulse_nm * 1e3:5.1f} mN m ({r.largest_pulse_of_stall:.0%} of stall)",
+              flush=True)
+    return Robustness(model=str(model), env=env_id, rig_profile=profile.name, seed=seed, disturbances=asdict(d),
+                      stall_torque_nm=round(rb.stall_torque(), 6), summary=rb.summary(results),
+                      rigs=[asdict(r) for r in results])
+
+
 def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device_noise: float = 1.0,
              video_dir: Path | None = None, video_episodes: int = 1, rig_id: str | None = None,
-             conn: Any = None) -> Evaluation:
+             conn: Any = None, rig_profile: str | None = None) -> Evaluation:
     """Run ``model`` greedily for ``episodes`` episodes of ``env_id``; see the module docstring."""
     spec = env_spec(env_id)
     if video_dir is not None:
         check_video_support(env_id)
     extra: dict[str, Any] = {"rig_id": rig_id, "conn": conn} if spec.factory is not None else {}
+    if rig_profile is not None:
+        extra["rig_profile"] = rig_profile
     environment = make_env(env_id, seed, DeviceNoise(scale=device_noise),
                            render_mode="rgb_array" if video_dir is not None else None, **extra)
     videos: list[str] = []
@@ -169,7 +222,7 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
                       device_noise=device_noise if spec.factory is None else None,
                       returns=returns, steps=steps, mean=mean, std=float(arr.std()), min=float(arr.min()),
                       max=float(arr.max()), tc=spec.tc, reached_tc=bool(mean >= spec.tc), rig_id=rig_id,
-                      videos=videos)
+                      videos=videos, rig_profile=rig_profile)
 
 
 def check_video_support(env_id: str) -> None:
@@ -186,7 +239,11 @@ def check_video_support(env_id: str) -> None:
 # -- command line ------------------------------------------------------------------------------------------------
 
 
-def report(result: Evaluation) -> str:
+def report(result: Evaluation | Robustness) -> str:
+    if isinstance(result, Robustness):
+        s = result.summary
+        return (f"{s['balanced_to_end']} of {s['rigs']} rigs balanced to the end; median {s['median_balance_s']:.2f} s "
+                f"balanced; every rig survived pulses up to {s['smallest_largest_pulse_nm'] * 1e3:.1f} mN m")
     verdict = "reached" if result.reached_tc else "not reached"
     return (f"mean return {result.mean:.2f} ± {result.std:.2f} (min {result.min:.2f}, max {result.max:.2f}) over "
             f"{result.episodes} episodes; TC {result.tc:g}: {verdict}")
@@ -210,8 +267,15 @@ def main(argv: list[str] | None = None) -> int:
         if s.env == "qube":
             conn = MqttConnection(s.address(), client_id=f"fedrl-eval-{s.rig_id}-{uuid.uuid4().hex[:6]}",
                                   max_payload=s.max_payload).start()
-        result = evaluate(s.model, s.env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
-                          s.eval_video_episodes, s.rig_id if conn else None, conn)
+        if s.rigs:
+            from worker.robustness import Disturbances
+
+            result: Evaluation | Robustness = robustness(
+                s.model, s.env, s.rig_profile, s.rigs, s.eval_seed,
+                Disturbances(pulse_ms=s.pulse_ms, sensor_noise_counts=s.sensor_noise))
+        else:
+            result = evaluate(s.model, s.env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
+                              s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile)
     except EvalError as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2

@@ -186,19 +186,28 @@ class QubeMqttEnv(_QubeTask):
 class QubeLocalEnv(_QubeTask):
     """The same task, rig and bridge code in process: ControlCore over a SimulatedQube on a virtual clock."""
 
-    def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000) -> None:
+    def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000, profile: Any = None,
+                 randomize: float | None = None) -> None:
+        """``profile`` (a services.qube_sim.profile.RigProfile) gives the rig's physics and non-ideal effects, spread
+        by ``seed``; without one, the nominal plant spread by ``variation``. ``randomize`` (or the profile's) draws
+        the physics again at every reset."""
         super().__init__()
         from services.qube_sim.clock import VirtualClock
         from services.qube_sim.dynamics import QubeParams
         from services.qube_sim.spi_peer import SimulatedQube
 
-        params = QubeParams.varied(seed, scale=variation) if variation > 0 else QubeParams()
+        self.seed, self.profile, self.randomize = seed, profile, randomize
+        if profile is not None:
+            params, options = profile.rig_params(seed), profile.device_options()
+        else:
+            params, options = QubeParams.varied(seed, scale=variation) if variation > 0 else QubeParams(), {}
         self.clock = VirtualClock()
-        self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock)
+        self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock, **options)
         self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S), clock=self.clock)
         self.reset_ticks = reset_ticks
         self.failed_resets = 0
         self._requests = itertools.count(1)
+        self._episodes = itertools.count(1)
 
     def _sense(self) -> Sensed:
         self.clock.advance(PERIOD_S)
@@ -206,6 +215,10 @@ class QubeLocalEnv(_QubeTask):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         super().reset(seed=seed)
+        if self.profile is not None:  # domain randomisation: this episode's physics
+            params = self.profile.episode_params(self.seed, next(self._episodes), self.randomize)
+            if params is not None:
+                self.device.set_params(params)
         for attempt in range(1, 6):  # as over MQTT: a failed swing-up is retried after the pendulum settles
             try:
                 return self._reset_once()
@@ -247,11 +260,11 @@ class QubeLocalEnv(_QubeTask):
 
 
 def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, conn: Any = None,
-                  probe: bool = False) -> gym.Env:
+                  probe: bool = False, **_: Any) -> gym.Env:
     """Factory for the ``qube`` task: the rig ``rig_id`` over the worker's MQTT connection.
 
-    Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed; real rigs
-    differ anyway), so the paper's simulated action noise is not added here.
+    Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed and its own
+    rig profile; real rigs differ anyway), so the paper's simulated action noise is not added here.
     """
     if probe:
         return _QubeTask()
@@ -260,6 +273,13 @@ def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, c
     return QubeMqttEnv(conn, rig_id)
 
 
-def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, **_: Any) -> gym.Env:
-    """Factory for the ``qube-local`` task: a simulated rig inside the worker, its physics drawn from ``seed``."""
-    return _QubeTask() if probe else QubeLocalEnv(seed=seed)
+def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, rig_profile: Any = None,
+                        randomize: float | None = None, **_: Any) -> gym.Env:
+    """Factory for the ``qube-local`` task: a simulated rig inside the worker, its physics drawn from ``seed`` around
+    ``rig_profile`` (a name, a JSON file or a RigProfile; default ``ideal``)."""
+    if probe:
+        return _QubeTask()
+    from services.qube_sim.profile import RigProfile, load_profile
+
+    profile = rig_profile if isinstance(rig_profile, RigProfile) else load_profile(rig_profile or "ideal")
+    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize)

@@ -157,7 +157,8 @@ class WorkerService:
         index = start.workers.index(cfg.worker_id)
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
-                                             init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn)
+                                             init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
+                                             env_options=cfg.env_options())
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)

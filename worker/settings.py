@@ -35,11 +35,31 @@ class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
                                      "once after a reconnect or a chief restart)", gt=0)
     start_timeout: float = setting(600.0, "seconds to wait for the chief to start the run", gt=0)
     model_dir: Path | None = setting(None, "save the mature model here as <id>.pt (unset: not saved)")
+    rig_profile: str | None = setting(None, "--env qube-local: the simulated rig's profile, a built-in (ideal, lab) "
+                                      "or a JSON file (default ideal; a qube_sim rig has its own)", metavar="NAME|FILE")
+    randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
+                                      "each reset from +-FRACTION of the profile's values (unset: the profile's)",
+                                      ge=0, le=0.5, metavar="FRACTION")
 
     @field_validator("worker_id")
     @classmethod
     def _worker_id(cls, value: str) -> str:
         return value if value == "auto" else check_id(value, "worker id")
+
+    @field_validator("rig_profile")
+    @classmethod
+    def _profile(cls, value: str | None) -> str | None:
+        if value is not None:
+            from services.qube_sim.profile import load_profile  # pydantic only
+
+            load_profile(value)
+        return value
+
+    def env_options(self) -> dict[str, Any]:
+        """Options for the task's factory: the rig profile and randomisation of qube-local."""
+        if self.env != "qube-local":
+            return {}
+        return {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}
 
 
 class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
@@ -54,6 +74,13 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
                                       "folder (gymnasium tasks)", aliases=["--video"])
     eval_video_episodes: int = setting(1, "episodes to record with --video", aliases=["--video-episodes"], ge=1)
     rig_id: str | None = setting(None, "the rig to drive with --env qube (give --broker too)")
+    rig_profile: str | None = setting(None, "--env qube-local: the simulated rigs' profile, a built-in (ideal, lab) "
+                                      "or a JSON file (default ideal)", metavar="NAME|FILE")
+    rigs: int = setting(0, "--env qube-local: a robustness test instead, one disturbed episode on each of N rigs "
+                        "drawn from --rig-profile (torque pulses and extra sensor noise, docs/rig-profiles.md)",
+                        ge=0, le=1000)
+    pulse_ms: float = setting(50.0, "--rigs: length of each torque pulse in ms (0: no pulses)", ge=0, le=1000)
+    sensor_noise: float = setting(1.0, "--rigs: extra encoder noise, standard deviation in counts", ge=0, le=20)
     log_level: LogLevel = setting("WARNING", "DEBUG, INFO, WARNING or ERROR")
 
     @model_validator(mode="after")
@@ -62,6 +89,12 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
             raise ValueError("--env is required (or set FEDRL_ENV)")
         if self.env == "qube" and not self.rig_id:
             raise ValueError("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
+        if (self.rigs or self.rig_profile) and self.env != "qube-local":
+            raise ValueError("--rig-profile and --rigs are for the simulated rigs of --env qube-local")
+        if self.rig_profile is not None:
+            from services.qube_sim.profile import load_profile  # torch-free, pydantic only
+
+            load_profile(self.rig_profile)
         return self
 
 

@@ -6,10 +6,11 @@ with the physics of services/qube_sim/dynamics.py answering the 17-byte SPI fram
 
 from __future__ import annotations
 
+import itertools
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import replace
+from typing import Any
 
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.runner import InjectedTiming
@@ -17,7 +18,7 @@ from rpi_bridge.service import BridgeService
 from runtime.cli import run_service, setup_logging
 from runtime.settings import returns_code
 from services.qube_sim.clock import VirtualClock
-from services.qube_sim.dynamics import QubeParams
+from services.qube_sim.profile import ProfileError, RigProfile, load_profile
 from services.qube_sim.settings import SimRigSettings
 from services.qube_sim.spi_peer import SimulatedQube
 
@@ -25,34 +26,68 @@ DESCRIPTION = (
     "A simulated QUBE-Servo 2 on MQTT (qube/<rig>/state, action, reset, status, telemetry). Clock 'realtime' "
     "enforces the deadline as on a real rig; 'lockstep' advances simulated time one period per answered state, for "
     "fast training; 'delayed' is lockstep with the real loop's timing: each action reaches the motor --delay-ms "
-    "after its state's read and --miss-rate of them are lost. Each rig's physics differs slightly by its seed."
+    "after its state's read and --miss-rate of them are lost. The rig's physics and non-ideal effects come from its "
+    "--rig-profile, each rig spread around it by its seed; --randomize draws them again at every reset."
 )
 
 
 def build_sim_service(s: SimRigSettings) -> BridgeService:
     """The rig service these settings describe (a ValueError for settings its parts refuse)."""
-    params = QubeParams.varied(s.seed, scale=s.qube_variation) if s.qube_variation > 0 else QubeParams()
-    params = replace(params, Cr=s.qube_coulomb_arm, Cp=s.qube_coulomb_pendulum)
+    profile = s.profile()
+    params = profile.rig_params(s.seed)
     fault = s.qube_wiring_fault.replace("-", "_")
-    faults = {fault: True} if fault != "none" else {}
-    timing = InjectedTiming.parse(s.qube_delay_ms, s.qube_miss_rate, seed=s.seed) if s.qube_clock == "delayed" else None
+    options: dict[str, Any] = {fault: True} if fault != "none" else {}
+    options.update(profile.device_options())
+    timing = None
+    if s.qube_clock == "delayed":
+        lo, hi = profile.loop_delay_ms
+        timing = InjectedTiming.parse(s.qube_delay_ms or f"{lo}:{hi}",
+                                      profile.loop_miss_rate if s.qube_miss_rate is None else s.qube_miss_rate,
+                                      seed=s.seed)
     core_clock: Callable[[], float]
     if s.qube_clock in ("lockstep", "delayed"):
         clock = VirtualClock()
-        device = SimulatedQube(params, seed=s.seed, period_s=0, clock=clock, **faults)
+        device = SimulatedQube(params, seed=s.seed, period_s=0, clock=clock, **options)
         advance, core_clock = clock.advance, clock
     else:
-        device = SimulatedQube(params, seed=s.seed, period_s=0, clock=time.perf_counter, **faults)
+        device = SimulatedQube(params, seed=s.seed, period_s=0, clock=time.perf_counter, **options)
         advance, core_clock = None, time.perf_counter
     store = CalibrationStore.for_rig(s.state_dir, s.rig_id) if s.state_dir is not None else None
-    return BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
-                         lockstep=s.qube_clock != "realtime", advance=advance, client_prefix="qube-sim",
-                         clock=core_clock, store=store, timing=timing)
+    service = BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
+                            lockstep=s.qube_clock != "realtime", advance=advance, client_prefix="qube-sim",
+                            clock=core_clock, store=store, timing=timing)
+    randomize_episodes(service, device, profile, s.seed, s.randomize)
+    return service
+
+
+def randomize_episodes(service: BridgeService, device: SimulatedQube, profile: RigProfile, seed: int,
+                       randomize: float | None) -> None:
+    """Domain randomisation over MQTT: each reset request draws the rig's next physics (RigProfile.episode_params,
+    in the order the requests arrive), applied from the next SPI transfer on."""
+    if profile.episode_params(seed, 0, randomize) is None:
+        return
+    resets = itertools.count(1)
+    on_reset = service.runner.on_reset
+
+    def redraw_then_reset(request_id: int) -> None:
+        params = profile.episode_params(seed, next(resets), randomize)
+        if params is not None:
+            device.set_params(params)
+        on_reset(request_id)
+
+    service.runner.on_reset = redraw_then_reset  # type: ignore[method-assign]
 
 
 @returns_code
 def main(argv: list[str] | None = None) -> int:
     s = SimRigSettings.load(argv, prog="python -m services.qube_sim", description=DESCRIPTION)
+    if s.show_profile is not None:
+        try:
+            print(load_profile(s.show_profile).to_json(), end="")
+        except ProfileError as err:  # validated with the settings already; a file may have changed since
+            print(f"qube_sim: {err}", file=sys.stderr)
+            return 2
+        return 0
     setup_logging(s.log_level, f"qube-sim[{s.rig_id}]")
 
     def build() -> BridgeService:

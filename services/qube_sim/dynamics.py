@@ -40,6 +40,13 @@ class QubeParams:
     Cr: float = 0.0  # arm Coulomb friction torque, N m (0: none; real rigs have some, the manual gives no value)
     Cp: float = 0.0  # pendulum Coulomb friction torque, N m
     coulomb_speed: float = 0.02  # rad/s: friction = -C*tanh(speed/coulomb_speed), a smooth sign for the integrator
+    Sr: float = 0.0  # arm static (breakaway) friction torque, N m; 0 or >= Cr (Stribeck: C + (S - C)*exp(-(v/vs)^2))
+    Sp: float = 0.0  # pendulum static friction torque, N m
+    stribeck_speed: float = 0.1  # rad/s: below it the friction rises from Coulomb towards static
+    deadzone: float = 0.0  # V: the motor makes no torque below this |V|; above, V - sgn(V)*deadzone
+    voltage_offset: float = 0.0  # V: amplifier offset added to every commanded voltage while it is enabled
+    cable_stiffness: float = 0.0  # N m/rad: the encoder cable pulls the arm back towards cable_rest
+    cable_rest: float = 0.0  # rad: arm angle where the cable exerts no torque
     full_scale_voltage: float = 24.0  # 999 SPI counts = 100 % duty, about 24 V ([DS] p.2)
     max_voltage: float = 15.0  # amplifier maximum, +-15 V ([UM] Table 2.2)
 
@@ -96,20 +103,34 @@ def command_to_voltage(command: float, params: QubeParams | None = None) -> floa
 
 
 def motor_torque(p: QubeParams, voltage: float, theta_dot: float) -> float:
-    """tau = -kt*(V + km*theta_dot)/Rm: +V drives theta negative, back-EMF brakes."""
+    """tau = -kt*(V' + km*theta_dot)/Rm: +V drives theta negative, back-EMF brakes. V' is the voltage at the motor:
+    the command plus the amplifier's ``voltage_offset``, less the ``deadzone`` (none below it)."""
+    if p.voltage_offset or p.deadzone:
+        voltage += p.voltage_offset
+        voltage = math.copysign(max(0.0, abs(voltage) - p.deadzone), voltage)
     return -p.kt * (voltage + p.km * theta_dot) / p.Rm
+
+
+def friction(coulomb: float, static: float, speed: float, p: QubeParams) -> float:
+    """Dry friction torque opposing ``speed``: Coulomb ``coulomb`` rising to ``static`` at rest (Stribeck curve),
+    its sign smoothed by tanh(speed/coulomb_speed) so the integrator sees a continuous force."""
+    level = coulomb
+    if static > coulomb:
+        level += (static - coulomb) * math.exp(-((speed / p.stribeck_speed) ** 2))
+    return level * math.tanh(speed / p.coulomb_speed)
 
 
 def derivatives(
     p: QubeParams, theta_dot: float, alpha: float, alpha_dot: float, tau: float
 ) -> tuple[float, float]:
-    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2), plus Coulomb
-    friction (``Cr``, ``Cp``) next to the viscous terms: the arm's generalised force is tau - Dr*theta_dot -
-    Cr*sgn(theta_dot), the pendulum's -Dp*alpha_dot - Cp*sgn(alpha_dot), with sgn smoothed by tanh."""
+    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2), plus dry
+    friction next to the viscous terms: the arm's generalised force is tau - Dr*theta_dot - F(Cr, Sr, theta_dot),
+    the pendulum's -Dp*alpha_dot - F(Cp, Sp, alpha_dot) (:func:`friction`). ``tau`` includes any external torque
+    on the arm (the cable's: see :meth:`QubeDynamics._rates`)."""
     mp, Lp, Lr = p.mp, p.Lp, p.Lr
-    if p.Cr:
-        tau -= p.Cr * math.tanh(theta_dot / p.coulomb_speed)
-    friction_p = p.Cp * math.tanh(alpha_dot / p.coulomb_speed) if p.Cp else 0.0
+    if p.Cr or p.Sr:
+        tau -= friction(p.Cr, p.Sr, theta_dot, p)
+    friction_p = friction(p.Cp, p.Sp, alpha_dot, p) if p.Cp or p.Sp else 0.0
     s, c = math.sin(alpha), math.cos(alpha)
     s2 = 2.0 * s * c  # sin(2 alpha)
     P = 4.0 * p.Jp + Lp * Lp * mp
@@ -139,6 +160,7 @@ class QubeDynamics:
         self.alpha_dot = 0.0
         self.time = 0.0
         self.at_limit = 0  # -1 / +1 while the arm rests against an end stop, else 0
+        self.external_torque = 0.0  # N m on the arm (a disturbance), in the direction of increasing theta
 
     # -- state -----------------------------------------------------------------------------------------
     def set_state(self, theta: float, alpha: float, theta_dot: float = 0.0, alpha_dot: float = 0.0) -> None:
@@ -167,8 +189,13 @@ class QubeDynamics:
 
     # -- integration -----------------------------------------------------------------------------------
     def _rates(self, x: tuple[float, ...], voltage: float, motor: bool) -> tuple[float, ...]:
-        _, alpha, theta_dot, alpha_dot = x
-        tau = motor_torque(self.params, voltage, theta_dot) if motor else 0.0
+        theta, alpha, theta_dot, alpha_dot = x
+        p = self.params
+        tau = motor_torque(p, voltage, theta_dot) if motor else 0.0
+        if p.cable_stiffness:
+            tau -= p.cable_stiffness * (theta - p.cable_rest)
+        if self.external_torque:
+            tau += self.external_torque
         theta_ddot, alpha_ddot = derivatives(self.params, theta_dot, alpha, alpha_dot, tau)
         return theta_dot, alpha_dot, theta_ddot, alpha_ddot
 

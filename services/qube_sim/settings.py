@@ -10,6 +10,7 @@ from pydantic import field_validator
 from rpi_bridge.runner import InjectedTiming
 from rpi_bridge.settings import LoopSettings
 from runtime.settings import MqttSettings, setting
+from services.qube_sim.profile import RigProfile, load_profile
 
 Clock = Literal["lockstep", "delayed", "realtime"]
 
@@ -20,25 +21,39 @@ class SimRigSettings(MqttSettings, LoopSettings):
     qube_clock: Clock = setting("lockstep", "realtime enforces the deadline as on a real rig; lockstep advances "
                                 "simulated time one period per answered state, for fast training; delayed is "
                                 "lockstep with the real loop's timing (--delay-ms, --miss-rate)", aliases=["--clock"])
-    qube_delay_ms: str = setting("0:7", "clock 'delayed': each action reaches the motor after a delay drawn "
-                                 "uniformly from LO:HI ms", aliases=["--delay-ms"])
-    qube_miss_rate: float = setting(0.003, "clock 'delayed': fraction of actions lost (the safe action instead); "
-                                    "the default is the real-time loop's rate in bench/results/latency.json",
-                                    aliases=["--miss-rate"], ge=0, lt=1)
-    qube_coulomb_arm: float = setting(0.0, "arm Coulomb friction torque in N m", aliases=["--coulomb-arm"], ge=0)
-    qube_coulomb_pendulum: float = setting(0.0, "pendulum Coulomb friction torque in N m",
-                                           aliases=["--coulomb-pendulum"], ge=0)
+    qube_delay_ms: str | None = setting(None, "clock 'delayed': each action reaches the motor after a delay drawn "
+                                        "uniformly from LO:HI ms (unset: the rig profile's loop_delay_ms)",
+                                        aliases=["--delay-ms"], metavar="LO:HI")
+    qube_miss_rate: float | None = setting(None, "clock 'delayed': fraction of actions lost (the safe action "
+                                           "instead; unset: the rig profile's loop_miss_rate)",
+                                           aliases=["--miss-rate"], ge=0, lt=1)
+    rig_profile: str = setting("ideal", "the rig's physics and non-ideal effects: a built-in profile (ideal, lab) "
+                               "or a JSON file (see --show-profile and docs/rig-profiles.md)", metavar="NAME|FILE")
+    randomize: float | None = setting(None, "domain randomisation: draw the rig's parameters at each reset from "
+                                      "+-FRACTION of the profile's values (unset: the profile's)", ge=0, le=0.5,
+                                      metavar="FRACTION")
+    show_profile: str | None = setting(None, "print a rig profile (built-in name or file) as JSON and exit",
+                                       env=False, metavar="NAME|FILE")
     qube_wiring_fault: Literal["none", "reverse-motor", "reverse-encoder0", "reverse-encoder1", "dead-encoder1"] = (
         setting("none", "simulate a wiring fault, which the bridge's self-test must catch",
                 aliases=["--wiring-fault"]))
     state_dir: Path | None = setting(None, "keep the calibration in <dir>/<rig>-calibration.json (unset: a simulated "
                                      "rig starts calibrated and at rest)")
-    seed: int = setting(1, "draws this rig's variation")
-    qube_variation: float = setting(0.05, "relative spread of masses, lengths, damping and motor gain between rigs "
-                                    "(0 = nominal parameters)", aliases=["--variation"], ge=0)
+    seed: int = setting(1, "draws this rig's variation (the profile's spread) and its randomised episodes")
 
     @field_validator("qube_delay_ms")
     @classmethod
-    def _delay(cls, value: str) -> str:
-        InjectedTiming.parse(value, 0.0)
+    def _delay(cls, value: str | None) -> str | None:
+        if value is not None:
+            InjectedTiming.parse(value, 0.0)
         return value
+
+    @field_validator("rig_profile", "show_profile")
+    @classmethod
+    def _profile(cls, value: str | None) -> str | None:
+        if value is not None:
+            load_profile(value)
+        return value
+
+    def profile(self) -> RigProfile:
+        return load_profile(self.rig_profile)

@@ -19,12 +19,19 @@ error", which disables the amplifier until a frame writes the enable bit off (Qu
 faults: ``reverse_motor`` (motor leads swapped: the arm turns the other way), ``reverse_encoder0`` /
 ``reverse_encoder1`` (an encoder counting backwards; the tachometer follows encoder 0) and ``dead_encoder1`` (the
 pendulum encoder unplugged: its count never changes).
+
+Non-ideal sensing and actuation (a rig profile's, services/qube_sim/profile.py; all off by default):
+``sensing_latency_s`` (the reply reports the state of that long ago, interpolated between integration steps),
+``encoder_noise_counts`` (Gaussian counts added to each encoder reading, rounded), ``action_delay_s`` (lo, hi: a motor
+word reaches the motor a delay drawn uniformly from [lo, hi] after its frame) and ``missed_actions`` (the fraction of
+motor words lost: the motor keeps the previous one). Each has its own random stream, seeded from ``seed``.
 """
 
 from __future__ import annotations
 
 import math
 import random
+from collections import deque
 from collections.abc import Callable
 
 from rpi_bridge.frame import (
@@ -72,7 +79,15 @@ class SimulatedQube:
         reverse_encoder0: bool = False,
         reverse_encoder1: bool = False,
         dead_encoder1: bool = False,
+        sensing_latency_s: float = 0.0,
+        encoder_noise_counts: float = 0.0,
+        action_delay_s: tuple[float, float] = (0.0, 0.0),
+        missed_actions: float = 0.0,
     ) -> None:
+        if not 0 <= action_delay_s[0] <= action_delay_s[1] or sensing_latency_s < 0 or encoder_noise_counts < 0:
+            raise ValueError("delays, latency and noise must be >= 0 (and the delay's lo <= hi)")
+        if not 0 <= missed_actions < 1:
+            raise ValueError(f"missed_actions must be in [0, 1), got {missed_actions}")
         self.params = params or QubeParams()
         self.dynamics = QubeDynamics(self.params, arm_limit=arm_limit)
         self.period_s = period_s or 0.0
@@ -95,6 +110,16 @@ class SimulatedQube:
         self.stall_error = False
         self.transfers = 0
         self._rng = random.Random(seed)
+        self.sensing_latency_s = sensing_latency_s
+        self.encoder_noise_counts = encoder_noise_counts
+        self.action_delay_s = action_delay_s
+        self.missed_actions = missed_actions
+        self.lost_actions = 0
+        self._noise_rng = random.Random(f"encoder-noise-{seed}")
+        self._action_rng = random.Random(f"action-timing-{seed}")
+        self._pending: list[tuple[float, int]] = []  # (dynamics time, motor word) not yet at the motor
+        self._history: deque[tuple[float, float, float, float]] = deque()  # (time, theta, alpha, theta_dot)
+        self._next_params: QubeParams | None = None
         self._offsets = [0, 0]
         self._last_clock = clock() if clock is not None else None
         self.reset_state(noise=initial_noise)
@@ -119,6 +144,11 @@ class SimulatedQube:
         )
         self._offsets = list(self._raw_counts(0.0, math.pi))
         self.stall_time, self.stall_detected, self.stall_error = 0.0, False, False
+        self._history.clear()
+
+    def set_params(self, params: QubeParams) -> None:
+        """New physics from the next transfer on (domain randomisation: safe to call from another thread)."""
+        self._next_params = params
 
     @property
     def state(self) -> tuple[float, float, float, float]:
@@ -151,7 +181,21 @@ class SimulatedQube:
 
     # -- time ------------------------------------------------------------------------------------------
     def advance(self, dt: float) -> None:
-        """Integrate ``dt`` seconds with the held command, in steps of at most ``max_substep_s``."""
+        """Integrate ``dt`` seconds with the held command, in steps of at most ``max_substep_s``; a delayed motor
+        word takes over at its time."""
+        while self._pending and dt > 0:
+            until = self._pending[0][0] - self.dynamics.time
+            if until <= 1e-12:
+                self.command = self._pending.pop(0)[1]
+                continue
+            chunk = min(dt, until)
+            self._integrate(chunk)
+            dt -= chunk
+        while self._pending and self._pending[0][0] - self.dynamics.time <= 1e-12:
+            self.command = self._pending.pop(0)[1]
+        self._integrate(dt)
+
+    def _integrate(self, dt: float) -> None:
         if dt <= 0:
             return
         n = max(1, math.ceil(dt / self.max_substep_s - 1e-9))
@@ -162,6 +206,31 @@ class SimulatedQube:
                 voltage = -voltage
             self.dynamics.step(voltage, h, substeps=1, amplifier_on=active)
             self._update_stall(voltage if active else 0.0, h)
+            if self.sensing_latency_s:
+                self._remember()
+
+    def _remember(self) -> None:
+        d = self.dynamics
+        self._history.append((d.time, d.theta, d.alpha, d.theta_dot))
+        while len(self._history) > 2 and self._history[1][0] <= d.time - self.sensing_latency_s:
+            self._history.popleft()
+
+    def _sensed(self) -> tuple[float, float, float]:
+        """(theta, alpha, theta_dot) as the sensors report them: ``sensing_latency_s`` old, linearly interpolated
+        between integration steps (the oldest known state if the history is shorter)."""
+        d = self.dynamics
+        if not self.sensing_latency_s or not self._history:
+            return d.theta, d.alpha, d.theta_dot
+        at = d.time - self.sensing_latency_s
+        older = None
+        for entry in self._history:
+            if entry[0] > at:
+                if older is None:
+                    return entry[1], entry[2], entry[3]
+                w = (at - older[0]) / (entry[0] - older[0])
+                return tuple(a + w * (b - a) for a, b in zip(older[1:], entry[1:], strict=True))  # type: ignore[return-value]
+            older = entry
+        return d.theta, d.alpha, d.theta_dot
 
     def _update_stall(self, voltage: float, h: float) -> None:
         if abs(voltage) >= self.stall_voltage and self.dynamics.pressing_limit(voltage):
@@ -177,6 +246,9 @@ class SimulatedQube:
     def transfer(self, frame: bytes) -> bytes:
         if len(frame) != FRAME_LEN:
             raise ValueError(f"an SPI frame must be {FRAME_LEN} bytes, got {len(frame)}")
+        if self._next_params is not None:
+            self.params = self.dynamics.params = self._next_params
+            self._next_params = None
         if self.clock is not None:
             now = self.clock()
             last = self._last_clock if self._last_clock is not None else now
@@ -196,7 +268,16 @@ class SimulatedQube:
 
     def _reply(self) -> bytes:
         d = self.dynamics
-        enc0, enc1 = self.encoder_counts()
+        theta, alpha, theta_dot = self._sensed()
+        if self.sensing_latency_s:
+            raw0, raw1 = self._raw_counts(theta, alpha)
+            enc0, enc1 = raw0 - self._offsets[0], raw1 - self._offsets[1]
+        else:
+            enc0, enc1 = self.encoder_counts()
+        if self.encoder_noise_counts:
+            enc0 += round(self._noise_rng.gauss(0.0, self.encoder_noise_counts))
+            if not self.dead_encoder1:
+                enc1 += round(self._noise_rng.gauss(0.0, self.encoder_noise_counts))
         status = self.forced_status & 0xFF
         status |= STATUS_STALL_DETECTED if self.stall_detected else 0
         status |= STATUS_STALL_ERROR if self.stall_error else 0
@@ -211,14 +292,27 @@ class SimulatedQube:
             encoder0=enc0,
             encoder1=enc1,
             # encoder0 counts/s (theta = -counts); the tachometer times encoder 0's edges, so it follows its wiring
-            tach=encode_tach((1 if self.reverse_encoder0 else -1) * d.theta_dot / RAD_PER_COUNT),
+            tach=encode_tach((1 if self.reverse_encoder0 else -1) * theta_dot / RAD_PER_COUNT),
             status=status,
             current=current,
         )
 
+    def _write_motor(self, motor: int) -> None:
+        """The motor word of a frame: lost (``missed_actions``), delayed (``action_delay_s``) or applied now."""
+        if self.missed_actions and self._action_rng.random() < self.missed_actions:
+            self.lost_actions += 1
+            return
+        lo, hi = self.action_delay_s
+        if hi <= 0:
+            self.command = motor
+            return
+        delay = lo + (hi - lo) * self._action_rng.random()
+        self._pending.append((self.dynamics.time + delay, motor))
+        self._pending.sort(key=lambda item: item[0])
+
     def _apply(self, cmd: QubeCommand) -> None:
         if cmd.writes(MASK_MOTOR):
-            self.command = cmd.motor
+            self._write_motor(cmd.motor)
         if cmd.writes(MASK_MOTOR_ENABLE):
             self.enabled = cmd.enabled
             if not cmd.enabled:  # disabling the amplifier clears a stall error ([QEX] resetQUBEServo)

@@ -1,0 +1,211 @@
+"""Rig profiles (services/qube_sim/profile.py): loading and validating, ``--show-profile`` and its round trip, the
+one-line errors with exit code 2, the per-rig spread and per-episode randomisation being deterministic, ``ideal``
+being the rigs of before, and each non-ideal effect doing what it says on the simulated rig."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+from rpi_bridge.frame import build_command, parse_reply
+from services.qube_sim.__main__ import main as sim_main
+from services.qube_sim.dynamics import QubeDynamics, QubeParams
+from services.qube_sim.profile import BUILTIN, IDEAL, LAB, ProfileError, RigProfile, load_profile
+from services.qube_sim.spi_peer import SimulatedQube
+from worker.envs import make_env
+
+
+def test_show_profile_round_trips_through_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert sim_main(["--show-profile", "lab"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["name"] == "lab" and data["coulomb_arm"] == LAB.coulomb_arm
+    data["coulomb_arm"] = 0.001
+    path = tmp_path / "mine.json"
+    path.write_text(json.dumps(data))
+    edited = load_profile(str(path))
+    assert edited.coulomb_arm == 0.001 and edited.model_copy(update={"coulomb_arm": LAB.coulomb_arm}) == LAB
+
+
+@pytest.mark.parametrize("content, expected", [
+    ({"Rm": 8.4, "frictoin": 0.1}, "frictoin: unknown key"),
+    ({"mp": 5.0}, "mp: Input should be less than or equal to 0.5"),
+    ({"coulomb_arm": 0.002, "static_arm": 0.001}, "static_arm must be 0 or at least coulomb_arm"),
+    ({"ranges": {"mass": [0.01, 0.02]}}, "unknown parameter 'mass'"),
+    ([1, 2], "expected a JSON object"),
+])
+def test_bad_profiles_get_one_line_and_exit_2(content: object, expected: str, tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(content))
+    with pytest.raises(ProfileError, match=expected):
+        load_profile(str(path))
+    for flag in ("--rig-profile", "--show-profile"):
+        assert sim_main([flag, str(path)]) == 2
+        out, err = capsys.readouterr()
+        assert err.count("\n") == 1 and expected.split(":")[0] in err and out == ""
+
+
+def test_the_command_line_exits_2_with_one_line(tmp_path: Path) -> None:
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps({"bogus": 1}))
+    proc = subprocess.run([sys.executable, "-m", "services.qube_sim", "--rig-profile", str(path)],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1 and "bogus: unknown key" in proc.stderr
+
+
+def test_an_unknown_name_is_refused() -> None:
+    with pytest.raises(ProfileError, match="neither a built-in"):
+        load_profile("moon")
+    assert set(BUILTIN) == {"ideal", "lab"}
+
+
+def test_ideal_is_the_rigs_of_before() -> None:
+    for seed in (0, 1000, 1002):
+        assert IDEAL.rig_params(seed) == QubeParams.varied(seed, scale=0.05)
+    assert IDEAL.device_options() == {"sensing_latency_s": 0.0, "encoder_noise_counts": 0.0,
+                                      "action_delay_s": (0.0, 0.0), "missed_actions": 0.0}
+    assert IDEAL.episode_params(1, 1) is None
+
+
+def test_spread_and_randomisation_are_deterministic_and_bounded() -> None:
+    assert LAB.rig_params(7) == LAB.rig_params(7) != LAB.rig_params(8)
+    rand = LAB.model_copy(update={"randomize": 0.2, "ranges": {"voltage_offset_v": (-0.1, 0.1)}})
+    draws = [rand.episode_params(3, k) for k in range(1, 30)]
+    assert draws[0] == rand.episode_params(3, 1) and draws[0] != draws[1] and draws[0] != rand.episode_params(4, 1)
+    for p in draws:
+        assert p is not None
+        assert 0.8 * LAB.mp <= p.mp <= 1.2 * LAB.mp and 0.8 * LAB.km <= p.km == p.kt <= 1.2 * LAB.km
+        assert -0.1 <= p.voltage_offset <= 0.1
+    assert min(p.voltage_offset for p in draws if p) < 0 < max(p.voltage_offset for p in draws if p)
+
+
+def test_qube_local_randomises_each_episode_and_is_reproducible() -> None:
+    def physics(seed: int) -> list[QubeParams]:
+        env = make_env("qube-local", seed, rig_profile=LAB.model_copy(update={"randomize": 0.2}))
+        out = []
+        for _ in range(2):
+            env.reset()
+            out.append(env.device.params)  # type: ignore[attr-defined]
+        return out
+
+    first = physics(5)
+    assert first == physics(5) and first[0] != first[1]
+
+
+def test_ideal_qube_local_trajectories_match_the_nominal_construction() -> None:
+    """The profile path builds exactly the rig the old code built: same trajectory, bit for bit."""
+    from worker.qube_env import QubeLocalEnv
+
+    for env_a, env_b in ((QubeLocalEnv(seed=1000), QubeLocalEnv(seed=1000, profile=IDEAL)),):
+        a, _ = env_a.reset()
+        b, _ = env_b.reset()
+        assert (a == b).all()
+        for i in range(100):
+            sa, sb = env_a.step(i % 3), env_b.step(i % 3)
+            assert (sa[0] == sb[0]).all() and sa[1:3] == sb[1:3]
+
+
+# -- the non-ideal effects on the plant ----------------------------------------------------------------------------
+
+
+def settle_arm(params: QubeParams, voltage: float, seconds: float = 1.0) -> float:
+    d = QubeDynamics(params)
+    d.set_state(0.0, math.pi)
+    for _ in range(round(seconds / 0.007)):
+        d.step(voltage, 0.007)
+    return d.theta
+
+
+def test_static_friction_holds_what_coulomb_friction_alone_lets_slide() -> None:
+    coulomb = replace(QubeParams(), Cr=1.0e-3)
+    sticky = replace(coulomb, Sr=3.0e-3)  # breakaway 3 mN m: 0.6 V at stall
+    v = -0.4  # 2 mN m: above Coulomb, below static
+    assert abs(settle_arm(sticky, v)) < 0.1 * abs(settle_arm(coulomb, v))
+
+
+def test_deadzone_and_offset() -> None:
+    dead = replace(QubeParams(), deadzone=0.3)
+    assert abs(settle_arm(dead, 0.25)) < 1e-12  # inside the deadzone: no torque at all
+    assert abs(settle_arm(dead, 0.6)) == pytest.approx(abs(settle_arm(QubeParams(), 0.3)), rel=1e-6)
+    offset = replace(QubeParams(), voltage_offset=0.2)
+    assert settle_arm(offset, 0.0) == pytest.approx(settle_arm(QubeParams(), 0.2), rel=1e-9)
+
+
+def test_cable_pulls_the_arm_towards_its_rest() -> None:
+    d = QubeDynamics(replace(QubeParams(), cable_stiffness=1e-3, cable_rest=0.3))
+    d.set_state(0.0, math.pi)
+    for _ in range(2000):
+        d.step(0.0, 0.007, amplifier_on=False)
+    assert d.theta == pytest.approx(0.3, abs=0.02)
+
+
+def reading(q: SimulatedQube, command: int = 0) -> tuple[int, int, int]:
+    r = parse_reply(q.transfer(build_command(command, enable=True)))
+    return r.encoder0, r.encoder1, r.tach_raw
+
+
+def test_sensing_latency_reports_the_state_of_that_long_ago() -> None:
+    late = SimulatedQube(seed=1, period_s=0.001, sensing_latency_s=0.005)
+    now = SimulatedQube(seed=1, period_s=0.001)
+    for q in (late, now):
+        q.reset_state(alpha=math.pi - 0.5)  # released from 0.5 rad: swings down
+    history = [reading(now)[1] for _ in range(40)]
+    delayed = [reading(late)[1] for _ in range(40)]
+    assert delayed[10:] == history[5:35]  # 5 ms later, one transfer per ms
+
+
+def test_encoder_noise_is_seeded_and_centred() -> None:
+    def counts(seed: int) -> list[int]:
+        q = SimulatedQube(seed=seed, period_s=0.001, encoder_noise_counts=2.0)
+        return [reading(q)[0] for _ in range(400)]
+
+    a = counts(1)
+    assert a == counts(1) != counts(2)
+    assert abs(sum(a) / len(a)) < 0.5 and len(set(a)) > 3
+
+
+def test_action_delay_and_missed_actions() -> None:
+    def arm_after(**options: object) -> float:
+        q = SimulatedQube(seed=3, period_s=0.007, **options)  # type: ignore[arg-type]
+        for _ in range(30):
+            q.transfer(build_command(-200, enable=True))
+        return q.state[0]
+
+    prompt, delayed = arm_after(), arm_after(action_delay_s=(0.005, 0.005))
+    assert 0 < delayed < prompt  # -200 counts drives theta positive, 5 ms later
+    q = SimulatedQube(seed=3, period_s=0.007, missed_actions=0.3)
+    for _ in range(1000):
+        q.transfer(build_command(10, enable=True))
+    assert 200 < q.lost_actions < 400
+
+
+def test_lab_rigs_differ_from_ideal_ones() -> None:
+    a, b = make_env("qube-local", 1000), make_env("qube-local", 1000, rig_profile="lab")
+    assert a.device.params != b.device.params and b.device.params.Cr > 0  # type: ignore[attr-defined]
+    assert RigProfile().model_dump() == IDEAL.model_copy(update={"name": "custom", "description": ""}).model_dump()
+
+
+def test_a_sim_rig_over_mqtt_redraws_its_physics_at_each_reset_request() -> None:
+    from services.qube_sim.__main__ import build_sim_service
+    from services.qube_sim.settings import SimRigSettings
+
+    def draws(seed: int) -> list[QubeParams]:
+        service = build_sim_service(SimRigSettings(rig_profile="lab", randomize=0.2, seed=seed))
+        device = service.core.device
+        out = []
+        for request in (1, 2):
+            service.runner.on_reset(request)
+            out.append(device._next_params)  # type: ignore[attr-defined]
+        return out
+
+    first = draws(3)
+    assert first == draws(3) and first[0] != first[1]
+    assert first == [LAB.episode_params(3, k, 0.2) for k in (1, 2)]
+    plain = build_sim_service(SimRigSettings(rig_profile="lab", seed=3))
+    assert plain.core.device.params == LAB.rig_params(3)  # type: ignore[attr-defined]

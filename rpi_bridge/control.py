@@ -184,6 +184,11 @@ class ControlCore:
             self.events.append((self.phase, request_id, f"reset {request_id} waits for the start-up checks"))
         self._pending_reset = request_id
 
+    @property
+    def reset_pending(self) -> bool:
+        """A reset request waits to be served at the next tick."""
+        return self._pending_reset is not None
+
     # -- one tick -----------------------------------------------------------------------------------------------
 
     def sense(self) -> Sensed:

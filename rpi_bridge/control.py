@@ -183,12 +183,19 @@ class ControlCore:
     # -- requests (the runner calls these between ticks) -------------------------------------------------------
 
     def request_reset(self, request_id: int) -> None:
-        """Start a new episode; a repeat of the request already being served is ignored."""
-        if request_id == self.request_id and self.phase in ("resetting", "ready", "running"):
+        """Start a new episode. A repeat of the request last served is ignored, also once that reset has failed:
+        a worker repeats its request until the rig acknowledges it, and a repeat that comes in late (a loaded
+        broker) must not start a reset nobody asked for."""
+        if request_id == self.request_id:
             return
         if self.phase in ("calibrating", "self_test") and self._pending_reset != request_id:
             self.events.append((self.phase, request_id, f"reset {request_id} waits for the start-up checks"))
         self._pending_reset = request_id
+
+    @property
+    def reset_pending(self) -> bool:
+        """A reset request waits to be served at the next tick."""
+        return self._pending_reset is not None
 
     # -- one tick -----------------------------------------------------------------------------------------------
 

@@ -6,9 +6,14 @@ until the deadline, and reports loop timing.
   starts within that deadline too (the core checks the clock right before the SPI transfer). A late action is
   counted and dropped, never applied to a later state; a miss applies the safe action.
 - Lockstep (simulator only): simulated time advances one period per tick and the next state waits for the
-  action (up to ``lockstep_stall_s`` of wall time), so training runs as fast as the worker answers. With an
-  :class:`InjectedTiming`, each action reaches the motor a random delay after its state's read (simulated time)
-  and a fraction of them is lost, as on a real loop.
+  action, so training runs as fast as the worker answers. Nothing in it depends on wall time or on when a message
+  arrives, only on which messages arrive: a state awaiting an action waits for it (or for a reset request, or
+  stop) however long it takes, the rig's own phases (start-up checks, reset) tick freely, and an idle, fallen or
+  faulted rig does not tick at all until the next reset request: its simulated time stands still, as in process
+  (worker/qube_env.py's ``QubeLocalEnv``). So one rig's trajectory is a function of its seed and the actions
+  only. With an :class:`InjectedTiming`, each action reaches the motor a random delay after its state's read
+  (simulated time) and a fraction of them is lost, as on a real loop (drawn once per answered state, so
+  deterministic too).
 """
 
 from __future__ import annotations
@@ -29,6 +34,11 @@ from rpi_bridge.control import ControlCore
 log = logging.getLogger("rpi_bridge")
 
 Publish = Callable[[str, bytes, int], object]
+
+POLL_S = 0.1  # how often a lockstep wait without a timeout looks at the stop event (s of wall time)
+
+#: Phases in which nothing awaits the rig: a lockstep rig does not tick in them until a reset request comes.
+WAITING = ("idle", "fallen", "fault")
 
 
 class InjectedTiming:
@@ -107,10 +117,16 @@ class ActionSlot:
             self._cancelled = True
             self._cond.notify()
 
-    def wait(self, timeout: float) -> tuple[int | None, float]:
-        """Block until the action arrives, the slot is cancelled, or ``timeout`` s pass; then close the slot."""
+    def wait(self, timeout: float | None, stop: threading.Event | None = None) -> tuple[int | None, float]:
+        """Block until the action arrives, the slot is cancelled, or ``timeout`` s pass (None: no timeout, until
+        ``stop`` is set); then close the slot."""
         with self._cond:
-            self._cond.wait_for(lambda: self._command is not None or self._cancelled, timeout=max(0.0, timeout))
+            answered = lambda: self._command is not None or self._cancelled  # noqa: E731
+            if timeout is not None:
+                self._cond.wait_for(answered, timeout=max(0.0, timeout))
+            else:
+                while not answered() and not (stop is not None and stop.is_set()):
+                    self._cond.wait(POLL_S)  # (stop does not notify this condition)
             command, arrived = self._command, self._arrived
             self._seq = None
             return command, arrived
@@ -137,7 +153,6 @@ class BridgeRunner:
         deadline_s: float = 0.007,
         lockstep: bool = False,
         advance: Callable[[float], None] | None = None,
-        lockstep_stall_s: float = 5.0,
         telemetry_interval_s: float = 1.0,
         clock: Callable[[], float] = time.perf_counter,
         window: int = 20_000,
@@ -158,11 +173,12 @@ class BridgeRunner:
         self.deadline_s = deadline_s
         self.lockstep = lockstep
         self.advance = advance
-        self.lockstep_stall_s = lockstep_stall_s
         self.telemetry_interval_s = telemetry_interval_s
         self.clock = clock
         self.timing = timing
         self.slot = ActionSlot(core.clock)
+        self._stop = threading.Event()  # the stop event of run()
+        self._requested = threading.Event()  # set on every reset request (wakes a lockstep rig that waits for one)
         self._advanced = 0.0
         self.latencies: deque[float] = deque(maxlen=window)
         self.jitters: deque[float] = deque(maxlen=window)
@@ -183,6 +199,7 @@ class BridgeRunner:
     def on_reset(self, request_id: int) -> None:
         self.core.request_reset(request_id)
         self.slot.cancel()
+        self._requested.set()
 
     # -- loop ------------------------------------------------------------------------------------------------
 
@@ -191,6 +208,7 @@ class BridgeRunner:
         period = self.core.cfg.period_s
         next_tick = self.clock()
         ticks = 0
+        self._stop = stop
         try:
             while not stop.is_set() and (max_ticks is None or ticks < max_ticks):
                 start = self.clock()
@@ -202,8 +220,8 @@ class BridgeRunner:
                     if self.advance is not None:
                         self.advance(period - self._advanced)
                     self._advanced = 0.0
-                    if phase in ("idle", "fallen", "fault"):
-                        time.sleep(period)  # nobody is waiting: do not spin
+                    if phase in WAITING:
+                        self._await_request(stop)
                     continue
                 next_tick += period
                 delay = next_tick - self.clock()
@@ -217,6 +235,15 @@ class BridgeRunner:
             self.core.disable()
             self._drain_events()
             self._publish_status("offline" if stop.is_set() else "idle", "bridge loop stopped")
+
+    def _await_request(self, stop: threading.Event) -> None:
+        """Lockstep: block until a reset request is pending (or ``stop``). No tick runs meanwhile, so the rig's
+        simulated time stands still however long the worker takes (a round of the federation, a PPO update)."""
+        while not stop.is_set():
+            self._requested.clear()
+            if self.core.reset_pending:
+                return
+            self._requested.wait(POLL_S)
 
     def tick(self, start: float) -> str:
         """One period: sense, publish the state, wait for the action (until the deadline), act."""
@@ -235,8 +262,8 @@ class BridgeRunner:
             published_at = self.clock()
             self.publish(self._state_topic, encode(state), self._state_qos)
         if sensed.awaits_action:
-            timeout = self.lockstep_stall_s if self.lockstep else start + self.deadline_s - self.clock()
-            command, arrived = self.slot.wait(timeout)
+            timeout = None if self.lockstep else start + self.deadline_s - self.clock()
+            command, arrived = self.slot.wait(timeout, self._stop)
             if command is not None:
                 self.latencies.append(arrived - published_at if not self.lockstep else self.clock() - published_at)
             if self.lockstep and self.timing is None:

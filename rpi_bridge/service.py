@@ -86,9 +86,10 @@ class BridgeService:
         log.info("rig %s: reset %d requested", self.rig_id, msg.request_id)
         self.runner.on_reset(msg.request_id)
 
-    def run(self, max_ticks: int | None = None) -> None:
-        """Connect, then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
-        self.conn.start()
+    def run(self, max_ticks: int | None = None, connect_timeout_s: float = 60.0) -> None:
+        """Connect (waiting up to ``connect_timeout_s`` for the broker: a rig starts with the broker, on a loaded
+        machine too), then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
+        self.conn.start(timeout=connect_timeout_s)
         for leaf, handler in ((topics.ACTION, self._on_action), (topics.RESET, self._on_reset)):
             topic = topics.rig(self.rig_id, leaf)
             self.conn.subscribe(topic, handler, qos=qos_of(topic))

@@ -72,8 +72,11 @@ class _QubeTask(gym.Env):
 class QubeMqttEnv(_QubeTask):
     """One rig reached through the broker (topics qube/<rig>/...)."""
 
-    def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 2.0,
+    def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 10.0,
                  reset_attempts: int = 5, settle_s: float = 3.0) -> None:
+        """``step_timeout_s``: a state that does not come within this many seconds of wall time ends the episode
+        (a dead rig or link; a live rig reports a fault or goes offline long before). It must be long enough for a
+        lockstep rig on a loaded machine, whose episodes would otherwise depend on wall time."""
         super().__init__()
         self.reset_attempts = reset_attempts
         self.settle_s = settle_s
@@ -179,6 +182,8 @@ class QubeMqttEnv(_QubeTask):
             obs = observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot)
             return obs, reward, terminated, truncated, {"seq": msg.seq, "phase": msg.phase}
         self.timeouts += 1
+        log.warning("rig %s: no state within %.0f s of the action for state %d: the episode ends (%d timeouts)",
+                    self.rig_id, self.step_timeout_s, last.seq, self.timeouts)
         obs = observation(last.alpha, last.alpha_dot, last.theta, last.theta_dot)
         return obs, 0.0, True, False, {"ended": "timeout"}
 

@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from chief import strategies
 from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import (
@@ -232,7 +233,7 @@ class ScriptedFleet:
             conn.stop()
 
 
-def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = "weighted",
+def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = strategies.DEFAULT,
                arrays: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Rounds of a real chief process with ``workers`` scripted workers on a fresh broker (mosquitto | amqtt)."""
     from services.broker.embedded import start_broker_process, stop_process
@@ -318,7 +319,7 @@ def growth(points: dict[int, float]) -> dict[str, float | None]:
 
 
 def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNTS, rounds: int = 30,
-                   task: str = "CartPole-v0", strategy: str = "weighted", seed: int = 101) -> dict[str, Any]:
+                   task: str = "CartPole-v0", strategy: str = strategies.DEFAULT, seed: int = 101) -> dict[str, Any]:
     """In-process federations of N workers for ``rounds`` rounds (one seed): each worker's env steps per second and
     modelled waiting share (bench.runs), and the chief side's seconds per round (encoding both ways and the round
     state machine, no broker), for each N."""
@@ -371,7 +372,7 @@ def from_runs(paper_reports: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 
 def run_all(out: Path, rounds: int = ROUNDS, worker_counts: tuple[int, ...] = WORKER_COUNTS,
-            brokers: tuple[str, ...] = ("mosquitto", "amqtt"), strategy: str = "weighted",
+            brokers: tuple[str, ...] = ("mosquitto", "amqtt"), strategy: str = strategies.DEFAULT,
             paper_reports: dict[str, dict[str, Any]] | None = None, size_tasks: tuple[str, ...] = SIZE_TASKS,
             scaling_rounds: int = 0, runs_dir: Path | None = None, scaling_workers: tuple[int, ...] | None = None
             ) -> dict[str, Any]:
@@ -408,7 +409,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--workers", type=int, nargs="+", default=list(WORKER_COUNTS))
     parser.add_argument("--brokers", nargs="+", default=["mosquitto", "amqtt"], choices=["mosquitto", "amqtt"])
-    parser.add_argument("--strategy", default="weighted")
+    parser.add_argument("--strategy", default=strategies.DEFAULT)
     parser.add_argument("--scaling-rounds", type=int, default=30,
                         help="rounds of the in-process worker scaling runs (0: none)")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))

@@ -9,7 +9,7 @@ Runs go ``--jobs`` at a time (default: the number of cores), each single-threade
 In the same run: one worker of ours alone (``independent``, 1 worker) and Stable-Baselines3 PPO with its zoo
 hyperparameters (bench/sb3_ref.py), on the same seeds and under the same stop rule; and the cost benchmark
 (bench/cost.py). Results: ``<out>/paper.json`` (configuration, per task the median [IQR] of the last worker's
-episodes and steps, the rank tests against ``independent``, the references, the targets of issue 8) and
+episodes and steps, the rank tests against ``independent``, the references, the project's targets) and
 ``<out>/paper-<task>.json`` (the same plus every run), figures ``fig5-*.png`` and ``fig7-*.png``, ``cost.json``;
 finally the README's results section (bench/report.py). Run folders go to ``bench/results/runs/<variant>/``
 (not committed); ``--resume`` reuses the results of runs already there.
@@ -49,7 +49,7 @@ BASELINE = "independent"
 DEFAULT_M = 2000
 RIG_STEP_S = 0.007  # the QUBE-Servo 2's control period: one env step
 
-#: Issue 8's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
+#: The project's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
 TARGETS: dict[str, dict[str, float]] = {
     "CartPole-v0": {"episodes": 40},
     "Acrobot-v1": {"episodes": 60},
@@ -212,7 +212,7 @@ def significance(by_strategy: dict[str, list[dict[str, Any]]], max_episodes: int
 
 def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[str, Any], workers: int,
                     seeds: list[int]) -> dict[str, Any]:
-    """Issue 8's target for this task: the best strategy's median against it, and against half of independent."""
+    """The project's target for this task: the best strategy's median against it, and against half of independent."""
     target = TARGETS.get(task)
     if target is None or not summary:
         return {}

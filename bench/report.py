@@ -143,8 +143,8 @@ def targets_section(index: dict[str, Any]) -> list[str]:
                     f"{'met' if t['met'] else '**missed**'} | {_num(t['independent_median_episodes'])} | {half} |")
     if not rows:
         return []
-    return ["**Targets of issue 8** (best strategy by median episodes; \"half\": at most half the median episodes of "
-            "`independent`, and significantly fewer at p < 0.05)", "",
+    return ["**The project's targets** (best strategy by median episodes; \"half\": at most half the median episodes "
+            "of `independent`, and significantly fewer at p < 0.05)", "",
             "| task | target | best strategy: median | target | independent's median | half, significant |",
             "| --- | --- | --- | --- | --- | --- |", *rows, ""]
 

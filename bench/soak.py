@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from chief import strategies
 from chief.audit import audit
 from services.broker.embedded import free_port, wait_for_port
 
@@ -69,7 +70,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=16)
     parser.add_argument("--env", default="CartPole-v0")
-    parser.add_argument("--policy", default="weighted")
+    parser.add_argument("--policy", default=strategies.DEFAULT)
     parser.add_argument("--seed", type=int, default=101)
     parser.add_argument("--max-episodes", type=int, default=600)
     parser.add_argument("--out", type=Path, default=RESULTS)

@@ -38,7 +38,7 @@ from protocol.tensors import pack_arrays, unpack_arrays
 
 log = logging.getLogger("chief")
 
-EXIT_OK, EXIT_BAD_SETTING, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 2, 3, 4
+EXIT_OK, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 3, 4
 
 
 @dataclass
@@ -47,7 +47,7 @@ class ChiefConfig:
     run_id: str = "default"
     workers: int = 4
     env_id: str = "CartPole-v0"
-    policy: str = "weighted"
+    policy: str = strategies.DEFAULT
     seed: int = 1
     max_episodes: int = 2000
     round_timeout: float = 30.0

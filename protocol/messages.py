@@ -103,7 +103,7 @@ class WorkerUpdate(Message):
 
     The PPO statistics (``actor_loss`` = -L^CLIP minus the entropy bonus, ``critic_loss`` = L^V, ``entropy``,
     ``approx_kl``, ``clip_fraction``) are the means over the episode's K mini-batch steps (that step's own under a
-    per-step strategy); None when not sent (an older worker) or not usable (not finite, or outside STAT_BOUNDS).
+    per-step strategy); None when not usable (not finite, or outside STAT_BOUNDS).
     """
 
     kind: Literal["update"] = "update"

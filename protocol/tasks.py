@@ -1,7 +1,7 @@
 """The tasks a federation can learn and their termination conditions, shared by the chief and the workers.
 
 TC is the termination condition on the Performance Index (mean return of the last 10 episodes); R_floor is the
-lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (ARCHITECTURE.md); R_ceiling the
+lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (chief/federation.py); R_ceiling the
 highest, above which a reported return is a lie the chief refuses.
 """
 

@@ -204,7 +204,6 @@ def test_reject_counter_counts_by_reason(caplog: pytest.LogCaptureFixture) -> No
 
 def test_topics_and_ids() -> None:
     assert topics.worker("r1", "w0", topics.UPDATE) == "fedrl/r1/worker/w0/update"
-    assert topics.all_workers("r1", topics.UPDATE) == "fedrl/r1/worker/+/update"
     assert topics.worker_id_of("fedrl/r1/worker/w7/status") == "w7"
     assert topics.chief("r1", topics.AGGREGATE) == "fedrl/r1/chief/aggregate"
     assert topics.rig("rig0", topics.ACTION) == "qube/rig0/action"

@@ -39,7 +39,8 @@ PI about 9) on 4 of those 12 seeds (1000-1003, 2000-2003, 3000-3003 are the seed
 base seeds 1-3; seeds 1-10 happened to all solve, in 20-140 episodes); Acrobot-v1 seed 3 collapses to a
 deterministic policy and stays at -500 (600 episodes; seeds 1-2 solve in 39 and 55); Pendulum-v1 seed 1 is at
 PI -1559 after 600 episodes; MountainCarContinuous-v0 seed 1 is at PI -15 after 100 episodes (it learns to stand still).
-For scale (anchors.md section 3.4, SB3-zoo PPO, seeds 1-3): CartPole 92-151, Acrobot 206-261, Pendulum
+For scale (Stable-Baselines3 2.9 PPO with the rl-baselines3-zoo hyperparameters, seeds 1-3, measured on the same VM
+under the same stop rule; ``python -m bench.sb3_ref`` repeats it): CartPole 92-151, Acrobot 206-261, Pendulum
 175-195, MountainCarContinuous 10-15 episodes.
 """
 
@@ -211,9 +212,6 @@ def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, re
 # ----------------------------------------------------------------------------------------------------
 # The supported tasks and their presets (see the module docstring for the measured results)
 # ----------------------------------------------------------------------------------------------------
-
-#: The paper's configuration (Section V-A).
-PAPER_CONFIG = PPOConfig()
 
 # The paper's configuration with a lower actor learning rate: at 1e-3 the actor collapses to a deterministic
 # policy (entropy 0, it never recovers) on 4 of 12 seeds; at 3e-4 all 12 solved (table above).

@@ -1,7 +1,8 @@
 """Rotary inverted pendulum physics of the QUBE-Servo 2 (pure Python, RK4).
 
-Equations of motion: gym_brt ``qube_simulator.py`` ("From Rotary Pendulum Workbook"), see
-reference/qube-servo2.md section 2, with one correction: the motor torque is the physically consistent
+Equations of motion: gym_brt's ``gym_brt/quanser/qube_simulator.py`` (BlueRiverTech/quanser-openai-driver, "From
+Rotary Pendulum Workbook"), parameters from the QUBE-Servo 2 User Manual v1.0 Table 2.2, with one correction: the
+motor torque is the physically consistent
 
     tau = -km * (V + km * theta_dot) / Rm
 
@@ -103,7 +104,7 @@ def motor_torque(p: QubeParams, voltage: float, theta_dot: float) -> float:
 def derivatives(
     p: QubeParams, theta_dot: float, alpha: float, alpha_dot: float, tau: float
 ) -> tuple[float, float]:
-    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2), plus Coulomb
+    """(theta_ddot, alpha_ddot): gym_brt's equations of motion (``qube_simulator.py``), plus Coulomb
     friction (``Cr``, ``Cp``) next to the viscous terms: the arm's generalised force is tau - Dr*theta_dot -
     Cr*sgn(theta_dot), the pendulum's -Dp*alpha_dot - Cp*sgn(alpha_dot), with sgn smoothed by tanh."""
     mp, Lp, Lr = p.mp, p.Lp, p.Lr

@@ -33,6 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol import qube
 from protocol.codec import decode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
 from protocol.mqtt import BrokerAddress, MqttConnection
@@ -129,12 +130,12 @@ def run_inproc(ticks: int) -> dict:
         elif msg.phase in ("fallen", "idle", "fault"):
             runner.on_reset(msg.seq)
 
-    runner = BridgeRunner(core, "bench", publish, deadline_s=0.007)
+    runner = BridgeRunner(core, "bench", publish, deadline_s=qube.PERIOD_S)
     runner.on_reset(1)
     stop = threading.Event()
     loop = threading.Thread(target=runner.run, args=(stop,), daemon=True)
     loop.start()
-    deadline = time.monotonic() + ticks * 0.007 * 3 + 30
+    deadline = time.monotonic() + ticks * qube.PERIOD_S * 3 + 30
     while len(core.rows) < ticks and time.monotonic() < deadline:
         time.sleep(0.2)
     stop.set()
@@ -163,7 +164,7 @@ def run_broker(name: str, ticks: int, workdir: Path) -> dict:
     service = BridgeService(device, "bench", address, client_prefix="loop-cost")
     core = TimedCore(device, ControlConfig())
     service.core = core
-    service.runner = BridgeRunner(core, "bench", service._publish, deadline_s=0.007)
+    service.runner = BridgeRunner(core, "bench", service._publish, deadline_s=qube.PERIOD_S)
     original_publish = service.conn.publish
 
     def timed_publish(topic: str, payload: bytes, qos: int = 0):  # type: ignore[no-untyped-def]
@@ -198,7 +199,7 @@ def summarise(mode: str, core: TimedCore, runner: BridgeRunner) -> dict:
     t = runner.telemetry()
     rows = core.rows
     return {"mode": mode, "ticks": len(rows), "parts_us": stats_us(rows),
-            "busy_over_period": round(float(np.mean([r["busy"] for r in rows])) / 0.007, 4),
+            "busy_over_period": round(float(np.mean([r["busy"] for r in rows])) / qube.PERIOD_S, 4),
             "deadline_misses": t.deadline_misses, "late_actions": t.late_actions, "late_at_motor": t.late_at_motor,
             "read_to_motor_ms": t.motor_ms, "period_ms": t.period_ms}
 

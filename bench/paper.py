@@ -36,6 +36,7 @@ from typing import Any
 from bench import stats
 from bench.runs import Job, execute
 from chief import strategies as registry
+from protocol.qube import PERIOD_S
 from protocol.tasks import TASKS as TASK_SPECS
 
 TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1", "qube-local")
@@ -47,7 +48,6 @@ REPORT_SEEDS = tuple(range(101, 111))
 TUNING_SEEDS = tuple(range(1, 13))
 BASELINE = "independent"
 DEFAULT_M = 2000
-RIG_STEP_S = 0.007  # the QUBE-Servo 2's control period: one env step
 
 #: The project's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
 TARGETS: dict[str, dict[str, float]] = {
@@ -230,7 +230,7 @@ def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[s
     if "episodes" in target:
         result["met"] = med_eps is not None and med_eps <= target["episodes"]
     else:
-        balance = None if med_steps is None else med_steps * RIG_STEP_S
+        balance = None if med_steps is None else med_steps * PERIOD_S
         result["median_balance_s"] = balance
         result["met"] = balance is not None and balance <= target["balance_s"]
     if "solved_share" in target:

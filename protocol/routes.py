@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from protocol import topics
+from protocol import qube, topics
 from protocol.messages import MESSAGE_TYPES, Message
 
 CHIEF, WORKER, BRIDGE, DASHBOARD = "chief", "worker", "rpi_bridge", "dashboard"
@@ -101,7 +101,8 @@ ROUTES: tuple[Route, ...] = (
           "the answer to a round in which a worker finished"),
     Route(_c(topics.ACK), CHIEF, _WORKERS, (M["ack"],), 1, "the answer to every MatureParams"),
     Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
-    Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0, "every control tick (7 ms)"),
+    Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0,
+          f"every control tick ({qube.PERIOD_S * 1e3:g} ms)"),
     Route(_r(topics.ACTION), WORKER, (BRIDGE,), (M["qube_action"],), 0,
           "applied only within the deadline of its state"),
     Route(_r(topics.RESET), WORKER, (BRIDGE,), (M["qube_reset"],), 1, "start an episode: swing up and hold"),

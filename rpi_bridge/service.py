@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
-from protocol import topics
+from protocol import qube, topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import Message, QubeAction, QubeReset, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
@@ -38,7 +38,7 @@ class BridgeService:
         rig_id: str,
         broker: BrokerAddress,
         control: ControlConfig | None = None,
-        deadline_s: float = 0.007,
+        deadline_s: float = qube.PERIOD_S,
         lockstep: bool = False,
         advance: Callable[[float], None] | None = None,
         client_prefix: str = "bridge",

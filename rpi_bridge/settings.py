@@ -8,6 +8,7 @@ from typing import ClassVar
 
 from pydantic import ValidationInfo, field_validator
 
+from protocol import qube
 from protocol.settings import ENV_FILE_VAR, MqttSettings, Settings, setting
 from protocol.topics import check_id
 from rpi_bridge.control import ControlConfig
@@ -18,8 +19,9 @@ class LoopSettings(Settings):
     """The control loop of one rig."""
 
     rig_id: str = setting("rig0", "rig id, the topic prefix qube/<rig>/")
-    period_ms: float = setting(7.0, "control period", gt=0)
-    deadline_ms: float = setting(7.0, "an action must arrive this long after its state's read, at most the period")
+    period_ms: float = setting(qube.PERIOD_S * 1e3, "control period", gt=0)
+    deadline_ms: float = setting(qube.PERIOD_S * 1e3,
+                                 "an action must arrive this long after its state's read, at most the period")
     max_command: int = setting(400, f"actions are clipped to +-this many SPI counts, at most {MAX_COMMAND} "
                                f"(= {MAX_COMMAND * VOLTS_PER_COUNT:.2f} V: the manual's +-10 V)")
     arm_limit_deg: float = setting(110.0, "arm angle that disables the amplifier", gt=0, lt=180)

@@ -12,7 +12,8 @@ import pytest
 from protocol.codec import encode
 from protocol.messages import QubeState, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
-from worker.qube_env import ACTIONS, MAX_RETURN, QubeLocalEnv, QubeMqttEnv
+from protocol.qube import MAX_RETURN
+from worker.qube_env import ACTIONS, QubeLocalEnv, QubeMqttEnv
 
 
 def bang_bang(obs: np.ndarray) -> int:

@@ -1,12 +1,12 @@
 """The environments a worker learns, with per-device variation (paper Section V-B-1), and PPO presets.
 
-Every supported task has an ``EnvSpec``: the gymnasium id, the termination condition TC on the Performance
-Index (mean return of the last 10 episodes), R_floor (the lowest return an episode can have, for the chief's
-sign-safe Eq. 8-10), the episode length and a tuned ``PPOConfig``. TC, R_floor and the episode length come
-from ``protocol.tasks``, the table the chief uses too, so both sides always agree.
+Every supported task has an ``EnvSpec``: its ``protocol.tasks.TaskSpec`` (the termination condition TC on the
+Performance Index, the mean return of the last 10 episodes; R_floor, the lowest return an episode can have, for the
+chief's sign-safe Eq. 8-10; the episode length), read from the table the chief uses too, so both sides always agree;
+the gymnasium id; and a tuned ``PPOConfig``.
 
-Extension point: ``register_env(EnvSpec(..., factory=...))`` adds a task whose environment is not a plain
-gymnasium id (the QUBE-Servo 2 over MQTT); ``factory(spec, seed, device_noise)`` builds it.
+Extension point: ``register_env(EnvSpec(TaskSpec(...), None, factory=...))`` adds a task whose environment is not a
+plain gymnasium id (the QUBE-Servo 2 over MQTT); ``factory(spec, seed, device_noise)`` builds it.
 
 MountainCarContinuous-v0: the paper's TC of 200 is above the largest return gym's reward allows (+100 once at
 the goal minus 0.1 a^2 per step, so every return is < 100; the authors' code reshaped the reward to make 200
@@ -54,7 +54,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from protocol.tasks import TASKS
+from protocol.tasks import TASKS, TaskSpec
 from worker.ppo import PPOConfig
 from worker.qube_env import make_qube_env, make_qube_local_env
 
@@ -141,17 +141,34 @@ EnvFactory = Callable[..., gym.Env]
 
 @dataclass(frozen=True)
 class EnvSpec:
-    """A task: how to build its environment, when learning is finished and how to learn it."""
+    """A task: how to build its environment and how to learn it. When learning is finished (TC), the lowest return
+    (R_floor) and the episode length are the task's facts in ``protocol.tasks``, which the chief reads too."""
 
-    env_id: str  # the name used across the system (protocol.tasks, CLI, messages)
+    task: TaskSpec  # the task's facts (protocol.tasks.TASKS)
     gym_id: str | None  # gymnasium id, or None when ``factory`` builds the env
-    tc: float  # termination condition: learning ends when PI (mean of the last 10 returns) >= tc
-    r_floor: float  # lowest possible episode return
-    max_steps: int  # episode length limit
     config: PPOConfig = field(default_factory=PPOConfig)  # PPO preset; use ``ppo_config()`` for a copy
     noise_target: str = "action"  # how DeviceNoise acts, see DeviceNoiseWrapper
     factory: EnvFactory | None = None  # custom builder ``factory(spec, seed, device_noise, **extra)``
-    notes: str = ""
+
+    @property
+    def env_id(self) -> str:
+        """The name used across the system (protocol.tasks, CLI, messages)."""
+        return self.task.env_id
+
+    @property
+    def tc(self) -> float:
+        """Termination condition: learning ends when PI (mean of the last 10 returns) >= tc."""
+        return self.task.tc
+
+    @property
+    def r_floor(self) -> float:
+        """Lowest possible episode return."""
+        return self.task.r_floor
+
+    @property
+    def max_steps(self) -> int:
+        """Episode length limit."""
+        return self.task.max_steps
 
     def ppo_config(self, **overrides: Any) -> PPOConfig:
         """A fresh copy of the preset, with ``overrides`` applied."""
@@ -159,8 +176,8 @@ class EnvSpec:
 
 
 def _task(env_id: str, **kwargs: Any) -> EnvSpec:
-    t = TASKS[env_id]
-    return EnvSpec(env_id=env_id, gym_id=env_id, tc=t.tc, r_floor=t.r_floor, max_steps=t.max_steps, **kwargs)
+    """A gymnasium task of protocol.tasks (its env id is its gymnasium id)."""
+    return EnvSpec(task=TASKS[env_id], gym_id=env_id, **kwargs)
 
 
 ENVS: dict[str, EnvSpec] = {}
@@ -243,8 +260,5 @@ register_env(_task("MountainCarContinuous-v0", config=PPOConfig(
 # with it, actor lr 1e-3 collapsed on seed 1001 and 3e-4 solved alone at episodes 109 (seed 1000, lr 1e-3),
 # 755 (1001) and 294 (1002).
 QUBE_CONFIG = PPOConfig(obs_scale=(8.0, 0.3, 1.0, 0.1), actor_lr=3e-4)
-register_env(EnvSpec(env_id="qube", gym_id=None, tc=TASKS["qube"].tc, r_floor=TASKS["qube"].r_floor,
-                     max_steps=TASKS["qube"].max_steps, config=QUBE_CONFIG, factory=make_qube_env))
-register_env(EnvSpec(env_id="qube-local", gym_id=None, tc=TASKS["qube-local"].tc,
-                     r_floor=TASKS["qube-local"].r_floor, max_steps=TASKS["qube-local"].max_steps,
-                     config=QUBE_CONFIG, factory=make_qube_local_env))
+register_env(EnvSpec(task=TASKS["qube"], gym_id=None, config=QUBE_CONFIG, factory=make_qube_env))
+register_env(EnvSpec(task=TASKS["qube-local"], gym_id=None, config=QUBE_CONFIG, factory=make_qube_local_env))

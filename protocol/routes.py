@@ -20,6 +20,9 @@ PROCESSES: dict[str, str] = {
 }
 #: The topic levels a route's pattern leaves open (``<name>``), and what goes there.
 PARAMETERS: dict[str, str] = {"run": "the run id", "id": "the worker id", "rig": "the rig id"}
+#: The levels that name whom a message is from or for, and the payload field that must say the same (the codec
+#: refuses a message whose field contradicts its topic: a worker speaking for another, a rig for another).
+SENDER_FIELDS: dict[str, str] = {"id": "worker_id", "rig": "rig_id"}
 
 
 @dataclass(frozen=True)
@@ -60,6 +63,12 @@ class Route:
             if i >= len(pattern) or not (level == "+" or pattern[i].startswith("<") or pattern[i] == level):
                 return False
         return len(levels) == len(pattern)
+
+    def named(self, topic: str) -> dict[str, str]:
+        """The payload fields a message on ``topic`` (an instance of this route) must have, by SENDER_FIELDS."""
+        return {SENDER_FIELDS[level[1:-1]]: value for level, value in zip(self.topic.split("/"), topic.split("/"),
+                                                                            strict=True)
+                if level[1:-1] in SENDER_FIELDS}
 
     def filter(self, **levels: str) -> str:
         """This route's topic with the given levels filled in (checked ids) and the other open levels as ``+``."""

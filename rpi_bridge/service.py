@@ -69,9 +69,6 @@ class BridgeService:
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
             return None
-        if msg.rig_id != self.rig_id:  # type: ignore[attr-defined]
-            self.rejects.reject(topic, "spoofed", f"payload names rig {msg.rig_id!r}, this is {self.rig_id!r}")  # type: ignore[attr-defined]
-            return None
         return msg
 
     def _on_action(self, topic: str, payload: bytes) -> None:

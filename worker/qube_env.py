@@ -101,9 +101,6 @@ class QubeMqttEnv(_QubeTask):
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
             return
-        if msg.rig_id != self.rig_id:
-            self.rejects.reject(topic, "spoofed", f"payload names rig {msg.rig_id!r}, this env drives {self.rig_id!r}")
-            return
         self.inbox.put(msg)
 
     def _next(self, deadline: float) -> QubeState | QubeStatus | None:

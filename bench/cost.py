@@ -26,7 +26,6 @@ import argparse
 import json
 import math
 import queue
-import shutil
 import statistics
 import subprocess
 import sys
@@ -53,6 +52,7 @@ from protocol.messages import (
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import digest, pack_arrays
+from services.broker import mosquitto
 
 WORKER_COUNTS = (4, 16, 64)
 ROUNDS = 20
@@ -123,25 +123,6 @@ def bytes_per_round(env_id: str, worker_counts: tuple[int, ...] = WORKER_COUNTS,
 
 
 # -- chief time per round ----------------------------------------------------------------------------------------
-
-
-def start_mosquitto(folder: Path) -> tuple[subprocess.Popen, int]:
-    """Mosquitto with TCP_NODELAY on a free loopback port (never 1883)."""
-    from services.broker.embedded import free_port, wait_for_port
-
-    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    port = free_port(HOST)
-    conf = folder / "mosquitto.conf"
-    conf.write_text(f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\n"
-                    "max_packet_size 8388608\npersistence false\nlog_dest stderr\n")
-    log = (folder / "mosquitto.log").open("wb")
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)
-    wait_for_port(HOST, port, proc=proc)
-    return proc, port
-
-
-def mosquitto_available() -> bool:
-    return shutil.which("mosquitto") is not None or Path("/usr/sbin/mosquitto").exists()
 
 
 class ScriptedFleet:
@@ -242,7 +223,7 @@ def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = stra
     with tempfile.TemporaryDirectory(prefix="fedrl-cost-") as tmp:
         folder = Path(tmp)
         if broker_kind == "mosquitto":
-            broker_proc, port = start_mosquitto(folder)
+            broker_proc, port = mosquitto.start(folder, max_packet_size=8 * 1024 * 1024)
         else:
             with (folder / "amqtt.log").open("wb") as log:
                 broker_proc, port = start_broker_process(HOST, stdout=log, stderr=subprocess.STDOUT)
@@ -384,7 +365,7 @@ def run_all(out: Path, rounds: int = ROUNDS, worker_counts: tuple[int, ...] = WO
     loads = []
     skipped = []
     for broker in brokers:
-        if broker == "mosquitto" and not mosquitto_available():
+        if broker == "mosquitto" and not mosquitto.available():
             skipped.append("mosquitto (not installed)")
             continue
         for n in worker_counts:

@@ -40,7 +40,8 @@ from protocol.mqtt import BrokerAddress, MqttConnection
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.runner import BridgeRunner
 from rpi_bridge.service import BridgeService
-from services.broker.embedded import free_port, start_broker_process, stop_process, wait_for_port
+from services.broker import mosquitto
+from services.broker.embedded import start_broker_process, stop_process
 from services.qube_sim.spi_peer import SimulatedQube
 
 RESULTS = Path("bench/results")
@@ -78,7 +79,7 @@ class TimedCore(ControlCore):
         self.sensed_at = 0.0
         self._sense: tuple[float, float] = (0.0, 0.0)
 
-    def sense(self):  # type: ignore[no-untyped-def]
+    def sense(self):
         t0 = time.perf_counter()
         sensed = super().sense()
         self.sensed_at = time.perf_counter()
@@ -143,20 +144,11 @@ def run_inproc(ticks: int) -> dict:
     return summarise("inproc (no broker: the state is decoded instead of sent, answered in place)", core, runner)
 
 
-def start_mosquitto(workdir: Path) -> tuple[subprocess.Popen, int]:
-    port = free_port()
-    conf = workdir / "mosquitto-bench.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\npersistence false\n")
-    proc = subprocess.Popen(["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    wait_for_port("127.0.0.1", port, proc=proc)
-    return proc, port
-
-
 def run_broker(name: str, ticks: int, workdir: Path) -> dict:
     from worker.qube_env import QubeMqttEnv
 
     if name == "mosquitto":
-        broker, port = start_mosquitto(workdir)
+        broker, port = mosquitto.start(workdir, max_packet_size=None)
     else:
         broker, port = start_broker_process(stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     address = BrokerAddress.parse(f"mqtt://127.0.0.1:{port}")
@@ -167,13 +159,13 @@ def run_broker(name: str, ticks: int, workdir: Path) -> dict:
     service.runner = BridgeRunner(core, "bench", service._publish, deadline_s=qube.PERIOD_S)
     original_publish = service.conn.publish
 
-    def timed_publish(topic: str, payload: bytes, qos: int = 0):  # type: ignore[no-untyped-def]
+    def timed_publish(topic: str, payload: bytes, qos: int = 0):
         result = original_publish(topic, payload, qos=qos)
         if topic.endswith("/state"):
             core.published()
         return result
 
-    service.conn.publish = timed_publish  # type: ignore[method-assign]
+    service.conn.publish = timed_publish  # type: ignore[method-assign,assignment]
     loop = threading.Thread(target=service.run, daemon=True)
     loop.start()
     conn = MqttConnection(address, client_id="loop-cost-worker").start()

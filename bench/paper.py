@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import stats
-from bench.runs import Job, execute
+from bench.runs import Job, execute, outcome
 from chief import strategies as registry
 from protocol.qube import PERIOD_S
 from protocol.tasks import TASKS as TASK_SPECS
@@ -43,8 +43,8 @@ TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1",
 #: Base seeds reported: never used for tuning (their worker seeds are seed*1000 + i, i.e. 101000-110003).
 REPORT_SEEDS = tuple(range(101, 111))
 #: Base seeds used while tuning and checking: worker/envs.py's presets (single workers on seeds 1-10 and on the
-#: worker seeds 1000-1003, 2000-2003, 3000-3003 of base seeds 1-3), bench.policies and the README's earlier tables
-#: (1-5), the end-to-end tests (1-3). Never reported here.
+#: worker seeds 1000-1003, 2000-2003, 3000-3003 of base seeds 1-3), the earlier per-policy comparisons and the
+#: README's earlier tables (1-5), the end-to-end tests (1-3). Never reported here.
 TUNING_SEEDS = tuple(range(1, 13))
 BASELINE = "independent"
 DEFAULT_M = 2000
@@ -155,15 +155,6 @@ def _line(r: dict[str, Any]) -> str:
 
 
 # -- aggregation ----------------------------------------------------------------------------------------------
-
-
-def outcome(r: dict[str, Any]) -> tuple[int | None, int | None]:
-    """(episodes, steps) of a run's last worker (the learner itself for sb3); (None, None) when unfinished."""
-    if "error" in r or not r.get("finished"):
-        return None, None
-    if r["kind"] == "sb3":
-        return r["episodes"], r["steps"]
-    return r["last_worker"]["episodes"], r["last_worker"]["steps"]
 
 
 def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -313,8 +304,8 @@ def seeds_block(seeds: list[int]) -> dict[str, Any]:
             "report_seeds_used_for_tuning": sorted(set(seeds) & set(TUNING_SEEDS)),
             "note": "report seeds are base seeds; worker i of a run uses seed*1000 + i. The tuning seeds were used "
                     "for worker/envs.py's presets (single workers on seeds 1-10 and on 1000-1003, 2000-2003, "
-                    "3000-3003, the worker seeds of base seeds 1-3), bench.policies, the README's earlier tables "
-                    "and the end-to-end tests."}
+                    "3000-3003, the worker seeds of base seeds 1-3), the earlier per-policy comparisons, the README's "
+                    "earlier tables and the end-to-end tests."}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -347,8 +338,9 @@ def main(argv: list[str] | None = None) -> int:
                                   scaling_workers=scaling["scaling_workers"], runs_dir=args.runs_dir)
     cfg["wall_s"] = round(time.monotonic() - started, 1)
     cfg["finished_at"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    index = {"config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},
-             "cost": cost}
+    index: dict[str, Any] = {
+        "config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},
+        "cost": cost}
     previous = args.out / "paper.json"
     if previous.exists():
         # Tasks measured by an earlier invocation into the same folder (e.g. with another M or other seeds) stay,

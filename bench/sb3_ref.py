@@ -107,7 +107,7 @@ def build(env_id: str, seed: int) -> tuple[Any, ZooEntry]:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
     from worker.envs import DeviceNoise, make_env
 
@@ -116,7 +116,7 @@ def build(env_id: str, seed: int) -> tuple[Any, ZooEntry]:
     torch.set_num_threads(1)
     entry = ZOO[env_id]
     device = worker_seed(seed, 0)
-    vec = DummyVecEnv([lambda: Monitor(make_env(env_id, device, DeviceNoise())) for _ in range(entry.n_envs)])
+    vec: VecEnv = DummyVecEnv([lambda: Monitor(make_env(env_id, device, DeviceNoise())) for _ in range(entry.n_envs)])
     vec.seed(device)
     if entry.normalize:
         vec = VecNormalize(vec, gamma=entry.ppo.get("gamma", 0.99))

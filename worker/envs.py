@@ -49,7 +49,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -110,23 +110,24 @@ class DeviceNoiseWrapper(gym.Wrapper):
         self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xDE7]))  # device stream
         self.offset = float(self.rng.normal(noise.mean, noise.std))
         self.last_noise = 0.0
-        base = env.unwrapped
+        base: Any = env.unwrapped  # CartPoleEnv or AcrobotEnv for the force and torque targets
         self._base_force = float(base.force_mag) if target == "force" else 0.0
         self._base_torques = list(base.AVAIL_TORQUE) if target == "torque" else []
 
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         if isinstance(self.action_space, gym.spaces.Box):
             space = self.action_space
             action = np.clip(np.asarray(action, dtype=space.dtype), space.low, space.high)
         if self.noise.scale == 0.0:
             return self.env.step(action)
+        base: Any = self.env.unwrapped
         self.last_noise = self.noise.scale * (self.offset + float(self.rng.normal(0.0, self.noise.std)))
         if self.target == "action":
             action = (action + self.last_noise).astype(self.action_space.dtype)
         elif self.target == "force":
-            self.env.unwrapped.force_mag = self._base_force * (1.0 + self.last_noise)
+            base.force_mag = self._base_force * (1.0 + self.last_noise)
         else:  # an instance attribute shadows AcrobotEnv.AVAIL_TORQUE for this device only
-            self.env.unwrapped.AVAIL_TORQUE = [t + self.last_noise for t in self._base_torques]
+            base.AVAIL_TORQUE = [t + self.last_noise for t in self._base_torques]
         return self.env.step(action)
 
 
@@ -219,6 +220,7 @@ def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, re
         return spec.factory(spec, seed, noise, **extra)
     if extra:
         raise ValueError(f"{env_id} is a gymnasium task and takes no extra arguments, got {sorted(extra)}")
+    assert spec.gym_id is not None  # register_env: a spec without a factory has a gymnasium id
     with warnings.catch_warnings():  # CartPole-v0 is deliberate (the paper's task): no deprecation notice
         warnings.filterwarnings("ignore", message=".*is out of date.*")
         env = gym.make(spec.gym_id, max_episode_steps=spec.max_steps, disable_env_checker=True,

@@ -8,7 +8,7 @@ which is also the task's termination condition TC (protocol.tasks, "qube" and "q
 from __future__ import annotations
 
 import math
-from typing import Literal, get_args
+from typing import Literal
 
 #: The control period: one state read, one action, one env step (s).
 PERIOD_S = 0.007
@@ -22,4 +22,3 @@ MAX_RETURN = 2450
 Phase = Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault"]
 #: What a rig's status reports: its phase, or a failed reset, or (its MQTT last will) offline.
 RigState = Literal[Phase, "reset_failed", "offline"]
-PHASES: tuple[Phase, ...] = get_args(Phase)

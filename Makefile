@@ -4,12 +4,13 @@ VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 
-.PHONY: run test lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build
+.PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
-	@echo "make test   - the whole test suite and the docs built strict (creates the virtual environment first)"
-	@echo "make lint   - ruff and mypy (the torch-free packages)"
+	@echo "make test   - lint, the docs built strict, then the whole test suite (creates the virtual environment first)"
+	@echo "make test-fast - lint, then the tests not marked slow (end-to-end training runs) or docker: the inner loop"
+	@echo "make lint   - ruff, mypy over every package, and the package layering (lint-imports, pyproject.toml)"
 	@echo "make bench  - the paper's experiment (python -m bench.paper): every task and strategy, 10 seeds, references, cost;"
 	@echo "              JSON + figures into bench/results/, docs/results.md and README table (hours on 2 cores)"
 	@echo "make bench-quick - its reduced variant into bench/results/quick/ (under 15 min on 2 cores)"
@@ -29,15 +30,17 @@ $(STAMP): pyproject.toml constraints.txt
 run: $(STAMP)
 	$(BIN)/python -m deploy.run_local
 
-test: $(STAMP)
-	$(BIN)/python -m ruff check .
-	$(BIN)/python -m mypy
+test: lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --quiet
 	$(BIN)/python -m pytest -q
+
+test-fast: lint
+	$(BIN)/python -m pytest -q -m "not slow and not docker"
 
 lint: $(STAMP)
 	$(BIN)/python -m ruff check .
 	$(BIN)/python -m mypy
+	$(BIN)/lint-imports
 
 bench: $(STAMP)
 	$(BIN)/python -m bench.paper

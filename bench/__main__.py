@@ -6,7 +6,6 @@ BENCHES = {
     "bench.report": "docs/results.md (--docs) and the README table (--readme) from bench/results/paper.json",
     "bench.figures": "redraw Figures 5 and 7 (episodes and env steps) from a results folder",
     "bench.cost": "bytes per round; chief time per round for 4, 16, 64 workers over Mosquitto and amqtt",
-    "bench.policies": "episodes until all workers solve, per federation policy and seed, one task (JSON + PNG)",
     "bench.latency": "state-to-action latency through the real-time bridge loop, per broker",
     "bench.reset": "swing-up reset success over pendulum damping x rig spread x Coulomb friction",
     "bench.loop_cost": "per-tick cost of the bridge loop (SPI transfer, sense, publish, wait, write)",

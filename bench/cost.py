@@ -26,7 +26,6 @@ import argparse
 import json
 import math
 import queue
-import shutil
 import statistics
 import subprocess
 import sys
@@ -38,6 +37,7 @@ from typing import Any
 
 import numpy as np
 
+from chief import strategies
 from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import (
@@ -52,6 +52,7 @@ from protocol.messages import (
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import digest, pack_arrays
+from services.broker import mosquitto
 
 WORKER_COUNTS = (4, 16, 64)
 ROUNDS = 20
@@ -122,25 +123,6 @@ def bytes_per_round(env_id: str, worker_counts: tuple[int, ...] = WORKER_COUNTS,
 
 
 # -- chief time per round ----------------------------------------------------------------------------------------
-
-
-def start_mosquitto(folder: Path) -> tuple[subprocess.Popen, int]:
-    """Mosquitto with TCP_NODELAY on a free loopback port (never 1883)."""
-    from services.broker.embedded import free_port, wait_for_port
-
-    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    port = free_port(HOST)
-    conf = folder / "mosquitto.conf"
-    conf.write_text(f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\n"
-                    "max_packet_size 8388608\npersistence false\nlog_dest stderr\n")
-    log = (folder / "mosquitto.log").open("wb")
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)
-    wait_for_port(HOST, port, proc=proc)
-    return proc, port
-
-
-def mosquitto_available() -> bool:
-    return shutil.which("mosquitto") is not None or Path("/usr/sbin/mosquitto").exists()
 
 
 class ScriptedFleet:
@@ -232,7 +214,7 @@ class ScriptedFleet:
             conn.stop()
 
 
-def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = "weighted",
+def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = strategies.DEFAULT,
                arrays: dict[str, np.ndarray] | None = None) -> dict[str, Any]:
     """Rounds of a real chief process with ``workers`` scripted workers on a fresh broker (mosquitto | amqtt)."""
     from services.broker.embedded import start_broker_process, stop_process
@@ -241,7 +223,7 @@ def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = "wei
     with tempfile.TemporaryDirectory(prefix="fedrl-cost-") as tmp:
         folder = Path(tmp)
         if broker_kind == "mosquitto":
-            broker_proc, port = start_mosquitto(folder)
+            broker_proc, port = mosquitto.start(folder, max_packet_size=8 * 1024 * 1024)
         else:
             with (folder / "amqtt.log").open("wb") as log:
                 broker_proc, port = start_broker_process(HOST, stdout=log, stderr=subprocess.STDOUT)
@@ -318,7 +300,7 @@ def growth(points: dict[int, float]) -> dict[str, float | None]:
 
 
 def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNTS, rounds: int = 30,
-                   task: str = "CartPole-v0", strategy: str = "weighted", seed: int = 101) -> dict[str, Any]:
+                   task: str = "CartPole-v0", strategy: str = strategies.DEFAULT, seed: int = 101) -> dict[str, Any]:
     """In-process federations of N workers for ``rounds`` rounds (one seed): each worker's env steps per second and
     modelled waiting share (bench.runs), and the chief side's seconds per round (encoding both ways and the round
     state machine, no broker), for each N."""
@@ -371,7 +353,7 @@ def from_runs(paper_reports: dict[str, dict[str, Any]]) -> dict[str, Any]:
 
 
 def run_all(out: Path, rounds: int = ROUNDS, worker_counts: tuple[int, ...] = WORKER_COUNTS,
-            brokers: tuple[str, ...] = ("mosquitto", "amqtt"), strategy: str = "weighted",
+            brokers: tuple[str, ...] = ("mosquitto", "amqtt"), strategy: str = strategies.DEFAULT,
             paper_reports: dict[str, dict[str, Any]] | None = None, size_tasks: tuple[str, ...] = SIZE_TASKS,
             scaling_rounds: int = 0, runs_dir: Path | None = None, scaling_workers: tuple[int, ...] | None = None
             ) -> dict[str, Any]:
@@ -383,7 +365,7 @@ def run_all(out: Path, rounds: int = ROUNDS, worker_counts: tuple[int, ...] = WO
     loads = []
     skipped = []
     for broker in brokers:
-        if broker == "mosquitto" and not mosquitto_available():
+        if broker == "mosquitto" and not mosquitto.available():
             skipped.append("mosquitto (not installed)")
             continue
         for n in worker_counts:
@@ -408,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=ROUNDS)
     parser.add_argument("--workers", type=int, nargs="+", default=list(WORKER_COUNTS))
     parser.add_argument("--brokers", nargs="+", default=["mosquitto", "amqtt"], choices=["mosquitto", "amqtt"])
-    parser.add_argument("--strategy", default="weighted")
+    parser.add_argument("--strategy", default=strategies.DEFAULT)
     parser.add_argument("--scaling-rounds", type=int, default=30,
                         help="rounds of the in-process worker scaling runs (0: none)")
     parser.add_argument("--out", type=Path, default=Path("bench/results"))

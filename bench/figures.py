@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from bench.runs import outcome
+
 REFERENCE_LABELS = {"single": "1 worker (ours)", "sb3": "SB3 zoo PPO"}
 
 
@@ -140,8 +142,6 @@ def fig7(reports: dict[str, dict[str, Any]], path: Path, axis: str = "episodes")
 
 
 def _value(r: dict[str, Any], axis: str) -> float | None:
-    from bench.paper import outcome
-
     eps, steps = outcome(r)
     return eps if axis == "episodes" else steps
 

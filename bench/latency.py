@@ -31,7 +31,8 @@ from protocol.codec import decode
 from protocol.messages import QubeTelemetry
 from protocol.mqtt import BrokerAddress, MqttConnection
 from rpi_bridge.runner import percentiles
-from services.broker.embedded import free_port, start_broker_process, stop_process, wait_for_port
+from services.broker import mosquitto
+from services.broker.embedded import start_broker_process, stop_process
 from worker.ppo import PPOLearner
 from worker.qube_env import QubeMqttEnv
 
@@ -44,18 +45,9 @@ def balance_action(obs: np.ndarray) -> int:
     return 2 if u > 20 else (0 if u < -20 else 1)
 
 
-def start_mosquitto(workdir: Path) -> tuple[subprocess.Popen, int]:
-    port = free_port()
-    conf = workdir / "mosquitto-bench.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\npersistence false\n")
-    proc = subprocess.Popen(["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    wait_for_port("127.0.0.1", port, proc=proc)
-    return proc, port
-
-
 def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0) -> dict:
     if broker_name == "mosquitto":
-        broker, port = start_mosquitto(workdir)
+        broker, port = mosquitto.start(workdir, max_packet_size=None)
     else:
         broker, port = start_broker_process(stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     url = f"mqtt://127.0.0.1:{port}"

@@ -33,13 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
+from protocol import qube
 from protocol.codec import decode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
 from protocol.mqtt import BrokerAddress, MqttConnection
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.runner import BridgeRunner
 from rpi_bridge.service import BridgeService
-from services.broker.embedded import free_port, start_broker_process, stop_process, wait_for_port
+from services.broker import mosquitto
+from services.broker.embedded import start_broker_process, stop_process
 from services.qube_sim.spi_peer import SimulatedQube
 
 RESULTS = Path("bench/results")
@@ -77,7 +79,7 @@ class TimedCore(ControlCore):
         self.sensed_at = 0.0
         self._sense: tuple[float, float] = (0.0, 0.0)
 
-    def sense(self):  # type: ignore[no-untyped-def]
+    def sense(self):
         t0 = time.perf_counter()
         sensed = super().sense()
         self.sensed_at = time.perf_counter()
@@ -129,12 +131,12 @@ def run_inproc(ticks: int) -> dict:
         elif msg.phase in ("fallen", "idle", "fault"):
             runner.on_reset(msg.seq)
 
-    runner = BridgeRunner(core, "bench", publish, deadline_s=0.007)
+    runner = BridgeRunner(core, "bench", publish, deadline_s=qube.PERIOD_S)
     runner.on_reset(1)
     stop = threading.Event()
     loop = threading.Thread(target=runner.run, args=(stop,), daemon=True)
     loop.start()
-    deadline = time.monotonic() + ticks * 0.007 * 3 + 30
+    deadline = time.monotonic() + ticks * qube.PERIOD_S * 3 + 30
     while len(core.rows) < ticks and time.monotonic() < deadline:
         time.sleep(0.2)
     stop.set()
@@ -142,20 +144,11 @@ def run_inproc(ticks: int) -> dict:
     return summarise("inproc (no broker: the state is decoded instead of sent, answered in place)", core, runner)
 
 
-def start_mosquitto(workdir: Path) -> tuple[subprocess.Popen, int]:
-    port = free_port()
-    conf = workdir / "mosquitto-bench.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\npersistence false\n")
-    proc = subprocess.Popen(["mosquitto", "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
-    wait_for_port("127.0.0.1", port, proc=proc)
-    return proc, port
-
-
 def run_broker(name: str, ticks: int, workdir: Path) -> dict:
     from worker.qube_env import QubeMqttEnv
 
     if name == "mosquitto":
-        broker, port = start_mosquitto(workdir)
+        broker, port = mosquitto.start(workdir, max_packet_size=None)
     else:
         broker, port = start_broker_process(stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     address = BrokerAddress.parse(f"mqtt://127.0.0.1:{port}")
@@ -163,16 +156,16 @@ def run_broker(name: str, ticks: int, workdir: Path) -> dict:
     service = BridgeService(device, "bench", address, client_prefix="loop-cost")
     core = TimedCore(device, ControlConfig())
     service.core = core
-    service.runner = BridgeRunner(core, "bench", service._publish, deadline_s=0.007)
+    service.runner = BridgeRunner(core, "bench", service._publish, deadline_s=qube.PERIOD_S)
     original_publish = service.conn.publish
 
-    def timed_publish(topic: str, payload: bytes, qos: int = 0):  # type: ignore[no-untyped-def]
+    def timed_publish(topic: str, payload: bytes, qos: int = 0):
         result = original_publish(topic, payload, qos=qos)
         if topic.endswith("/state"):
             core.published()
         return result
 
-    service.conn.publish = timed_publish  # type: ignore[method-assign]
+    service.conn.publish = timed_publish  # type: ignore[method-assign,assignment]
     loop = threading.Thread(target=service.run, daemon=True)
     loop.start()
     conn = MqttConnection(address, client_id="loop-cost-worker").start()
@@ -198,7 +191,7 @@ def summarise(mode: str, core: TimedCore, runner: BridgeRunner) -> dict:
     t = runner.telemetry()
     rows = core.rows
     return {"mode": mode, "ticks": len(rows), "parts_us": stats_us(rows),
-            "busy_over_period": round(float(np.mean([r["busy"] for r in rows])) / 0.007, 4),
+            "busy_over_period": round(float(np.mean([r["busy"] for r in rows])) / qube.PERIOD_S, 4),
             "deadline_misses": t.deadline_misses, "late_actions": t.late_actions, "late_at_motor": t.late_at_motor,
             "read_to_motor_ms": t.motor_ms, "period_ms": t.period_ms}
 

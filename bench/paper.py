@@ -9,7 +9,7 @@ Runs go ``--jobs`` at a time (default: the number of cores), each single-threade
 In the same run: one worker of ours alone (``independent``, 1 worker) and Stable-Baselines3 PPO with its zoo
 hyperparameters (bench/sb3_ref.py), on the same seeds and under the same stop rule; and the cost benchmark
 (bench/cost.py). Results: ``<out>/paper.json`` (configuration, per task the median [IQR] of the last worker's
-episodes and steps, the rank tests against ``independent``, the references, the targets of issue 8) and
+episodes and steps, the rank tests against ``independent``, the references, the project's targets) and
 ``<out>/paper-<task>.json`` (the same plus every run), figures ``fig5-*.png`` and ``fig7-*.png``, ``cost.json``;
 finally docs/results.md and the README's results table (bench/report.py). Run folders go to
 ``bench/results/runs/<variant>/`` (not committed); ``--resume`` reuses the results of runs already there.
@@ -34,22 +34,22 @@ from pathlib import Path
 from typing import Any
 
 from bench import stats
-from bench.runs import Job, execute
+from bench.runs import Job, execute, outcome
 from chief import strategies as registry
+from protocol.qube import PERIOD_S
 from protocol.tasks import TASKS as TASK_SPECS
 
 TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1", "qube-local")
 #: Base seeds reported: never used for tuning (their worker seeds are seed*1000 + i, i.e. 101000-110003).
 REPORT_SEEDS = tuple(range(101, 111))
 #: Base seeds used while tuning and checking: worker/envs.py's presets (single workers on seeds 1-10 and on the
-#: worker seeds 1000-1003, 2000-2003, 3000-3003 of base seeds 1-3), bench.policies and the README's earlier tables
-#: (1-5), the end-to-end tests (1-3). Never reported here.
+#: worker seeds 1000-1003, 2000-2003, 3000-3003 of base seeds 1-3), the earlier per-policy comparisons and the
+#: README's earlier tables (1-5), the end-to-end tests (1-3). Never reported here.
 TUNING_SEEDS = tuple(range(1, 13))
 BASELINE = "independent"
 DEFAULT_M = 2000
-RIG_STEP_S = 0.007  # the QUBE-Servo 2's control period: one env step
 
-#: Issue 8's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
+#: The project's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
 TARGETS: dict[str, dict[str, float]] = {
     "CartPole-v0": {"episodes": 40},
     "Acrobot-v1": {"episodes": 60},
@@ -157,15 +157,6 @@ def _line(r: dict[str, Any]) -> str:
 # -- aggregation ----------------------------------------------------------------------------------------------
 
 
-def outcome(r: dict[str, Any]) -> tuple[int | None, int | None]:
-    """(episodes, steps) of a run's last worker (the learner itself for sb3); (None, None) when unfinished."""
-    if "error" in r or not r.get("finished"):
-        return None, None
-    if r["kind"] == "sb3":
-        return r["episodes"], r["steps"]
-    return r["last_worker"]["episodes"], r["last_worker"]["steps"]
-
-
 def summarize(runs: list[dict[str, Any]]) -> dict[str, Any]:
     """Median [IQR] of the last worker's episodes and steps over every run (unfinished ranked worst), and more."""
     eps = [outcome(r)[0] for r in runs]
@@ -212,7 +203,7 @@ def significance(by_strategy: dict[str, list[dict[str, Any]]], max_episodes: int
 
 def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[str, Any], workers: int,
                     seeds: list[int]) -> dict[str, Any]:
-    """Issue 8's target for this task: the best strategy's median against it, and against half of independent."""
+    """The project's target for this task: the best strategy's median against it, and against half of independent."""
     target = TARGETS.get(task)
     if target is None or not summary:
         return {}
@@ -230,7 +221,7 @@ def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[s
     if "episodes" in target:
         result["met"] = med_eps is not None and med_eps <= target["episodes"]
     else:
-        balance = None if med_steps is None else med_steps * RIG_STEP_S
+        balance = None if med_steps is None else med_steps * PERIOD_S
         result["median_balance_s"] = balance
         result["met"] = balance is not None and balance <= target["balance_s"]
     if "solved_share" in target:
@@ -313,8 +304,8 @@ def seeds_block(seeds: list[int]) -> dict[str, Any]:
             "report_seeds_used_for_tuning": sorted(set(seeds) & set(TUNING_SEEDS)),
             "note": "report seeds are base seeds; worker i of a run uses seed*1000 + i. The tuning seeds were used "
                     "for worker/envs.py's presets (single workers on seeds 1-10 and on 1000-1003, 2000-2003, "
-                    "3000-3003, the worker seeds of base seeds 1-3), bench.policies, the README's earlier tables "
-                    "and the end-to-end tests."}
+                    "3000-3003, the worker seeds of base seeds 1-3), the earlier per-policy comparisons, the README's "
+                    "earlier tables and the end-to-end tests."}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -347,8 +338,9 @@ def main(argv: list[str] | None = None) -> int:
                                   scaling_workers=scaling["scaling_workers"], runs_dir=args.runs_dir)
     cfg["wall_s"] = round(time.monotonic() - started, 1)
     cfg["finished_at"] = dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds")
-    index = {"config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},
-             "cost": cost}
+    index: dict[str, Any] = {
+        "config": cfg, "tasks": {t: {k: v for k, v in rep.items() if k != "runs"} for t, rep in reports.items()},
+        "cost": cost}
     previous = args.out / "paper.json"
     if previous.exists():
         # Tasks measured by an earlier invocation into the same folder (e.g. with another M or other seeds) stay,

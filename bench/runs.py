@@ -144,6 +144,15 @@ def collect(run_dir: Path, job: Job) -> dict[str, Any]:
     }
 
 
+def outcome(r: dict[str, Any]) -> tuple[int | None, int | None]:
+    """(episodes, steps) of a run's last worker (the learner itself for sb3); (None, None) when unfinished."""
+    if "error" in r or not r.get("finished"):
+        return None, None
+    if r["kind"] == "sb3":
+        return r["episodes"], r["steps"]
+    return r["last_worker"]["episodes"], r["last_worker"]["steps"]
+
+
 def per_worker(summary: dict[str, Any], episodes: list[dict[str, Any]], rounds: list[dict[str, Any]],
                timing: dict[str, Any] | None, per_episode: int = 1) -> list[dict[str, Any]]:
     """Each worker's episodes, steps, own time, wall time, waiting share and env steps per second."""
@@ -203,7 +212,7 @@ def _mqtt_times(wid: str, n: int, episodes: list[dict[str, Any]], rounds: list[d
             "time_basis": "chief clock"}
 
 
-def learning_curve(episodes: list[dict[str, Any]]) -> dict[str, list[float]]:
+def learning_curve(episodes: list[dict[str, Any]]) -> dict[str, list[float | None]]:
     """The run's mean over workers of PI (last-10 average return) and of env steps, per episode.
 
     A worker that finished keeps its last PI and step count (it keeps its mature actor). At most CURVE_POINTS

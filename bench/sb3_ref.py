@@ -1,7 +1,7 @@
 """Reference: Stable-Baselines3 PPO with its rl-baselines3-zoo hyperparameters, under our stop rule.
 
-Hyperparameters: rl-baselines3-zoo, ``hyperparams/ppo.yml`` (DLR-RM/rl-baselines3-zoo; the values are listed in
-shared/reference/anchors.md section 3.2). The zoo has no CartPole-v0 entry: its CartPole-v1 entry is used (the
+Hyperparameters: rl-baselines3-zoo, ``hyperparams/ppo.yml`` (DLR-RM/rl-baselines3-zoo at commit 22e3ff2; the values are
+copied into ``ZOO`` below). The zoo has no CartPole-v0 entry: its CartPole-v1 entry is used (the
 tasks differ only in the episode limit, 200 against 500 steps). ``normalize: true`` is the zoo's VecNormalize of
 observations and rewards (with the entry's gamma). The QUBE balance task has no zoo entry and no SB3 reference.
 
@@ -42,7 +42,7 @@ class ZooEntry:
     policy_kwargs: dict[str, Any] = field(default_factory=dict)
 
 
-#: rl-baselines3-zoo hyperparams/ppo.yml (DLR-RM/rl-baselines3-zoo, commit 22e3ff2 per anchors.md section 3.2).
+#: rl-baselines3-zoo hyperparams/ppo.yml (DLR-RM/rl-baselines3-zoo, commit 22e3ff2).
 ZOO: dict[str, ZooEntry] = {
     "CartPole-v0": ZooEntry("CartPole-v1", n_envs=8, n_timesteps=100_000, normalize=False, ppo={
         "n_steps": 32, "batch_size": 256, "gae_lambda": 0.8, "gamma": 0.98, "n_epochs": 20, "ent_coef": 0.0,
@@ -107,7 +107,7 @@ def build(env_id: str, seed: int) -> tuple[Any, ZooEntry]:
     import torch
     from stable_baselines3 import PPO
     from stable_baselines3.common.monitor import Monitor
-    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecNormalize
 
     from worker.envs import DeviceNoise, make_env
 
@@ -116,7 +116,7 @@ def build(env_id: str, seed: int) -> tuple[Any, ZooEntry]:
     torch.set_num_threads(1)
     entry = ZOO[env_id]
     device = worker_seed(seed, 0)
-    vec = DummyVecEnv([lambda: Monitor(make_env(env_id, device, DeviceNoise())) for _ in range(entry.n_envs)])
+    vec: VecEnv = DummyVecEnv([lambda: Monitor(make_env(env_id, device, DeviceNoise())) for _ in range(entry.n_envs)])
     vec.seed(device)
     if entry.normalize:
         vec = VecNormalize(vec, gamma=entry.ppo.get("gamma", 0.99))

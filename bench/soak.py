@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import shutil
 import statistics
 import subprocess
 import sys
@@ -22,8 +21,9 @@ import time
 from pathlib import Path
 from typing import Any
 
+from chief import strategies
 from chief.audit import audit
-from services.broker.embedded import free_port, wait_for_port
+from services.broker import mosquitto
 
 RESULTS = Path("bench/results")
 
@@ -69,21 +69,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.soak", description=__doc__.splitlines()[0])
     parser.add_argument("--workers", type=int, default=16)
     parser.add_argument("--env", default="CartPole-v0")
-    parser.add_argument("--policy", default="weighted")
+    parser.add_argument("--policy", default=strategies.DEFAULT)
     parser.add_argument("--seed", type=int, default=101)
     parser.add_argument("--max-episodes", type=int, default=600)
     parser.add_argument("--out", type=Path, default=RESULTS)
     args = parser.parse_args(argv)
-    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    if not Path(binary).exists():
+    if not mosquitto.available():
         parser.error("mosquitto is not installed (apt-get install mosquitto)")
     work = Path(tempfile.mkdtemp(prefix="fedrl-soak-"))
-    port = free_port()
-    conf = work / "mosquitto.conf"
-    conf.write_text(f"listener {port} 127.0.0.1\nallow_anonymous true\nset_tcp_nodelay true\n"
-                    "max_packet_size 4259840\npersistence false\nlog_dest stderr\n")
-    broker = subprocess.Popen([binary, "-c", str(conf)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    wait_for_port("127.0.0.1", port, proc=broker)
+    broker, port = mosquitto.start(work)
     run_id, run_dir = f"soak{port}", work / "run"
     memory: dict[str, list[tuple[float, float]]] = {"broker": [], "chief": []}
     stop = threading.Event()

@@ -2,7 +2,7 @@
 
 The paper's Eq. 8 (w_n = PI_n / sum PI) and Eq. 10 (w_T = PI / TC) assume non-negative returns. On Acrobot and
 Pendulum (negative returns) they give the worse worker the larger weight and a w_T above 1. We use each worker's
-progress on its env's own scale instead (ARCHITECTURE.md); with R_floor = 0 this is the paper's formula exactly:
+progress on its env's own scale instead; with R_floor = 0 this is the paper's formula exactly:
 
     progress_n = clip((PI_n - R_floor) / (TC - R_floor), 0, 1)
     w_n        = progress_n / sum(progress)        (uniform when the sum is 0)     Eq. 8
@@ -49,15 +49,6 @@ def weighted_sum(gradients: Mapping[str, Arrays], weights: Mapping[str, float]) 
             acc += weights[i] * g
         out[name] = acc.astype(np.float32)
     return out
-
-
-def blend(theta: Arrays, theta_bar: Arrays, keep: float) -> dict[str, np.ndarray]:
-    """Eq. 11: theta = w_T theta + (1 - w_T) theta_bar (the worker applies the same formula to its torch actor)."""
-    if not 0.0 <= keep <= 1.0:
-        raise ValueError(f"transfer weight must be in [0, 1], got {keep}")
-    if set(theta) != set(theta_bar):
-        raise ValueError("parameter names differ between the actor and the mature actor")
-    return {k: keep * np.asarray(theta[k]) + (1.0 - keep) * np.asarray(theta_bar[k]) for k in theta}
 
 
 def best_mature(pis: Mapping[str, float]) -> str:

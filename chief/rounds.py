@@ -79,7 +79,7 @@ class Submission:
     ``recent_returns`` are the returns its PI is the mean of, oldest first, ending with this episode's.
     ``receipt`` is what it did with the answer to the round before (see protocol.messages.Receipt).
     ``step`` is the mini-batch step of a per-step strategy (0 otherwise); ``critic_gradient`` its critic's gradient.
-    ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not sent): they decide
+    ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not usable): they decide
     nothing and are only recorded.
     """
 

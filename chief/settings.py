@@ -15,7 +15,7 @@ class FederationSettings(Settings):
     """What a run is: the task, the federation strategy, the seed and the limits of its rounds."""
 
     env: TaskName = setting("CartPole-v0", "task every worker learns")
-    policy: PolicyName = setting("weighted", "federation strategy (python -m chief.strategies describes them)")
+    policy: PolicyName = setting(strategies.DEFAULT, "federation strategy (python -m chief.strategies describes them)")
     seed: int = setting(1, "base seed; worker i uses seed*1000 + i")
     max_episodes: int = setting(2000, "M, the most rounds a run may take", ge=1)
     round_timeout: float = setting(30.0, "seconds a round waits for a silent worker after the first submission",

@@ -26,6 +26,7 @@ from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
 from runtime.settings import Settings, returns_code, to_env
 from services.broker.embedded import make_credentials, start_broker_process
+from services.dashboard.service import wait_for_url
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings
 from worker.settings import WorkerSettings
@@ -172,17 +173,6 @@ def unreachable(address: BrokerAddress, timeout: float = BROKER_PROBE_S) -> str 
         return err.strerror or type(err).__name__
 
 
-
-def wait_for_url(proc: subprocess.Popen, url_file: Path, timeout: float = 20.0) -> str | None:
-    """The URL the dashboard wrote once it served its page, or None when it exited or took too long."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if url_file.exists():
-            return url_file.read_text().strip()
-        if proc.poll() is not None:
-            return None
-        time.sleep(0.05)
-    return None
 
 
 #: Chief exit codes that end a run (done, bad setting, no workers, aborted); any other means it died.

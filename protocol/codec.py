@@ -1,14 +1,16 @@
 """msgpack codec for the pydantic messages, with validation that turns any bad payload into a DecodeError.
 
 Decoding is strict: no coercion ("100" is not a number, ``true`` not an integer, 1.0 not a schema version), msgpack
-arrays stay tuples, and a message must be of a kind its topic carries (protocol/routes.py)."""
+arrays stay tuples, tensors must be finite (protocol/tensors.py), a message must be of a kind its topic carries and
+its worker or rig id must be the one its topic names (protocol/routes.py). Every check of a message on its own is
+here, so the services only ever see valid messages."""
 
 from __future__ import annotations
 
 import logging
 import threading
 from collections import Counter
-from typing import TypeVar
+from typing import TypeVar, overload
 
 import msgpack
 from pydantic import ValidationError
@@ -20,6 +22,11 @@ from protocol.routes import route_of
 MAX_PAYLOAD_BYTES = 4 * 1024 * 1024
 
 M = TypeVar("M", bound=Message)
+A = TypeVar("A", bound=Message)
+B = TypeVar("B", bound=Message)
+C = TypeVar("C", bound=Message)
+D = TypeVar("D", bound=Message)
+E = TypeVar("E", bound=Message)
 
 
 class DecodeError(ValueError):
@@ -36,10 +43,27 @@ def encode(message: Message) -> bytes:
     return msgpack.packb(message.model_dump(mode="python"), use_bin_type=True)
 
 
-def decode(payload: bytes, *expected: type[M], max_bytes: int = MAX_PAYLOAD_BYTES, topic: str | None = None) -> M:
+@overload
+def decode(payload: bytes, *, max_bytes: int = ..., topic: str | None = ...) -> Message: ...
+@overload
+def decode(payload: bytes, a: type[A], /, *, max_bytes: int = ..., topic: str | None = ...) -> A: ...
+@overload
+def decode(payload: bytes, a: type[A], b: type[B], /, *, max_bytes: int = ..., topic: str | None = ...) -> A | B: ...
+@overload
+def decode(payload: bytes, a: type[A], b: type[B], c: type[C], /, *, max_bytes: int = ...,
+           topic: str | None = ...) -> A | B | C: ...
+@overload
+def decode(payload: bytes, a: type[A], b: type[B], c: type[C], d: type[D], /, *, max_bytes: int = ...,
+           topic: str | None = ...) -> A | B | C | D: ...
+@overload
+def decode(payload: bytes, a: type[A], b: type[B], c: type[C], d: type[D], e: type[E], /, *, max_bytes: int = ...,
+           topic: str | None = ...) -> A | B | C | D | E: ...
+def decode(payload: bytes, *expected: type[Message], max_bytes: int = MAX_PAYLOAD_BYTES,
+           topic: str | None = None) -> Message:
     """msgpack bytes -> validated message of one of the ``expected`` types (any type when none given).
 
-    With ``topic``, the message must also be of a kind that topic carries (``wrong_topic`` otherwise).
+    With ``topic``, the message must also be of a kind that topic carries (``wrong_topic`` otherwise), and the
+    worker or rig id it carries must be the one the topic names (``spoofed`` otherwise).
     """
     if len(payload) > max_bytes:
         raise DecodeError("oversized", f"{len(payload)} bytes exceeds the limit of {max_bytes}")
@@ -60,17 +84,25 @@ def decode(payload: bytes, *expected: type[M], max_bytes: int = MAX_PAYLOAD_BYTE
     if expected and cls not in expected:
         names = ", ".join(t.model_fields["kind"].default for t in expected)
         raise DecodeError("unexpected_kind", f"got {kind!r}, expected one of: {names}")
+    route = None
     if topic is not None:
         route = route_of(topic)
         if route is None or kind not in route.kinds:
             carries = ", ".join(sorted(route.kinds)) if route else "nothing (not a topic of the contract)"
             raise DecodeError("wrong_topic", f"a {kind!r} message on {topic}, which carries {carries}")
     try:
-        return cls.model_validate(obj, strict=True)  # type: ignore[return-value]
+        message = cls.model_validate(obj, strict=True)
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first.get("loc", ()))
         raise DecodeError("invalid", f"{kind}: {where}: {first.get('msg')} ({exc.error_count()} error(s))") from None
+    if route is not None and topic is not None:
+        for field, named in route.named(topic).items():
+            claimed = getattr(message, field, named)
+            if claimed != named:
+                who = field.removesuffix("_id")
+                raise DecodeError("spoofed", f"payload says {who} {claimed!r}, topic says {named!r}")
+    return message
 
 
 class RejectCounter:

@@ -82,7 +82,8 @@ def overview() -> list[str]:
         f"{SCHEMA_VERSION} and its `kind`; unknown fields are errors and floats must be finite. Payloads over "
         f"{MAX_PAYLOAD_BYTES:,} bytes are refused. "
         "Nothing is retained, and a retained message is never acted on. Topic levels `<run>`, `<id>` and `<rig>` are "
-        "1-64 of `A-Z a-z 0-9 _ . : -`. A message must be of a kind its topic carries (protocol/routes.py).",
+        "1-64 of `A-Z a-z 0-9 _ . : -`. A message must be of a kind its topic carries, and its `worker_id` or "
+        "`rig_id` must be the `<id>` or `<rig>` of its topic (protocol/routes.py).",
         "Sessions are persistent (clean session off) under a client id with a random part; QoS 1 messages are "
         "at-least-once, and every receiver is idempotent: a worker's episode is counted once, an answer applied "
         "once.",

@@ -12,6 +12,7 @@ from typing import Annotated, Final, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
+from protocol.qube import Phase, RigState
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import TensorDict
 
@@ -103,7 +104,7 @@ class WorkerUpdate(Message):
 
     The PPO statistics (``actor_loss`` = -L^CLIP minus the entropy bonus, ``critic_loss`` = L^V, ``entropy``,
     ``approx_kl``, ``clip_fraction``) are the means over the episode's K mini-batch steps (that step's own under a
-    per-step strategy); None when not sent (an older worker) or not usable (not finite, or outside STAT_BOUNDS).
+    per-step strategy); None when not usable (not finite, or outside STAT_BOUNDS).
     """
 
     kind: Literal["update"] = "update"
@@ -235,7 +236,7 @@ class QubeState(Message):
     theta_dot: float
     alpha_dot: float
     episode: int = Field(default=0, ge=0)
-    phase: Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault"] = "running"
+    phase: Phase = "running"
 
 
 class QubeAction(Message):
@@ -261,8 +262,7 @@ class QubeStatus(Message):
 
     kind: Literal["qube_status"] = "qube_status"
     rig_id: Ident
-    state: Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault",
-                   "reset_failed", "offline"]
+    state: RigState
     request_id: int = Field(default=-1, ge=-1)
     episode: int = Field(default=0, ge=0)
     detail: str = Field(default="", max_length=2000)

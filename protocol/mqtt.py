@@ -149,7 +149,8 @@ class BrokerAddress:
 
 
 def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -> None:
-    """Nagle + delayed ACK turn a 0.6 ms round trip into 40-90 ms (reference/mqtt.md), so disable Nagle."""
+    """Nagle + delayed ACK turn a 0.6 ms round trip into 40-90 ms (measured on loopback; mosquitto
+    issues #433, #1526, #1616), so disable Nagle."""
     if not isinstance(sock, socket.socket):  # e.g. paho's websocket wrapper: nothing to tune
         return
     try:

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from protocol import topics
+from protocol import qube, topics
 from protocol.messages import MESSAGE_TYPES, Message
 
 CHIEF, WORKER, BRIDGE, DASHBOARD = "chief", "worker", "rpi_bridge", "dashboard"
@@ -20,6 +20,9 @@ PROCESSES: dict[str, str] = {
 }
 #: The topic levels a route's pattern leaves open (``<name>``), and what goes there.
 PARAMETERS: dict[str, str] = {"run": "the run id", "id": "the worker id", "rig": "the rig id"}
+#: The levels that name whom a message is from or for, and the payload field that must say the same (the codec
+#: refuses a message whose field contradicts its topic: a worker speaking for another, a rig for another).
+SENDER_FIELDS: dict[str, str] = {"id": "worker_id", "rig": "rig_id"}
 
 
 @dataclass(frozen=True)
@@ -61,6 +64,12 @@ class Route:
                 return False
         return len(levels) == len(pattern)
 
+    def named(self, topic: str) -> dict[str, str]:
+        """The payload fields a message on ``topic`` (an instance of this route) must have, by SENDER_FIELDS."""
+        return {SENDER_FIELDS[level[1:-1]]: value for level, value in zip(self.topic.split("/"), topic.split("/"),
+                                                                            strict=True)
+                if level[1:-1] in SENDER_FIELDS}
+
     def filter(self, **levels: str) -> str:
         """This route's topic with the given levels filled in (checked ids) and the other open levels as ``+``."""
         unknown = set(levels) - set(self.parameters)
@@ -101,7 +110,8 @@ ROUTES: tuple[Route, ...] = (
           "the answer to a round in which a worker finished"),
     Route(_c(topics.ACK), CHIEF, _WORKERS, (M["ack"],), 1, "the answer to every MatureParams"),
     Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
-    Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0, "every control tick (7 ms)"),
+    Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0,
+          f"every control tick ({qube.PERIOD_S * 1e3:g} ms)"),
     Route(_r(topics.ACTION), WORKER, (BRIDGE,), (M["qube_action"],), 0,
           "applied only within the deadline of its state"),
     Route(_r(topics.RESET), WORKER, (BRIDGE,), (M["qube_reset"],), 1, "start an episode: swing up and hold"),

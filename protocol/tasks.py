@@ -1,13 +1,16 @@
 """The tasks a federation can learn and their termination conditions, shared by the chief and the workers.
 
 TC is the termination condition on the Performance Index (mean return of the last 10 episodes); R_floor is the
-lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (ARCHITECTURE.md); R_ceiling the
+lowest return an episode can have, which the chief's sign-safe Eq. 8-10 need (chief/federation.py); R_ceiling the
 highest, above which a reported return is a lie the chief refuses.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+
+from protocol import qube
 
 #: PI is the mean return of this many most recent episodes (paper Section IV).
 PI_WINDOW = 10
@@ -39,10 +42,13 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("Acrobot-v1", tc=-100.0, r_floor=-500.0, r_ceiling=0.0, max_steps=500),
         TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, r_ceiling=0.0, max_steps=200,
                  note="floor: 200 steps at the largest cost pi^2 + 0.1*8^2 + 0.001*2^2 (paper Eq. 12)"),
-        TaskSpec("qube", tc=2450.0, r_floor=0.0, r_ceiling=2450.0, max_steps=2450,
-                 note="QUBE-Servo 2 balance: +1 per 7 ms step while |alpha| <= 7.5 deg (paper Section V-B-2), "
-                 "on a rig reached over MQTT (a real one behind rpi_bridge, or services.qube_sim)"),
-        TaskSpec("qube-local", tc=2450.0, r_floor=0.0, r_ceiling=2450.0, max_steps=2450,
+        TaskSpec("qube", tc=float(qube.MAX_RETURN), r_floor=0.0, r_ceiling=float(qube.MAX_RETURN),
+                 max_steps=qube.MAX_RETURN,
+                 note=f"QUBE-Servo 2 balance: +1 per {qube.PERIOD_S * 1e3:g} ms step while |alpha| <= "
+                 f"{math.degrees(qube.BALANCE_BAND):g} deg (paper Section V-B-2), on a rig reached over MQTT (a real "
+                 "one behind rpi_bridge, or services.qube_sim)"),
+        TaskSpec("qube-local", tc=float(qube.MAX_RETURN), r_floor=0.0, r_ceiling=float(qube.MAX_RETURN),
+                 max_steps=qube.MAX_RETURN,
                  note="the same balance task on the simulated rig in the worker's own process (no MQTT)"),
     )
 }

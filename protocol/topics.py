@@ -26,19 +26,6 @@ def worker(run: str, worker_id: str, leaf: str) -> str:
     return f"{FEDRL}/{check_id(run, 'run id')}/worker/{check_id(worker_id, 'worker id')}/{leaf}"
 
 
-def all_workers(run: str, leaf: str) -> str:
-    """Subscription filter for one leaf of every worker."""
-    return f"{FEDRL}/{check_id(run, 'run id')}/worker/+/{leaf}"
-
-
-def worker_id_of(topic: str) -> str:
-    """The worker id level of a ``fedrl/<run>/worker/<id>/<leaf>`` topic."""
-    parts = topic.split("/")
-    if len(parts) != 5 or parts[2] != "worker":
-        raise ValueError(f"not a worker topic: {topic!r}")
-    return parts[3]
-
-
 def chief(run: str, leaf: str) -> str:
     return f"{FEDRL}/{check_id(run, 'run id')}/chief/{leaf}"
 

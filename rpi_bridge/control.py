@@ -31,16 +31,14 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Literal
 
+from protocol import qube
 from rpi_bridge.calibration import Calibration, CalibrationStore, decide, is_still
 from rpi_bridge.device import QubeDevice
 from rpi_bridge.frame import MAX_COMMAND, build_command, clamp_command, parse_reply
 from rpi_bridge.reset import ResetConfig, ResetController
 from rpi_bridge.selftest import SelfTest, SelfTestConfig
 from rpi_bridge.velocity import VelocityFilter
-
-Phase = Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault"]
 
 #: One colour per phase (red, green, blue; 0..999 each). "off" is the bridge stopped.
 LEDS: dict[str, tuple[int, int, int]] = {
@@ -71,10 +69,10 @@ def check_max_command(counts: int) -> int:
 class ControlConfig:
     """Safety and timing limits of one rig (angles in rad, times in s, commands in SPI counts)."""
 
-    period_s: float = 0.007
+    period_s: float = qube.PERIOD_S
     safe_command: int = 0
     max_command: int = 400  # actions are clipped to this (9.6 V); at most MAX_COMMAND (416 counts = 10 V)
-    fall_limit: float = math.radians(7.5)  # the paper's balance band: outside it the episode is over
+    fall_limit: float = qube.BALANCE_BAND  # the paper's balance band: outside it the episode is over
     arm_limit: float = math.radians(110.0)  # |theta| beyond this in any phase disables the amplifier (stops ~115)
     action_timeout_s: float = 0.5  # running without any action this long disables the amplifier
     ready_timeout_s: float = 60.0  # ready without any action this long: back to idle
@@ -111,7 +109,7 @@ class Sensed:
 
     seq: int
     episode: int
-    phase: Phase
+    phase: qube.Phase
     theta: float
     alpha: float
     theta_dot: float
@@ -151,7 +149,7 @@ class ControlCore:
         stored = calibration if calibration is not None else (store.load() if store is not None else None)
         self._stored = None if recalibrate else stored
         self.calibration: Calibration | None = None
-        self.phase: Phase = "calibrating"
+        self.phase: qube.Phase = "calibrating"
         self.fault_reason = ""
         self.refusal = ""  # set when the start-up failed: every reset is refused until a restart
         self.episode = 0

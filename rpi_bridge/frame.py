@@ -16,7 +16,8 @@ One transfer exchanges 17 bytes full duplex, big-endian fields ([DS] Table 2):
 Motor word: bit 15 enables the PWM amplifier, bits 14-0 hold -999..999 in two's complement
 (10 x duty %, 999 is about 24 V); enabled word = ``(cmd & 0x7FFF) | 0x8000``, 0x0000 disables.
 
-Sign conventions (Quanser's example code, see ``reference/qube-servo2.md``):
+Sign conventions (Quanser's QUBE-Servo 2 Arduino example ``QuanserQUBEServo2_Pendulum.ino``; gym_brt's hardware
+interface uses the same):
 
 - arm: ``theta = -counts0 * 2*pi/2048`` (counter-clockwise positive);
 - pendulum: ``alpha = (counts1 mod 2048) * 2*pi/2048 - pi``, so alpha = 0 upright and +-pi hanging when
@@ -254,7 +255,8 @@ class QubeReading:
     @property
     def current_a(self) -> float:
         """Motor current, ``(Isense - 8190) / 9828`` ([DS] eq. 2). The data sheet labels it mA, but the
-        formula gives amps (reference/qube-servo2.md; Quanser's own display code agrees within 1 %)."""
+        formula gives amps: Quanser's own display code (``QUBEServo2.cpp``, I = 3.3/(4*4095) * (Isense/2 - 4095),
+        about (Isense - 8190)/9927) agrees within 1 %."""
         return (self.current_raw - CURRENT_ZERO) / CURRENT_SCALE
 
     @property

@@ -83,8 +83,8 @@ class PlantModel:
     def command_for_arm_accel(
         self, theta_ddot: float, alpha: float, theta_dot: float, alpha_dot: float
     ) -> float:
-        """Motor counts that give the arm acceleration ``theta_ddot``: the equations of motion of
-        reference/qube-servo2.md as M @ (theta_ddot, alpha_ddot) = (tau + r1, r2), the pendulum row
+        """Motor counts that give the arm acceleration ``theta_ddot``: gym_brt's equations of motion
+        (services.qube_sim.dynamics) as M @ (theta_ddot, alpha_ddot) = (tau + r1, r2), the pendulum row
         eliminated, with tau = -km*(V + km*theta_dot)/Rm."""
         mp, Lp, Lr = self.mp, self.Lp, self.Lr
         s, c = math.sin(alpha), math.cos(alpha)

@@ -25,7 +25,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 
-from protocol import topics
+from protocol import qube, topics
 from protocol.codec import encode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
 from protocol.routes import qos_of
@@ -46,7 +46,8 @@ class InjectedTiming:
     seconds) after its state's read, and with probability ``miss_rate`` not at all (the safe action instead).
     Deterministic in ``seed``."""
 
-    def __init__(self, delay_s: tuple[float, float] = (0.0, 0.007), miss_rate: float = 0.003, seed: int = 0) -> None:
+    def __init__(self, delay_s: tuple[float, float] = (0.0, qube.PERIOD_S), miss_rate: float = 0.003,
+                 seed: int = 0) -> None:
         lo, hi = delay_s
         if not 0 <= lo <= hi:
             raise ValueError(f"delays must satisfy 0 <= lo <= hi, got {delay_s}")
@@ -150,7 +151,7 @@ class BridgeRunner:
         core: ControlCore,
         rig_id: str,
         publish: Publish,
-        deadline_s: float = 0.007,
+        deadline_s: float = qube.PERIOD_S,
         lockstep: bool = False,
         advance: Callable[[float], None] | None = None,
         telemetry_interval_s: float = 1.0,

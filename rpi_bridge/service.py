@@ -14,7 +14,7 @@ import time
 from collections.abc import Callable
 from typing import TypeVar
 
-from protocol import topics
+from protocol import qube, topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import Message, QubeAction, QubeReset, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
@@ -38,7 +38,7 @@ class BridgeService:
         rig_id: str,
         broker: BrokerAddress,
         control: ControlConfig | None = None,
-        deadline_s: float = 0.007,
+        deadline_s: float = qube.PERIOD_S,
         lockstep: bool = False,
         advance: Callable[[float], None] | None = None,
         client_prefix: str = "bridge",
@@ -68,9 +68,6 @@ class BridgeService:
             msg = decode(payload, kind, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
-            return None
-        if msg.rig_id != self.rig_id:  # type: ignore[attr-defined]
-            self.rejects.reject(topic, "spoofed", f"payload names rig {msg.rig_id!r}, this is {self.rig_id!r}")  # type: ignore[attr-defined]
             return None
         return msg
 

@@ -1,7 +1,8 @@
 """Angle-rate estimate for the pendulum (SPI has no pendulum tachometer).
 
 The filter is the high-pass derivative H(s) = wc*s / (s + wc), wc = 50 rad/s, that Quanser's example code uses
-(reference/qube-servo2.md: "50s/(s+50)", discretised there at 1 ms). Here it is discretised for any period dt:
+(Quanser's QUBE-Servo 2 Arduino example ``QUBEServo2.cpp``: "50s/(s+50)", discretised there at 1 ms as
+(50z - 50)/(z - 0.9512)). Here it is discretised for any period dt:
 
 - ``"exact"`` (default): exact for an angle that moves linearly within each period (first-order hold),
   ``v[k] = a*v[k-1] + (1 - a) * (x[k] - x[k-1]) / dt`` with ``a = exp(-wc*dt)``;

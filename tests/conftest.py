@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import os
-import shutil
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
-from services.broker.embedded import free_port, start_broker_process, stop_process, wait_for_port
+from services.broker import mosquitto
+from services.broker.embedded import start_broker_process, stop_process
+from services.broker.settings import MAX_PACKET_SIZE
 
 HOST = "127.0.0.1"
 
@@ -30,29 +31,13 @@ def amqtt_broker(tmp_path: Path) -> Iterator[str]:
         log.close()
 
 
-def start_mosquitto(tmp_path: Path, port: int | None = None, max_packet_size: int = 4259840,
-                    persistence: bool = False) -> tuple[subprocess.Popen, int]:
-    """Mosquitto with TCP_NODELAY and a packet limit (the codec's 4 MiB plus headers) on a free loopback port; with
-    ``persistence`` it keeps sessions and queued messages across a restart (in a folder of the test)."""
-    binary = shutil.which("mosquitto") or "/usr/sbin/mosquitto"
-    port = port or free_port(HOST)
-    conf = tmp_path / f"mosquitto-{port}.conf"
-    store = f"persistence true\npersistence_location {tmp_path}/\nautosave_interval 1\n" if persistence else (
-        "persistence false\n")
-    if os.geteuid() == 0:
-        store += "user root\n"  # as root, Mosquitto would switch to its own user, who cannot write the test's folder
-    conf.write_text(
-        f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\nmax_packet_size {max_packet_size}\n"
-        f"{store}log_dest stderr\n"
-    )
-    log = (tmp_path / f"mosquitto-{port}.log").open("wb")
-    proc = subprocess.Popen([binary, "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)
-    wait_for_port(HOST, port, proc=proc)
-    return proc, port
+def start_mosquitto(tmp_path: Path, port: int | None = None, persistence: bool = False,
+                    max_packet_size: int | None = MAX_PACKET_SIZE) -> tuple[subprocess.Popen, int]:
+    """Mosquitto on a free loopback port, its files in the test's folder (services/broker/mosquitto.py)."""
+    return mosquitto.start(tmp_path, port=port, max_packet_size=max_packet_size, persistence=persistence)
 
 
-def mosquitto_available() -> bool:
-    return shutil.which("mosquitto") is not None or Path("/usr/sbin/mosquitto").exists()
+mosquitto_available = mosquitto.available
 
 
 @pytest.fixture

@@ -9,6 +9,7 @@ import time
 
 import pytest
 
+from protocol import qube
 from protocol.codec import decode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
 from rpi_bridge.control import ControlConfig, ControlCore
@@ -18,7 +19,7 @@ from rpi_bridge.runner import BridgeRunner, InjectedTiming
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.spi_peer import SimulatedQube
 
-PERIOD = 0.007
+PERIOD = qube.PERIOD_S
 
 
 class RecordingQube(SimulatedQube):

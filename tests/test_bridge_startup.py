@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 
+from protocol import qube
 from rpi_bridge.calibration import Calibration, CalibrationStore, decide, is_still
 from rpi_bridge.control import LEDS, ControlConfig, ControlCore
 from rpi_bridge.frame import parse_command
@@ -16,7 +17,7 @@ from rpi_bridge.selftest import SelfTest, SelfTestConfig, judge
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.spi_peer import SimulatedQube
 
-PERIOD = 0.007
+PERIOD = qube.PERIOD_S
 
 
 class WatchedQube(SimulatedQube):

@@ -9,7 +9,7 @@ import sys
 import pytest
 
 MODULES = ["services.broker", "chief", "worker", "rpi_bridge", "services.qube_sim", "deploy.run_local",
-           "deploy.docker", "deploy.inprocess", "bench.policies", "bench.latency", "bench.reset", "bench.loop_cost",
+           "deploy.docker", "deploy.inprocess", "bench.paper", "bench.latency", "bench.reset", "bench.loop_cost",
            "bench.soak", "chief.audit", "chief.strategies"]
 
 

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from protocol.tasks import TASKS
+from protocol.tasks import TASKS, TaskSpec
 from worker.envs import ENVS, DeviceNoise, EnvSpec, env_spec, make_env, register_env
 
 torch.set_num_threads(1)
@@ -58,14 +58,15 @@ def test_register_env_extension_point() -> None:
         built.append((spec.env_id, seed, noise.scale, rig))
         return gym.make("CartPole-v1")
 
-    spec = register_env(EnvSpec("test-device", None, tc=1.0, r_floor=0.0, max_steps=10, factory=factory))
+    spec = register_env(EnvSpec(TaskSpec("test-device", tc=1.0, r_floor=0.0, r_ceiling=1.0, max_steps=10), None,
+                                 factory=factory))
     try:
         env = make_env("test-device", seed=5, device_noise=DeviceNoise(scale=0.5), rig="r1")
         assert isinstance(env.action_space, gym.spaces.Discrete) and built == [("test-device", 5, 0.5, "r1")]
         with pytest.raises(ValueError, match="no extra arguments"):
             make_env("CartPole-v0", seed=0, rig="r1")
         with pytest.raises(ValueError, match="gym_id or a factory"):
-            register_env(EnvSpec("nothing", gym_id=None, tc=1.0, r_floor=0.0, max_steps=1))
+            register_env(EnvSpec(TaskSpec("nothing", tc=1.0, r_floor=0.0, r_ceiling=1.0, max_steps=1), gym_id=None))
     finally:
         ENVS.pop(spec.env_id)
 

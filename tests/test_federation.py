@@ -89,13 +89,6 @@ def test_eq10_transfer_weight_on_each_scale() -> None:
     assert plain.keep_weight(0.9) == 0.0 and eq10(150.0, 195.0, 0.0, "independent") is None
 
 
-def test_eq11_blend() -> None:
-    out = fed.blend({"p": np.array([1.0, 1.0])}, {"p": np.array([3.0, -1.0])}, keep=0.25)
-    np.testing.assert_allclose(out["p"], [0.25 * 1 + 0.75 * 3, 0.25 * 1 - 0.75 * 1])  # [2.5, -0.5]
-    with pytest.raises(ValueError):
-        fed.blend({"p": np.zeros(1)}, {"p": np.zeros(1)}, keep=1.5)
-
-
 def test_best_mature_takes_highest_pi_then_smallest_id() -> None:
     assert fed.best_mature({"w0": 196.0, "w1": 199.0}) == "w1"
     assert fed.best_mature({"w2": 199.0, "w1": 199.0}) == "w1"

@@ -9,6 +9,10 @@ import pytest
 import torch
 from gymnasium import spaces
 
+from protocol.messages import ChiefAggregate
+from protocol.tensors import pack_arrays
+from worker.envs import make_env
+from worker.federated import Algorithm2
 from worker.ppo import PPOConfig, PPOLearner, clipped_surrogate_loss, compute_gae, value_loss
 from worker.train_local import train
 
@@ -208,33 +212,38 @@ def test_apply_gradient_takes_one_adam_step() -> None:
         np.testing.assert_allclose(value, before[name] - 1e-3, atol=1e-6)
 
 
-def bad_inputs(learner: PPOLearner) -> list[tuple[object, str]]:
-    spec = learner.actor_spec()
-    good = {k: np.zeros(s, np.float32) for k, s in spec.items()}
-    first = next(iter(spec))
-    missing = dict(good)
-    del missing[first]
-    wrong_shape = good | {first: np.zeros((3, 3), np.float32)}
-    nan = good | {first: np.full(spec[first], np.nan, np.float32)}
-    inf = good | {"log_std": np.array([np.inf], np.float32)}
-    return [(missing, "missing"), (good | {"extra": np.zeros(1)}, "unexpected"), (wrong_shape, "shape"),
-            (nan, "non-finite"), (inf, "non-finite"), ([1, 2], "mapping")]
-
-
-def test_apply_gradient_and_blend_reject_bad_input_without_changing_anything() -> None:
+def test_blend_rejects_a_keep_weight_outside_0_1_without_changing_anything() -> None:
     learner = PPOLearner(PENDULUM_OBS, TORQUE, seed=0)
     before = actor_state(learner)
-    for bad, message in bad_inputs(learner):
-        with pytest.raises(ValueError, match=message):
-            learner.apply_gradient(bad)
-        with pytest.raises(ValueError, match=message):
-            learner.blend_actor(bad, 0.5)
     good = {k: np.zeros(s, np.float32) for k, s in learner.actor_spec().items()}
     for keep in (-0.1, 1.5, float("nan")):
         with pytest.raises(ValueError, match="keep_weight"):
             learner.blend_actor(good, keep)
     assert_same(before, actor_state(learner))
-    assert not learner.actor_optimizer.state  # no optimizer step was taken
+
+
+def test_an_answer_that_does_not_fit_the_actor_is_refused_without_changing_anything() -> None:
+    """The worker checks the chief's tensors against its networks where they come in (Algorithm2.apply); the
+    learner's API takes the arrays as they are."""
+    env = make_env("Pendulum-v1", seed=0)
+    learner = PPOLearner(PENDULUM_OBS, TORQUE, seed=0)
+    algo = Algorithm2("w0", env, learner, tc=-400.0, seed=0)
+    algo.play()  # an episode and its PPO update
+    before = actor_state(learner)
+    steps = [float(state["step"]) for state in learner.actor_optimizer.state.values()]
+    spec = learner.actor_spec()
+    first = next(iter(spec))
+    good = {k: np.zeros(s, np.float32) for k, s in spec.items()}
+    missing = {k: v for k, v in good.items() if k != first}
+    for bad, what in ((good | {first: np.zeros((3, 3), np.float32)}, "shape"), (missing, first),
+                      (good | {"extra": np.zeros(1, np.float32)}, "extra")):
+        answer = ChiefAggregate(episode=1, gradient=pack_arrays(bad), weights={"w0": 1.0}, contributors=("w0",))
+        assert algo.apply(answer) is None
+        assert algo.receipt is not None and algo.receipt.applied == "missed"
+        assert algo.refused_answer is not None and what in algo.refused_answer, algo.refused_answer
+        assert_same(before, actor_state(learner))
+    assert [float(state["step"]) for state in learner.actor_optimizer.state.values()] == steps  # no Adam step
+    env.close()
 
 
 def test_blend_actor_eq11_with_keep_quarter() -> None:

@@ -12,7 +12,8 @@ import pytest
 from protocol.codec import encode
 from protocol.messages import QubeState, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
-from worker.qube_env import ACTIONS, MAX_RETURN, QubeLocalEnv, QubeMqttEnv
+from protocol.qube import MAX_RETURN
+from worker.qube_env import ACTIONS, QubeLocalEnv, QubeMqttEnv
 
 
 def bang_bang(obs: np.ndarray) -> int:
@@ -197,4 +198,4 @@ def test_the_rig_refuses_actions_on_the_wrong_topic_or_for_another_rig(amqtt_bro
         rig.terminate()
         rig.wait(10)
     log = (tmp_path / "rigH.log").read_text()
-    assert "(spoofed): payload names rig 'rigZ'" in log and "(unexpected_kind)" in log
+    assert "(spoofed): payload says rig 'rigZ'" in log and "(unexpected_kind)" in log

@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import pytest
 
+from protocol import qube
 from rpi_bridge.control import ControlConfig
 from rpi_bridge.frame import MAX_COMMAND, build_command, parse_reply
 from rpi_bridge.reset import ResetConfig, ResetController
@@ -17,7 +18,7 @@ from services.qube_sim.dynamics import QubeParams
 from services.qube_sim.spi_peer import SimulatedQube
 from services.qube_sim.trials import Condition, Start, run_condition, run_trial, summary
 
-TICK = 0.007
+TICK = qube.PERIOD_S
 
 
 def swing_up(

@@ -86,6 +86,7 @@ def weighted_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @needs_writer
+@pytest.mark.slow  # the module's 4-worker federation to the end (weighted_run)
 def test_every_worker_gets_cleanrl_tags_that_match_the_records(weighted_run: Path) -> None:
     lines = records(weighted_run)
     board = read_board(weighted_run)
@@ -154,6 +155,7 @@ def test_the_chief_writes_the_board_live_over_mqtt(tmp_path: Path) -> None:
 
 
 @needs_writer
+@pytest.mark.slow  # the module's 4-worker federation to the end (weighted_run)
 def test_the_offline_rebuild_draws_the_same_board(weighted_run: Path, tmp_path: Path) -> None:
     live = read_board(weighted_run)
     proc = subprocess.run([sys.executable, "-m", "chief.tensorboard", str(weighted_run)], capture_output=True,

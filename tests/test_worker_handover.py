@@ -12,6 +12,7 @@ from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import ChiefAck, MatureParams
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import route_of
 from protocol.tensors import pack_arrays
 from worker.service import WorkerService
 from worker.settings import WorkerSettings
@@ -32,7 +33,7 @@ class ScriptedChief:
         self.drop, self.accept = drop, accept
         self.lock = threading.Lock()
         self.conn = MqttConnection(BrokerAddress.parse(broker), client_id="scripted-chief").start()
-        self.conn.subscribe(topics.all_workers(RUN, topics.UPDATE), self._on_update)
+        self.conn.subscribe(route_of(topics.worker(RUN, "w0", topics.UPDATE)).filter(run=RUN), self._on_update)
 
     def _on_update(self, topic: str, payload: bytes) -> None:
         msg = decode(payload, MatureParams)

@@ -1,12 +1,12 @@
 """The environments a worker learns, with per-device variation (paper Section V-B-1), and PPO presets.
 
-Every supported task has an ``EnvSpec``: the gymnasium id, the termination condition TC on the Performance
-Index (mean return of the last 10 episodes), R_floor (the lowest return an episode can have, for the chief's
-sign-safe Eq. 8-10), the episode length and a tuned ``PPOConfig``. TC, R_floor and the episode length come
-from ``protocol.tasks``, the table the chief uses too, so both sides always agree.
+Every supported task has an ``EnvSpec``: its ``protocol.tasks.TaskSpec`` (the termination condition TC on the
+Performance Index, the mean return of the last 10 episodes; R_floor, the lowest return an episode can have, for the
+chief's sign-safe Eq. 8-10; the episode length), read from the table the chief uses too, so both sides always agree;
+the gymnasium id; and a tuned ``PPOConfig``.
 
-Extension point: ``register_env(EnvSpec(..., factory=...))`` adds a task whose environment is not a plain
-gymnasium id (the QUBE-Servo 2 over MQTT); ``factory(spec, seed, device_noise)`` builds it.
+Extension point: ``register_env(EnvSpec(TaskSpec(...), None, factory=...))`` adds a task whose environment is not a
+plain gymnasium id (the QUBE-Servo 2 over MQTT); ``factory(spec, seed, device_noise)`` builds it.
 
 MountainCarContinuous-v0: the paper's TC of 200 is above the largest return gym's reward allows (+100 once at
 the goal minus 0.1 a^2 per step, so every return is < 100; the authors' code reshaped the reward to make 200
@@ -39,7 +39,8 @@ PI about 9) on 4 of those 12 seeds (1000-1003, 2000-2003, 3000-3003 are the seed
 base seeds 1-3; seeds 1-10 happened to all solve, in 20-140 episodes); Acrobot-v1 seed 3 collapses to a
 deterministic policy and stays at -500 (600 episodes; seeds 1-2 solve in 39 and 55); Pendulum-v1 seed 1 is at
 PI -1559 after 600 episodes; MountainCarContinuous-v0 seed 1 is at PI -15 after 100 episodes (it learns to stand still).
-For scale (anchors.md section 3.4, SB3-zoo PPO, seeds 1-3): CartPole 92-151, Acrobot 206-261, Pendulum
+For scale (Stable-Baselines3 2.9 PPO with the rl-baselines3-zoo hyperparameters, seeds 1-3, measured on the same VM
+under the same stop rule; ``python -m bench.sb3_ref`` repeats it): CartPole 92-151, Acrobot 206-261, Pendulum
 175-195, MountainCarContinuous 10-15 episodes.
 """
 
@@ -48,12 +49,12 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
 
-from protocol.tasks import TASKS
+from protocol.tasks import TASKS, TaskSpec
 from worker.ppo import PPOConfig
 from worker.qube_env import make_qube_env, make_qube_local_env
 
@@ -109,23 +110,24 @@ class DeviceNoiseWrapper(gym.Wrapper):
         self.rng = np.random.default_rng(np.random.SeedSequence([int(seed), 0xDE7]))  # device stream
         self.offset = float(self.rng.normal(noise.mean, noise.std))
         self.last_noise = 0.0
-        base = env.unwrapped
+        base: Any = env.unwrapped  # CartPoleEnv or AcrobotEnv for the force and torque targets
         self._base_force = float(base.force_mag) if target == "force" else 0.0
         self._base_torques = list(base.AVAIL_TORQUE) if target == "torque" else []
 
-    def step(self, action: Any) -> tuple[Any, float, bool, bool, dict[str, Any]]:
+    def step(self, action: Any) -> tuple[Any, SupportsFloat, bool, bool, dict[str, Any]]:
         if isinstance(self.action_space, gym.spaces.Box):
             space = self.action_space
             action = np.clip(np.asarray(action, dtype=space.dtype), space.low, space.high)
         if self.noise.scale == 0.0:
             return self.env.step(action)
+        base: Any = self.env.unwrapped
         self.last_noise = self.noise.scale * (self.offset + float(self.rng.normal(0.0, self.noise.std)))
         if self.target == "action":
             action = (action + self.last_noise).astype(self.action_space.dtype)
         elif self.target == "force":
-            self.env.unwrapped.force_mag = self._base_force * (1.0 + self.last_noise)
+            base.force_mag = self._base_force * (1.0 + self.last_noise)
         else:  # an instance attribute shadows AcrobotEnv.AVAIL_TORQUE for this device only
-            self.env.unwrapped.AVAIL_TORQUE = [t + self.last_noise for t in self._base_torques]
+            base.AVAIL_TORQUE = [t + self.last_noise for t in self._base_torques]
         return self.env.step(action)
 
 
@@ -140,17 +142,34 @@ EnvFactory = Callable[..., gym.Env]
 
 @dataclass(frozen=True)
 class EnvSpec:
-    """A task: how to build its environment, when learning is finished and how to learn it."""
+    """A task: how to build its environment and how to learn it. When learning is finished (TC), the lowest return
+    (R_floor) and the episode length are the task's facts in ``protocol.tasks``, which the chief reads too."""
 
-    env_id: str  # the name used across the system (protocol.tasks, CLI, messages)
+    task: TaskSpec  # the task's facts (protocol.tasks.TASKS)
     gym_id: str | None  # gymnasium id, or None when ``factory`` builds the env
-    tc: float  # termination condition: learning ends when PI (mean of the last 10 returns) >= tc
-    r_floor: float  # lowest possible episode return
-    max_steps: int  # episode length limit
     config: PPOConfig = field(default_factory=PPOConfig)  # PPO preset; use ``ppo_config()`` for a copy
     noise_target: str = "action"  # how DeviceNoise acts, see DeviceNoiseWrapper
     factory: EnvFactory | None = None  # custom builder ``factory(spec, seed, device_noise, **extra)``
-    notes: str = ""
+
+    @property
+    def env_id(self) -> str:
+        """The name used across the system (protocol.tasks, CLI, messages)."""
+        return self.task.env_id
+
+    @property
+    def tc(self) -> float:
+        """Termination condition: learning ends when PI (mean of the last 10 returns) >= tc."""
+        return self.task.tc
+
+    @property
+    def r_floor(self) -> float:
+        """Lowest possible episode return."""
+        return self.task.r_floor
+
+    @property
+    def max_steps(self) -> int:
+        """Episode length limit."""
+        return self.task.max_steps
 
     def ppo_config(self, **overrides: Any) -> PPOConfig:
         """A fresh copy of the preset, with ``overrides`` applied."""
@@ -158,8 +177,8 @@ class EnvSpec:
 
 
 def _task(env_id: str, **kwargs: Any) -> EnvSpec:
-    t = TASKS[env_id]
-    return EnvSpec(env_id=env_id, gym_id=env_id, tc=t.tc, r_floor=t.r_floor, max_steps=t.max_steps, **kwargs)
+    """A gymnasium task of protocol.tasks (its env id is its gymnasium id)."""
+    return EnvSpec(task=TASKS[env_id], gym_id=env_id, **kwargs)
 
 
 ENVS: dict[str, EnvSpec] = {}
@@ -201,6 +220,7 @@ def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, re
         return spec.factory(spec, seed, noise, **extra)
     if extra:
         raise ValueError(f"{env_id} is a gymnasium task and takes no extra arguments, got {sorted(extra)}")
+    assert spec.gym_id is not None  # register_env: a spec without a factory has a gymnasium id
     with warnings.catch_warnings():  # CartPole-v0 is deliberate (the paper's task): no deprecation notice
         warnings.filterwarnings("ignore", message=".*is out of date.*")
         env = gym.make(spec.gym_id, max_episode_steps=spec.max_steps, disable_env_checker=True,
@@ -211,9 +231,6 @@ def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, re
 # ----------------------------------------------------------------------------------------------------
 # The supported tasks and their presets (see the module docstring for the measured results)
 # ----------------------------------------------------------------------------------------------------
-
-#: The paper's configuration (Section V-A).
-PAPER_CONFIG = PPOConfig()
 
 # The paper's configuration with a lower actor learning rate: at 1e-3 the actor collapses to a deterministic
 # policy (entropy 0, it never recovers) on 4 of 12 seeds; at 3e-4 all 12 solved (table above).
@@ -245,8 +262,5 @@ register_env(_task("MountainCarContinuous-v0", config=PPOConfig(
 # with it, actor lr 1e-3 collapsed on seed 1001 and 3e-4 solved alone at episodes 109 (seed 1000, lr 1e-3),
 # 755 (1001) and 294 (1002).
 QUBE_CONFIG = PPOConfig(obs_scale=(8.0, 0.3, 1.0, 0.1), actor_lr=3e-4)
-register_env(EnvSpec(env_id="qube", gym_id=None, tc=TASKS["qube"].tc, r_floor=TASKS["qube"].r_floor,
-                     max_steps=TASKS["qube"].max_steps, config=QUBE_CONFIG, factory=make_qube_env))
-register_env(EnvSpec(env_id="qube-local", gym_id=None, tc=TASKS["qube-local"].tc,
-                     r_floor=TASKS["qube-local"].r_floor, max_steps=TASKS["qube-local"].max_steps,
-                     config=QUBE_CONFIG, factory=make_qube_local_env))
+register_env(EnvSpec(task=TASKS["qube"], gym_id=None, config=QUBE_CONFIG, factory=make_qube_env))
+register_env(EnvSpec(task=TASKS["qube-local"], gym_id=None, config=QUBE_CONFIG, factory=make_qube_local_env))

@@ -128,14 +128,14 @@ def play(env: gym.Env, learner: PPOLearner, seed: int, frames: list[np.ndarray] 
     """One greedy episode; returns (return, steps). ``frames`` collects ``env.render()`` images when given."""
     obs, _ = env.reset(seed=seed)
     if frames is not None:
-        frames.append(env.render())
+        frames.append(np.asarray(env.render()))
     ret, steps = 0.0, 0
     while True:
         obs, reward, terminated, truncated, _ = env.step(learner.act_greedy(obs))
         ret += float(reward)
         steps += 1
         if frames is not None:
-            frames.append(env.render())
+            frames.append(np.asarray(env.render()))
         if terminated or truncated:
             return ret, steps
 

@@ -24,7 +24,6 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
-import torch
 
 from protocol.messages import STAT_BOUNDS, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
 from protocol.tasks import PI_WINDOW, performance_index, solved
@@ -113,7 +112,7 @@ class Algorithm2:
         worker would skip alone) is shared as zeros: the others' mean still moves every worker alike."""
         assert self._batch is not None
         self._own = own = self.learner.minibatch_gradients(self._batch)
-        return self._update(_numpy(own.actor, self.learner.actor), _numpy(own.critic, self.learner.critic), own)
+        return self._update(_shared(own.actor, self.actor_spec), _shared(own.critic, self.learner.critic_spec()), own)
 
     def _update(self, actor: dict[str, np.ndarray], critic: dict[str, np.ndarray] | None, stats: Any) -> WorkerUpdate:
         ret, steps = self._last
@@ -189,9 +188,8 @@ class Algorithm2:
                 raise ValueError(f"round {round_}: a per-step aggregate without its actor and critic gradients")
             check_spec(reply.gradient, self.actor_spec, "aggregate")
             check_spec(reply.critic_gradient, self.learner.critic_spec(), "aggregate critic")
-            as_torch = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.gradient).items()}
-            critic = {k: torch.from_numpy(v) for k, v in unpack_arrays(reply.critic_gradient).items()}
-            self.learner.apply_step(critic, as_torch)  # the same mean step as every other worker
+            self.learner.apply_step(unpack_arrays(reply.critic_gradient),  # the same mean step as every other worker
+                                    unpack_arrays(reply.gradient))
         self.receipt = Receipt(round=round_, applied="aggregate",
                                digest=answer_digest(reply.gradient, reply.critic_gradient))
 
@@ -201,10 +199,9 @@ class Algorithm2:
             close()
 
 
-def _numpy(grads: dict[str, torch.Tensor] | None, net: torch.nn.Module) -> dict[str, np.ndarray]:
-    """A network's gradients as float32 arrays (zeros where the step had none)."""
-    return {k: (grads[k] if grads else torch.zeros_like(p)).numpy().astype(np.float32)
-            for k, p in net.named_parameters()}
+def _shared(grads: dict[str, np.ndarray] | None, spec: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
+    """A network's step gradients as sent: float32 arrays, zeros where the step had none."""
+    return {k: grads[k].astype(np.float32) if grads else np.zeros(shape, np.float32) for k, shape in spec.items()}
 
 
 def _loss_fields(stats: Any) -> dict[str, float | None]:

@@ -208,6 +208,10 @@ class Critic(nn.Module):
 class RunningObsNorm(nn.Module):
     """Running mean and variance of observations (parallel-variance update); ``normalize`` clips to +-10."""
 
+    mean: torch.Tensor  # buffers (saved with the state dict), registered in __init__
+    var: torch.Tensor
+    count: torch.Tensor
+
     def __init__(self, shape: tuple[int, ...], clip: float = 10.0) -> None:
         super().__init__()
         self.clip = clip
@@ -313,12 +317,20 @@ class Batch:
     returns: torch.Tensor
 
 
+def _tensors(arrays: Mapping[str, np.ndarray], net: nn.Module) -> dict[str, torch.Tensor]:
+    """The learner's one conversion from its API's arrays to torch: float32 copies of those of ``arrays`` named like a
+    parameter of ``net``. The names and shapes were checked where the arrays came in (the worker checks the chief's
+    answers against its networks, protocol.tensors.check_spec; the codec that they are finite)."""
+    return {name: torch.from_numpy(np.array(arrays[name], dtype=np.float32))
+            for name, _ in net.named_parameters() if name in arrays}
+
+
 @dataclass
 class StepGradients:
-    """One mini-batch step's gradients (None where not finite) and its statistics."""
+    """One mini-batch step's gradients (float32 arrays; None where not finite) and its statistics."""
 
-    critic: dict[str, torch.Tensor] | None
-    actor: dict[str, torch.Tensor] | None
+    critic: dict[str, np.ndarray] | None
+    actor: dict[str, np.ndarray] | None
     actor_loss: float
     critic_loss: float
     entropy: float
@@ -434,7 +446,7 @@ class PPOLearner:
             if step.actor is not None:
                 actor_steps += 1
                 for name, g in step.actor.items():
-                    grad_sum[name] += g
+                    grad_sum[name] += torch.from_numpy(g)
             for key in totals:
                 totals[key] += getattr(step, key)
 
@@ -506,7 +518,7 @@ class PPOLearner:
                              clip_fraction=clip_fraction)
 
     def _gradients(self, loss: torch.Tensor, net: nn.Module, optimizer: torch.optim.Optimizer
-                   ) -> dict[str, torch.Tensor] | None:
+                   ) -> dict[str, np.ndarray] | None:
         """Backward and optional gradient-norm clipping; the gradients, or None when the loss or a gradient is not
         finite (so a numerical blow-up never reaches the parameters or the chief)."""
         optimizer.zero_grad()
@@ -515,13 +527,13 @@ class PPOLearner:
         loss.backward()
         if self.config.max_grad_norm is not None:
             nn.utils.clip_grad_norm_(net.parameters(), self.config.max_grad_norm)
-        grads = {name: p.grad.clone() for name, p in net.named_parameters() if p.grad is not None}
+        grads = {name: p.grad.detach().numpy().copy() for name, p in net.named_parameters() if p.grad is not None}
         optimizer.zero_grad()
-        if not all(bool(torch.isfinite(g).all()) for g in grads.values()):
+        if not all(bool(np.isfinite(g).all()) for g in grads.values()):
             return None
         return grads
 
-    def apply_step(self, critic: Mapping[str, torch.Tensor] | None, actor: Mapping[str, torch.Tensor] | None) -> None:
+    def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         """One critic-optimizer step (Eq. 4) and one actor-optimizer step (Eq. 7) with the given gradients; a
         network whose gradient is None is not stepped."""
         for grads, net, optimizer in ((critic, self.critic, self.critic_optimizer),
@@ -529,9 +541,8 @@ class PPOLearner:
             if grads is None:
                 continue
             optimizer.zero_grad()
-            for name, p in net.named_parameters():
-                if name in grads:
-                    p.grad = grads[name].clone()
+            for name, g in _tensors(grads, net).items():
+                net.get_parameter(name).grad = g
             optimizer.step()
             optimizer.zero_grad()
 
@@ -558,50 +569,22 @@ class PPOLearner:
             raise RuntimeError("no actor gradient yet: call update() first")
         return {name: g.copy() for name, g in self._episode_gradient.items()}
 
-    def _checked(self, arrays: Mapping[str, Any], what: str) -> dict[str, torch.Tensor]:
-        """``arrays`` as float32 tensors if they match the actor exactly (names, shapes, finite values);
-        ValueError otherwise."""
-        if not isinstance(arrays, Mapping):
-            raise ValueError(f"{what}: expected a mapping of name to array, not {type(arrays).__name__}")
-        spec = self.actor_spec()
-        missing, extra = sorted(set(spec) - set(arrays)), sorted(set(arrays) - set(spec))
-        if missing or extra:
-            raise ValueError(f"{what}: names do not match the actor (missing {missing}, unexpected {extra})")
-        out = {}
-        for name, shape in spec.items():
-            try:
-                arr = np.asarray(arrays[name], dtype=np.float32)
-            except (TypeError, ValueError) as err:
-                raise ValueError(f"{what}: {name} is not a numeric array ({err})") from None
-            if arr.shape != shape:
-                raise ValueError(f"{what}: {name} has shape {arr.shape}, the actor's is {shape}")
-            if not np.all(np.isfinite(arr)):
-                raise ValueError(f"{what}: {name} has non-finite values")
-            out[name] = torch.from_numpy(arr.copy())
-        return out
-
-    def apply_gradient(self, grad: Mapping[str, Any]) -> None:
-        """Algorithm 2, "update pi_theta with the received g_bar": set the actor's .grad to ``grad`` and take
-        one actor-optimizer (Adam) step. Validates everything first; on ValueError nothing changed."""
-        checked = self._checked(grad, "gradient")
-        self.actor_optimizer.zero_grad()
-        for name, p in self.actor.named_parameters():
-            p.grad = checked[name].clone()
-        self.actor_optimizer.step()
-        self.actor_optimizer.zero_grad()
+    def apply_gradient(self, grad: Mapping[str, np.ndarray]) -> None:
+        """Algorithm 2, "update pi_theta with the received g_bar": one actor-optimizer (Adam) step with ``grad``."""
+        self.apply_step(None, grad)
 
     @torch.no_grad()
     def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None:
         """Eq. 11 in place: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1].
 
         Only the actor is blended (the critic and, with ``normalize_obs``, the observation statistics stay the
-        worker's own). Validates everything first; on ValueError nothing changed."""
+        worker's own). A ValueError for a weight outside [0, 1], before anything changed."""
         w = float(keep_weight)
         if not (math.isfinite(w) and 0.0 <= w <= 1.0):
             raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
-        checked = self._checked(params, "transfer")
+        theta_bar = _tensors(params, self.actor)
         for name, p in self.actor.named_parameters():
-            p.mul_(w).add_(checked[name], alpha=1.0 - w)
+            p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
 
     # -- persistence ----------------------------------------------------------------------------------------
 

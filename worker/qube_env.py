@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import itertools
 import logging
-import math
 import queue
 import time
 from typing import Any
@@ -28,15 +27,13 @@ from gymnasium import spaces
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
+from protocol.qube import BALANCE_BAND, MAX_RETURN, PERIOD_S
 from protocol.routes import qos_of
 from rpi_bridge.control import ControlConfig, ControlCore, Sensed
 
 log = logging.getLogger("worker.qube")
 
 ACTIONS = (-60, 0, 60)  # SPI motor counts: turn left, stop, turn right
-BALANCE_BAND = math.radians(7.5)
-MAX_RETURN = 2450
-PERIOD_S = 0.007
 
 
 def observation(alpha: float, alpha_dot: float, theta: float, theta_dot: float) -> np.ndarray:
@@ -106,9 +103,6 @@ class QubeMqttEnv(_QubeTask):
             msg = decode(payload, QubeState, QubeStatus, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
-            return
-        if msg.rig_id != self.rig_id:
-            self.rejects.reject(topic, "spoofed", f"payload names rig {msg.rig_id!r}, this env drives {self.rig_id!r}")
             return
         self.inbox.put(msg)
 

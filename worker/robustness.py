@@ -100,8 +100,8 @@ def run_rig(act: Callable[[np.ndarray], int], profile: RigProfile, rig: int, see
         end = start + d.pulse_ms / 1e3
         survived = not fell or balance_s >= end + d.settle_s
         pulses.append({"start_s": round(start, 3), "torque_nm": round(signed * torque, 6), "survived": survived})
-    survived = [abs(p["torque_nm"]) for p in pulses if p["survived"]]
-    largest = max(survived, default=0.0)
+    survived_nm = [abs(float(p["torque_nm"])) for p in pulses if p["survived"]]
+    largest = max(survived_nm, default=0.0)
     return RigResult(rig=rig, seed=seed, balanced_to_end=not fell, balance_s=round(balance_s, 3),
                      largest_pulse_nm=largest, largest_pulse_of_stall=round(largest / torque, 4), pulses=pulses)
 

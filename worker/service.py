@@ -99,7 +99,7 @@ class WorkerService:
         self.inbox.put((topic, msg))
 
     def _status(self, state: str, episode: int = 0, pi: float | None = None, detail: str = "") -> None:
-        msg = WorkerStatus(worker_id=self.cfg.worker_id, state=state, episode=episode, pi=pi, detail=detail)  # type: ignore[arg-type]
+        msg = WorkerStatus(worker_id=self.cfg.worker_id, state=state, episode=episode, pi=pi, detail=detail)
         self._send(topics.STATUS, encode(msg))
 
     # -- main ------------------------------------------------------------------------------------------------
@@ -166,7 +166,7 @@ class WorkerService:
                           rounds_per_episode=start.rounds_per_episode)
         try:
             while algo.next_episode <= start.max_episodes and self.stop is None:
-                submission = algo.play()
+                submission: WorkerUpdate | MatureParams | None = algo.play()
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner)
                     ack = self._hand_over(submission)

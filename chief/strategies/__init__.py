@@ -14,6 +14,7 @@ from chief.strategies.base import Aggregate, Strategy
 
 __all__ = ["Aggregate", "Strategy", "get", "markdown_table", "names", "registry"]
 
+#: The paper's strategy (PI-weighted gradients, Eq. 8-10, and soft transfer, Eq. 11): every default names it.
 DEFAULT = "weighted"
 
 

@@ -33,20 +33,6 @@ def subscriptions(run_id: str, rigs: list[str] | None) -> list[tuple[str, int]]:
     return [(f, qos_of(f)) for f in filters]
 
 
-def sender_mismatch(topic: str, msg: Message) -> str | None:
-    """Why a message's own id contradicts its topic (a worker speaking for another, a rig for another), or None."""
-    parts = topic.split("/")
-    if len(parts) == 5 and parts[0] == topics.FEDRL and parts[2] == "worker":
-        claimed = getattr(msg, "worker_id", None)
-        if claimed is not None and claimed != parts[3]:
-            return f"payload says worker {claimed!r}, topic says {parts[3]!r}"
-    if len(parts) == 3 and parts[0] == topics.QUBE:
-        claimed = getattr(msg, "rig_id", None)
-        if claimed is not None and claimed != parts[1]:
-            return f"payload says rig {claimed!r}, topic says {parts[1]!r}"
-    return None
-
-
 class MqttFeed:
     """Decoded messages of one run into a Hub."""
 
@@ -76,10 +62,6 @@ class MqttFeed:
                 log.debug("ignored message on %s: %s", topic, err.detail)
             else:
                 self.rejects.reject_error(topic, err)
-            return
-        problem = sender_mismatch(topic, msg)
-        if problem is not None:
-            self.rejects.reject(topic, "spoofed", problem)
             return
         try:
             self.inbox.put_nowait((topic, msg, time.time()))

@@ -21,9 +21,9 @@ import urllib.request
 from pathlib import Path
 from typing import Any
 
-from deploy.run_local import wait_for_url
 from services.broker.embedded import start_broker_process, stop_process
 from services.dashboard.browser import chromium, missing, page_state
+from services.dashboard.service import wait_for_url
 
 
 def interrupt(proc: subprocess.Popen, timeout: float = 30.0) -> None:
@@ -57,7 +57,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--env", default="CartPole-v0", help="task of the run (default CartPole-v0)")
     parser.add_argument("--workers", type=int, default=4)
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--policy", default="weighted")
+    parser.add_argument("--policy", help="federation strategy (default: the launcher's)")
     parser.add_argument("--seconds", type=float, default=300.0, help="take the picture after this long at the latest")
     parser.add_argument("--width", type=int, default=1400, help="browser window width in CSS pixels")
     return parser.parse_args(argv)
@@ -89,8 +89,8 @@ def main(argv: list[str] | None = None) -> int:
             launched = time.time()
             run = subprocess.Popen(
                 [sys.executable, "-m", "deploy.run_local", "--broker", broker, "--run-id", run_id, "--env", args.env,
-                 "--workers", str(args.workers), "--seed", str(args.seed), "--policy", args.policy,
-                 "--dashboard-port", "off", "--run-dir", str(work / "run")],
+                 "--workers", str(args.workers), "--seed", str(args.seed), "--dashboard-port", "off",
+                 "--run-dir", str(work / "run"), *(["--policy", args.policy] if args.policy else [])],
                 stdout=(work / "run.log").open("wb"), stderr=subprocess.STDOUT)
             procs.append(run)
             first_point: float | None = None

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import logging
 import signal
+import subprocess
 import threading
+import time
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -80,3 +82,15 @@ class DashboardService:
     def install_signal_handlers(self) -> None:
         for sig in (signal.SIGINT, signal.SIGTERM):
             signal.signal(sig, lambda *_: self.stop_event.set())
+
+
+def wait_for_url(proc: subprocess.Popen, url_file: Path, timeout: float = 20.0) -> str | None:
+    """The URL the dashboard wrote once it served its page, or None when it exited or took too long."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if url_file.exists():
+            return url_file.read_text().strip()
+        if proc.poll() is not None:
+            return None
+        time.sleep(0.05)
+    return None

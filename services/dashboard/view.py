@@ -37,9 +37,6 @@ from protocol.messages import (
 
 Event = dict[str, Any]
 
-#: Worker states shown on the page. ``lagging``: training, but the last closed round went on without it.
-WORKER_STATES = ("waiting", "training", "lagging", "finished", "stopped", "offline", "error")
-
 
 def _round(value: float | None, digits: int = 4) -> float | None:
     return None if value is None else round(float(value), digits)

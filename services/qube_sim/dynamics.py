@@ -1,7 +1,8 @@
 """Rotary inverted pendulum physics of the QUBE-Servo 2 (pure Python, RK4).
 
-Equations of motion: gym_brt ``qube_simulator.py`` ("From Rotary Pendulum Workbook"), see
-reference/qube-servo2.md section 2, with one correction: the motor torque is the physically consistent
+Equations of motion: gym_brt's ``gym_brt/quanser/qube_simulator.py`` (BlueRiverTech/quanser-openai-driver, "From
+Rotary Pendulum Workbook"), parameters from the QUBE-Servo 2 User Manual v1.0 Table 2.2, with one correction: the
+motor torque is the physically consistent
 
     tau = -km * (V + km * theta_dot) / Rm
 
@@ -123,7 +124,7 @@ def friction(coulomb: float, static: float, speed: float, p: QubeParams) -> floa
 def derivatives(
     p: QubeParams, theta_dot: float, alpha: float, alpha_dot: float, tau: float
 ) -> tuple[float, float]:
-    """(theta_ddot, alpha_ddot): gym_brt equations of motion (reference/qube-servo2.md section 2), plus dry
+    """(theta_ddot, alpha_ddot): gym_brt equations of motion (``qube_simulator.py``), plus dry
     friction next to the viscous terms: the arm's generalised force is tau - Dr*theta_dot - F(Cr, Sr, theta_dot),
     the pendulum's -Dp*alpha_dot - F(Cp, Sp, alpha_dot) (:func:`friction`). ``tau`` includes any external torque
     on the arm (the cable's: see :meth:`QubeDynamics._rates`)."""

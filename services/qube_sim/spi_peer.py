@@ -34,6 +34,7 @@ import random
 from collections import deque
 from collections.abc import Callable
 
+from protocol import qube
 from rpi_bridge.frame import (
     CURRENT_SCALE,
     CURRENT_ZERO,
@@ -67,7 +68,7 @@ class SimulatedQube:
         self,
         params: QubeParams | None = None,
         seed: int | None = None,
-        period_s: float | None = 0.007,
+        period_s: float | None = qube.PERIOD_S,
         clock: Callable[[], float] | None = None,
         arm_limit: float = 2.0,
         max_substep_s: float = 1e-3,

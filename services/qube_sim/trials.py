@@ -14,13 +14,14 @@ import math
 import random
 from dataclasses import dataclass, replace
 
+from protocol import qube
 from rpi_bridge.control import ControlConfig, ControlCore
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.dynamics import QubeParams
 from services.qube_sim.spi_peer import SimulatedQube
 
-PERIOD_S = 0.007
-END_STOP = math.radians(115.0)  # the QUBE's arm stops (ARCHITECTURE.md: the bridge's limit is 110, stops ~115)
+PERIOD_S = qube.PERIOD_S
+END_STOP = math.radians(115.0)  # the QUBE's arm stops, beyond rpi_bridge's 110 deg arm limit
 
 
 @dataclass(frozen=True)

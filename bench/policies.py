@@ -22,6 +22,7 @@ from pathlib import Path
 
 from chief import strategies
 from chief.audit import AuditFailure, audit
+from chief.records import SUMMARY, RunSummary
 from protocol.tasks import TASKS
 
 RESULTS = Path("bench/results")
@@ -39,20 +40,18 @@ def run_once(env_id: str, policy: str, seed: int, workers: int, max_episodes: in
          "--workers", str(workers), "--max-episodes", str(max_episodes), "--run-dir", str(run_dir), *extra],
         capture_output=True, text=True)
     wall = time.monotonic() - t0
-    summary_path = run_dir / "summary.json"
-    if not summary_path.exists():
+    if not (run_dir / SUMMARY).exists():
         return {"policy": policy, "seed": seed, "error": proc.stdout[-2000:] + proc.stderr[-2000:], "wall_s": wall}
-    s = json.loads(summary_path.read_text())
+    s = RunSummary.read(run_dir)
     try:
         report = audit(run_dir)
         audited = f"passed: {report}"
     except AuditFailure as failure:
         audited = f"FAILED: {failure}"
-    return {"policy": policy, "seed": seed, "mode": mode, "episodes_to_all_solved": s["episodes_to_all_solved"],
-            "steps_of_last_worker": s["steps_of_last_worker"], "end_reason": s["end_reason"],
-            "first_solved": min((w["episodes"] for w in s["workers"] if w["solved"]), default=None),
-            "per_worker": {w["id"]: {"episodes": w["episodes"], "steps": w["steps"], "solved": w["solved"]}
-                           for w in s["workers"]},
+    return {"policy": policy, "seed": seed, "mode": mode, "episodes_to_all_solved": s.episodes_to_all_solved,
+            "steps_of_last_worker": s.steps_of_last_worker, "end_reason": s.end_reason,
+            "first_solved": min((w.episodes for w in s.workers if w.solved), default=None),
+            "per_worker": {w.id: {"episodes": w.episodes, "steps": w.steps, "solved": w.solved} for w in s.workers},
             "audit": audited, "wall_s": round(wall, 1), "run_dir": str(run_dir)}
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from chief.audit import audit
+from chief.records import RoundRecord, RunSummary, read_metrics
 from services.broker.embedded import free_port, wait_for_port
 
 RESULTS = Path("bench/results")
@@ -115,20 +116,20 @@ def main(argv: list[str] | None = None) -> int:
         broker.terminate()
         broker.wait(10)
     wall = time.monotonic() - t0
-    summary = json.loads((run_dir / "summary.json").read_text())
-    rounds = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if '"type":"round"' in x]
-    latency = [b["t"] - a["t"] for a, b in itertools.pairwise(rounds)]
+    summary = RunSummary.read(run_dir)
+    rounds = [r for r in read_metrics(run_dir) if isinstance(r, RoundRecord)]
+    latency = [b.t - a.t for a, b in itertools.pairwise(rounds)]
     # Steady state: the second half of the rounds (on the sampler's clock), not the start (imports, the workers'
     # hellos) nor the end (the chief's summary and plot).
     offset = chief_seen[0] if chief_seen else 0.0
-    round_t = [offset + r["t"] for r in rounds]
+    round_t = [offset + r.t for r in rounds]
     window = (round_t[len(round_t) // 2], round_t[-1]) if len(round_t) >= 4 else (wall / 2, wall)
     half = {name: [s for s in xs if window[0] <= s[0] <= window[1]] for name, xs in memory.items()}
     report: dict[str, Any] = {
         "workers": args.workers, "env": args.env, "policy": args.policy, "seed": args.seed, "broker": "mosquitto",
-        "launcher_exit": launcher.returncode, "wall_s": round(wall, 1), "rounds": summary["rounds"],
-        "episodes_to_all_solved": summary["episodes_to_all_solved"], "end_reason": summary["end_reason"],
-        "rejected_messages": summary["rejected_messages"], "duplicates": summary.get("duplicates"),
+        "launcher_exit": launcher.returncode, "wall_s": round(wall, 1), "rounds": summary.rounds,
+        "episodes_to_all_solved": summary.episodes_to_all_solved, "end_reason": summary.end_reason,
+        "rejected_messages": summary.rejected_messages, "duplicates": summary.duplicates,
         "round_latency_s": {"median": statistics.median(latency), "p95": sorted(latency)[int(0.95 * len(latency))],
                             "max": max(latency)} if latency else None,
         "memory_mib": {name: {"first": xs[0][1] if xs else None, "last": xs[-1][1] if xs else None,

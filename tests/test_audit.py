@@ -222,11 +222,11 @@ def test_a_finished_helpers_submission_may_outlive_the_run(tmp_path: Path, polic
     last = max(int(x["round"]) for x in lines if x["type"] == "round")
     per_episode = 3 if strategies.get(policy).per_step else 1
     episode, step = divmod(last, per_episode)
-    early = [x for x in lines if x["type"] in ("episode", "step") and x["worker"] == "w0"][-1]
+    early = [x for x in lines if x["type"] == "episode" and x["worker"] == "w0"][-1]
     closing = first(lines, type="round", round=last)
     receipt = {"round": last, "applied": closing["kind"], "digest": closing["digest"], "keep": None}
-    lines.append({**early, "type": "step" if step else "episode", "episode": episode + 1, "step": step,
-                  "round": last + 1, "receipt": receipt})
+    late = {"episode": episode + 1, "round": last + 1, "receipt": receipt}
+    lines.append({"type": "step", "worker": "w0", "step": step, "t": 0.0, **late} if step else {**early, **late})
     rewrite(tmp_path / policy, lines)
     if not strategies.get(policy).finishers_help:
         with pytest.raises(AuditFailure, match=r"contributors: round .* was counted but never closed"):

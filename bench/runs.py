@@ -197,7 +197,7 @@ def _mqtt_times(wid: str, n: int, episodes: list[EpisodeRecord], rounds: list[Ro
             "time_basis": "chief clock"}
 
 
-def learning_curve(episodes: list[EpisodeRecord]) -> dict[str, list[float]]:
+def learning_curve(episodes: list[EpisodeRecord]) -> dict[str, list[float | None]]:
     """The run's mean over workers of PI (last-10 average return) and of env steps, per episode.
 
     A worker that finished keeps its last PI and step count (it keeps its mature actor). At most CURVE_POINTS

@@ -2,20 +2,21 @@
 
 Reads ``summary.json`` and ``metrics.jsonl`` (what the chief accepted, and every round it closed) and re-derives what
 the federation must have done. It exits 0 when every invariant holds, 1 naming the first that does not, 2 when the
-folder cannot be read. The invariants:
+folder cannot be read. The invariants, each one function registered in ``CHECKS`` (run in that order, on the records
+as chief/records.py types them):
 
-- ``counted-once``: no worker's episode (or, under a per-step strategy, step) is counted twice;
 - ``rounds-contiguous``: rounds are 1, 2, ... without gaps, as many as the summary says, each the round of its
   (episode, step);
+- ``counted-once``: no worker's episode (or, under a per-step strategy, step) is counted twice;
 - ``contributors``: a round's contributors are exactly the submissions counted for its episode, and every counted
   submission belongs to a round (a run that was aborted may leave some in the round it never closed);
 - ``round-pis``: the PIs a round used are the PIs of its counted submissions;
 - ``mature``: a mature actor was accepted only with PI >= TC over PI_WINDOW episodes, PI the mean of its returns;
   nothing of a worker was counted after it finished (unless its strategy lets finishers go on sharing);
-- ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
-  sum to 1;
 - ``transfer``: in every round where a worker finished while others were still learning, the best finisher's actor
   went to each of them, with keep weights = Eq. 10 of each recipient's PI at that round (strategies that share);
+- ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
+  sum to 1;
 - ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
   answer (same tensor digest, same keep weight);
 - ``summary``: the summary's solve episodes, steps and totals agree with the records.

@@ -53,7 +53,7 @@ def test_optional_fields_appear_only_when_carried() -> None:
 def test_a_bad_line_is_named(tmp_path: Path) -> None:
     good = RoundRecord(round=1, episode=1, kind="aggregate", strategy="weighted", contributors=["w0"])
     (tmp_path / "metrics.jsonl").write_text(line(good) + "\n" + json.dumps({**good.dump(), "rogue": 1}) + "\n")
-    with pytest.raises(ValueError, match="metrics.jsonl line 2"):
+    with pytest.raises(ValueError, match=r"metrics\.jsonl line 2"):
         read_metrics(tmp_path)
     with pytest.raises(ValueError):
         parse_record({"type": "mystery"})

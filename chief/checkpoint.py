@@ -6,7 +6,8 @@ pending and early submissions, which episodes were counted, the answers of the l
 reject counters, the run's session id, and how far ``metrics.jsonl`` had been written. It is written atomically
 (temporary file, fsync, rename) whenever a round closes and before a mature actor is acknowledged, so what the chief
 confirmed to a worker is never lost. Tensors are stored as raw float32 bytes in msgpack, never pickled: a state file
-is data, and loading one runs no code.
+is data, and loading one runs no code. Its layout is chief.records.ChiefState (validated when written and read);
+workers' records are restored field by field, by name.
 
 What is not kept (and need not be): gradients accepted since the last write. Workers send a submission again when
 the chief comes back (they see its RunStart), and everything is idempotent by worker and episode, so the resumed
@@ -15,9 +16,9 @@ chief counts each episode once and records it once (``metrics.jsonl`` is cut bac
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Mapping
-from dataclasses import fields
 from pathlib import Path
 from typing import Any
 
@@ -70,9 +71,9 @@ def _unoutcome(d: dict[str, Any]) -> RoundOutcome:
 
 def keeper_state(k: RoundKeeper) -> KeeperState:
     """Everything a RoundKeeper needs to go on, as plain data."""
-    workers = [SavedWorker(**{f.name: getattr(rec, f.name) for f in fields(WorkerRecord) if f.name not in _PAIRS},
-                           returns=sorted(rec.returns.items()), pis=sorted(rec.pis.items()))
-               for rec in k.workers.values()]
+    names = [f.name for f in dataclasses.fields(WorkerRecord) if f.name not in _PAIRS]
+    workers = [SavedWorker(**{name: getattr(rec, name) for name in names}, returns=sorted(rec.returns.items()),
+                           pis=sorted(rec.pis.items())) for rec in k.workers.values()]
     last = sorted(k.answers)[-ANSWERS_SAVED:]
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,

@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 
 from chief import strategies
+from chief.records import RoundRecord, read_metrics
 from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import (
@@ -244,7 +245,7 @@ def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = stra
                 times.append(fleet.round(episode, previous))
                 previous = fleet.latest(episode)
             chief.wait(60)
-            inside = _chief_side(run_dir / "metrics.jsonl")
+            inside = _chief_side(run_dir)
         finally:
             if fleet is not None:
                 fleet.stop()
@@ -258,16 +259,15 @@ def chief_load(broker_kind: str, workers: int, rounds: int, strategy: str = stra
             "chief_receive_s": _summary(inside["receive"][1:]), "chief_aggregate_s": _summary(inside["aggregate"][1:])}
 
 
-def _chief_side(metrics: Path) -> dict[str, list[float]]:
+def _chief_side(run_dir: Path) -> dict[str, list[float]]:
     """Per round, from the chief's records: first to last accepted update, and last update to the round's record."""
     accepted: dict[int, list[float]] = {}
     closed: dict[int, float] = {}
-    for line in metrics.read_text().splitlines():
-        rec = json.loads(line)
-        if rec.get("type") == "round":
-            closed[rec["round"]] = rec["t"]
+    for rec in read_metrics(run_dir):
+        if isinstance(rec, RoundRecord):
+            closed[rec.round] = rec.t
         else:
-            accepted.setdefault(rec.get("round", rec["episode"]), []).append(rec["t"])
+            accepted.setdefault(rec.round, []).append(rec.t)
     receive, aggregate = [], []
     for r in sorted(closed):
         ts = accepted.get(r, [])

@@ -32,6 +32,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from chief.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_metrics
+
 #: Most points a run's learning curve keeps (evenly spaced, the last one always).
 CURVE_POINTS = 250
 
@@ -93,24 +95,17 @@ def _run_mqtt(job: Job, run_dir: Path) -> None:
          "--workers", str(job.workers), "--max-episodes", str(job.max_episodes), "--run-dir", str(run_dir),
          "--run-id", f"bench-{job.strategy}-s{job.seed}-n{job.workers}"],
         capture_output=True, text=True)
-    if not (run_dir / "summary.json").exists():
+    if not (run_dir / SUMMARY).exists():
         raise RuntimeError(f"deploy.run_local exited {proc.returncode} without a summary: "
                            f"{proc.stdout[-1500:]} {proc.stderr[-1500:]}")
 
 
-def read_records(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
+def read_records(run_dir: Path) -> tuple[RunSummary, list[EpisodeRecord], list[RoundRecord]]:
     """summary.json, the episode records and the round records of metrics.jsonl (the later-step records of a
     per-step strategy are left out: the episode record has what the benchmark needs)."""
-    summary = json.loads((run_dir / "summary.json").read_text())
-    episodes, rounds = [], []
-    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
-        if line.strip():
-            rec = json.loads(line)
-            if rec.get("type") == "round":
-                rounds.append(rec)
-            elif rec.get("type") == "episode":
-                episodes.append(rec)
-    return summary, episodes, rounds
+    records = read_metrics(run_dir)
+    return (RunSummary.read(run_dir), [r for r in records if isinstance(r, EpisodeRecord)],
+            [r for r in records if isinstance(r, RoundRecord)])
 
 
 def collect(run_dir: Path, job: Job) -> dict[str, Any]:
@@ -124,22 +119,22 @@ def collect(run_dir: Path, job: Job) -> dict[str, Any]:
         audited = {"passed": False, "detail": str(failure)}
     timing_path = run_dir / "timing.json"
     timing = json.loads(timing_path.read_text()) if timing_path.exists() else None
-    mode = summary.get("mode", "mqtt")
-    workers = per_worker(summary, episodes, rounds, timing, int(summary.get("rounds_per_episode", 1)))
-    finished = summary["episodes_to_all_solved"] is not None
+    mode = summary.mode or "mqtt"
+    workers = per_worker(summary, episodes, rounds, timing, summary.rounds_per_episode)
+    finished = summary.episodes_to_all_solved is not None
     last = max(workers, key=lambda w: (w["episodes"], w["steps"]))
     solved = [w for w in workers if w["solved"]]
     return {
         "kind": job.kind, "task": job.task, "strategy": job.strategy, "seed": job.seed, "workers": job.workers,
-        "max_episodes": job.max_episodes, "mode": mode, "finished": finished, "end_reason": summary["end_reason"],
-        "rounds": summary["rounds"],
+        "max_episodes": job.max_episodes, "mode": mode, "finished": finished, "end_reason": summary.end_reason,
+        "rounds": summary.rounds,
         "last_worker": {"episodes": last["episodes"] if finished else None,
                         "steps": last["steps"] if finished else None,
                         "wall_s": max((w["wall_s"] for w in workers if w["wall_s"] is not None), default=None)
                         if finished else None,
                         "episodes_reached": last["episodes"], "steps_reached": last["steps"]},
         "first_worker_episodes": min((w["episodes"] for w in solved), default=None),
-        "solved_workers": len(solved), "total_steps": summary["total_steps"], "per_worker": workers,
+        "solved_workers": len(solved), "total_steps": summary.total_steps, "per_worker": workers,
         "audit": audited, "curve": learning_curve(episodes), "run_dir": str(run_dir),
     }
 
@@ -153,20 +148,20 @@ def outcome(r: dict[str, Any]) -> tuple[int | None, int | None]:
     return r["last_worker"]["episodes"], r["last_worker"]["steps"]
 
 
-def per_worker(summary: dict[str, Any], episodes: list[dict[str, Any]], rounds: list[dict[str, Any]],
+def per_worker(summary: RunSummary, episodes: list[EpisodeRecord], rounds: list[RoundRecord],
                timing: dict[str, Any] | None, per_episode: int = 1) -> list[dict[str, Any]]:
     """Each worker's episodes, steps, own time, wall time, waiting share and env steps per second."""
     out = []
-    for w in summary["workers"]:
-        n, steps = int(w["episodes"]), int(w["steps"])
-        row = {"id": w["id"], "solved": bool(w["solved"]), "episodes": n, "steps": steps}
+    for w in summary.workers:
+        n, steps = w.episodes, w.steps
+        row: dict[str, Any] = {"id": w.id, "solved": w.solved, "episodes": n, "steps": steps}
         if timing is not None:
-            row.update(_modelled_times(w["id"], n, timing, per_episode))
+            row.update(_modelled_times(w.id, n, timing, per_episode))
         else:
-            row.update(_mqtt_times(w["id"], n, episodes, rounds, per_episode))
+            row.update(_mqtt_times(w.id, n, episodes, rounds, per_episode))
         own = row.get("own_s")
         row["steps_per_s"] = round(row.pop("timed_steps", steps) / own, 1) if own else None
-        if not w["solved"]:
+        if not w.solved:
             row["wall_s"] = None if timing is None else row["wall_s"]
         out.append(row)
     return out
@@ -187,40 +182,39 @@ def _modelled_times(wid: str, n: int, timing: dict[str, Any], per_episode: int =
             "wait_share": round(1.0 - own / wall, 4) if wall > 0 else None, "time_basis": "modelled"}
 
 
-def _mqtt_times(wid: str, n: int, episodes: list[dict[str, Any]], rounds: list[dict[str, Any]],
+def _mqtt_times(wid: str, n: int, episodes: list[EpisodeRecord], rounds: list[RoundRecord],
                 per_episode: int = 1) -> dict[str, Any]:
     """Over MQTT, from the chief's clock: accept times of the worker's episode submissions and of the answer to each
     episode's last round (an episode's later-step exchanges count as waiting)."""
-    sent = {r["episode"]: r for r in episodes if r["worker"] == wid}
-    answered = {(r["round"] - 1) // per_episode + 1: r["t"] for r in rounds
-                if (r["round"] - 1) % per_episode == per_episode - 1}
-    start = min((r["t"] for r in episodes), default=0.0)
+    sent = {r.episode: r for r in episodes if r.worker == wid}
+    answered = {r.episode: r.t for r in rounds if r.step == per_episode - 1}
+    start = min((r.t for r in episodes), default=0.0)
     own = wait = 0.0
     steps = 0
     for e in range(1, n + 1):
         if e not in sent:
             continue
-        t = sent[e]["t"]
+        t = sent[e].t
         if e >= 2 and (e - 1) in answered:  # from the previous answer to this submission: the worker's own time
             own += max(0.0, t - answered[e - 1])
-            steps += int(sent[e]["steps"])
+            steps += sent[e].steps
         if e < n and e in answered:  # from this submission to the round's answer: waiting
             wait += max(0.0, answered[e] - t)
-    end = sent[n]["t"] if n in sent else None
+    end = sent[n].t if n in sent else None
     return {"own_s": round(own, 3), "wall_s": round(end - start, 3) if end is not None else None,
             "wait_share": round(wait / (wait + own), 4) if wait + own > 0 else None, "timed_steps": steps,
             "time_basis": "chief clock"}
 
 
-def learning_curve(episodes: list[dict[str, Any]]) -> dict[str, list[float | None]]:
+def learning_curve(episodes: list[EpisodeRecord]) -> dict[str, list[float | None]]:
     """The run's mean over workers of PI (last-10 average return) and of env steps, per episode.
 
     A worker that finished keeps its last PI and step count (it keeps its mature actor). At most CURVE_POINTS
     points, evenly spaced, always the last.
     """
     by_worker: dict[str, dict[int, tuple[float, int]]] = {}
-    for rec in sorted(episodes, key=lambda r: r["episode"]):
-        by_worker.setdefault(rec["worker"], {})[int(rec["episode"])] = (float(rec["pi"]), int(rec["steps"]))
+    for rec in sorted(episodes, key=lambda r: r.episode):
+        by_worker.setdefault(rec.worker, {})[rec.episode] = (rec.pi, rec.steps)
     if not by_worker:
         return {"episode": [], "pi": [], "steps": []}
     last = max(max(v) for v in by_worker.values())

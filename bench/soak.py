@@ -23,6 +23,7 @@ from typing import Any
 
 from chief import strategies
 from chief.audit import audit
+from chief.records import RoundRecord, RunSummary, read_metrics
 from services.broker import mosquitto
 
 RESULTS = Path("bench/results")
@@ -109,20 +110,35 @@ def main(argv: list[str] | None = None) -> int:
         broker.terminate()
         broker.wait(10)
     wall = time.monotonic() - t0
-    summary = json.loads((run_dir / "summary.json").read_text())
-    rounds = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines() if '"type":"round"' in x]
-    latency = [b["t"] - a["t"] for a, b in itertools.pairwise(rounds)]
+    report = measure(args, run_dir, launcher.returncode, wall, memory, chief_seen[0] if chief_seen else 0.0)
+    try:
+        report["audit"] = f"passed: {audit(run_dir)}"
+    except Exception as err:  # the report says what failed; the soak's job is to measure
+        report["audit"] = f"FAILED: {err}"
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "soak.json").write_text(json.dumps(report, indent=1) + "\n")
+    plot(report, args.out / "soak.png")
+    print(json.dumps({k: v for k, v in report.items() if k not in ("samples", "round_t")}, indent=1))
+    return 0 if launcher.returncode == 0 else 1
+
+
+def measure(args: argparse.Namespace, run_dir: Path, launcher_exit: int, wall: float,
+            memory: dict[str, list[tuple[float, float]]], offset: float) -> dict[str, Any]:
+    """The soak's report from the run folder's records and the memory samples (``offset``: when the sampler first
+    saw the chief, on its clock)."""
+    summary = RunSummary.read(run_dir)
+    rounds = [r for r in read_metrics(run_dir) if isinstance(r, RoundRecord)]
+    latency = [b.t - a.t for a, b in itertools.pairwise(rounds)]
     # Steady state: the second half of the rounds (on the sampler's clock), not the start (imports, the workers'
     # hellos) nor the end (the chief's summary and plot).
-    offset = chief_seen[0] if chief_seen else 0.0
-    round_t = [offset + r["t"] for r in rounds]
+    round_t = [offset + r.t for r in rounds]
     window = (round_t[len(round_t) // 2], round_t[-1]) if len(round_t) >= 4 else (wall / 2, wall)
     half = {name: [s for s in xs if window[0] <= s[0] <= window[1]] for name, xs in memory.items()}
-    report: dict[str, Any] = {
+    return {
         "workers": args.workers, "env": args.env, "policy": args.policy, "seed": args.seed, "broker": "mosquitto",
-        "launcher_exit": launcher.returncode, "wall_s": round(wall, 1), "rounds": summary["rounds"],
-        "episodes_to_all_solved": summary["episodes_to_all_solved"], "end_reason": summary["end_reason"],
-        "rejected_messages": summary["rejected_messages"], "duplicates": summary.get("duplicates"),
+        "launcher_exit": launcher_exit, "wall_s": round(wall, 1), "rounds": summary.rounds,
+        "episodes_to_all_solved": summary.episodes_to_all_solved, "end_reason": summary.end_reason,
+        "rejected_messages": summary.rejected_messages, "duplicates": summary.duplicates,
         "round_latency_s": {"median": statistics.median(latency), "p95": sorted(latency)[int(0.95 * len(latency))],
                             "max": max(latency)} if latency else None,
         "memory_mib": {name: {"first": xs[0][1] if xs else None, "last": xs[-1][1] if xs else None,
@@ -134,15 +150,6 @@ def main(argv: list[str] | None = None) -> int:
         "steady_window_s": [round(window[0], 1), round(window[1], 1)],
         "samples": memory, "round_t": [round(t, 3) for t in round_t],
     }
-    try:
-        report["audit"] = f"passed: {audit(run_dir)}"
-    except Exception as err:  # the report says what failed; the soak's job is to measure
-        report["audit"] = f"FAILED: {err}"
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "soak.json").write_text(json.dumps(report, indent=1) + "\n")
-    plot(report, args.out / "soak.png")
-    print(json.dumps({k: v for k, v in report.items() if k not in ("samples", "round_t")}, indent=1))
-    return 0 if launcher.returncode == 0 else 1
 
 
 def plot(report: dict[str, Any], path: Path) -> None:

@@ -2,20 +2,21 @@
 
 Reads ``summary.json`` and ``metrics.jsonl`` (what the chief accepted, and every round it closed) and re-derives what
 the federation must have done. It exits 0 when every invariant holds, 1 naming the first that does not, 2 when the
-folder cannot be read. The invariants:
+folder cannot be read. The invariants, each one function registered in ``CHECKS`` (run in that order, on the records
+as chief/records.py types them):
 
-- ``counted-once``: no worker's episode (or, under a per-step strategy, step) is counted twice;
 - ``rounds-contiguous``: rounds are 1, 2, ... without gaps, as many as the summary says, each the round of its
   (episode, step);
+- ``counted-once``: no worker's episode (or, under a per-step strategy, step) is counted twice;
 - ``contributors``: a round's contributors are exactly the submissions counted for its episode, and every counted
   submission belongs to a round (a run that was aborted may leave some in the round it never closed);
 - ``round-pis``: the PIs a round used are the PIs of its counted submissions;
 - ``mature``: a mature actor was accepted only with PI >= TC over PI_WINDOW episodes, PI the mean of its returns;
   nothing of a worker was counted after it finished (unless its strategy lets finishers go on sharing);
-- ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
-  sum to 1;
 - ``transfer``: in every round where a worker finished while others were still learning, the best finisher's actor
   went to each of them, with keep weights = Eq. 10 of each recipient's PI at that round (strategies that share);
+- ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
+  sum to 1;
 - ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
   answer (same tensor digest, same keep weight);
 - ``summary``: the summary's solve episodes, steps and totals agree with the records.
@@ -25,19 +26,22 @@ from __future__ import annotations
 
 import argparse
 import bisect
-import json
 import math
 import sys
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from chief import federation, strategies
+from chief.records import EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 from protocol.tasks import PI_WINDOW, performance_index
 from runtime.settings import program, returns_code
+
+Submitted = EpisodeRecord | StepRecord
 
 
 class AuditFailure(Exception):
@@ -75,231 +79,375 @@ def _close(a: float | None, b: float | None) -> bool:
     return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
 
 
-def _require(ok: bool, invariant: str, detail: str) -> None:
-    if not ok:
-        raise AuditFailure(invariant, detail)
-
-
-def load(run_dir: Path) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]], list[dict[str, Any]]]:
+def load(run_dir: Path) -> tuple[RunSummary, list[EpisodeRecord], list[StepRecord], list[RoundRecord]]:
     """summary, episode records, later-step records and round records of a run folder (OSError/ValueError when
     unreadable)."""
-    summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-    found: dict[str, list[dict[str, Any]]] = {"episode": [], "step": [], "round": []}
-    for number, line in enumerate((run_dir / "metrics.jsonl").read_text(encoding="utf-8").splitlines(), 1):
-        if not line.strip():
+    summary = RunSummary.read(run_dir)
+    records = read_metrics(run_dir)
+    return (summary, [r for r in records if isinstance(r, EpisodeRecord)],
+            [r for r in records if isinstance(r, StepRecord)], [r for r in records if isinstance(r, RoundRecord)])
+
+
+@dataclass
+class Run:
+    """A run folder's records, indexed for the checks (an index keeps the first of two records for one key: the
+    counted-once check names the second)."""
+
+    summary: RunSummary
+    episodes: list[EpisodeRecord]
+    steps: list[StepRecord]
+    rounds: list[RoundRecord]
+    report: AuditReport = field(default_factory=AuditReport)
+
+    @classmethod
+    def read(cls, run_dir: Path) -> Run:
+        summary, episodes, steps, rounds = load(run_dir)
+        return cls(summary, episodes, steps, rounds,
+                   AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)))
+
+    # -- rounds: the one place the audit maps (episode, step) to a round number and back ------------------------
+
+    def round_of(self, episode: int, step: int) -> int:
+        """Round number of (episode, step): (e - 1) * K + s + 1 (chief.rounds)."""
+        return (episode - 1) * self.summary.rounds_per_episode + step + 1
+
+    def place_of(self, round_: int) -> tuple[int, int]:
+        """(episode, step) of a round number."""
+        episode, step = divmod(round_ - 1, self.summary.rounds_per_episode)
+        return episode + 1, step
+
+    # -- indexes ---------------------------------------------------------------------------------------------
+
+    @property
+    def strategy(self) -> strategies.Strategy:
+        return strategies.get(self.summary.policy)
+
+    @property
+    def workers(self) -> list[str]:
+        return [w.id for w in self.summary.workers]
+
+    @property
+    def submissions(self) -> list[Submitted]:
+        return [*self.episodes, *self.steps]
+
+    @staticmethod
+    def step(e: Submitted) -> int:
+        return e.step if isinstance(e, StepRecord) else 0
+
+    @cached_property
+    def by_round(self) -> dict[tuple[str, int], Submitted]:
+        """Counted submissions by (worker, round of their episode and step)."""
+        out: dict[tuple[str, int], Submitted] = {}
+        for e in self.submissions:
+            out.setdefault((e.worker, self.round_of(e.episode, self.step(e))), e)
+        return out
+
+    @cached_property
+    def by_episode(self) -> dict[tuple[str, int], EpisodeRecord]:
+        """Episode records by (worker, episode)."""
+        out: dict[tuple[str, int], EpisodeRecord] = {}
+        for e in self.episodes:
+            out.setdefault((e.worker, e.episode), e)
+        return out
+
+    @cached_property
+    def per_round(self) -> dict[int, dict[str, Submitted]]:
+        """Round number -> worker -> its counted submission."""
+        out: dict[int, dict[str, Submitted]] = defaultdict(dict)
+        for (w, n), e in self.by_round.items():
+            out[n][w] = e
+        return out
+
+    @cached_property
+    def finished_in(self) -> dict[str, int]:
+        """The round of each worker's (first) counted mature actor."""
+        out: dict[str, int] = {}
+        for (w, n), e in sorted(self.by_round.items(), key=lambda kv: kv[0][1]):
+            if _mature(e):
+                out.setdefault(w, n)
+        return out
+
+    @cached_property
+    def solved_at(self) -> dict[str, int]:
+        """The episode of each worker's (first) counted mature actor."""
+        return {w: self.place_of(n)[0] for w, n in self.finished_in.items()}
+
+    def pi_at(self, worker: str, episode: int) -> float | None:
+        """The PI of the worker's latest counted submission up to ``episode`` (what the chief's Eq. 10 used)."""
+        eps = sorted(ep for (x, ep) in self.by_episode if x == worker)
+        i = bisect.bisect_right(eps, episode)
+        return self.by_episode[(worker, eps[i - 1])].pi if i else None
+
+    def progress(self, pi: float | None) -> float:
+        s = self.summary
+        return federation.progress(s.r_floor if pi is None else pi, s.tc, s.r_floor)
+
+    @property
+    def ended_normally(self) -> bool:
+        return self.summary.end_reason.startswith(("all workers solved", "reached the maximum"))
+
+
+def _mature(e: Submitted) -> bool:
+    return isinstance(e, EpisodeRecord) and e.kind == "mature"
+
+
+# -- the invariants: one check each, run in this order by ``audit`` ------------------------------------------------
+
+
+class _Violated(Exception):
+    """Raised by a check; ``audit`` names the check's invariant."""
+
+
+def _holds(ok: bool, detail: str) -> None:
+    if not ok:
+        raise _Violated(detail)
+
+
+@dataclass(frozen=True)
+class Check:
+    """One invariant: its name (what a failure says) and the function that checks it."""
+
+    invariant: str
+    run: Callable[[Run], None]
+
+
+CHECKS: list[Check] = []
+
+
+def check(invariant: str) -> Callable[[Callable[[Run], None]], Callable[[Run], None]]:
+    """Register the decorated function as the check of ``invariant`` (in definition order)."""
+    def register(fn: Callable[[Run], None]) -> Callable[[Run], None]:
+        CHECKS.append(Check(invariant, fn))
+        return fn
+    return register
+
+
+@check("rounds-contiguous")
+def rounds_contiguous(run: Run) -> None:
+    """Algorithm 1's loop ``for i = 1, 2, ..., M``: the closed rounds are 1..M without a gap, as many as the summary
+    says, each at its (episode, step), and every counted submission is filed under the round of its (episode,
+    step)."""
+    for e in run.submissions:
+        n = run.round_of(e.episode, run.step(e))
+        _holds(e.round == n, f"{e.worker}'s episode {e.episode} step {run.step(e)} is filed as round {e.round}, "
+               f"not {n}")
+    numbers = [r.round for r in run.rounds]
+    _holds(numbers == list(range(1, len(numbers) + 1)), f"rounds are {numbers[:5]}...{numbers[-5:]}, not "
+           f"1..{len(numbers)}")
+    _holds(run.summary.rounds == len(numbers), f"the summary says {run.summary.rounds} rounds, the records have "
+           f"{len(numbers)}")
+    for r in run.rounds:
+        _holds((r.episode, r.step) == run.place_of(r.round), f"round {r.round} says episode {r.episode} step {r.step}")
+
+
+@check("counted-once")
+def counted_once(run: Run) -> None:
+    """Algorithm 1 receives one message m_n per worker n in a round, and Eq. 9 sums each worker's gradient once: no
+    worker's episode (or, under a per-step strategy, step) is counted twice, and only the run's workers count."""
+    seen: set[tuple[str, int]] = set()
+    for e in run.submissions:
+        key = (e.worker, run.round_of(e.episode, run.step(e)))
+        _holds(key not in seen, f"{e.worker}'s episode {e.episode} (step {run.step(e)}) is counted twice")
+        _holds(e.worker in run.workers, f"a submission of {e.worker}, who is not in the run, was counted")
+        seen.add(key)
+
+
+@check("contributors")
+def contributors(run: Run) -> None:
+    """Algorithm 1's P (the messages of round i) is exactly what Eq. 9 sums over: a round's contributors are the
+    submissions counted for it, and every counted submission belongs to a closed round (an aborted run may leave
+    some in the round it never closed; so may a finished helper, after the last finish)."""
+    last = len(run.rounds)
+    for n in sorted(run.per_round):
+        if n <= last:
             continue
-        record = json.loads(line)
-        kind = record.get("type")
-        if kind not in found:
-            raise ValueError(f"metrics.jsonl line {number}: unknown record type {kind!r}")
-        found[kind].append(record)
-    return summary, found["episode"], found["step"], found["round"]
+        # A worker that finished and keeps helping (finishers_help) may have its next submission accepted before
+        # the last learner's finish ends the run: that round is legitimately never closed.
+        helpers_only = run.strategy.finishers_help and all(run.finished_in.get(w, n) < n for w in run.per_round[n])
+        _holds(not run.ended_normally or helpers_only, f"round {n} of {sorted(run.per_round[n])} was counted but "
+               f"never closed, although the run ended normally ({run.summary.end_reason})")
+        run.report.uncounted += [(w, n) for w in sorted(run.per_round[n])]
+    for r in run.rounds:
+        counted = sorted(run.per_round.get(r.round, {}))
+        _holds(sorted(r.contributors) == counted, f"round {r.round} lists {sorted(r.contributors)} but the counted "
+               f"submissions are {counted}")
+
+
+@check("round-pis")
+def round_pis(run: Run) -> None:
+    """Eq. 8 weighs each gradient by its worker's PI^n: the PIs a round used are those of its counted submissions
+    (a later step repeats its episode's PI)."""
+    for r in run.rounds:
+        episode = run.place_of(r.round)[0]
+        expected = {w: run.by_episode[(w, episode)].pi for w in run.per_round.get(r.round, {})
+                    if (w, episode) in run.by_episode}
+        _holds(set(r.pis) == set(expected) and all(_close(r.pis[w], expected[w]) for w in expected),
+               f"round {r.round} used PIs {r.pis}, the counted submissions say {expected}")
+
+
+@check("mature")
+def mature(run: Run) -> None:
+    """Algorithm 1's mature actor theta_n: accepted only with PI >= TC over PI_WINDOW (10) episodes, PI the mean of
+    their returns (the paper's Performance Index), those returns the ones the worker reported; a worker finishes
+    once, and nothing of it is counted after it finished (unless its strategy lets finishers go on sharing)."""
+    tc, solved = run.summary.tc, set()
+    for (w, ep), e in sorted(run.by_episode.items(), key=lambda kv: kv[0][1]):
+        if e.kind != "mature":
+            continue
+        recent = e.recent_returns or []
+        pi = performance_index(recent) if recent else float("nan")
+        _holds(len(recent) >= PI_WINDOW and _close(pi, e.pi) and pi >= tc, f"{w}'s mature actor of episode {ep} was "
+               f"accepted with PI {e.pi} over {len(recent)} returns (mean {pi}); TC is {tc} over {PI_WINDOW}")
+        for back, value in enumerate(reversed(recent)):
+            known = run.by_episode.get((w, ep - back))
+            _holds(known is None or _close(known.return_, value), f"{w}'s mature PI counts a return of {value} for "
+                   f"episode {ep - back}, which it reported as {known and known.return_}")
+        _holds(w not in solved, f"{w} finished twice (episodes {run.solved_at.get(w)} and {ep})")
+        solved.add(w)
+    if not run.strategy.finishers_help:
+        late = sorted((w, e.episode) for (w, _), e in run.by_round.items()
+                      if e.episode > run.solved_at.get(w, math.inf))
+        _holds(not late, f"submissions counted after their worker had finished: {late[:3]}")
+
+
+@check("transfer")
+def transfer(run: Run) -> None:
+    """Algorithm 1's transfer branch with Eq. 10: in every round where a worker finished while others were still
+    learning (under a strategy that transfers), the best finisher's actor went to each of them, each keeping
+    w_T = Eq. 10 of its PI at that round; every other round is an aggregate."""
+    for r in run.rounds:
+        episode = run.place_of(r.round)[0]
+        finished = sorted(w for w, e in run.per_round.get(r.round, {}).items() if _mature(e))
+        _holds(sorted(r.finished) == finished, f"round {r.round} says {sorted(r.finished)} finished, the counted "
+               f"mature actors are {finished}")
+        learners = sorted(w for w in run.workers if run.solved_at.get(w, math.inf) > episode)
+        keeps = {w: run.strategy.keep_weight(run.progress(run.pi_at(w, episode))) for w in learners}
+        if finished and learners and all(k is not None for k in keeps.values()):
+            _transfer_round(run, r, finished, learners, keeps)
+            continue
+        _holds(r.kind == "aggregate", f"round {r.round} sent a transfer, but nobody both finished and left others "
+               "learning under a strategy that transfers")
+
+
+def _transfer_round(run: Run, r: RoundRecord, finished: list[str], learners: list[str],
+                    keeps: dict[str, float | None]) -> None:
+    """One round that must be a transfer: its source, recipients, their PIs and keep weights (Eq. 10)."""
+    n, episode = r.round, run.place_of(r.round)[0]
+    _holds(r.kind == "transfer", f"round {n}: {finished} finished while {learners} were learning, but no transfer "
+           "was sent")
+    pis = {w: run.by_episode[(w, episode)].pi for w in finished}  # a mature actor is its episode's record
+    best = federation.best_mature(pis)
+    _holds(r.source == best and _close(r.source_pi, pis[best]), f"round {n} transferred {r.source}'s actor; the "
+           f"best finisher was {best}")
+    _holds(sorted(r.keep_weights) == learners, f"round {n}'s transfer went to {sorted(r.keep_weights)}, the workers "
+           f"still learning were {learners}")
+    for w in learners:
+        _holds(_close(r.recipient_pis.get(w), run.pi_at(w, episode)), f"round {n}: {w}'s PI at that round was "
+               f"{run.pi_at(w, episode)}, the transfer used {r.recipient_pis.get(w)}")
+        _holds(_close(r.keep_weights[w], keeps[w]), f"round {n}: {w} kept {r.keep_weights[w]} of its actor, Eq. 10 "
+               f"gives {keeps[w]}")
+    run.report.transfers += 1
+    run.report.transfer_deliveries += len(learners)
+
+
+@check("eq8-weights")
+def eq8_weights(run: Run) -> None:
+    """Eq. 8 (w_n = progress_n / sum of progress, for ``weighted``; each strategy its own rule) and Eq. 9's
+    weighted sum: every aggregate's weights are the strategy's weights of that round's PIs and sum to 1; a round
+    without contributors shares nothing."""
+    for r in run.rounds:
+        if r.kind != "aggregate":
+            continue
+        sharing = sorted(w for w in r.contributors if w not in r.finished)  # the finishers only leave
+        if not sharing:
+            _holds(not r.weights and not r.digest, f"round {r.round} had no contributors but shared a gradient")
+            continue
+        zeros = {w: {"x": np.zeros(1, np.float32)} for w in sharing}
+        expected = run.strategy.aggregate(zeros, {w: run.progress(r.pis[w]) for w in sharing}).weights or {}
+        _holds(set(r.weights) == set(expected) and all(_close(r.weights[w], expected[w]) for w in expected),
+               f"round {r.round}'s weights are {r.weights}, {run.strategy.name} gives {expected} for PIs {r.pis}")
+        if expected:
+            total = sum(r.weights.values())
+            _holds(math.isclose(total, 1.0, abs_tol=1e-9), f"round {r.round}'s weights sum to {total}")
+
+
+@check("delivery")
+def delivery(run: Run) -> None:
+    """Algorithm 2 applies each answer (Eq. 9's g_bar, or Eq. 11's blend with w_T): each worker that took part in a
+    round (and did not finish in it) confirms with its next counted submission that it applied the round's answer
+    (same tensor digest, same keep weight); a finisher that goes on helping confirms, when it rejoins, the answers
+    of its finishing episode it caught up with."""
+    for r in run.rounds:
+        for w in sorted(set(r.contributors) - set(r.finished)):
+            nxt = run.by_round.get((w, r.round + 1))
+            if nxt is not None:
+                _receipt(r, w, nxt)
+                run.report.receipts += 1
+    if run.strategy.finishers_help:
+        _rejoined(run)
+
+
+def _receipt(r: RoundRecord, w: str, nxt: Submitted) -> None:
+    """``w``'s next submission confirms round ``r``'s answer."""
+    n, receipt = r.round, nxt.receipt
+    _holds(receipt is not None and receipt.round == n, f"{w}'s submission for round {n + 1} carries no receipt of "
+           f"round {n} ({receipt and receipt.model_dump()})")
+    assert receipt is not None
+    _holds(receipt.applied != "missed", f"round {n}'s {r.kind} never reached {w}")
+    _holds(receipt.applied == r.kind and receipt.digest == r.digest, f"{w} applied {receipt.applied} "
+           f"{receipt.digest!r} as round {n}'s answer, the chief sent {r.kind} {r.digest!r}")
+    if r.kind == "transfer":
+        _holds(_close(receipt.keep, r.keep_weights.get(w)), f"{w} kept {receipt.keep} of its actor in round {n}, "
+               f"the chief said {r.keep_weights.get(w)}")
+
+
+def _rejoined(run: Run) -> None:
+    """A finisher that goes on sharing (finishers_help) skipped the other rounds of its finishing episode; its first
+    submission after them confirms the round just before, so it applied every answer it missed and its networks are
+    the others' again."""
+    closed = {r.round: r for r in run.rounds}
+    for w, n in run.finished_in.items():
+        later = min((m for (x, m) in run.by_round if x == w and m > n), default=None)
+        if later is None or later - 1 not in closed:
+            continue
+        receipt, before = run.by_round[(w, later)].receipt, closed[later - 1]
+        _holds(receipt is not None and receipt.round == later - 1 and receipt.applied == before.kind
+               and receipt.digest == before.digest, f"{w} finished in round {n} and rejoined in round {later} "
+               f"without confirming round {later - 1}'s answer ({receipt and receipt.model_dump()}): it missed the "
+               "answers of its finishing episode")
+        run.report.receipts += 1
+
+
+@check("summary")
+def summary(run: Run) -> None:
+    """The reported result (the paper's episodes to solve, Fig. 5): the summary's solve episodes, env steps and
+    episodes_to_all_solved agree with the records."""
+    steps: dict[str, int] = defaultdict(int)
+    for (w, ep), e in sorted(run.by_episode.items(), key=lambda kv: kv[0][1]):
+        if ep <= run.solved_at.get(w, math.inf):
+            steps[w] += e.steps
+    for s in run.summary.workers:
+        w = s.id
+        _holds(s.solved == (w in run.solved_at), f"the summary says {w} solved={s.solved}, the records "
+               f"{'do' if w in run.solved_at else 'do not'} hold its mature actor")
+        if s.solved:
+            _holds(s.episodes == run.solved_at[w], f"the summary says {w} solved at episode {s.episodes}, the "
+                   f"records at {run.solved_at[w]}")
+            _holds(s.steps == steps[w], f"the summary gives {w} {s.steps} env steps, the records {steps[w]}")
+    expected = max(run.solved_at.values()) if len(run.solved_at) == len(run.workers) else None
+    _holds(run.summary.episodes_to_all_solved == expected, f"episodes_to_all_solved is "
+           f"{run.summary.episodes_to_all_solved}, the records give {expected}")
 
 
 def audit(run_dir: Path) -> AuditReport:
-    """Check every invariant; raises AuditFailure at the first one violated."""
-    summary, episodes, steps_done, rounds = load(run_dir)
-    strategy = strategies.get(summary["policy"])
-    tc, r_floor = float(summary["tc"]), float(summary["r_floor"])
-    per_episode = int(summary.get("rounds_per_episode", 1))
-    workers = [w["id"] for w in summary["workers"]]
-    report = AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps_done))
-
-    def progress(pi: float | None) -> float:
-        return federation.progress(r_floor if pi is None else pi, tc, r_floor)
-
-    def round_of(episode: int, step: int) -> int:
-        return (episode - 1) * per_episode + step + 1
-
-    # counted-once: every counted submission by (worker, round); the episode records by (worker, episode)
-    by_key: dict[tuple[str, int], dict[str, Any]] = {}
-    by_round: dict[tuple[str, int], dict[str, Any]] = {}
-    for e in episodes + steps_done:
-        step = int(e.get("step", 0))
-        key = (e["worker"], round_of(int(e["episode"]), step))
-        _require(int(e.get("round", key[1])) == key[1], "rounds-contiguous",
-                 f"{e['worker']}'s episode {e['episode']} step {step} is filed as round {e.get('round')}, not {key[1]}")
-        _require(key not in by_round, "counted-once",
-                 f"{key[0]}'s episode {e['episode']} (step {step}) is counted twice")
-        _require(key[0] in workers, "counted-once", f"a submission of {key[0]}, who is not in the run, was counted")
-        by_round[key] = e
-        if e["type"] == "episode":
-            by_key[(e["worker"], int(e["episode"]))] = e
-
-    # rounds-contiguous
-    numbers = [int(r["round"]) for r in rounds]
-    _require(numbers == list(range(1, len(rounds) + 1)), "rounds-contiguous",
-             f"rounds are {numbers[:5]}...{numbers[-5:]}, not 1..{len(rounds)}")
-    _require(summary["rounds"] == len(rounds), "rounds-contiguous",
-             f"the summary says {summary['rounds']} rounds, the records have {len(rounds)}")
-    last_round = len(rounds)
-
-    # contributors
-    per_round: dict[int, dict[str, dict[str, Any]]] = defaultdict(dict)
-    for (w, n), e in by_round.items():
-        per_round[n][w] = e
-    aborted = not str(summary.get("end_reason", "")).startswith(("all workers solved", "reached the maximum"))
-    finished_in: dict[str, int] = {}  # the round of each worker's counted mature actor
-    for (w, n), e in sorted(by_round.items(), key=lambda kv: kv[0][1]):
-        if e.get("kind") == "mature":
-            finished_in.setdefault(w, n)
-    for n in sorted(per_round):
-        if n > last_round:
-            # A worker that finished and keeps helping (finishers_help) may have its next submission accepted
-            # before the last learner's finish ends the run: that round is legitimately never closed.
-            helpers_only = strategy.finishers_help and all(finished_in.get(w, n) < n for w in per_round[n])
-            _require(aborted or helpers_only, "contributors",
-                     f"round {n} of {sorted(per_round[n])} was counted but never closed, "
-                     f"although the run ended normally ({summary.get('end_reason')})")
-            report.uncounted += [(w, n) for w in sorted(per_round[n])]
-    for r in rounds:
-        n = int(r["round"])
-        counted = sorted(per_round.get(n, {}))
-        _require(sorted(r["contributors"]) == counted, "contributors",
-                 f"round {n} lists {sorted(r['contributors'])} but the counted submissions are {counted}")
-
-    # round-pis and mature
-    for r in rounds:
-        n = int(r["round"])
-        _require((int(r.get("episode", n)), int(r.get("step", 0))) == ((n - 1) // per_episode + 1,
-                                                                       (n - 1) % per_episode),
-                 "rounds-contiguous", f"round {n} says episode {r.get('episode')} step {r.get('step')}")
-        episode_n = (n - 1) // per_episode + 1
-        expected = {w: by_key[(w, episode_n)]["pi"] for w in per_round.get(n, {}) if (w, episode_n) in by_key}
-        _require(set(r["pis"]) == set(expected) and all(_close(r["pis"][w], expected[w]) for w in expected),
-                 "round-pis", f"round {n} used PIs {r['pis']}, the counted submissions say {expected}")
-    solved_at: dict[str, int] = {}
-    for (w, ep), e in sorted(by_key.items(), key=lambda kv: kv[0][1]):
-        if e["kind"] != "mature":
-            continue
-        recent = e.get("recent_returns") or []
-        pi = performance_index(recent) if recent else float("nan")
-        _require(len(recent) >= PI_WINDOW and _close(pi, e["pi"]) and pi >= tc, "mature",
-                 f"{w}'s mature actor of episode {ep} was accepted with PI {e['pi']} over {len(recent)} returns "
-                 f"(mean {pi}); TC is {tc} over {PI_WINDOW}")
-        for back, value in enumerate(reversed(recent)):
-            known = by_key.get((w, ep - back))
-            _require(known is None or _close(known["return"], value), "mature",
-                     f"{w}'s mature PI counts a return of {value} for episode {ep - back}, which it reported as "
-                     f"{known and known['return']}")
-        _require(w not in solved_at, "mature", f"{w} finished twice (episodes {solved_at.get(w)} and {ep})")
-        solved_at[w] = ep
-    if not strategy.finishers_help:
-        late = sorted((w, int(e["episode"])) for (w, _), e in by_round.items() if int(e["episode"]) > solved_at.get(
-            w, math.inf))
-        _require(not late, "mature", f"submissions counted after their worker had finished: {late[:3]}")
-
-    # eq8-weights and transfer
-    counted_eps = {w: sorted(ep for (x, ep) in by_key if x == w) for w in workers}
-
-    def pi_at(worker: str, episode: int) -> float | None:
-        """The PI of the worker's latest counted submission up to ``episode`` (what the chief's Eq. 10 used)."""
-        eps = counted_eps[worker]
-        i = bisect.bisect_right(eps, episode)
-        return by_key[(worker, eps[i - 1])]["pi"] if i else None
-
-    for r in rounds:
-        n = int(r["round"])
-        episode_n = (n - 1) // per_episode + 1
-        finished = sorted(w for w, e in per_round.get(n, {}).items() if e.get("kind") == "mature")
-        _require(sorted(r["finished"]) == finished, "transfer",
-                 f"round {n} says {sorted(r['finished'])} finished, the counted mature actors are {finished}")
-        learners = sorted(w for w in workers if solved_at.get(w, math.inf) > episode_n)
-        keeps = {w: strategy.keep_weight(progress(pi_at(w, episode_n))) for w in learners}
-        transfers = bool(learners) and all(k is not None for k in keeps.values())
-        if finished and transfers:
-            _require(r["kind"] == "transfer", "transfer",
-                     f"round {n}: {finished} finished while {learners} were learning, but no transfer was sent")
-            best = federation.best_mature({w: per_round[n][w]["pi"] for w in finished})
-            _require(r["source"] == best and _close(r["source_pi"], per_round[n][best]["pi"]), "transfer",
-                     f"round {n} transferred {r['source']}'s actor; the best finisher was {best}")
-            _require(sorted(r["keep_weights"]) == learners, "transfer",
-                     f"round {n}'s transfer went to {sorted(r['keep_weights'])}, the workers still learning were "
-                     f"{learners}")
-            for w in learners:
-                _require(_close(r["recipient_pis"].get(w), pi_at(w, episode_n)), "transfer",
-                         f"round {n}: {w}'s PI at that round was {pi_at(w, episode_n)}, the transfer used "
-                         f"{r['recipient_pis'].get(w)}")
-                _require(_close(r["keep_weights"][w], keeps[w]), "transfer",
-                         f"round {n}: {w} kept {r['keep_weights'][w]} of its actor, Eq. 10 gives {keeps[w]}")
-            report.transfers += 1
-            report.transfer_deliveries += len(learners)
-            continue
-        _require(r["kind"] == "aggregate", "transfer", f"round {n} sent a transfer, but nobody both finished and "
-                 "left others learning under a strategy that transfers")
-        contributors = sorted(w for w in r["contributors"] if w not in finished)  # the finishers only leave
-        if not contributors:
-            _require(not r["weights"] and not r["digest"], "eq8-weights", f"round {n} had no contributors but "
-                     "shared a gradient")
-            continue
-        zeros = {w: {"x": np.zeros(1, np.float32)} for w in contributors}
-        expected_w = strategy.aggregate(zeros, {w: progress(r["pis"][w]) for w in contributors}).weights or {}
-        _require(set(r["weights"]) == set(expected_w)
-                 and all(_close(r["weights"][w], expected_w[w]) for w in expected_w), "eq8-weights",
-                 f"round {n}'s weights are {r['weights']}, {strategy.name} gives {expected_w} for PIs {r['pis']}")
-        if expected_w:
-            _require(math.isclose(sum(r["weights"].values()), 1.0, abs_tol=1e-9), "eq8-weights",
-                     f"round {n}'s weights sum to {sum(r['weights'].values())}")
-
-    # delivery: every worker that took part in a round (and did not finish in it) confirms, with its next counted
-    # submission, what it applied of that round's answer
-    for r in rounds:
-        n = int(r["round"])
-        for w in sorted(set(r["contributors"]) - set(r["finished"])):
-            nxt = by_round.get((w, n + 1))
-            if nxt is None:
-                continue
-            receipt = nxt.get("receipt")
-            if receipt is None or int(receipt.get("round", -1)) != n:
-                raise AuditFailure("delivery", f"{w}'s submission for round {n + 1} carries no receipt of round {n} "
-                                   f"({receipt})")
-            _require(receipt["applied"] != "missed", "delivery", f"round {n}'s {r['kind']} never reached {w}")
-            _require(receipt["applied"] == r["kind"] and receipt.get("digest", "") == r["digest"], "delivery",
-                     f"{w} applied {receipt['applied']} {receipt.get('digest')!r} as round {n}'s answer, the chief "
-                     f"sent {r['kind']} {r['digest']!r}")
-            if r["kind"] == "transfer":
-                _require(_close(receipt.get("keep"), r["keep_weights"].get(w)), "delivery",
-                         f"{w} kept {receipt.get('keep')} of its actor in round {n}, the chief said "
-                         f"{r['keep_weights'].get(w)}")
-            report.receipts += 1
-
-    # delivery to helpers: a finisher that goes on sharing (finishers_help) skipped the other rounds of its finishing
-    # episode; its first submission after them confirms the round just before, so it applied every answer it missed
-    # and its networks are the others' again
-    if strategy.finishers_help:
-        closed = {int(r["round"]): r for r in rounds}
-        for w, n in finished_in.items():
-            later = min((m for (x, m) in by_round if x == w and m > n), default=None)
-            if later is None or later - 1 not in closed:
-                continue
-            receipt, before = by_round[(w, later)].get("receipt") or {}, closed[later - 1]
-            _require(int(receipt.get("round", -1)) == later - 1 and receipt.get("applied") == before["kind"]
-                     and receipt.get("digest", "") == before["digest"], "delivery",
-                     f"{w} finished in round {n} and rejoined in round {later} without confirming round "
-                     f"{later - 1}'s answer ({receipt or None}): it missed the answers of its finishing episode")
-            report.receipts += 1
-
-    # summary
-    steps: dict[str, int] = defaultdict(int)
-    for (w, ep), e in sorted(by_key.items(), key=lambda kv: kv[0][1]):
-        if ep <= solved_at.get(w, math.inf):
-            steps[w] += int(e["steps"])
-    for s in summary["workers"]:
-        w = s["id"]
-        _require(bool(s["solved"]) == (w in solved_at), "summary",
-                 f"the summary says {w} solved={s['solved']}, the records {'do' if w in solved_at else 'do not'} "
-                 "hold its mature actor")
-        if s["solved"]:
-            _require(s["episodes"] == solved_at[w], "summary",
-                     f"the summary says {w} solved at episode {s['episodes']}, the records at {solved_at[w]}")
-            _require(s.get("steps", steps[w]) == steps[w], "summary",
-                     f"the summary gives {w} {s.get('steps')} env steps, the records {steps[w]}")
-    all_solved = len(solved_at) == len(workers)
-    expected_last = max(solved_at.values()) if all_solved else None
-    _require(summary["episodes_to_all_solved"] == expected_last, "summary",
-             f"episodes_to_all_solved is {summary['episodes_to_all_solved']}, the records give {expected_last}")
-    return report
-
+    """Check every invariant (CHECKS, in order); raises AuditFailure at the first one violated."""
+    run = Run.read(run_dir)
+    for c in CHECKS:
+        try:
+            c.run(run)
+        except _Violated as violation:
+            raise AuditFailure(c.invariant, str(violation)) from None
+    return run.report
 
 @returns_code
 def main(argv: list[str] | None = None) -> int:

@@ -6,7 +6,8 @@ pending and early submissions, which episodes were counted, the answers of the l
 reject counters, the run's session id, and how far ``metrics.jsonl`` had been written. It is written atomically
 (temporary file, fsync, rename) whenever a round closes and before a mature actor is acknowledged, so what the chief
 confirmed to a worker is never lost. Tensors are stored as raw float32 bytes in msgpack, never pickled: a state file
-is data, and loading one runs no code.
+is data, and loading one runs no code. Its layout is chief.records.ChiefState (validated when written and read);
+workers' records are restored field by field, by name.
 
 What is not kept (and need not be): gradients accepted since the last write. Workers send a submission again when
 the chief comes back (they see its RunStart), and everything is idempotent by worker and episode, so the resumed
@@ -15,13 +16,16 @@ chief counts each episode once and records it once (``metrics.jsonl`` is cut bac
 
 from __future__ import annotations
 
+import dataclasses
 import os
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import msgpack
 import numpy as np
 
+from chief.records import ChiefState, KeeperState, SavedWorker, ServiceState
 from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
 from protocol.tasks import TaskSpec
 from protocol.tensors import TensorBlob
@@ -65,57 +69,65 @@ def _unoutcome(d: dict[str, Any]) -> RoundOutcome:
     return RoundOutcome(**{**d, **{k: _unarrays(d[k]) for k in TENSORS}})
 
 
-def keeper_state(k: RoundKeeper) -> dict[str, Any]:
+def keeper_state(k: RoundKeeper) -> KeeperState:
     """Everything a RoundKeeper needs to go on, as plain data."""
-    workers = []
-    for rec in k.workers.values():
-        workers.append({**{f: getattr(rec, f) for f in ("worker_id", "state", "pi", "last_episode", "solved_episode",
-                                                         "steps", "steps_at_solve", "last_round", "excused",
-                                                         "helping")},
-                        "returns": sorted(rec.returns.items()), "pis": sorted(rec.pis.items())})
+    names = [f.name for f in dataclasses.fields(WorkerRecord) if f.name not in _PAIRS]
+    workers = [SavedWorker(**{name: getattr(rec, name) for name in names}, returns=sorted(rec.returns.items()),
+                           pis=sorted(rec.pis.items())) for rec in k.workers.values()]
     last = sorted(k.answers)[-ANSWERS_SAVED:]
-    return {
-        "policy": k.policy, "env_id": k.task.env_id, "max_episodes": k.max_episodes,
-        "round_timeout": k.round_timeout, "actor_spec": k.actor_spec, "critic_spec": k.critic_spec,
-        "rounds_per_episode": k.rounds_per_episode, "round": k.round,
-        "workers": workers, "pending": [_submission(s) for s in k.pending.values()],
-        "ahead": [_submission(s) for subs in k.ahead.values() for s in subs.values()],
-        "counted": sorted(k.counted), "answers": [_outcome(k.answers[e]) for e in last],
-        "done_reason": k.done_reason, "aborted": k.aborted,
-    }
+    return KeeperState(
+        policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
+        actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.rounds_per_episode,
+        round=k.round, workers=workers, pending=[_submission(s) for s in k.pending.values()],
+        ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
+        counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
+        done_reason=k.done_reason, aborted=k.aborted)
 
 
-def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
+#: WorkerRecord's per-episode maps, saved as sorted (episode, value) pairs.
+_PAIRS = ("returns", "pis")
+
+
+def _spec(spec: dict[str, tuple[int, ...]] | None) -> dict[str, list[int]] | None:
+    return None if spec is None else {name: list(shape) for name, shape in spec.items()}
+
+
+def _unspec(spec: dict[str, list[int]] | None) -> dict[str, tuple[int, ...]] | None:
+    return None if spec is None else {name: tuple(shape) for name, shape in spec.items()}
+
+
+def restore_worker(saved: SavedWorker) -> WorkerRecord:
+    """The WorkerRecord a saved one describes, field by field."""
+    return WorkerRecord(**{**{f: getattr(saved, f) for f in SavedWorker.model_fields if f not in _PAIRS},
+                           **{f: dict(getattr(saved, f)) for f in _PAIRS}})
+
+
+def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
     """The RoundKeeper a state describes (its round timer starts afresh)."""
-    if state["env_id"] != task.env_id:
-        raise ValueError(f"the saved run learns {state['env_id']!r}, not {task.env_id!r}")
-    def spec(key: str) -> dict[str, tuple[int, ...]] | None:
-        return {name: tuple(shape) for name, shape in state[key].items()} if state[key] is not None else None
-
-    k = RoundKeeper([w["worker_id"] for w in state["workers"]], state["policy"], task, state["max_episodes"],
-                    state["round_timeout"], actor_spec=spec("actor_spec"), critic_spec=spec("critic_spec"),
-                    rounds_per_episode=state["rounds_per_episode"])
-    for w in state["workers"]:
-        rec = WorkerRecord(w["worker_id"], w["state"], w["pi"], w["last_episode"], w["solved_episode"], w["steps"],
-                           w["steps_at_solve"], dict(map(tuple, w["returns"])), dict(map(tuple, w["pis"])),
-                           w["last_round"], w["excused"], w["helping"])
-        k.workers[rec.worker_id] = rec
-    k.round = state["round"]
-    k.pending = {s["worker_id"]: _unsubmission(s) for s in state["pending"]}
-    for s in state["ahead"]:
+    if state.env_id != task.env_id:
+        raise ValueError(f"the saved run learns {state.env_id!r}, not {task.env_id!r}")
+    k = RoundKeeper([w.worker_id for w in state.workers], state.policy, task, state.max_episodes,
+                    state.round_timeout, actor_spec=_unspec(state.actor_spec), critic_spec=_unspec(state.critic_spec),
+                    rounds_per_episode=state.rounds_per_episode)
+    k.workers.update((w.worker_id, restore_worker(w)) for w in state.workers)
+    k.round = state.round
+    k.pending = {s["worker_id"]: _unsubmission(s) for s in state.pending}
+    for s in state.ahead:
         sub = _unsubmission(s)
         k.ahead.setdefault(k.round_of(sub.episode, sub.step), {})[sub.worker_id] = sub
-    k.counted = {(w, e) for w, e in state["counted"]}
-    k.answers = {o.round: o for o in map(_unoutcome, state["answers"])}
-    k.done_reason, k.aborted = state["done_reason"], state["aborted"]
+    k.counted = {(w, e) for w, e in state.counted}
+    k.answers = {o.round: o for o in map(_unoutcome, state.answers)}
+    k.done_reason, k.aborted = state.done_reason, state.aborted
     return k
 
 
-def save(run_dir: Path, keeper: RoundKeeper, service: dict[str, Any]) -> Path:
-    """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset)."""
+def save(run_dir: Path, keeper: RoundKeeper, service: ServiceState | Mapping[str, Any]) -> Path:
+    """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset: a
+    chief.records.ServiceState or its fields)."""
     path = run_dir / FILENAME
     tmp = path.with_suffix(".tmp")
-    data = msgpack.packb({"version": VERSION, "keeper": keeper_state(keeper), "service": service}, use_bin_type=True)
+    state = ChiefState(version=VERSION, keeper=keeper_state(keeper), service=ServiceState.model_validate(service))
+    data = msgpack.packb(state.model_dump(), use_bin_type=True)
     with tmp.open("wb") as fh:
         fh.write(data)
         fh.flush()
@@ -130,7 +142,8 @@ def save(run_dir: Path, keeper: RoundKeeper, service: dict[str, Any]) -> Path:
 
 
 def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:
-    """The saved keeper and service state, or None when the folder holds none; ValueError for a bad file."""
+    """The saved keeper and the service's part (ServiceState's fields), or None when the folder holds none;
+    ValueError for a bad file."""
     path = run_dir / FILENAME
     if not path.exists():
         return None
@@ -138,6 +151,7 @@ def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | 
         state = msgpack.unpackb(path.read_bytes(), raw=False, strict_map_key=False)
         if state.get("version") != VERSION:
             raise ValueError(f"version {state.get('version')!r}, this build reads {VERSION}")
-        return restore_keeper(state["keeper"], task), state["service"]
+        saved = ChiefState.model_validate(state)
+        return restore_keeper(saved.keeper, task), saved.service.model_dump()
     except (ValueError, KeyError, TypeError, msgpack.UnpackException) as err:
         raise ValueError(f"cannot resume from {path}: {type(err).__name__}: {err}") from None

@@ -4,32 +4,45 @@ return against episodes, TC dotted, like the paper's Fig. 5)."""
 
 from __future__ import annotations
 
-import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
+from chief.records import (
+    METRICS,
+    EpisodeRecord,
+    RoundRecord,
+    RunSummary,
+    StepRecord,
+    WorkerSummary,
+    line,
+    parse_record,
+    read_metrics,
+)
 from chief.rounds import RoundKeeper
 
 log = logging.getLogger(__name__)
+
+Line = EpisodeRecord | StepRecord | RoundRecord
 
 
 class RecordSink(Protocol):
     """Something fed every record as it is written (chief/tensorboard.py's Board)."""
 
-    def record(self, record: dict[str, Any]) -> None: ...
+    def record(self, record: Line) -> None: ...
 
     def close(self) -> None: ...
 
 
 class MetricsLog:
-    """Appends JSON lines to ``metrics.jsonl``, keeps each worker's PI curve for the plot and passes every record on
-    to the attached sinks."""
+    """Appends JSON lines to ``metrics.jsonl`` (each one a chief.records model), keeps each worker's PI curve for
+    the plot and passes every record on to the attached sinks."""
 
     def __init__(self, run_dir: Path, resume_at: int | None = None) -> None:
         """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
         run_dir.mkdir(parents=True, exist_ok=True)
-        self.path = run_dir / "metrics.jsonl"
+        self.path = run_dir / METRICS
         self.curves: dict[str, list[tuple[int, float]]] = {}
         self.sinks: list[RecordSink] = []
         if resume_at is None:
@@ -37,10 +50,8 @@ class MetricsLog:
             return
         with self.path.open("r+b") as fh:
             fh.truncate(resume_at)
-        for line in self.path.read_text(encoding="utf-8").splitlines():
-            record = json.loads(line)
-            if record.get("type") == "episode":
-                self.curves.setdefault(record["worker"], []).append((record["episode"], record["pi"]))
+        for record in read_metrics(run_dir):
+            self._note(record)
         self._file = self.path.open("a", encoding="utf-8")
 
     @property
@@ -48,23 +59,31 @@ class MetricsLog:
         """Bytes written so far (what a saved state covers)."""
         return self._file.tell()
 
-    def episode(self, record: dict[str, Any]) -> None:
+    def episode(self, record: EpisodeRecord | StepRecord | Mapping[str, Any]) -> None:
         """An accepted submission (``type: episode``, or ``step`` for a later step of a per-step strategy); only what
         the chief counted is written."""
-        if record["type"] == "episode":
-            self.curves.setdefault(record["worker"], []).append((record["episode"], record["pi"]))
-        self._write(record)
+        typed = parse_record(record)
+        if not isinstance(typed, (EpisodeRecord, StepRecord)):
+            raise ValueError(f"not a submission's record: {typed.type}")
+        self._write(typed)
 
-    def round(self, record: dict[str, Any]) -> None:
-        self._write({"type": "round", **record})
+    def round(self, record: RoundRecord | Mapping[str, Any]) -> None:
+        """A closed round (chief.rounds.RoundOutcome.record, with its time ``t``)."""
+        self._write(record if isinstance(record, RoundRecord) else RoundRecord.model_validate(
+            {"type": "round", **record}))
 
     def attach(self, sink: RecordSink | None) -> None:
         """Pass every record written from now on to ``sink`` too (None: nothing), and close it with the log."""
         if sink is not None:
             self.sinks.append(sink)
 
-    def _write(self, record: dict[str, Any]) -> None:
-        self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
+    def _note(self, record: Line) -> None:
+        if isinstance(record, EpisodeRecord):
+            self.curves.setdefault(record.worker, []).append((record.episode, record.pi))
+
+    def _write(self, record: Line) -> None:
+        self._note(record)
+        self._file.write(line(record) + "\n")
         self._file.flush()
         for sink in self.sinks:
             sink.record(record)
@@ -76,41 +95,36 @@ class MetricsLog:
         self.sinks.clear()
 
 
-def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]:
+def summarize(keeper: RoundKeeper, reason: str, **meta: Any) -> RunSummary:
     """summary.json: the task, the strategy, each worker's result (episodes and env steps until it solved, or so
     far), the last worker's episodes and steps, and ``meta`` (run id, seed, wall time, broker, reject counts)."""
     workers = []
     for index, (w, rec) in enumerate(keeper.workers.items()):
         solved = rec.state == "finished"
-        workers.append({"id": w, "index": index, "solved": solved,
-                        "episodes": rec.solved_episode if solved else rec.last_episode,
-                        "steps": rec.steps_at_solve if solved else rec.steps,
-                        "final_pi": rec.pi, "state": rec.state})
-    all_solved = all(w["solved"] for w in workers)
-    last = max(workers, key=lambda x: (x["episodes"], x["steps"]))
-    return {
-        "run_id": meta.pop("run_id", ""),
-        "env": keeper.task.env_id,
-        "policy": keeper.policy,
-        "seed": meta.pop("seed", None),
-        "tc": keeper.tc,
-        "r_floor": keeper.r_floor,
-        "max_episodes": keeper.max_episodes,
-        "workers": workers,
-        "episodes_to_all_solved": last["episodes"] if all_solved else None,
-        "steps_of_last_worker": last["steps"] if all_solved else None,
-        "total_steps": sum(rec.steps for rec in keeper.workers.values()),
-        "rounds": keeper.round - 1,
-        "rounds_per_episode": keeper.rounds_per_episode,
-        "end_reason": reason,
-        **meta,
-    }
+        workers.append(WorkerSummary(id=w, index=index, solved=solved,
+                                     episodes=rec.solved_episode if solved else rec.last_episode,
+                                     steps=rec.steps_at_solve if solved else rec.steps,
+                                     final_pi=rec.pi, state=rec.state))
+    all_solved = all(w.solved for w in workers)
+    last = max(workers, key=lambda x: (x.episodes, x.steps))
+    return RunSummary(
+        env=keeper.task.env_id, policy=keeper.policy, tc=keeper.tc, r_floor=keeper.r_floor,
+        max_episodes=keeper.max_episodes, workers=workers,
+        episodes_to_all_solved=last.episodes if all_solved else None,
+        steps_of_last_worker=last.steps if all_solved else None,
+        total_steps=sum(rec.steps for rec in keeper.workers.values()), rounds=keeper.round - 1,
+        rounds_per_episode=keeper.rounds_per_episode, end_reason=reason, **meta)
 
 
-def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:
-    path = run_dir / "summary.json"
-    path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    return path
+def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]:
+    """``summarize`` as the JSON data summary.json holds (what the launchers return)."""
+    return summarize(keeper, reason, **meta).dump()
+
+
+def write_summary(run_dir: Path, summary: RunSummary | Mapping[str, Any]) -> Path:
+    """Write summary.json (a RunSummary, or its JSON data: validated first)."""
+    typed = summary if isinstance(summary, RunSummary) else RunSummary.model_validate(summary)
+    return typed.write(run_dir)
 
 
 def plot_learning_curves(

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
-import json
 import logging
 import sys
 import time
@@ -30,6 +29,8 @@ from collections import defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+from chief.records import METRICS, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 
 log = logging.getLogger(__name__)
 
@@ -68,7 +69,7 @@ class _Worker:
     env_steps: int = 0
     transfers: int = 0
     last_step: int = 0
-    pending: list[dict[str, Any]] = field(default_factory=list)  # a per-step episode's statistics so far
+    pending: list[dict[str, float | None]] = field(default_factory=list)  # a per-step episode's statistics so far
     pending_at: tuple[int, float] = (0, 0.0)
 
 
@@ -87,22 +88,18 @@ class Translator:
         self._weights_episode = 0
         self._weights_t = 0.0
 
-    def feed(self, record: dict[str, Any]) -> list[Point]:
+    def feed(self, record: EpisodeRecord | StepRecord | RoundRecord) -> list[Point]:
         """The points a record adds."""
-        kind = record.get("type")
-        t = float(record.get("t", 0.0))
-        if kind == "episode":
-            return self._episode(record, t)
-        if kind == "step":
-            w = self.workers[record["worker"]]
-            if record.get("ppo") is not None:
-                w.pending.append(record["ppo"])
-            if int(record.get("step", 0)) >= self.rounds_per_episode - 1:
-                return self._flush(record["worker"])
+        if isinstance(record, EpisodeRecord):
+            return self._episode(record)
+        if isinstance(record, StepRecord):
+            w = self.workers[record.worker]
+            if record.ppo is not None:
+                w.pending.append(record.ppo)
+            if record.step >= self.rounds_per_episode - 1:
+                return self._flush(record.worker)
             return []
-        if kind == "round":
-            return self._round(record, t)
-        return []
+        return self._round(record)
 
     def finish(self) -> list[Point]:
         """What is still held back (a per-step episode whose last step never came)."""
@@ -114,19 +111,15 @@ class Translator:
         w.last_step = max(w.last_step, w.env_steps if step is None else step)
         return Point(worker, tag, float(value), w.last_step, t)
 
-    def _episode(self, record: dict[str, Any], t: float) -> list[Point]:
-        worker = record["worker"]
+    def _episode(self, record: EpisodeRecord) -> list[Point]:
+        worker, t = record.worker, record.t
         points = self._flush(worker)
         w = self.workers[worker]
-        steps = record.get("steps")
-        if isinstance(steps, int) and not isinstance(steps, bool):
-            w.env_steps += steps
-            points.append(self._point(worker, LENGTH_TAG, steps, t))
-        else:  # a record without env steps: the episode number is the step
-            w.env_steps = max(w.env_steps, int(record["episode"]))
-        points.append(self._point(worker, RETURN_TAG, record["return"], t))
-        points.append(self._point(worker, PI_TAG, record["pi"], t))
-        w.pending = [record["ppo"]] if record.get("ppo") is not None else []
+        w.env_steps += record.steps
+        points.append(self._point(worker, LENGTH_TAG, record.steps, t))
+        points.append(self._point(worker, RETURN_TAG, record.return_, t))
+        points.append(self._point(worker, PI_TAG, record.pi, t))
+        w.pending = [record.ppo] if record.ppo is not None else []
         w.pending_at = (w.env_steps, t)
         if self.rounds_per_episode == 1:
             points += self._flush(worker)
@@ -143,21 +136,21 @@ class Translator:
         step, t = w.pending_at
         points = []
         for key, tag in LOSS_TAGS.items():
-            values = [s[key] for s in stats if s.get(key) is not None]
+            values = [v for s in stats if (v := s.get(key)) is not None]
             if values:
                 points.append(self._point(worker, tag, sum(values) / len(values), t, step))
         return points
 
-    def _round(self, record: dict[str, Any], t: float) -> list[Point]:
-        episode = int(record.get("episode", 0))
+    def _round(self, record: RoundRecord) -> list[Point]:
+        episode, t = record.episode, record.t
         points = self._flush_weights() if episode != self._weights_episode else []
         self._weights_episode, self._weights_t = episode, t
-        for w, weight in record.get("weights", {}).items():
+        for w, weight in record.weights.items():
             self._weights[w].append(weight)
-        if int(record.get("step", 0)) >= self.rounds_per_episode - 1:
+        if record.step >= self.rounds_per_episode - 1:
             points += self._flush_weights()
-        if record.get("kind") == "transfer":
-            for w, keep in sorted(record.get("keep_weights", {}).items()):
+        if record.kind == "transfer":
+            for w, keep in sorted(record.keep_weights.items()):
                 self.workers[w].transfers += 1
                 points.append(self._point(w, KEEP_TAG, keep, t))
                 points.append(self._point(w, TRANSFERS_TAG, self.workers[w].transfers, t))
@@ -176,7 +169,7 @@ class Board:
         self.points = 0
         self.failed = False
 
-    def record(self, record: dict[str, Any]) -> None:
+    def record(self, record: EpisodeRecord | StepRecord | RoundRecord) -> None:
         """Draw one metrics.jsonl record. A failure to write is logged once and ends the event files, not the run."""
         if self.failed:
             return
@@ -246,7 +239,7 @@ def open_board(run_dir: Path, rounds_per_episode: int = 1, wall_start: float | N
         for folder in root.glob("*/"):
             if not any(folder.iterdir()):
                 folder.rmdir()  # a worker of an earlier run in this folder
-        records = read_records(run_dir)
+        records = read_metrics(run_dir)
     except (OSError, ValueError) as err:
         log.warning("cannot redraw the TensorBoard event files in %s (%s); the run goes on without them", root, err)
         return None
@@ -258,38 +251,31 @@ def open_board(run_dir: Path, rounds_per_episode: int = 1, wall_start: float | N
     return board
 
 
-def read_records(run_dir: Path) -> list[dict[str, Any]]:
-    """metrics.jsonl's records ([] when there is none yet)."""
-    path = run_dir / "metrics.jsonl"
-    if not path.exists():
-        return []
-    return [json.loads(line) for line in path.read_text(encoding="utf-8").splitlines() if line.strip()]
-
-
-def _estimate_wall_start(run_dir: Path, records: list[dict[str, Any]]) -> float:
+def _estimate_wall_start(run_dir: Path, records: list[EpisodeRecord | StepRecord | RoundRecord]) -> float:
     """When a finished run's t = 0 was: its summary's end minus its wall time, else the records' file's last
     change minus its last t, else now."""
     try:
-        summary = json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))
-        return dt.datetime.fromisoformat(summary["finished_at"]).timestamp() - float(summary["wall_s"])
-    except (OSError, ValueError, KeyError, TypeError):
+        summary = RunSummary.read(run_dir)
+        if summary.finished_at is not None and summary.wall_s is not None:
+            return dt.datetime.fromisoformat(summary.finished_at).timestamp() - summary.wall_s
+    except (OSError, ValueError):
         pass
-    last_t = max((float(r.get("t", 0.0)) for r in records), default=0.0)
-    path = run_dir / "metrics.jsonl"
+    last_t = max((r.t for r in records), default=0.0)
+    path = run_dir / METRICS
     return (path.stat().st_mtime if path.exists() else time.time()) - last_t
 
 
-def rounds_per_episode_of(run_dir: Path, records: list[dict[str, Any]]) -> int:
+def rounds_per_episode_of(run_dir: Path, records: list[EpisodeRecord | StepRecord | RoundRecord]) -> int:
     """K of a finished run: its summary's, else one more than the highest step its records name."""
     try:
-        return int(json.loads((run_dir / "summary.json").read_text(encoding="utf-8"))["rounds_per_episode"])
-    except (OSError, ValueError, KeyError, TypeError):
-        return 1 + max((int(r.get("step", 0)) for r in records if r.get("type") == "step"), default=0)
+        return RunSummary.read(run_dir).rounds_per_episode
+    except (OSError, ValueError):
+        return 1 + max((r.step for r in records if isinstance(r, StepRecord)), default=0)
 
 
 def rebuild(run_dir: Path) -> Board | None:
     """(Re)write a run's event files from its metrics.jsonl; the closed Board, or None without tensorboardX."""
-    board = open_board(run_dir, rounds_per_episode_of(run_dir, read_records(run_dir)))
+    board = open_board(run_dir, rounds_per_episode_of(run_dir, read_metrics(run_dir)))
     if board is not None:
         board.close()
     return board
@@ -302,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("run_dir", type=Path, help="the run folder")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    if not (args.run_dir / "metrics.jsonl").is_file():
+    if not (args.run_dir / METRICS).is_file():
         print(f"{args.run_dir}: no metrics.jsonl", file=sys.stderr)
         return 2
     board = rebuild(args.run_dir)

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from chief import strategies
-from chief.audit import AuditFailure, audit
-from chief.report import run_summary
+from chief.audit import CHECKS, AuditFailure, audit
+from chief.report import MetricsLog, run_summary, write_summary
 from chief.rounds import RoundKeeper, Submission
 from protocol.tasks import PI_WINDOW, performance_index, task
 
@@ -31,7 +31,7 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                          actor_spec={"g": (2,)}, critic_spec={"c": (1,)}, rounds_per_episode=per_step)
     returns: dict[str, list[float]] = {w: [] for w in SOLVE_AT}
     receipts: dict[str, dict[str, Any] | None] = {w: None for w in SOLVE_AT}
-    lines: list[dict[str, Any]] = []
+    metrics = MetricsLog(run_dir)  # the chief's writer
     episode = 1
     while not keeper.done:
         for step in range(per_step):
@@ -50,17 +50,15 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                     steps=int(ret), gradient=None if mature else tensors, params=tensors if mature else None,
                     receipt=receipts[w], step=step, critic_gradient=critic), now=float(episode))
                 assert verdict.status == "accepted", verdict.detail
-                lines.append(verdict.record(float(episode)))
+                metrics.episode(verdict.record(float(episode)))
                 for outcome in verdict.outcomes:
-                    lines.append(outcome.record())
+                    metrics.round({**outcome.record(), "t": float(episode)})
                     for r in SOLVE_AT:  # what each worker applies, as worker/service.py reports it
                         receipts[r] = {"round": outcome.round, "applied": outcome.kind, "digest": outcome.digest,
                                        "keep": outcome.keep_weights.get(r) if outcome.kind == "transfer" else None}
         episode += 1
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(x) + "\n" for x in lines))
-    summary = run_summary(keeper, keeper.done_reason or "", run_id="sim", seed=0)
-    (run_dir / "summary.json").write_text(json.dumps(summary, indent=2))
+    metrics.close()
+    write_summary(run_dir, run_summary(keeper, keeper.done_reason or "", run_id="sim", seed=0))
 
 
 @pytest.fixture(scope="module")
@@ -154,8 +152,33 @@ def doctor_missed(lines: list[dict]) -> None:
     first(lines, type="episode", worker="w2", episode=8)["receipt"] = {"round": 7, "applied": "missed"}
 
 
-@pytest.mark.parametrize(("doctor", "invariant"), [
+def doctor_misfiled(lines: list[dict]) -> None:
+    first(lines, type="episode", worker="w1", episode=4)["round"] = 5
+
+
+def doctor_round_place(lines: list[dict]) -> None:
+    first(lines, type="round", round=7)["episode"] = 8
+
+
+def doctor_mature_returns(lines: list[dict]) -> None:
+    """w0's mature PI counts another return for an episode than it reported (the mean and TC still hold)."""
+    m = first(lines, type="episode", kind="mature", worker="w0")
+    m["recent_returns"][0], m["recent_returns"][1] = m["recent_returns"][0] + 1, m["recent_returns"][1] - 1
+
+
+def doctor_transfer_keep_receipt(lines: list[dict]) -> None:
+    t = first(lines, type="round", kind="transfer")
+    first(lines, type="episode", worker="w2", round=t["round"] + 1)["receipt"]["keep"] = 0.5
+
+
+def doctor_weights_sum(lines: list[dict]) -> None:
+    r = first(lines, type="round", round=3)
+    r["weights"] = {w: 2 * v for w, v in r["weights"].items()}
+
+
+DOCTORED = [
     (doctor_weight, "eq8-weights"),
+    (doctor_weights_sum, "eq8-weights"),
     (doctor_keep, "transfer"),
     (doctor_recipients, "transfer"),
     (doctor_drop_transfer, "transfer"),
@@ -167,7 +190,23 @@ def doctor_missed(lines: list[dict]) -> None:
     (doctor_immature, "mature"),
     (doctor_receipt, "delivery"),
     (doctor_missed, "delivery"),
-])
+    (doctor_transfer_keep_receipt, "delivery"),
+    (doctor_misfiled, "rounds-contiguous"),
+    (doctor_round_place, "rounds-contiguous"),
+    (doctor_mature_returns, "mature"),
+]
+
+
+def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
+    """Each registered check is failed by some doctored run folder below (``summary`` by a doctored summary.json),
+    and its docstring says which equation, algorithm or figure of the paper it protects."""
+    assert {invariant for _, invariant in DOCTORED} | {"summary"} == {c.invariant for c in CHECKS}
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 9
+    for c in CHECKS:
+        assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
+
+
+@pytest.mark.parametrize(("doctor", "invariant"), DOCTORED)
 def test_a_doctored_record_names_the_violated_invariant(
     honest: Path, tmp_path: Path, doctor: Callable[[list[dict]], None], invariant: str
 ) -> None:
@@ -222,11 +261,11 @@ def test_a_finished_helpers_submission_may_outlive_the_run(tmp_path: Path, polic
     last = max(int(x["round"]) for x in lines if x["type"] == "round")
     per_episode = 3 if strategies.get(policy).per_step else 1
     episode, step = divmod(last, per_episode)
-    early = [x for x in lines if x["type"] in ("episode", "step") and x["worker"] == "w0"][-1]
+    early = [x for x in lines if x["type"] == "episode" and x["worker"] == "w0"][-1]
     closing = first(lines, type="round", round=last)
     receipt = {"round": last, "applied": closing["kind"], "digest": closing["digest"], "keep": None}
-    lines.append({**early, "type": "step" if step else "episode", "episode": episode + 1, "step": step,
-                  "round": last + 1, "receipt": receipt})
+    late = {"episode": episode + 1, "round": last + 1, "receipt": receipt}
+    lines.append({"type": "step", "worker": "w0", "step": step, "t": 0.0, **late} if step else {**early, **late})
     rewrite(tmp_path / policy, lines)
     if not strategies.get(policy).finishers_help:
         with pytest.raises(AuditFailure, match=r"contributors: round .* was counted but never closed"):

@@ -11,6 +11,7 @@ import pytest
 
 from bench import figures, paper, report
 from bench.runs import Job, _modelled_times, _mqtt_times, learning_curve
+from chief.records import EpisodeRecord, RoundRecord
 
 
 def test_tiny_inprocess_benchmark_end_to_end(tmp_path: Path) -> None:
@@ -76,12 +77,16 @@ def test_modelled_times_from_inprocess_timing() -> None:
     assert t1["wall_s"] == 2.5 + 3.5 + 1.5 and t1["own_s"] == 6.0
 
 
+def episode(worker: str, number: int, steps: int, t: float = 0.0, pi: float = 0.0) -> EpisodeRecord:
+    return EpisodeRecord(worker=worker, round=number, episode=number, return_=pi, pi=pi, steps=steps, kind="update",
+                         t=t)
+
+
 def test_mqtt_times_from_the_chiefs_clock() -> None:
-    episodes = [{"worker": "w0", "episode": 1, "t": 1.0, "steps": 10}, {"worker": "w1", "episode": 1, "t": 1.5,
-                "steps": 10}, {"worker": "w0", "episode": 2, "t": 2.6, "steps": 20},
-                {"worker": "w1", "episode": 2, "t": 3.0, "steps": 20}, {"worker": "w0", "episode": 3, "t": 4.0,
-                "steps": 30}]
-    rounds = [{"round": 1, "t": 1.6}, {"round": 2, "t": 3.1}, {"round": 3, "t": 4.1}]
+    episodes = [episode("w0", 1, 10, 1.0), episode("w1", 1, 10, 1.5), episode("w0", 2, 20, 2.6),
+                episode("w1", 2, 20, 3.0), episode("w0", 3, 30, 4.0)]
+    rounds = [RoundRecord(round=n, episode=n, kind="aggregate", strategy="weighted", contributors=[], t=t)
+              for n, t in ((1, 1.6), (2, 3.1), (3, 4.1))]
     t = _mqtt_times("w0", 3, episodes, rounds)
     # own: (2.6 - 1.6) + (4.0 - 3.1) = 1.9 s for 50 steps; waits: (1.6 - 1.0) + (3.1 - 2.6) = 1.1 s
     assert t["own_s"] == pytest.approx(1.9) and t["timed_steps"] == 50
@@ -89,8 +94,7 @@ def test_mqtt_times_from_the_chiefs_clock() -> None:
 
 
 def test_learning_curve_holds_a_finished_workers_pi() -> None:
-    recs = [{"worker": "w0", "episode": 1, "pi": 10.0, "steps": 5}, {"worker": "w1", "episode": 1, "pi": 20.0,
-            "steps": 7}, {"worker": "w1", "episode": 2, "pi": 30.0, "steps": 9}]
+    recs = [episode("w0", 1, 5, pi=10.0), episode("w1", 1, 7, pi=20.0), episode("w1", 2, 9, pi=30.0)]
     c = learning_curve(recs)
     assert c == {"episode": [1, 2], "pi": [15.0, 20.0], "steps": [6.0, 10.5]}
 

@@ -80,6 +80,7 @@ def chief_in(run_dir: Path, run_id: str = RUN) -> subprocess.CompletedProcess:
 
 def test_an_unusable_state_is_refused_with_a_clear_error(tmp_path: Path) -> None:
     from chief import checkpoint
+    from chief.records import ServiceState
     from chief.rounds import RoundKeeper
     from protocol.tasks import task
 
@@ -92,7 +93,8 @@ def test_an_unusable_state_is_refused_with_a_clear_error(tmp_path: Path) -> None
     over.mkdir()
     keeper = RoundKeeper(["w0"], "weighted", task("CartPole-v0"), 10, 30.0)
     keeper.abort("aborted: test")
-    checkpoint.save(over, keeper, {"run_id": RUN})
+    checkpoint.save(over, keeper, ServiceState(run_id=RUN, session="0" * 16, epoch=0, duplicates=0, hosts={},
+                                               update_steps=0, rejects={}, metrics_bytes=0, elapsed_s=0.0))
     out = chief_in(over)
     assert out.returncode == 2 and "is over (aborted: test); choose another --run-dir" in out.stderr
     assert chief_in(over, run_id="other").stderr.strip().endswith("or another --run-dir")

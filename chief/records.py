@@ -1,0 +1,243 @@
+"""The run folder's records as types: each line of ``metrics.jsonl``, ``summary.json`` and the chief's saved state.
+
+One writer (chief/report.py, chief/checkpoint.py) and every reader (chief/audit.py, chief/tensorboard.py,
+bench/) go through these models, so a record's fields are declared once. On disk the files keep their keys: a line
+is the model's fields in declared order, compact JSON, without the optional fields a record does not carry
+(``recent_returns`` only on a mature actor's record, ``ppo`` only where PPO statistics were sent), so an existing
+run folder still reads. Unknown fields are errors (a reader says which line is bad rather than guessing).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Any, ClassVar, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+
+from protocol.messages import Receipt
+
+METRICS = "metrics.jsonl"
+SUMMARY = "summary.json"
+
+WorkerState = Literal["active", "lagging", "offline", "finished"]
+
+
+class Record(BaseModel):
+    """A record of the run folder: unknown fields are errors; ``dump`` is what is written."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    #: Fields written only when set (not None).
+    OPTIONAL: ClassVar[frozenset[str]] = frozenset()
+
+    def dump(self) -> dict[str, Any]:
+        """The record as JSON data, keyed as on disk (optional fields left out when None)."""
+        drop = {name for name in self.OPTIONAL if getattr(self, name) is None}
+        return self.model_dump(mode="json", by_alias=True, exclude=drop)
+
+
+class EpisodeRecord(Record):
+    """A worker's counted episode (its submission for step 0 of the episode's rounds): an update, or its mature
+    actor (``kind: mature``, with the ``recent_returns`` its PI is the mean of). ``ppo``: the PPO statistics the
+    update carried (None values where not sent; absent for a mature actor)."""
+
+    OPTIONAL = frozenset({"recent_returns", "ppo"})
+
+    type: Literal["episode"] = "episode"
+    worker: str
+    round: int
+    episode: int
+    return_: float = Field(alias="return")
+    pi: float
+    steps: int
+    kind: Literal["update", "mature"]
+    receipt: Receipt | None = None
+    t: float = 0.0
+    recent_returns: list[float] | None = None
+    ppo: dict[str, float | None] | None = None
+
+
+class StepRecord(Record):
+    """A counted later mini-batch step (``step`` >= 1) of a per-step strategy's episode."""
+
+    OPTIONAL = frozenset({"ppo"})
+
+    type: Literal["step"] = "step"
+    worker: str
+    round: int
+    episode: int
+    step: int
+    receipt: Receipt | None = None
+    t: float = 0.0
+    ppo: dict[str, float | None] | None = None
+
+
+class RoundRecord(Record):
+    """A closed round and the chief's answer to it (chief.rounds.RoundOutcome without its tensors)."""
+
+    type: Literal["round"] = "round"
+    round: int
+    episode: int
+    step: int = 0
+    kind: Literal["aggregate", "transfer"]
+    strategy: str
+    contributors: list[str]
+    pis: dict[str, float] = Field(default_factory=dict)
+    weights: dict[str, float] = Field(default_factory=dict)
+    digest: str = ""
+    source: str | None = None
+    source_pi: float | None = None
+    keep_weights: dict[str, float] = Field(default_factory=dict)
+    recipient_pis: dict[str, float | None] = Field(default_factory=dict)
+    finished: list[str] = Field(default_factory=list)
+    timed_out: list[str] = Field(default_factory=list)
+    clipped: dict[str, float] = Field(default_factory=dict)
+    t: float = 0.0
+
+
+Submitted = EpisodeRecord | StepRecord
+MetricsRecord = Annotated[EpisodeRecord | StepRecord | RoundRecord, Field(discriminator="type")]
+_LINE: TypeAdapter[EpisodeRecord | StepRecord | RoundRecord] = TypeAdapter(MetricsRecord)
+
+
+def parse_record(data: Any) -> EpisodeRecord | StepRecord | RoundRecord:
+    """A record from its JSON data (a dict, or a model already); pydantic.ValidationError (a ValueError) if bad."""
+    if isinstance(data, (EpisodeRecord, StepRecord, RoundRecord)):
+        return data
+    return _LINE.validate_python(data)
+
+
+def line(record: EpisodeRecord | StepRecord | RoundRecord) -> str:
+    """The record's line in metrics.jsonl (compact JSON, no newline)."""
+    return json.dumps(record.dump(), separators=(",", ":"))
+
+
+def read_metrics(run_dir: Path) -> list[EpisodeRecord | StepRecord | RoundRecord]:
+    """metrics.jsonl's records in order ([] when there is none yet); ValueError naming the first bad line."""
+    path = run_dir / METRICS
+    if not path.exists():
+        return []
+    out = []
+    for number, text in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not text.strip():
+            continue
+        try:
+            out.append(parse_record(json.loads(text)))
+        except ValueError as err:
+            raise ValueError(f"{METRICS} line {number}: {err}") from None
+    return out
+
+
+class WorkerSummary(Record):
+    """One worker's result in summary.json: episodes and env steps until it solved, or so far."""
+
+    id: str
+    index: int
+    solved: bool
+    episodes: int
+    steps: int
+    final_pi: float | None = None
+    state: WorkerState
+
+
+class RunSummary(Record):
+    """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what
+    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given)."""
+
+    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts"})
+
+    run_id: str = ""
+    env: str
+    policy: str
+    seed: int | None = None
+    tc: float
+    r_floor: float
+    max_episodes: int
+    workers: list[WorkerSummary]
+    episodes_to_all_solved: int | None = None
+    steps_of_last_worker: int | None = None
+    total_steps: int
+    rounds: int
+    rounds_per_episode: int = 1
+    end_reason: str
+    mode: str | None = None
+    wall_s: float | None = None
+    finished_at: str | None = None
+    broker: str | None = None
+    rejected_messages: dict[str, int] | None = None
+    duplicates: int | None = None
+    restarts: int | None = None
+
+    @classmethod
+    def read(cls, run_dir: Path) -> RunSummary:
+        """A run folder's summary.json (OSError, ValueError when missing or bad)."""
+        return cls.model_validate(json.loads((run_dir / SUMMARY).read_text(encoding="utf-8")))
+
+    def write(self, run_dir: Path) -> Path:
+        path = run_dir / SUMMARY
+        path.write_text(json.dumps(self.dump(), indent=2) + "\n", encoding="utf-8")
+        return path
+
+
+# -- the chief's saved state (chief/checkpoint.py) ------------------------------------------------------------
+
+
+class SavedWorker(Record):
+    """A chief.rounds.WorkerRecord, field by field (its per-episode returns and PIs as sorted pairs)."""
+
+    worker_id: str
+    state: WorkerState
+    pi: float | None
+    last_episode: int
+    solved_episode: int | None
+    steps: int
+    steps_at_solve: int | None
+    last_round: int
+    excused: bool
+    helping: bool
+    returns: list[tuple[int, float]]
+    pis: list[tuple[int, float]]
+
+
+class KeeperState(Record):
+    """Everything a chief.rounds.RoundKeeper needs to go on. Submissions and answers keep their tensors as
+    protocol.tensors.TensorBlob data (chief/checkpoint.py translates them)."""
+
+    policy: str
+    env_id: str
+    max_episodes: int
+    round_timeout: float
+    actor_spec: dict[str, list[int]] | None
+    critic_spec: dict[str, list[int]] | None
+    rounds_per_episode: int
+    round: int
+    workers: list[SavedWorker]
+    pending: list[dict[str, Any]]
+    ahead: list[dict[str, Any]]
+    counted: list[tuple[str, int]]
+    answers: list[dict[str, Any]]
+    done_reason: str | None
+    aborted: bool
+
+
+class ServiceState(Record):
+    """The chief service's own part of its saved state."""
+
+    run_id: str
+    session: str
+    epoch: int
+    duplicates: int
+    hosts: dict[str, str]
+    update_steps: int
+    rejects: dict[str, int]
+    metrics_bytes: int = Field(ge=0)
+    elapsed_s: float
+
+
+class ChiefState(Record):
+    """chief-state.msgpack."""
+
+    version: Literal[1] = 1
+    keeper: KeeperState
+    service: ServiceState

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from chief import federation, strategies
+from protocol.rounds import RoundShape
 from protocol.settings import program, returns_code
 from protocol.tasks import PI_WINDOW, performance_index
 
@@ -101,22 +102,19 @@ def audit(run_dir: Path) -> AuditReport:
     summary, episodes, steps_done, rounds = load(run_dir)
     strategy = strategies.get(summary["policy"])
     tc, r_floor = float(summary["tc"]), float(summary["r_floor"])
-    per_episode = int(summary.get("rounds_per_episode", 1))
+    shape = RoundShape(per_episode=int(summary.get("rounds_per_episode", 1)))
     workers = [w["id"] for w in summary["workers"]]
     report = AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps_done))
 
     def progress(pi: float | None) -> float:
         return federation.progress(r_floor if pi is None else pi, tc, r_floor)
 
-    def round_of(episode: int, step: int) -> int:
-        return (episode - 1) * per_episode + step + 1
-
     # counted-once: every counted submission by (worker, round); the episode records by (worker, episode)
     by_key: dict[tuple[str, int], dict[str, Any]] = {}
     by_round: dict[tuple[str, int], dict[str, Any]] = {}
     for e in episodes + steps_done:
         step = int(e.get("step", 0))
-        key = (e["worker"], round_of(int(e["episode"]), step))
+        key = (e["worker"], shape.number(int(e["episode"]), step))
         _require(int(e.get("round", key[1])) == key[1], "rounds-contiguous",
                  f"{e['worker']}'s episode {e['episode']} step {step} is filed as round {e.get('round')}, not {key[1]}")
         _require(key not in by_round, "counted-once",
@@ -161,10 +159,9 @@ def audit(run_dir: Path) -> AuditReport:
     # round-pis and mature
     for r in rounds:
         n = int(r["round"])
-        _require((int(r.get("episode", n)), int(r.get("step", 0))) == ((n - 1) // per_episode + 1,
-                                                                       (n - 1) % per_episode),
+        _require((int(r.get("episode", n)), int(r.get("step", 0))) == shape.of(n),
                  "rounds-contiguous", f"round {n} says episode {r.get('episode')} step {r.get('step')}")
-        episode_n = (n - 1) // per_episode + 1
+        episode_n = shape.episode_of(n)
         expected = {w: by_key[(w, episode_n)]["pi"] for w in per_round.get(n, {}) if (w, episode_n) in by_key}
         _require(set(r["pis"]) == set(expected) and all(_close(r["pis"][w], expected[w]) for w in expected),
                  "round-pis", f"round {n} used PIs {r['pis']}, the counted submissions say {expected}")
@@ -200,7 +197,7 @@ def audit(run_dir: Path) -> AuditReport:
 
     for r in rounds:
         n = int(r["round"])
-        episode_n = (n - 1) // per_episode + 1
+        episode_n = shape.episode_of(n)
         finished = sorted(w for w, e in per_round.get(n, {}).items() if e.get("kind") == "mature")
         _require(sorted(r["finished"]) == finished, "transfer",
                  f"round {n} says {sorted(r['finished'])} finished, the counted mature actors are {finished}")

@@ -23,6 +23,7 @@ import msgpack
 import numpy as np
 
 from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
+from protocol.rounds import RoundShape
 from protocol.tasks import TaskSpec
 from protocol.tensors import TensorBlob
 
@@ -77,7 +78,7 @@ def keeper_state(k: RoundKeeper) -> dict[str, Any]:
     return {
         "policy": k.policy, "env_id": k.task.env_id, "max_episodes": k.max_episodes,
         "round_timeout": k.round_timeout, "actor_spec": k.actor_spec, "critic_spec": k.critic_spec,
-        "rounds_per_episode": k.rounds_per_episode, "round": k.round,
+        "rounds_per_episode": k.shape.per_episode, "round": k.round,
         "workers": workers, "pending": [_submission(s) for s in k.pending.values()],
         "ahead": [_submission(s) for subs in k.ahead.values() for s in subs.values()],
         "counted": sorted(k.counted), "answers": [_outcome(k.answers[e]) for e in last],
@@ -94,7 +95,7 @@ def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
 
     k = RoundKeeper([w["worker_id"] for w in state["workers"]], state["policy"], task, state["max_episodes"],
                     state["round_timeout"], actor_spec=spec("actor_spec"), critic_spec=spec("critic_spec"),
-                    rounds_per_episode=state["rounds_per_episode"])
+                    shape=RoundShape(per_episode=state["rounds_per_episode"]))
     for w in state["workers"]:
         rec = WorkerRecord(w["worker_id"], w["state"], w["pi"], w["last_episode"], w["solved_episode"], w["steps"],
                            w["steps_at_solve"], dict(map(tuple, w["returns"])), dict(map(tuple, w["pis"])),
@@ -104,7 +105,7 @@ def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state["pending"]}
     for s in state["ahead"]:
         sub = _unsubmission(s)
-        k.ahead.setdefault(k.round_of(sub.episode, sub.step), {})[sub.worker_id] = sub
+        k.ahead.setdefault(k.shape.number(sub.episode, sub.step), {})[sub.worker_id] = sub
     k.counted = {(w, e) for w, e in state["counted"]}
     k.answers = {o.round: o for o in map(_unoutcome, state["answers"])}
     k.done_reason, k.aborted = state["done_reason"], state["aborted"]

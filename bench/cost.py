@@ -94,8 +94,9 @@ def sample_messages(arrays: dict[str, np.ndarray], workers: int) -> dict[str, by
     update = WorkerUpdate(worker_id="w0", episode=100, episode_return=returns[-1], pi=sum(returns) / len(returns),
                           recent_returns=returns, steps=200, gradient=grad, receipt=receipt, actor_loss=-0.01,
                           critic_loss=0.5, entropy=0.6)
-    aggregate = ChiefAggregate(episode=100, gradient=grad, weights={w: 1.0 / workers for w in ids}, contributors=ids)
-    transfer = ChiefTransfer(episode=100, source_worker="w0", source_pi=200.0, params=params,
+    aggregate = ChiefAggregate(round=100, episode=100, gradient=grad, weights={w: 1.0 / workers for w in ids},
+                               contributors=ids)
+    transfer = ChiefTransfer(round=100, episode=100, source_worker="w0", source_pi=200.0, params=params,
                              keep_weights={w: 0.5 for w in ids[1:]}, finished=["w0"])
     mature = MatureParams(worker_id="w0", episode=100, episode_return=returns[-1], pi=sum(returns) / len(returns),
                           recent_returns=returns, steps=200, params=params, receipt=receipt)

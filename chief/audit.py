@@ -38,6 +38,7 @@ import numpy as np
 
 from chief import federation, strategies
 from chief.records import EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
 from runtime.settings import program, returns_code
 
@@ -105,16 +106,23 @@ class Run:
         return cls(summary, episodes, steps, rounds,
                    AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)))
 
-    # -- rounds: the one place the audit maps (episode, step) to a round number and back ------------------------
+    # -- rounds: the run's shape (protocol.rounds) maps (episode, step) to a round number and back --------------
+
+    @property
+    def shape(self) -> RoundShape:
+        return RoundShape(per_episode=self.summary.rounds_per_episode)
 
     def round_of(self, episode: int, step: int) -> int:
-        """Round number of (episode, step): (e - 1) * K + s + 1 (chief.rounds)."""
-        return (episode - 1) * self.summary.rounds_per_episode + step + 1
+        """Round number of (episode, step); a place outside the run's shape is a violation of the calling check."""
+        try:
+            return self.shape.number(episode, step)
+        except ValueError as err:
+            raise _Violated(str(err)) from None
 
     def place_of(self, round_: int) -> tuple[int, int]:
         """(episode, step) of a round number."""
-        episode, step = divmod(round_ - 1, self.summary.rounds_per_episode)
-        return episode + 1, step
+        place = self.shape.of(round_)
+        return place.episode, place.step
 
     # -- indexes ---------------------------------------------------------------------------------------------
 

@@ -27,6 +27,7 @@ import numpy as np
 
 from chief.records import ChiefState, KeeperState, SavedWorker, ServiceState
 from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
+from protocol.rounds import RoundShape
 from protocol.tasks import TaskSpec
 from protocol.tensors import TensorBlob
 
@@ -77,7 +78,7 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
     last = sorted(k.answers)[-ANSWERS_SAVED:]
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
-        actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.rounds_per_episode,
+        actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.shape.per_episode,
         round=k.round, workers=workers, pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
@@ -108,13 +109,13 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
         raise ValueError(f"the saved run learns {state.env_id!r}, not {task.env_id!r}")
     k = RoundKeeper([w.worker_id for w in state.workers], state.policy, task, state.max_episodes,
                     state.round_timeout, actor_spec=_unspec(state.actor_spec), critic_spec=_unspec(state.critic_spec),
-                    rounds_per_episode=state.rounds_per_episode)
+                    shape=RoundShape(per_episode=state.rounds_per_episode))
     k.workers.update((w.worker_id, restore_worker(w)) for w in state.workers)
     k.round = state.round
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state.pending}
     for s in state.ahead:
         sub = _unsubmission(s)
-        k.ahead.setdefault(k.round_of(sub.episode, sub.step), {})[sub.worker_id] = sub
+        k.ahead.setdefault(k.shape.number(sub.episode, sub.step), {})[sub.worker_id] = sub
     k.counted = {(w, e) for w, e in state.counted}
     k.answers = {o.round: o for o in map(_unoutcome, state.answers)}
     k.done_reason, k.aborted = state.done_reason, state.aborted

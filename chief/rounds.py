@@ -4,10 +4,10 @@ Every federation decision of the chief is made here (and in the strategies it ca
 translates.
 
 **Rounds.** The paper's strategies have one round per episode: a worker plays an episode, runs its K PPO steps and
-submits the episode's gradient. A strategy that shares every mini-batch step (``Strategy.per_step``, e.g. ``sync``)
+submits the episode's gradient. A strategy that shares every mini-batch step (``Strategy.rounds``, e.g. ``sync``)
 has K rounds per episode: round (e, s) carries step s of episode e, and the workers apply each round's answer before
-computing the next step. Rounds are numbered 1, 2, ... over (episode, step): ``round = (e - 1) * K + s + 1``; with
-one round per episode the round is the episode.
+computing the next step. Rounds are numbered 1, 2, ... over (episode, step) by the run's ``RoundShape``
+(protocol/rounds.py); with one round per episode the round is the episode.
 
 ``submit`` decides whether a worker's submission counts:
 
@@ -53,6 +53,7 @@ from typing import Any, Literal
 import numpy as np
 
 from chief import federation, strategies
+from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, TaskSpec, performance_index
 from protocol.tensors import NORM_LIMIT, answer_digest, digest, l2_norm
 
@@ -107,9 +108,11 @@ class Submission:
 
 @dataclass(frozen=True)
 class Ack:
-    """The answer to a MatureParams: accepted (the chief holds it) or refused, with the reason."""
+    """The answer to a MatureParams (of round ``round``, step 0 of ``episode``): accepted (the chief holds it) or
+    refused, with the reason."""
 
     worker_id: str
+    round: int
     episode: int
     accepted: bool
     reason: str = ""
@@ -212,7 +215,7 @@ class WorkerRecord:
 
 
 class RoundKeeper:
-    """Rounds for a fixed set of workers (Algorithm 1), ``rounds_per_episode`` of them per episode."""
+    """Rounds for a fixed set of workers (Algorithm 1), shaped by ``shape`` (its strategy's ``rounds(K)``)."""
 
     def __init__(
         self,
@@ -223,14 +226,13 @@ class RoundKeeper:
         round_timeout: float,
         actor_spec: dict[str, tuple[int, ...]] | None = None,
         critic_spec: dict[str, tuple[int, ...]] | None = None,
-        rounds_per_episode: int = 1,
+        shape: RoundShape = PER_EPISODE,
     ) -> None:
         if not workers:
             raise ValueError("a federation needs at least one worker")
         self.strategy = strategies.get(policy)
-        if rounds_per_episode < 1 or (rounds_per_episode > 1) != self.strategy.per_step:
-            raise ValueError(f"policy {policy!r} needs {'K' if self.strategy.per_step else 1} rounds per episode, "
-                             f"not {rounds_per_episode}")
+        if self.strategy.rounds(shape.per_episode) != shape:
+            raise ValueError(f"policy {policy!r} has other rounds than {shape.per_episode} per episode")
         federation.progress(task.tc, task.tc, task.r_floor)  # validates tc > r_floor
         self.policy = policy
         self.task = task
@@ -238,7 +240,7 @@ class RoundKeeper:
         self.round_timeout = round_timeout
         self.actor_spec = actor_spec
         self.critic_spec = critic_spec
-        self.rounds_per_episode = rounds_per_episode
+        self.shape = shape
         self.workers = {w: WorkerRecord(w) for w in sorted(workers)}
         self.round = 1
         self.pending: dict[str, Submission] = {}
@@ -251,24 +253,20 @@ class RoundKeeper:
 
     # -- rounds and episodes ---------------------------------------------------------------------------------
 
-    def round_of(self, episode: int, step: int = 0) -> int:
-        return (episode - 1) * self.rounds_per_episode + step + 1
-
-    def episode_of(self, round_: int) -> int:
-        return (round_ - 1) // self.rounds_per_episode + 1
-
-    def step_of(self, round_: int) -> int:
-        return (round_ - 1) % self.rounds_per_episode
+    @property
+    def rounds_per_episode(self) -> int:
+        """K of the run's round shape (as RunStart and summary.json carry it)."""
+        return self.shape.per_episode
 
     @property
     def episode(self) -> int:
         """The open round's episode."""
-        return self.episode_of(self.round)
+        return self.shape.episode_of(self.round)
 
     @property
     def next_episode(self) -> int:
         """The first episode a worker joining now can take part in from its first step."""
-        return self.episode + (1 if self.step_of(self.round) else 0)
+        return self.episode + (1 if self.shape.step_of(self.round) else 0)
 
     # -- queries ---------------------------------------------------------------------------------------------
 
@@ -304,15 +302,15 @@ class RoundKeeper:
         rec = self.workers.get(sub.worker_id)
         if rec is None:
             return self._reject(sub, 0, "unknown_worker", "not part of this run")
-        if not 0 <= sub.step < self.rounds_per_episode or (sub.mature and sub.step):
+        if not 0 <= sub.step < self.shape.per_episode or (sub.mature and sub.step):
             return self._reject(sub, 0, "invalid", f"step {sub.step} of a {sub.kind} (this run has "
-                                f"{self.rounds_per_episode} rounds per episode, a finish comes at step 0)")
-        r = self.round_of(sub.episode, sub.step)
+                                f"{self.shape.per_episode} rounds per episode, a finish comes at step 0)")
+        r = self.shape.number(sub.episode, sub.step)
         if (sub.worker_id, r) in self.counted:
             ack = None
             if sub.mature:
                 same = rec.solved_episode == sub.episode or self._held_mature(sub.worker_id) == sub.episode
-                ack = Ack(sub.worker_id, sub.episode, same, "" if same else "episode already counted as an update")
+                ack = Ack(sub.worker_id, r, sub.episode, same, "" if same else "episode already counted as an update")
             return Verdict("duplicate", "duplicate", f"round {r} of {sub.worker_id} already counted",
                            submission=sub, round=r, ack=ack, replay=self.answers.get(r))
         if self.done:
@@ -323,8 +321,7 @@ class RoundKeeper:
             verdict = self._reject(sub, r, "stale", f"round {r} is closed (open round {self.round})")
             verdict.replay = self.answers.get(r)
             return verdict
-        last = min(self.round + AHEAD_WINDOW * self.rounds_per_episode,
-                   self.round_of(self.max_episodes, self.rounds_per_episode - 1))
+        last = min(self.round + AHEAD_WINDOW * self.shape.per_episode, self.shape.last_of(self.max_episodes))
         if r > last:
             return self._reject(sub, r, "out_of_window",
                                 f"round {r} (episode {sub.episode}) is outside the open round's window "
@@ -372,7 +369,8 @@ class RoundKeeper:
     # -- internals -------------------------------------------------------------------------------------------
 
     def _reject(self, sub: Submission, round_: int, reason: str, detail: str) -> Verdict:
-        ack = Ack(sub.worker_id, sub.episode, False, f"{reason}: {detail}") if sub.mature else None
+        ack = Ack(sub.worker_id, self.shape.number(sub.episode), sub.episode, False,
+                  f"{reason}: {detail}") if sub.mature else None
         return Verdict("rejected", reason, detail, submission=sub, round=round_, ack=ack)
 
     def _held_mature(self, worker_id: str) -> int | None:
@@ -388,7 +386,7 @@ class RoundKeeper:
         tensors = sub.params if sub.mature else sub.gradient
         if tensors is None:
             return "invalid", "no tensors"
-        wants_critic = self.strategy.per_step and not sub.mature
+        wants_critic = self.shape.per_step and not sub.mature
         if (sub.critic_gradient is not None) != wants_critic:
             return "invalid", (f"a critic gradient is {'required' if wants_critic else 'not expected'} under policy "
                                f"{self.policy!r}")
@@ -408,7 +406,7 @@ class RoundKeeper:
                 return "absurd_norm", f"{sub.kind} {what} tensors have an L2 norm of {norm:.3g} (limit {NORM_LIMIT:g})"
         if sub.step > 0:
             # A later step of an episode whose step 0 was counted: it must repeat that episode's return and PI.
-            if (sub.worker_id, self.round_of(sub.episode)) not in self.counted:
+            if (sub.worker_id, self.shape.number(sub.episode)) not in self.counted:
                 return "out_of_order", f"step {sub.step} of episode {sub.episode} before its step 0 was counted"
             if rec.returns.get(sub.episode) != sub.episode_return or rec.pis.get(sub.episode) != sub.pi:
                 return "inconsistent", f"step {sub.step} of episode {sub.episode} reports another return or PI"
@@ -456,7 +454,7 @@ class RoundKeeper:
             self.ahead.setdefault(r, {})[sub.worker_id] = sub
         if self.round_opened_at is None:
             self.round_opened_at = now
-        ack = Ack(sub.worker_id, sub.episode, True) if sub.mature else None
+        ack = Ack(sub.worker_id, r, sub.episode, True) if sub.mature else None
         return Verdict("accepted", submission=sub, round=r, ack=ack, outcomes=self._maybe_close(now))
 
     def _open_next(self, now: float) -> None:
@@ -483,13 +481,14 @@ class RoundKeeper:
         self.round += 1
         if not self.ids_in("active", "lagging", "offline"):
             self.done_reason = "all workers solved"
-        elif self.episode_of(r) >= self.max_episodes and self.step_of(r) == self.rounds_per_episode - 1:
+        elif r >= self.shape.last_of(self.max_episodes):
             self.done_reason = f"reached the maximum of {self.max_episodes} episodes"
         return [outcome]
 
     def _outcome(self, r: int, kind: Literal["aggregate", "transfer"], subs: dict[str, Submission]) -> RoundOutcome:
         contributors = sorted(subs)
-        return RoundOutcome(round=r, episode=self.episode_of(r), step=self.step_of(r), kind=kind,
+        episode, step = self.shape.of(r)
+        return RoundOutcome(round=r, episode=episode, step=step, kind=kind,
                             strategy=self.policy, contributors=contributors,
                             pis={w: subs[w].pi for w in contributors})
 
@@ -502,7 +501,7 @@ class RoundKeeper:
             grads, outcome.clipped = bound_norms({w: subs[w].gradient for w in learners})  # type: ignore[misc]
             agg = self.strategy.aggregate(grads, progress)
             outcome.gradient, outcome.weights = agg.gradient, agg.weights or {}
-            if self.strategy.per_step and agg.gradient is not None:
+            if self.shape.per_step and agg.gradient is not None:
                 critics, _ = bound_norms({w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
                 outcome.critic_gradient = self.strategy.aggregate(critics, progress).gradient
         for w in finished:
@@ -513,12 +512,12 @@ class RoundKeeper:
         rec.state, rec.solved_episode, rec.steps_at_solve = "finished", episode, rec.steps
         rec.helping = self.strategy.finishers_help
         # Not waited for in the rest of its finishing episode's rounds; a helper is from the next episode on.
-        rec.last_round = max(rec.last_round, self.round_of(episode + 1))
+        rec.last_round = max(rec.last_round, self.shape.number(episode + 1))
 
     def _transfer(self, r: int, subs: dict[str, Submission], mature: dict[str, Submission]) -> RoundOutcome | None:
         """The transfer of the best finisher's actor (Eq. 10-11), or None when nobody is left to receive it or the
         strategy transfers nothing."""
-        episode = self.episode_of(r)
+        episode = self.shape.episode_of(r)
         recipients = [w for w in self.ids_in("active", "lagging", "offline") if w not in mature]
         recipient_pis = {w: self.workers[w].pi_at(episode) for w in recipients}
         keep = {w: self.strategy.keep_weight(self.progress(pi)) for w, pi in recipient_pis.items()}

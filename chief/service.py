@@ -109,16 +109,14 @@ class ChiefService:
                 if not workers:
                     log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
                     return EXIT_NO_WORKERS
-                per_step = strategies.get(cfg.policy).per_step
-                if per_step and self.roster.update_steps < 1:
-                    raise ValueError(f"policy {cfg.policy!r} needs workers that report their PPO steps per episode")
+                shape = strategies.get(cfg.policy).rounds(self.roster.update_steps)  # ValueError if it cannot run
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
-                                          rounds_per_episode=self.roster.update_steps if per_step else 1)
+                                          shape=shape)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
             self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
-                cfg.run_dir, self.keeper.rounds_per_episode, wall_start=time.time() - (time.monotonic() - self.t0)))
+                cfg.run_dir, self.keeper.shape.per_episode, wall_start=time.time() - (time.monotonic() - self.t0)))
             self._announce()
             self._federate()
             return self._finish()
@@ -182,7 +180,7 @@ class ChiefService:
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
-                       session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.rounds_per_episode,
+                       session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
                        finishers_help=self.keeper.strategy.finishers_help)
         topic = topics.chief(self.cfg.run_id, topics.START)
         self.conn.publish(topic, encode(msg), qos=qos_of(topic))
@@ -284,11 +282,11 @@ class ChiefService:
 
     def _log_outcome(self, outcome: RoundOutcome) -> None:
         if outcome.kind == "transfer":
-            log.info("round %d: %s finished (PI %.1f); transferring %s's actor to %s", outcome.episode,
+            log.info("round %d: %s finished (PI %.1f); transferring %s's actor to %s", outcome.round,
                      ", ".join(outcome.finished), outcome.source_pi or 0, outcome.source_worker,
                      ", ".join(f"{w} (keep {k:.3f})" for w, k in outcome.keep_weights.items()))
         elif outcome.finished:
-            log.info("round %d: %s finished (no transfer: %s)", outcome.episode, ", ".join(outcome.finished),
+            log.info("round %d: %s finished (no transfer: %s)", outcome.round, ", ".join(outcome.finished),
                      "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
 
     def _progress(self, now: float, force: bool = False) -> None:
@@ -321,8 +319,9 @@ class ChiefService:
         rounds = keeper.round - 1
         self._save()
         stop = topics.chief(cfg.run_id, topics.STOP)
-        self.conn.publish(stop, encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=rounds, all_solved=all_solved,
-                                               aborted=aborted, session=self.session)),
+        episodes = keeper.shape.episode_of(rounds) if rounds else 0
+        self.conn.publish(stop, encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes,
+                                               all_solved=all_solved, aborted=aborted, session=self.session)),
                           qos=qos_of(stop)).wait_for_publish(timeout=5)
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
@@ -360,10 +359,10 @@ def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:
     """A closed round's answer to the workers."""
     if outcome.kind == "transfer":
         assert outcome.params is not None and outcome.source_worker is not None
-        return ChiefTransfer(episode=outcome.episode, source_worker=outcome.source_worker,
+        return ChiefTransfer(round=outcome.round, episode=outcome.episode, source_worker=outcome.source_worker,
                              source_pi=float(outcome.source_pi or 0), params=pack_arrays(outcome.params),
                              keep_weights=outcome.keep_weights, finished=outcome.finished)
-    return ChiefAggregate(episode=outcome.episode, step=outcome.step,
+    return ChiefAggregate(round=outcome.round, episode=outcome.episode, step=outcome.step,
                           gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
                           critic_gradient=(pack_arrays(outcome.critic_gradient)
                                            if outcome.critic_gradient is not None else None),
@@ -371,4 +370,5 @@ def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:
 
 
 def ack_of(ack: Ack) -> ChiefAck:
-    return ChiefAck(worker_id=ack.worker_id, episode=ack.episode, accepted=ack.accepted, reason=ack.reason)
+    return ChiefAck(worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=ack.accepted,
+                    reason=ack.reason)

@@ -40,7 +40,6 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     ``env_options`` go to the task's factory (qube-local: ``rig_profile``, ``randomize``)."""
     torch.set_num_threads(1)
     spec = task(env_id)
-    strategy = strategies.get(policy)
     ids = [f"w{i}" for i in range(workers)]
     algos: dict[str, Algorithm2] = {}
     keeper: RoundKeeper | None = None
@@ -50,9 +49,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         if keeper is None:
             keeper = RoundKeeper(ids, policy, spec, max_episodes, round_timeout=float("inf"),
                                  actor_spec=learner.actor_spec(), critic_spec=learner.critic_spec(),
-                                 rounds_per_episode=learner.config.update_epochs if strategy.per_step else 1)
-        algos[wid] = Algorithm2(wid, env, learner, spec.tc, worker_seed(seed, i),
-                                rounds_per_episode=keeper.rounds_per_episode)
+                                 shape=strategies.get(policy).rounds(learner.config.update_epochs))
+        algos[wid] = Algorithm2(wid, env, learner, spec.tc, worker_seed(seed, i), shape=keeper.shape)
     assert keeper is not None
     metrics = MetricsLog(run_dir)
     t0 = time.monotonic()
@@ -124,9 +122,9 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                     open_[wid] = _wire(nxt, WorkerUpdate)
             for old in [r for r in answers if r < keeper.round - AHEAD_ROUNDS_KEPT]:
                 del answers[old]
-            if progress and keeper.step_of(keeper.round - 1) == keeper.rounds_per_episode - 1:
+            if progress and keeper.round > 1 and keeper.shape.ends_episode(keeper.round - 1):
                 cells = " | ".join(f"{w} PI {algos[w].pi:.1f}" for w in ids if algos[w].pi is not None)
-                print(f"episode {keeper.episode_of(keeper.round - 1):4d} | {cells}", flush=True)
+                print(f"episode {keeper.shape.episode_of(keeper.round - 1):4d} | {cells}", flush=True)
     finally:
         metrics.close()
         for algo in algos.values():

@@ -2,7 +2,8 @@
 
 Federation (paper Algorithms 1-2): WorkerHello, WorkerStatus, WorkerUpdate (actor gradient + PI),
 MatureParams (a finished worker's actor), ChiefAggregate (Eq. 9 mean gradient), ChiefTransfer (Eq. 10-11),
-ChiefAck (the chief holds a worker's mature actor, or refuses it), RunStart, RunStop.
+ChiefAck (the chief holds a worker's mature actor, or refuses it), RunStart, RunStop. The chief's answers carry the
+number of the round they answer (protocol/rounds.py) next to its episode and step.
 Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
 """
 
@@ -13,6 +14,7 @@ from typing import Annotated, Final, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from protocol.qube import Phase, RigState
+from protocol.rounds import MAX_PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import TensorDict
 
@@ -143,10 +145,12 @@ class MatureParams(Message):
 
 
 class ChiefAggregate(Message):
-    """Algorithm 1, no worker finished: the weighted mean gradient g_bar (Eq. 8-9), or None (no sharing).
-    Under a per-step strategy it answers step ``step`` of the episode and carries the mean critic gradient too."""
+    """Algorithm 1, no worker finished: the weighted mean gradient g_bar (Eq. 8-9), or None (no sharing), answering
+    round ``round`` = (``episode``, ``step``). Under a per-step strategy it answers step ``step`` of the episode and
+    carries the mean critic gradient too."""
 
     kind: Literal["aggregate"] = "aggregate"
+    round: int = Field(ge=1)
     episode: int = Field(ge=1)
     gradient: TensorDict | None
     weights: dict[str, float]
@@ -156,9 +160,11 @@ class ChiefAggregate(Message):
 
 
 class ChiefTransfer(Message):
-    """Algorithm 1, a worker finished: its actor theta_bar for the others, with each recipient's w_T (Eq. 10)."""
+    """Algorithm 1, a worker finished: its actor theta_bar for the others, with each recipient's w_T (Eq. 10).
+    It answers round ``round``, step 0 of ``episode`` (a finish always comes at step 0)."""
 
     kind: Literal["transfer"] = "transfer"
+    round: int = Field(ge=1)
     episode: int = Field(ge=1)
     source_worker: Ident
     source_pi: float
@@ -170,10 +176,12 @@ class ChiefTransfer(Message):
 class ChiefAck(Message):
     """The chief's answer to a MatureParams: ``accepted`` (it holds the actor and counts the worker as finished at
     ``episode``; repeated for a repeated MatureParams) or refused with the reason (the worker then goes on learning).
+    ``round`` is the round of that MatureParams (step 0 of ``episode``).
     """
 
     kind: Literal["ack"] = "ack"
     worker_id: Ident
+    round: int = Field(ge=1)
     episode: int = Field(ge=1)
     accepted: bool
     reason: str = Field(default="", max_length=2000)
@@ -182,10 +190,11 @@ class ChiefAck(Message):
 class RunStart(Message):
     """The chief starts (or re-announces) the run; a worker's index is its position in ``workers``.
 
-    ``first_episode`` is the open round: a worker that restarts mid-run numbers its episodes from there. ``session``
-    names this run of the chief (kept when it resumes): a worker acts only on a RunStop of the same session. ``epoch``
-    counts the chief's restarts: a worker waiting for an answer sends its submission again when it sees a new one.
-    ``rounds_per_episode`` is 1 for the paper's strategies and K for a per-step strategy (see WorkerUpdate).
+    ``first_episode`` is the open round's episode (the next one when the open round is a later step of its episode):
+    a worker that restarts mid-run numbers its episodes from there. ``session`` names this run of the chief (kept
+    when it resumes): a worker acts only on a RunStop of the same session. ``epoch`` counts the chief's restarts: a
+    worker waiting for an answer sends its submission again when it sees a new one. ``rounds_per_episode`` is K of the
+    run's round shape (``shape``): 1 for the paper's strategies, the PPO steps per episode for a per-step strategy.
     ``finishers_help``: a worker whose mature actor was acknowledged goes on playing and sharing until the RunStop.
     """
 
@@ -201,12 +210,18 @@ class RunStart(Message):
     first_episode: int = Field(default=1, ge=1)
     session: str = Field(default="", max_length=32)
     epoch: int = Field(default=0, ge=0)
-    rounds_per_episode: int = Field(default=1, ge=1, le=1000)
+    rounds_per_episode: int = Field(default=1, ge=1, le=MAX_PER_EPISODE)
     finishers_help: bool = False
+
+    @property
+    def shape(self) -> RoundShape:
+        """How this run numbers its rounds."""
+        return RoundShape(per_episode=self.rounds_per_episode)
 
 
 class RunStop(Message):
-    """The run is over; workers stop. ``aborted``: it ended early (e.g. every worker offline), not by its rule."""
+    """The run is over; workers stop. ``episodes``: the episode of the last closed round. ``aborted``: it ended early
+    (e.g. every worker offline), not by its rule."""
 
     kind: Literal["run_stop"] = "run_stop"
     run_id: Ident

@@ -26,9 +26,10 @@ SOLVE_AT = {"w0": 12, "w1": 15, "w2": 21}  # episodes at which each simulated wo
 def simulate(run_dir: Path, policy: str = "weighted") -> None:
     """Drive the real RoundKeeper with three honest workers and write the run folder the chief would write (three
     rounds per episode under a per-step strategy)."""
-    per_step = 3 if strategies.get(policy).per_step else 1
+    shape = strategies.get(policy).rounds(3)
+    per_step = shape.per_episode
     keeper = RoundKeeper(sorted(SOLVE_AT), policy, task("CartPole-v0"), max_episodes=100, round_timeout=30.0,
-                         actor_spec={"g": (2,)}, critic_spec={"c": (1,)}, rounds_per_episode=per_step)
+                         actor_spec={"g": (2,)}, critic_spec={"c": (1,)}, shape=shape)
     returns: dict[str, list[float]] = {w: [] for w in SOLVE_AT}
     receipts: dict[str, dict[str, Any] | None] = {w: None for w in SOLVE_AT}
     metrics = MetricsLog(run_dir)  # the chief's writer
@@ -84,7 +85,7 @@ def first(lines: list[dict[str, Any]], **match: Any) -> dict[str, Any]:
 def test_an_honest_federation_passes(tmp_path: Path, policy: str) -> None:
     simulate(tmp_path / policy, policy)
     report = audit(tmp_path / policy)
-    if strategies.get(policy).per_step:  # three rounds per episode; a finisher's episode has one; finishers help
+    if strategies.get(policy).rounds(3).per_step:  # 3 rounds per episode; a finisher's episode has one; finishers help
         # 20 episodes of 3 steps and a last step 0, all three workers (finishers help), less the steps 1-2 of
         # w0's and w1's finishing episodes.
         assert report.rounds == 20 * 3 + 1 and report.submissions == 3 * (20 * 3 + 1) - 2 * 2
@@ -259,12 +260,11 @@ def test_a_finished_helpers_submission_may_outlive_the_run(tmp_path: Path, polic
     simulate(tmp_path / policy, policy)
     lines = records(tmp_path / policy)
     last = max(int(x["round"]) for x in lines if x["type"] == "round")
-    per_episode = 3 if strategies.get(policy).per_step else 1
-    episode, step = divmod(last, per_episode)
+    episode, step = strategies.get(policy).rounds(3).of(last + 1)
     early = [x for x in lines if x["type"] == "episode" and x["worker"] == "w0"][-1]
     closing = first(lines, type="round", round=last)
     receipt = {"round": last, "applied": closing["kind"], "digest": closing["digest"], "keep": None}
-    late = {"episode": episode + 1, "round": last + 1, "receipt": receipt}
+    late = {"episode": episode, "round": last + 1, "receipt": receipt}
     lines.append({"type": "step", "worker": "w0", "step": step, "t": 0.0, **late} if step else {**early, **late})
     rewrite(tmp_path / policy, lines)
     if not strategies.get(policy).finishers_help:

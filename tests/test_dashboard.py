@@ -35,6 +35,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.rounds import RoundShape
 from protocol.tensors import pack_arrays
 from services.dashboard.feed import MqttFeed, subscriptions
 from services.dashboard.hub import Hub
@@ -61,8 +62,10 @@ def mature(worker: str, episode: int, pi: float) -> MatureParams:
                         params=pack_arrays(BIG))
 
 
-def aggregate(episode: int, weights: dict[str, float]) -> ChiefAggregate:
-    return ChiefAggregate(episode=episode, gradient=pack_arrays(BIG), weights=weights, contributors=sorted(weights))
+def aggregate(episode: int, weights: dict[str, float], step: int = 0, k: int = 1) -> ChiefAggregate:
+    """The answer to step ``step`` of ``episode`` in a run of ``k`` rounds per episode."""
+    return ChiefAggregate(round=RoundShape(per_episode=k).number(episode, step), episode=episode, step=step,
+                          gradient=pack_arrays(BIG), weights=weights, contributors=sorted(weights))
 
 
 def feed(view: RunView, *messages: Any, t: float = 100.0) -> list[dict]:
@@ -106,7 +109,7 @@ def test_view_follows_a_run_from_hello_to_stop() -> None:
 
     # w1 finishes at round 3; w0 gets its actor with keep weight 0.1.
     feed(view, update("w0", 3, 19.5), mature("w1", 3, 196.0),
-         ChiefTransfer(episode=3, source_worker="w1", source_pi=196.0, params=pack_arrays(BIG),
+         ChiefTransfer(round=3, episode=3, source_worker="w1", source_pi=196.0, params=pack_arrays(BIG),
                        keep_weights={"w0": 0.1}, finished=["w1"]))
     snap = view.snapshot()
     assert snap["transfers"][-1]["source"] == "w1" and snap["transfers"][-1]["keep_weights"] == {"w0": 0.1}
@@ -119,6 +122,27 @@ def test_view_follows_a_run_from_hello_to_stop() -> None:
     assert snap["run"]["phase"] == "stopped" and snap["run"]["stop"]["reason"] == "episode limit"
     assert workers_of(view)["w0"]["state"] == "stopped" and workers_of(view)["w1"]["state"] == "finished"
     assert [p[0] for p in workers_of(view)["w0"]["curve"]] == [1, 2, 3]
+
+
+def test_view_numbers_the_rounds_of_a_per_step_strategy() -> None:
+    """Under ``sync`` (K = 3 rounds per episode) a round is one mini-batch step: the page numbers the rounds as the
+    chief does (1..3 in episode 1, 4..6 in episode 2), with their episode and step; the open round's episode is
+    shown, and a worker is lagging only when it is behind the last round's episode without taking part in it."""
+    view = RunView(RUN)
+    feed(view, start(["w0", "w1"]).model_copy(update={"policy": "sync", "rounds_per_episode": 3}))
+    for step in range(3):
+        feed(view, update("w0", 1, 10.0), update("w1", 1, 20.0), aggregate(1, {"w0": 0.5, "w1": 0.5}, step, k=3))
+    snap = view.snapshot()
+    assert [(r["round"], r["episode"], r["step"]) for r in snap["rounds"]] == [(1, 1, 0), (2, 1, 1), (3, 1, 2)]
+    assert (snap["run"]["round"], snap["run"]["episode"], snap["run"]["rounds"]) == (4, 2, 3)
+    assert {w["state"] for w in snap["workers"]} == {"training"}  # both took part in the last round
+
+    feed(view, update("w0", 2, 15.0), aggregate(2, {"w0": 1.0}, 0, k=3))  # round 4 closes without w1
+    assert workers_of(view)["w1"]["state"] == "lagging" and workers_of(view)["w0"]["state"] == "training"
+    feed(view, update("w1", 2, 25.0), aggregate(2, {"w0": 0.5, "w1": 0.5}, 1, k=3))
+    snap = view.snapshot()
+    assert workers_of(view)["w1"]["state"] == "training"
+    assert (snap["rounds"][-1]["round"], snap["run"]["round"], snap["run"]["episode"]) == (5, 6, 2)
 
 
 def test_view_keeps_no_tensors() -> None:

@@ -67,7 +67,7 @@ def test_four_workers_learn_and_the_audit_passes(runs: dict[str, Path], policy: 
     assert sorted(p.name for p in (run_dir / "models").iterdir()) == [f"w{i}.pt" for i in range(WORKERS)]
     assert (run_dir / "learning_curve.png").stat().st_size > 1000
     report = audit(run_dir)  # raises AuditFailure naming the first violated invariant
-    if not strategies.get(policy).per_step:
+    if not strategies.get(policy).rounds(summary["rounds_per_episode"]).per_step:
         assert report.submissions == sum(w["episodes"] for w in summary["workers"])
     # Every answer but the first round's was confirmed (under sync, a finisher confirms the rounds of its finishing
     # episode, whose answers it caught up with, by the receipt of its rejoining submission).

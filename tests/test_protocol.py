@@ -30,6 +30,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress
+from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tensors import TensorBlob, check_spec, digest, pack_arrays, unpack_arrays
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -72,11 +73,11 @@ def test_tensor_bytes_are_raw_not_lists() -> None:
         MatureParams(worker_id="w1", episode=9, episode_return=200.0, pi=196.0, recent_returns=[196.0] * 10,
                      params=pack_arrays(grad(1)), receipt=Receipt(round=8, applied="transfer", digest="ab", keep=0.5)),
         update(receipt=Receipt(round=2, applied="missed")),
-        ChiefAck(worker_id="w1", episode=9, accepted=False, reason="not_mature: PI 10"),
-        ChiefAggregate(episode=4, gradient=None, weights={}, contributors=["w0"]),
-        ChiefAggregate(episode=4, gradient=pack_arrays(grad(2)), weights={"w0": 0.5, "w1": 0.5},
+        ChiefAck(worker_id="w1", round=9, episode=9, accepted=False, reason="not_mature: PI 10"),
+        ChiefAggregate(round=4, episode=4, gradient=None, weights={}, contributors=["w0"]),
+        ChiefAggregate(round=11, episode=4, step=1, gradient=pack_arrays(grad(2)), weights={"w0": 0.5, "w1": 0.5},
                        contributors=["w0", "w1"]),
-        ChiefTransfer(episode=5, source_worker="w1", source_pi=196.0, params=pack_arrays(grad(3)),
+        ChiefTransfer(round=5, episode=5, source_worker="w1", source_pi=196.0, params=pack_arrays(grad(3)),
                       keep_weights={"w0": 0.4}, finished=["w1"]),
         RunStart(run_id="r1", env_id="Acrobot-v1", policy="weighted", seed=3, max_episodes=10, tc=-100.0,
                  r_floor=-500.0, workers=["w0", "w1"]),
@@ -312,3 +313,25 @@ def reason_of_topic(payload: bytes, topic: str) -> str:
     with pytest.raises(DecodeError) as info:
         decode(payload, topic=topic)
     return info.value.reason
+
+
+def test_a_round_is_numbered_over_its_episode_and_step() -> None:
+    """round = (e - 1) * K + s + 1 and back; an episode's rounds; a message's round checked against its episode and
+    step; one round per episode numbers rounds as episodes; RunStart carries the shape."""
+    shape = RoundShape(per_episode=3)
+    assert [shape.number(e, s) for e in (1, 2, 3) for s in range(3)] == list(range(1, 10))
+    assert [shape.of(n) for n in (1, 3, 4, 9)] == [(1, 0), (1, 2), (2, 0), (3, 2)]
+    assert list(shape.rounds_of(2)) == [4, 5, 6] and shape.last_of(3) == 9
+    assert shape.ends_episode(6) and not shape.ends_episode(5) and shape.per_step and not PER_EPISODE.per_step
+    assert shape.agrees(5, 2, 1) and not shape.agrees(4, 2, 1) and not shape.agrees(5, 2, 3)
+    assert PER_EPISODE.number(7) == 7 and PER_EPISODE.of(7) == (7, 0)
+    for episode, step in ((0, 0), (1, 3), (1, -1)):
+        with pytest.raises(ValueError, match="no round"):
+            shape.number(episode, step)
+    with pytest.raises(ValueError, match="numbered from 1"):
+        shape.of(0)
+    with pytest.raises(ValueError):
+        RoundShape(per_episode=0)
+    start = RunStart(run_id="r1", env_id="CartPole-v0", policy="sync", seed=3, max_episodes=10, tc=195.0,
+                     r_floor=0.0, workers=["w0"], rounds_per_episode=3)
+    assert start.shape == shape

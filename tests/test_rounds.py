@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from chief.rounds import AHEAD_WINDOW, RoundKeeper, Submission, Verdict
+from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, task
 
 CARTPOLE = task("CartPole-v0")
@@ -357,7 +358,7 @@ def steps_of(f: Fake, episode: int, ret: float, k: int, gv: float = 1.0) -> list
 
 def sync_keeper(max_episodes: int, k: int) -> RoundKeeper:
     return RoundKeeper(["w0", "w1"], "sync", CARTPOLE, max_episodes=max_episodes, round_timeout=10.0,
-                       actor_spec=SPEC, critic_spec={"c": (1,)}, rounds_per_episode=k)
+                       actor_spec=SPEC, critic_spec={"c": (1,)}, shape=RoundShape(per_episode=k))
 
 
 def test_a_per_step_strategy_has_k_rounds_per_episode() -> None:

@@ -12,7 +12,10 @@ import numpy as np
 import pytest
 
 from chief import strategies
+from chief.rounds import RoundKeeper
 from chief.strategies import median, trimmed
+from protocol.rounds import RoundShape
+from protocol.tasks import task
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,6 +41,17 @@ def test_a_new_strategy_is_one_new_file(tmp_path: Path, monkeypatch: pytest.Monk
         "STRATEGY = Strategy('halfmean', 'test', aggregate, lambda p: 0.5, lambda n: 0, 'none')\n")
     monkeypatch.setattr(strategies, "__path__", [*strategies.__path__, str(tmp_path)])
     assert "halfmean" in strategies.registry()
+
+
+def test_the_round_shape_is_the_strategys() -> None:
+    """The paper's strategies have one round per episode whatever K; ``sync`` has K, one per PPO mini-batch step,
+    and cannot run with fewer than 2; the round keeper takes only its strategy's shape."""
+    assert {name: strategies.get(name).rounds(10).per_episode for name in strategies.names()} == {
+        "independent": 1, "median": 1, "plain": 1, "sync": 10, "trimmed": 1, "weighted": 1}
+    with pytest.raises(ValueError, match="at least 2 steps"):
+        strategies.get("sync").rounds(1)
+    with pytest.raises(ValueError, match="other rounds than 10 per episode"):
+        RoundKeeper(["w0"], "weighted", task("CartPole-v0"), 10, 1.0, shape=RoundShape(per_episode=10))
 
 
 def test_median_and_trimmed_by_hand() -> None:

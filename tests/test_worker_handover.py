@@ -1,16 +1,18 @@
-"""The worker's finish path over a real broker: a mature actor that is lost is sent again until the chief
-acknowledges it; a refusal is reported back; another worker's acknowledgement is not taken for its own."""
+"""The worker's answers from the chief over a real broker: a mature actor that is lost is sent again until the chief
+acknowledges it; a refusal is reported back; another worker's acknowledgement is not taken for its own; answers are
+filed by the round they carry, and one whose round is not its episode and step is rejected and counted."""
 
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 import pytest
 
 from protocol import topics
 from protocol.codec import decode, encode
-from protocol.messages import ChiefAck, MatureParams
+from protocol.messages import ChiefAck, ChiefAggregate, ChiefTransfer, MatureParams, RunStart
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.routes import route_of
 from protocol.tensors import pack_arrays
@@ -42,10 +44,10 @@ class ScriptedChief:
             if len(self.received) <= self.drop:
                 return
         # Another worker's acknowledgement first: it must not end w0's wait.
-        self.conn.publish(topics.chief(RUN, topics.ACK), encode(ChiefAck(worker_id="w9", episode=msg.episode,
-                                                                         accepted=True)))
+        self.conn.publish(topics.chief(RUN, topics.ACK), encode(ChiefAck(worker_id="w9", round=msg.episode,
+                                                                         episode=msg.episode, accepted=True)))
         self.conn.publish(topics.chief(RUN, topics.ACK), encode(ChiefAck(
-            worker_id=msg.worker_id, episode=msg.episode, accepted=self.accept,
+            worker_id=msg.worker_id, round=msg.episode, episode=msg.episode, accepted=self.accept,
             reason="" if self.accept else "not_mature: PI 10 over 1 episodes")))
 
 
@@ -72,3 +74,39 @@ def test_the_mature_actor_is_sent_until_the_chief_answers(amqtt_broker: str, dro
     assert ack is not None and ack.worker_id == "w0" and ack.episode == 12 and ack.accepted == accept
     assert accept or "not_mature" in ack.reason
     assert chief.received == received
+
+
+def test_answers_are_filed_by_their_round_and_a_wrong_round_is_rejected(amqtt_broker: str) -> None:
+    """Under K = 3 rounds per episode, round (episode 2, step 1) is round 5: an answer saying so is filed as round 5;
+    an answer whose round disagrees with its episode and step (a transfer or an acknowledgement answers step 0) is
+    counted as ``wrong_round`` and never filed, so it cannot be applied as another round's answer."""
+    chief = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="scripted-chief").start()
+    svc = worker(amqtt_broker)
+    svc.start = RunStart(run_id=RUN, env_id="CartPole-v0", policy="sync", seed=1, max_episodes=10, tc=195.0,
+                         r_floor=0.0, workers=["w0"], rounds_per_episode=3)
+    gradient = pack_arrays({"w": np.ones(2, np.float32)})
+    answers = [
+        ChiefAggregate(round=5, episode=2, step=1, gradient=gradient, weights={"w0": 1.0}, contributors=["w0"]),
+        ChiefAggregate(round=2, episode=2, step=1, gradient=gradient, weights={"w0": 1.0}, contributors=["w0"]),
+        ChiefTransfer(round=5, episode=2, source_worker="w1", source_pi=196.0, params=gradient,
+                      keep_weights={"w0": 0.5}, finished=["w1"]),
+        ChiefAck(worker_id="w0", round=2, episode=2, accepted=True),
+        ChiefAck(worker_id="w0", round=4, episode=2, accepted=True),
+    ]
+    try:
+        deadline = time.monotonic() + 10
+        while svc.inbox.empty() and time.monotonic() < deadline:  # the worker's subscription is in place
+            chief.publish(topics.chief(RUN, topics.START), encode(svc.start), qos=1)
+            time.sleep(0.2)
+        while not svc.inbox.empty():
+            svc.inbox.get()
+        for msg in answers:
+            chief.publish(topics.chief(RUN, msg.kind), encode(msg), qos=1)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and len(svc.replies) + len(svc.acks) + svc.rejects.total < len(answers):
+            svc._receive(timeout=0.5)
+    finally:
+        svc.conn.stop()
+        chief.stop()
+    assert sorted(svc.replies) == [5] and svc.replies[5] == answers[0] and sorted(svc.acks) == [4]
+    assert svc.rejects.as_dict() == {"wrong_round": 3}

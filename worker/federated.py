@@ -8,8 +8,9 @@ it runs K PPO updates and submits the episode's actor gradient with its PI (Work
 answer: the aggregate gradient through its actor's optimizer, or a mature actor blended in with its keep weight
 (Eq. 11). Each submission carries a receipt of what it did with the previous round's answer.
 
-Under a per-step strategy (``rounds_per_episode`` = K > 1) the K PPO steps are K rounds: each step's actor and
-critic gradients are submitted, and the chief's mean of them is what the worker's optimizers apply.
+Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protocol/rounds.py) the K PPO steps are K
+rounds: each step's actor and critic gradients are submitted, and the chief's mean of them is what the worker's
+optimizers apply.
 
     submission = algo.play()                 # the episode, then its first submission
     while submission is not None:
@@ -26,6 +27,7 @@ import gymnasium as gym
 import numpy as np
 
 from protocol.messages import STAT_BOUNDS, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
+from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
 from worker.episode import run_episode
@@ -38,9 +40,9 @@ class Algorithm2:
     """One worker's side of every round, from ``first_episode`` on."""
 
     def __init__(self, worker_id: str, env: gym.Env, learner: PPOLearner, tc: float, seed: int,
-                 first_episode: int = 1, rounds_per_episode: int = 1) -> None:
-        if rounds_per_episode not in (1, learner.config.update_epochs):
-            raise ValueError(f"the chief runs {rounds_per_episode} rounds per episode, but this worker's PPO takes "
+                 first_episode: int = 1, shape: RoundShape = PER_EPISODE) -> None:
+        if shape.per_episode not in (1, learner.config.update_epochs):
+            raise ValueError(f"the chief runs {shape.per_episode} rounds per episode, but this worker's PPO takes "
                              f"{learner.config.update_epochs} steps per episode")
         self.worker_id = worker_id
         self.env = env
@@ -48,7 +50,7 @@ class Algorithm2:
         self.tc = tc
         self.seed = seed
         self.first_episode = first_episode
-        self.rounds_per_episode = rounds_per_episode
+        self.shape = shape
         self.episode = first_episode  # the episode played last (or next, before the first play)
         self.step = 0  # the mini-batch step of the open submission
         self.returns: list[float] = []
@@ -73,12 +75,12 @@ class Algorithm2:
 
     @property
     def per_step(self) -> bool:
-        return self.rounds_per_episode > 1
+        return self.shape.per_step
 
     @property
     def round(self) -> int:
         """The round of the open submission (episode and step)."""
-        return (self.episode - 1) * self.rounds_per_episode + self.step + 1
+        return self.shape.number(self.episode, self.step)
 
     def play(self) -> WorkerUpdate | MatureParams:
         """Play the next episode; return its first submission: the mature actor once PI >= TC, else the gradient
@@ -146,7 +148,7 @@ class Algorithm2:
             self.refused_answer = str(err)
         if self.receipt.applied == "missed" and self.per_step and self._own is not None:
             self.learner.apply_step(self._own.critic, self._own.actor)  # no usable answer: our own step
-        if self.per_step and self.step + 1 < self.rounds_per_episode:
+        if self.step + 1 < self.shape.per_episode:
             self.step += 1
             return self._step_update()
         self._batch = self._own = None
@@ -156,8 +158,7 @@ class Algorithm2:
     def skipped_rounds(self) -> range:
         """Under a per-step strategy whose finishers help: the rounds of the episode this worker finished in, which
         it took no step of (its MatureParams was the first); :meth:`catch_up` applies their answers."""
-        first = (self.episode - 1) * self.rounds_per_episode + 1
-        return range(first, first + self.rounds_per_episode)
+        return self.shape.rounds_of(self.episode)
 
     def catch_up(self, answers: dict[int, ChiefAggregate]) -> list[int]:
         """Apply, in order, the answers of the rounds of the finishing episode (``skipped_rounds``) that every other

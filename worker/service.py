@@ -31,6 +31,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import MqttConnection
+from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.routes import qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
@@ -60,7 +61,7 @@ class WorkerService:
         self.rejects = RejectCounter(log)
         self.inbox: queue.Queue[Any] = queue.Queue()
         self.replies: dict[int, ChiefAggregate | ChiefTransfer] = {}
-        self.acks: dict[int, ChiefAck] = {}
+        self.acks: dict[int, ChiefAck] = {}  # by the round of the MatureParams they answer
         self.answered: set[int] = set()  # rounds whose answer was applied (a repeated answer is not applied again)
         self.stop: RunStop | None = None
         self.start: RunStart | None = None
@@ -93,7 +94,7 @@ class WorkerService:
             tensors = msg.params if isinstance(msg, ChiefTransfer) else msg.gradient
             norm = l2_norm(tensors) if tensors is not None else 0.0
             if not norm <= NORM_LIMIT:
-                self.rejects.reject(topic, "absurd_norm", f"round {msg.episode}'s {msg.kind} has an L2 norm of "
+                self.rejects.reject(topic, "absurd_norm", f"round {msg.round}'s {msg.kind} has an L2 norm of "
                                     f"{norm:.3g} (limit {NORM_LIMIT:g})")
                 return
         self.inbox.put((topic, msg))
@@ -163,7 +164,7 @@ class WorkerService:
                  seed, cfg.env, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
-                          rounds_per_episode=start.rounds_per_episode)
+                          shape=start.shape)
         try:
             while algo.next_episode <= start.max_episodes and self.stop is None:
                 submission: WorkerUpdate | MatureParams | None = algo.play()
@@ -225,15 +226,16 @@ class WorkerService:
         """Send the mature actor until the chief acknowledges it (accepted or refused); None on RunStop or when no
         answer came within ``ack_timeout``. Resending is safe: the chief counts a worker's episode once."""
         payload = encode(mature)
+        round_ = self.shape.number(mature.episode)
         deadline = time.monotonic() + self.cfg.ack_timeout
         interval = 2.0
         while self.stop is None and time.monotonic() < deadline:
             self._send(topics.UPDATE, payload)
             resend_at = min(deadline, time.monotonic() + interval)
-            while self.stop is None and mature.episode not in self.acks and time.monotonic() < resend_at:
+            while self.stop is None and round_ not in self.acks and time.monotonic() < resend_at:
                 self._receive(timeout=min(0.5, max(0.0, resend_at - time.monotonic())))
-            if mature.episode in self.acks:
-                return self.acks.pop(mature.episode)
+            if round_ in self.acks:
+                return self.acks.pop(round_)
             interval = min(2 * interval, 30.0)
             log.warning("no acknowledgement of the mature actor of episode %d yet; sending it again", mature.episode)
         return None
@@ -254,18 +256,29 @@ class WorkerService:
         elif isinstance(msg, RunStart):
             if start is not None and msg.session == start.session and msg.epoch > self.epoch:
                 self.epoch, self.restarted = msg.epoch, True  # the chief restarted: it may have lost our submission
-        elif isinstance(msg, ChiefAck):
-            self.acks[msg.episode] = msg
-        else:
-            r = self._round_of(msg)
-            if r in self.replies or r in self.answered:
+        elif self._round_agrees(topic, msg):  # filed by the round it answers
+            if isinstance(msg, ChiefAck):
+                self.acks[msg.round] = msg
+            elif msg.round in self.replies or msg.round in self.answered:
                 self.duplicates += 1  # an answer sent again (to a worker that missed it): applied once
             else:
-                self.replies[r] = msg
+                self.replies[msg.round] = msg
 
-    def _round_of(self, answer: ChiefAggregate | ChiefTransfer) -> int:
-        per_episode = self.start.rounds_per_episode if self.start is not None else 1
-        return (answer.episode - 1) * per_episode + getattr(answer, "step", 0) + 1
+    @property
+    def shape(self) -> RoundShape:
+        """How the run numbers its rounds (from its RunStart)."""
+        return self.start.shape if self.start is not None else PER_EPISODE
+
+    def _round_agrees(self, topic: str, answer: ChiefAggregate | ChiefTransfer | ChiefAck) -> bool:
+        """Whether an answer's round is the round of its episode and step (a transfer or an acknowledgement answers
+        step 0); one that is not is rejected and counted, and never filed."""
+        step = answer.step if isinstance(answer, ChiefAggregate) else 0
+        if self.shape.agrees(answer.round, answer.episode, step):
+            return True
+        self.rejects.reject(topic, "wrong_round", f"a {answer.kind} for round {answer.round} says episode "
+                            f"{answer.episode} step {step}, not that round with {self.shape.per_episode} rounds per "
+                            f"episode")
+        return False
 
     def _exchange(self, submission: WorkerUpdate, round_: int) -> ChiefAggregate | ChiefTransfer | None:
         """Submit one round and wait for the chief's answer to it (Algorithm 2, 'wait for a message m_c').

@@ -6,9 +6,10 @@ A strategy decides two things of Algorithm 1 (paper Section IV):
   the contribution weight of each (Eq. 8-9 for the linear rules; ``None`` for a rule that is not a weighted sum);
 - ``keep_weight(progress)``: w_T, how much of its own actor a recipient keeps when a mature actor arrives (Eq. 10);
   ``None`` when the strategy transfers nothing;
-- ``per_step``: whether rounds are episodes (the paper: each worker runs its K PPO steps and submits the episode's
-  mean actor gradient) or mini-batch steps (K rounds per episode: each step's actor and critic gradients are
-  aggregated and every worker applies the aggregate before its next step).
+- ``rounds(K)``: the run's round shape (protocol/rounds.py) for workers taking K PPO mini-batch steps per episode:
+  one round per episode (the paper: each worker runs its K PPO steps and submits the episode's mean actor gradient,
+  ``one_per_episode``) or one per mini-batch step (K rounds per episode: each step's actor and critic gradients are
+  aggregated and every worker applies the aggregate before its next step, ``one_per_step``).
 
 ``progress`` is each worker's sign-safe progress in [0, 1] (chief/federation.py), computed by the round state
 machine from the PIs it accepted. One module per strategy in this package registers one ``Strategy``; nothing else
@@ -22,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from protocol.rounds import PER_EPISODE, RoundShape
+
 Arrays = Mapping[str, np.ndarray]
 
 
@@ -31,6 +34,11 @@ class Aggregate:
 
     gradient: dict[str, np.ndarray] | None
     weights: dict[str, float] | None
+
+
+def one_per_episode(update_steps: int) -> RoundShape:
+    """The paper's rounds: one per episode, whatever K (a round shares the episode's actor gradient)."""
+    return PER_EPISODE
 
 
 @dataclass(frozen=True)
@@ -45,12 +53,19 @@ class Strategy:
     tolerates: Callable[[int], int]
     #: One line on what it tolerates and what it does not, for the README table.
     robustness: str
-    #: Share every mini-batch step (K rounds per episode, actor and critic gradients) instead of one gradient per
-    #: episode.
-    per_step: bool = False
+    #: The round shape for workers taking K PPO steps per episode (ValueError when this strategy cannot run with K).
+    rounds: Callable[[int], RoundShape] = one_per_episode
     #: A worker that finished keeps playing and sharing (without transferring anything) until every worker has
     #: finished; its own solve episode stays the one it finished at.
     finishers_help: bool = False
+
+
+def one_per_step(update_steps: int) -> RoundShape:
+    """K rounds per episode, one per PPO mini-batch step (a round shares that step's actor and critic gradients)."""
+    if update_steps < 2:
+        raise ValueError(f"sharing every mini-batch step needs workers whose PPO takes at least 2 steps per episode, "
+                         f"not {update_steps}")
+    return RoundShape(per_episode=update_steps)
 
 
 def no_gradient(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:

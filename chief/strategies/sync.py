@@ -14,7 +14,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from chief import federation
-from chief.strategies.base import Aggregate, Arrays, Strategy
+from chief.strategies.base import Aggregate, Arrays, Strategy, one_per_step
 
 
 def aggregate(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:
@@ -31,6 +31,6 @@ STRATEGY = Strategy(
     keep_weight=lambda progress: None,
     tolerates=lambda n: 0,
     robustness="a linear mean: one worker's gradient can move every step",
-    per_step=True,
+    rounds=one_per_step,
     finishers_help=True,
 )

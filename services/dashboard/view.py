@@ -7,9 +7,11 @@ HTTP, no threads here; tensors (gradients, actors) are never kept, only the scal
 Events (``type`` plus fields):
 
 - ``run``: the run's settings and progress (env, policy, TC, workers, open round, who solved, how it ended);
+  rounds are numbered as the chief's answers number them (K per episode under a per-step strategy such as ``sync``);
 - ``worker``: one worker's summary (state, episode, PI, last return, weights) without its curve;
 - ``point``: one new point of a worker's curve, ``[episode, PI, return]``;
-- ``round``: one closed round (aggregate or transfer: weights, contributors, source, keep weights);
+- ``round``: one closed round (its number, episode and step; aggregate or transfer: weights, contributors, source,
+  keep weights);
 - ``rig``: one QUBE-Servo 2 rig's phase and loop timing;
 - ``reset``: a new run under the same id started; the page clears what it has.
 """
@@ -60,9 +62,10 @@ class WorkerView:
     last_seen: float = 0.0
     points: list[list[float | None]] = field(default_factory=list)  # [episode, PI, return], thinned past max_points
 
-    def summary(self, last_round: int, last_contributors: frozenset[str]) -> Event:
+    def summary(self, last_episode: int, last_contributors: frozenset[str]) -> Event:
+        """Its row; ``last_episode`` and ``last_contributors`` are those of the last closed round."""
         state = self.status
-        if state == "training" and last_round and self.episode < last_round and self.id not in last_contributors:
+        if state == "training" and last_episode and self.episode < last_episode and self.id not in last_contributors:
             state = "lagging"
         return {"type": "worker", "id": self.id, "state": state, "episode": self.episode, "pi": _round(self.pi),
                 "ret": _round(self.ret), "steps": self.steps, "solved_episode": self.solved_episode,
@@ -124,7 +127,8 @@ class RunView:
         self.rounds: deque[Event] = deque(maxlen=self.max_rounds)
         self.transfers: list[Event] = []
         self.round_count = 0
-        self.last_round = 0  # episode number of the last closed round
+        self.last_round = 0  # number of the last closed round
+        self.last_episode = 0  # and its episode
         self.last_contributors: frozenset[str] = frozenset()
 
     # -- feeding ---------------------------------------------------------------------------------------------
@@ -145,7 +149,7 @@ class RunView:
         return self.workers[worker_id]
 
     def _worker_event(self, w: WorkerView) -> Event:
-        return w.summary(self.last_round, self.last_contributors)
+        return w.summary(self.last_episode, self.last_contributors)
 
     def _all_workers(self) -> list[Event]:
         return [self._worker_event(w) for w in self.workers.values()]
@@ -241,28 +245,30 @@ class RunView:
                 w.status = "stopped"
         return [self.run_summary(), *self._all_workers()]
 
-    def _close_round(self, episode: int, record: Event, contributors: Iterable[str]) -> None:
+    def _close_round(self, msg: ChiefAggregate | ChiefTransfer, record: Event, contributors: Iterable[str]) -> None:
         self.round_count += 1
-        self.last_round = max(self.last_round, episode)
+        if msg.round >= self.last_round:
+            self.last_round, self.last_episode = msg.round, msg.episode
         self.last_contributors = frozenset(contributors)
         self.rounds.append(record)
 
     def _on_aggregate(self, msg: ChiefAggregate, now: float) -> list[Event]:
-        record = {"type": "round", "round": msg.episode, "kind": "aggregate", "t": round(now, 3),
-                  "contributors": list(msg.contributors), "shared": msg.gradient is not None,
+        record = {"type": "round", "round": msg.round, "episode": msg.episode, "step": msg.step, "kind": "aggregate",
+                  "t": round(now, 3), "contributors": list(msg.contributors), "shared": msg.gradient is not None,
                   "weights": {k: _round(v) for k, v in msg.weights.items()}}
-        self._close_round(msg.episode, record, msg.contributors)
+        self._close_round(msg, record, msg.contributors)
         for wid, weight in msg.weights.items():
             self._worker(wid).weight = weight
         return [record, self.run_summary(), *self._all_workers()]
 
     def _on_transfer(self, msg: ChiefTransfer, now: float) -> list[Event]:
         contributors = sorted({*msg.keep_weights, *msg.finished})
-        record = {"type": "round", "round": msg.episode, "kind": "transfer", "t": round(now, 3),
+        record = {"type": "round", "round": msg.round, "episode": msg.episode, "step": 0, "kind": "transfer",
+                  "t": round(now, 3),
                   "source": msg.source_worker, "source_pi": _round(msg.source_pi),
                   "keep_weights": {k: _round(v) for k, v in msg.keep_weights.items()},
                   "finished": list(msg.finished), "contributors": contributors}
-        self._close_round(msg.episode, record, contributors)
+        self._close_round(msg, record, contributors)
         self.transfers.append(record)
         for wid, keep in msg.keep_weights.items():
             self._worker(wid).keep = keep
@@ -310,6 +316,8 @@ class RunView:
             "max_episodes": start.max_episodes if start else None,
             "workers": list(start.workers) if start else sorted(self.workers),
             "round": self.last_round + 1 if start else None, "rounds": self.round_count,
+            "episode": start.shape.episode_of(self.last_round + 1) if start else None,
+            "rounds_per_episode": start.rounds_per_episode if start else None,
             "transfers": len(self.transfers), "solved": [{"worker": w, "episode": e} for w, e in solved],
             "stop": {"reason": stop.reason, "episodes": stop.episodes, "all_solved": stop.all_solved} if stop else None,
             "started_at": self.started_at, "stopped_at": self.stopped_at, "first_point_at": self.first_point_at,

@@ -142,15 +142,16 @@ function renderHeader() {
   setText("run-policy", run.policy || "–");
   setText("run-tc", run.tc === null ? "–" : fmt(run.tc, 0));
   setText("run-workers", String(workerIds().length));
-  setText("run-round", run.round === null ? "–" : String(run.round));
+  const openRound = run.rounds_per_episode > 1 ? `${run.round} (episode ${run.episode})` : String(run.round);
+  setText("run-round", run.round === null ? "–" : openRound);
   setText("run-solved", `${run.solved.length} / ${workerIds().length}`);
   setText("run-transfers", String(run.transfers));
   let status = "waiting for the chief to start the run";
   if (run.stop) {
-    status = `ended after ${run.stop.episodes} rounds: ${run.stop.reason}`;
+    status = `ended after ${run.stop.episodes} episodes (${run.rounds} rounds): ${run.stop.reason}`;
   } else if (run.phase === "running") {
     const solved = run.solved.map((s) => `${s.worker}@${s.episode}`).join(", ");
-    status = `running, seed ${run.seed}, at most ${run.max_episodes} rounds` + (solved ? `; solved: ${solved}` : "");
+    status = `running, seed ${run.seed}, at most ${run.max_episodes} episodes` + (solved ? `; solved: ${solved}` : "");
   }
   setText("run-status", status);
   const now = state.stats ? state.stats.t : null;
@@ -214,7 +215,8 @@ function renderRounds() {
     } else {
       detail = el("td", {}, ...weightChips(r.weights));
     }
-    return el("tr", { "data-round": r.round, "data-kind": r.kind }, el("td", { class: "num" }, r.round),
+    return el("tr", { "data-round": r.round, "data-kind": r.kind },
+      el("td", { class: "num", title: `episode ${r.episode}, step ${r.step}` }, r.round),
       el("td", {}, badge(r.kind)), detail);
   });
   replaceRows(document.querySelector("#rounds tbody"), rows);
@@ -329,10 +331,10 @@ function drawChart() {
   ctx.save(); ctx.translate(14, pad.t + h / 2); ctx.rotate(-Math.PI / 2);
   ctx.textBaseline = "middle"; ctx.fillText("return", 0, 0); ctx.restore();
 
-  // transfers: a dotted vertical line at the round
+  // transfers: a dotted vertical line at the round's episode
   ctx.setLineDash([2, 3]); ctx.lineWidth = 1;
   for (const t of state.transfers) {
-    const x = X(t.round);
+    const x = X(t.episode);
     ctx.strokeStyle = colorOf(t.source);
     ctx.beginPath(); ctx.moveTo(x, pad.t); ctx.lineTo(x, pad.t + h); ctx.stroke();
   }

@@ -35,6 +35,7 @@ from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
+from protocol.transport import Connect, Transport
 
 log = logging.getLogger("chief")
 
@@ -58,11 +59,23 @@ class ChiefConfig:
     max_payload: int | None = None
 
 
-class ChiefService:
-    """Runs one federation from the first hello (or from its saved state) to the summary."""
+@dataclass(frozen=True)
+class Outputs:
+    """What the chief writes besides metrics.jsonl and summary.json (an in-process sweep leaves some out)."""
 
-    def __init__(self, cfg: ChiefConfig) -> None:
+    state: bool = True  # its state after every round, synced to disk, so that a restarted chief resumes the run
+    tensorboard: bool = True  # the TensorBoard event files, live
+    plot: bool = True  # learning_curve.png at the end
+
+
+class ChiefService:
+    """Runs one federation from the first hello (or from its saved state) to the summary.
+
+    ``connect`` makes its connection (protocol.transport.Connect; default: MQTT to ``cfg.broker``)."""
+
+    def __init__(self, cfg: ChiefConfig, connect: Connect | None = None, outputs: Outputs = Outputs()) -> None:
         self.cfg = cfg
+        self.outputs = outputs
         self.spec = task(cfg.env_id)
         strategies.get(cfg.policy)  # a ValueError (exit 2) for an unknown policy before anything starts
         topics.check_id(cfg.run_id, "run id")
@@ -74,8 +87,7 @@ class ChiefService:
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
         if self.saved is not None:
             self._check_resumable(*self.saved)
-        self.conn = MqttConnection(cfg.broker, client_id=f"fedrl-{cfg.run_id}-chief", max_payload=cfg.max_payload,
-                                   rejects=self.rejects)
+        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-chief", None, self.rejects)
         self.metrics: MetricsLog | None = None
         self.t0 = time.monotonic()
         self._last_progress = 0.0
@@ -84,6 +96,10 @@ class ChiefService:
         self._must_save = False
         self.duplicates = 0
         self.epoch = 0  # how often this run's chief has restarted
+
+    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
+        return MqttConnection(self.cfg.broker, client_id=client_id, will=will, max_payload=self.cfg.max_payload,
+                              rejects=rejects)
 
     def _check_resumable(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
         if service.get("run_id") != self.cfg.run_id:
@@ -136,8 +152,10 @@ class ChiefService:
                                           rounds_per_episode=self.roster.update_steps if per_step else 1)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
-            self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
-                cfg.run_dir, self.keeper.rounds_per_episode, wall_start=time.time() - (time.monotonic() - self.t0)))
+            if self.outputs.tensorboard:
+                self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
+                    cfg.run_dir, self.keeper.rounds_per_episode,
+                    wall_start=time.time() - (time.monotonic() - self.t0)))
             self._announce()
             self._federate()
             return self._finish()
@@ -164,6 +182,8 @@ class ChiefService:
         """Write the chief's state (after the records it covers are on disk)."""
         assert self.keeper is not None and self.metrics is not None
         self._must_save = False
+        if not self.outputs.state:
+            return
         checkpoint.save(self.cfg.run_dir, self.keeper, {
             "run_id": self.cfg.run_id, "session": self.session, "epoch": self.epoch, "duplicates": self.duplicates,
             "hosts": self.roster.hosts, "update_steps": self.roster.update_steps,
@@ -345,8 +365,9 @@ class ChiefService:
                           qos=qos_of(stop)).wait_for_publish(timeout=5)
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
-        plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
-                             f"{cfg.env_id}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
+        if self.outputs.plot:
+            plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
+                                 f"{cfg.env_id}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
         log.info("run over (%s) after %d rounds; results in %s", reason, rounds, cfg.run_dir)
         return EXIT_ABORTED if aborted else EXIT_OK
 
@@ -360,7 +381,7 @@ class ChiefService:
                            duplicates=self.duplicates, restarts=self.epoch)
 
 
-# -- translation between the wire and the round state machine (also used by deploy/inprocess.py) ----------------
+# -- translation between the wire and the round state machine --------------------------------------------------
 
 
 def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:

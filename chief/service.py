@@ -1,6 +1,6 @@
 """The chief's adapter to its connection (MQTT, or deploy/inprocess.py's in-memory hub): decode what workers send,
-hand it to the Roster and the RoundKeeper, publish their answers, print live progress and write the run folder. It decides nothing: admission is roster.py's, every
-federation decision rounds.py's and the strategies'."""
+hand it to the Roster and the RoundKeeper, publish their answers, print live progress and write the run folder. It
+decides nothing: admission is roster.py's, every federation decision rounds.py's and the strategies'."""
 
 from __future__ import annotations
 

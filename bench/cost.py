@@ -303,8 +303,8 @@ def growth(points: dict[int, float]) -> dict[str, float | None]:
 def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNTS, rounds: int = 30,
                    task: str = "CartPole-v0", strategy: str = strategies.DEFAULT, seed: int = 101) -> dict[str, Any]:
     """In-process federations of N workers for ``rounds`` rounds (one seed): each worker's env steps per second and
-    modelled waiting share (bench.runs), and the chief side's seconds per round (encoding both ways and the round
-    state machine, no broker), for each N."""
+    modelled waiting share (bench.runs), and the chief's CPU seconds per round (decoding the submissions, the round
+    state machine, the records, encoding its answer; no broker), for each N."""
     from bench.runs import Job, collect
     from bench.stats import spread
     from deploy.inprocess import run_federation

@@ -8,12 +8,14 @@ each result names its mode. Every federation's run folder is audited (chief.audi
 Per worker, from the run folder:
 
 - ``episodes`` and ``steps``: until it finished (its MatureParams), or so far when it did not;
-- ``own_s``: seconds spent in its own code (in process: timing.json, playing episodes, PPO updates and applying the
-  chief's answers; over MQTT: from the chief's accept times, each episode from the answer to the previous round to
-  the next submission, i.e. including the answer's and the submission's trip through the broker);
+- ``own_s``: seconds spent in its own code (in process: timing.json, the CPU seconds of its service's threads,
+  playing episodes, PPO updates, decoding and applying the chief's answers; over MQTT: from the chief's accept
+  times, each episode from the answer to the previous round to the next submission, i.e. including the answer's and
+  the submission's trip through the broker);
 - ``wall_s``: seconds until it finished. Over MQTT: the chief's accept time of its mature actor, counted from the
-  run's first accepted submission. In process the workers take turns on one core, so wall time is modelled as if
-  each had a core of its own: every round lasts as long as its slowest worker plus the chief's part;
+  run's first accepted submission. In process the workers' threads share the cores (and one interpreter), so wall
+  time is modelled as if each had a core of its own: every round lasts as long as its slowest worker plus the
+  chief's part;
 - ``wait_share``: the share of its wall time spent waiting for the chief's answer (and so for the slower workers):
   1 - own_s / wall_s in process; over MQTT the time from its submission to the round's answer, over that plus own_s,
   for the rounds it took part in before finishing;

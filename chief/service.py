@@ -1,6 +1,6 @@
-"""The chief's MQTT adapter: decode what workers send, hand it to the Roster and the RoundKeeper, publish their
-answers, print live progress and write the run folder. It decides nothing: admission is roster.py's, every
-federation decision rounds.py's and the strategies'."""
+"""The chief's adapter to its connection (MQTT, or deploy/inprocess.py's in-memory hub): decode what workers send,
+hand it to the Roster and the RoundKeeper, publish their answers, print live progress and write the run folder. It
+decides nothing: admission is roster.py's, every federation decision rounds.py's and the strategies'."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import logging
 import queue
 import secrets
 import time
+from dataclasses import dataclass
 from typing import Any
 
 from chief import checkpoint, strategies, tensorboard
@@ -34,6 +35,7 @@ from protocol.mqtt import MqttConnection
 from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
+from protocol.transport import Connect, Transport
 
 log = logging.getLogger("chief")
 
@@ -44,12 +46,26 @@ EXIT_OK, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 3, 4
 PROGRESS_INTERVAL = 2.0
 
 
-class ChiefService:
-    """Runs one federation from the first hello (or from its saved state) to the summary."""
+@dataclass(frozen=True)
+class Outputs:
+    """What the chief writes besides metrics.jsonl and summary.json (an in-process sweep leaves some out)."""
 
-    def __init__(self, cfg: ChiefSettings) -> None:
+    state: bool = True  # its state after every round, synced to disk, so that a restarted chief resumes the run
+    tensorboard: bool = True  # the TensorBoard event files, live
+    plot: bool = True  # learning_curve.png at the end
+    progress: bool = True  # a progress line every PROGRESS_INTERVAL seconds (else only the last one)
+
+
+class ChiefService:
+    """Runs one federation from the first hello (or from its saved state) to the summary.
+
+    ``connect`` makes its connection (protocol.transport.Connect; default: MQTT to ``cfg.broker``)."""
+
+    def __init__(self, cfg: ChiefSettings, connect: Connect | None = None,
+                 outputs: Outputs | None = None) -> None:
         """``cfg``: the chief's settings, already checked (the policy, the task and the run id among them)."""
         self.cfg = cfg
+        self.outputs = outputs or Outputs()
         self.broker = cfg.address()
         self.spec = task(cfg.env)
         self.rejects = RejectCounter(log)
@@ -60,8 +76,7 @@ class ChiefService:
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
         if self.saved is not None:
             self._check_resumable(*self.saved)
-        self.conn = MqttConnection(self.broker, client_id=f"fedrl-{cfg.run_id}-chief", max_payload=cfg.max_payload,
-                                   rejects=self.rejects)
+        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-chief", None, self.rejects)
         self.metrics: MetricsLog | None = None
         self.t0 = time.monotonic()
         self._last_progress = 0.0
@@ -70,6 +85,10 @@ class ChiefService:
         self._must_save = False
         self.duplicates = 0
         self.epoch = 0  # how often this run's chief has restarted
+
+    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
+        return MqttConnection(self.broker, client_id=client_id, will=will, max_payload=self.cfg.max_payload,
+                              rejects=rejects)
 
     def _check_resumable(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
         if service.get("run_id") != self.cfg.run_id:
@@ -115,8 +134,10 @@ class ChiefService:
                                           shape=shape)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
-            self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
-                cfg.run_dir, self.keeper.shape.per_episode, wall_start=time.time() - (time.monotonic() - self.t0)))
+            if self.outputs.tensorboard:
+                self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
+                    cfg.run_dir, self.keeper.shape.per_episode,
+                    wall_start=time.time() - (time.monotonic() - self.t0)))
             self._announce()
             self._federate()
             return self._finish()
@@ -143,6 +164,8 @@ class ChiefService:
         """Write the chief's state (after the records it covers are on disk)."""
         assert self.keeper is not None and self.metrics is not None
         self._must_save = False
+        if not self.outputs.state:
+            return
         checkpoint.save(self.cfg.run_dir, self.keeper, {
             "run_id": self.cfg.run_id, "session": self.session, "epoch": self.epoch, "duplicates": self.duplicates,
             "hosts": self.roster.hosts, "update_steps": self.roster.update_steps,
@@ -290,7 +313,7 @@ class ChiefService:
                      "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
 
     def _progress(self, now: float, force: bool = False) -> None:
-        if not force and now - self._last_progress < PROGRESS_INTERVAL:
+        if not force and (not self.outputs.progress or now - self._last_progress < PROGRESS_INTERVAL):
             return
         self._last_progress = now
         keeper = self.keeper
@@ -325,8 +348,9 @@ class ChiefService:
                           qos=qos_of(stop)).wait_for_publish(timeout=5)
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
-        plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
-                             f"{cfg.env}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
+        if self.outputs.plot:
+            plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
+                                 f"{cfg.env}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
         log.info("run over (%s) after %d rounds; results in %s", reason, rounds, cfg.run_dir)
         return EXIT_ABORTED if aborted else EXIT_OK
 
@@ -340,7 +364,7 @@ class ChiefService:
                            duplicates=self.duplicates, restarts=self.epoch)
 
 
-# -- translation between the wire and the round state machine (also used by deploy/inprocess.py) ----------------
+# -- translation between the wire and the round state machine --------------------------------------------------
 
 
 def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:

@@ -1,153 +1,177 @@
 """``python -m deploy.inprocess``: a whole federation in one process, for sweeps.
 
-It runs the same chief logic (chief/rounds.py with the strategies, and the chief service's translation between
-messages and rounds) and the same worker logic (worker/federated.py, Algorithm 2) as ``make run``, and every message
-goes through the same msgpack encoding; only MQTT and the separate processes are left out. The workers play their
-episodes one after another, so a run takes about as long as one worker's episodes times N, without brokers and
-process start-up. It writes the same run folder (summary.json with ``"mode": "in-process"``, metrics.jsonl,
-learning_curve.png), which ``python -m chief.audit`` checks like any other. For a given seed it gives the same
-per-worker episodes as a federation over MQTT (a test checks this).
+It starts one ChiefService and N WorkerServices, each in its own thread, on an in-memory hub (protocol/memory.py)
+instead of an MQTT broker: the same services as ``make run``, unchanged, and every message goes through the same
+msgpack codec. Only the broker, the sockets and the process start-ups are left out, and nothing times out (rounds
+wait for every worker, as a sweep must be reproducible). It writes the same run folder (summary.json with ``"mode":
+"in-process"``, metrics.jsonl, learning_curve.png), which ``python -m chief.audit`` checks like any other, without
+the chief's saved state (there is nothing to resume), plus timing.json for bench.runs: each worker's own CPU seconds
+per episode and the chief's per round. For a given seed it gives the same per-worker episodes and round records as a
+federation over MQTT (tests/test_inprocess_equivalence.py).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import msgpack
 import torch
 
-from chief import strategies, tensorboard
-from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
-from chief.rounds import RoundKeeper
-from chief.service import answer_of, submission_of
+from chief.report import write_summary
+from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
+from chief.settings import ChiefSettings
 from deploy.settings import InprocessSettings
-from protocol.codec import decode, encode
-from protocol.messages import ChiefAggregate, ChiefTransfer, MatureParams, WorkerUpdate
-from protocol.tasks import task, worker_seed
+from protocol import topics
+from protocol.codec import RejectCounter, encode
+from protocol.memory import Hub, MemoryConnection
+from protocol.messages import RunStop
+from protocol.transport import Handler
 from runtime.settings import returns_code
-from worker.episode import build_learner_and_env
-from worker.federated import Algorithm2
+from worker.service import WorkerService
+from worker.settings import WorkerSettings
+
+RUN_ID = "inprocess"
+#: Seconds the chief waits for every worker's hello (building N learners at once can take a while on a busy machine).
+START_TIMEOUT = 600.0
 
 
 def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
                    tensorboard_files: bool = True, env_options: dict[str, Any] | None = None) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
-    write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing).
-    ``env_options`` go to the task's factory (qube-local: ``rig_profile``, ``randomize``)."""
+    write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
+    ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
+    task options (qube-local: ``rig_profile``, ``randomize``)."""
     torch.set_num_threads(1)
-    spec = task(env_id)
-    ids = [f"w{i}" for i in range(workers)]
-    algos: dict[str, Algorithm2] = {}
-    keeper: RoundKeeper | None = None
-    for i, wid in enumerate(ids):
-        env, learner = build_learner_and_env(env_id, seed=worker_seed(seed, i), device_noise=device_noise,
-                                             init_seed=seed, env_options=env_options)
-        if keeper is None:
-            keeper = RoundKeeper(ids, policy, spec, max_episodes, round_timeout=float("inf"),
-                                 actor_spec=learner.actor_spec(), critic_spec=learner.critic_spec(),
-                                 shape=strategies.get(policy).rounds(learner.config.update_epochs))
-        algos[wid] = Algorithm2(wid, env, learner, spec.tc, worker_seed(seed, i), shape=keeper.shape)
-    assert keeper is not None
-    metrics = MetricsLog(run_dir)
-    t0 = time.monotonic()
-    if tensorboard_files:
-        metrics.attach(tensorboard.open_board(run_dir, keeper.rounds_per_episode, wall_start=time.time()))
-    open_: dict[str, WorkerUpdate | MatureParams] = {}  # each worker's submission for its open round
-    sent: set[str] = set()  # workers whose open submission the chief has counted: they wait for its answer
-    answers: dict[int, ChiefAggregate | ChiefTransfer] = {}  # closed rounds' answers, as the wire carries them
-    worker_s: dict[str, list[float]] = {wid: [] for wid in ids}  # per episode: the worker's own seconds
-    chief_s: list[float] = []  # per round: the chief side's seconds (encoding both ways, the state machine)
-    chief_acc = 0.0
-    catching_up: dict[str, range] = {}  # helpers that apply their finishing episode's answers before playing on
-    try:
-        while not keeper.done:
-            for wid in [w for w in ids if keeper.workers[w].state != "finished" or keeper.workers[w].helping]:
-                algo = algos[wid]
-                if wid in catching_up:
-                    if keeper.round <= catching_up[wid][-1]:
-                        continue  # those rounds are still open: it waits for their answers, as over MQTT
-                    skipped = catching_up.pop(wid)
-                    algo.catch_up({r: a for r in skipped if isinstance(a := answers.get(r), ChiefAggregate)})
-                if wid not in open_:
-                    start = time.perf_counter()
-                    played = algo.play()
-                    worker_s[wid].append(time.perf_counter() - start)
-                    open_[wid] = _wire(played, WorkerUpdate, MatureParams)
-                if wid in sent:
-                    continue
-                while True:
-                    msg = open_[wid]
-                    start = time.perf_counter()
-                    verdict = keeper.submit(submission_of(msg), time.monotonic() - t0)
-                    if verdict.status == "accepted":
-                        metrics.episode(verdict.record(time.monotonic() - t0))
-                    for outcome in verdict.outcomes:
-                        metrics.round({**outcome.record(), "t": round(time.monotonic() - t0, 3)})
-                        answers[outcome.round] = _wire(answer_of(outcome), ChiefAggregate, ChiefTransfer)
-                    chief_acc += time.perf_counter() - start
-                    for _ in verdict.outcomes:
-                        chief_s.append(chief_acc / len(verdict.outcomes))
-                    chief_acc = 0.0 if verdict.outcomes else chief_acc
-                    if isinstance(msg, MatureParams) and verdict.ack is not None and not verdict.ack.accepted:
-                        start = time.perf_counter()
-                        open_[wid] = _wire(algo.refused(msg), WorkerUpdate)  # refused: it learns on
-                        worker_s[wid][-1] += time.perf_counter() - start
-                        continue
-                    break
-                sent.add(wid)
-                if keeper.done:
-                    break
-            for wid in list(open_):
-                algo = algos[wid]
-                if isinstance(open_[wid], MatureParams):
-                    del open_[wid]  # finished (accepted); it plays on if its finish lets it help
-                    sent.discard(wid)
-                    algo.finished = True
-                    if algo.per_step and keeper.workers[wid].helping:
-                        catching_up[wid] = algo.skipped_rounds
-                    continue
-                if algo.round not in answers:
-                    continue  # its round is still open (it went ahead of the others): it waits, as over MQTT
-                sent.discard(wid)
-                start = time.perf_counter()
-                nxt = algo.apply(answers[algo.round])
-                worker_s[wid][-1] += time.perf_counter() - start
-                if nxt is None:
-                    del open_[wid]  # its episode's rounds are done: it plays the next one
-                else:
-                    open_[wid] = _wire(nxt, WorkerUpdate)
-            for old in [r for r in answers if r < keeper.round - AHEAD_ROUNDS_KEPT]:
-                del answers[old]
-            if progress and keeper.round > 1 and keeper.shape.ends_episode(keeper.round - 1):
-                cells = " | ".join(f"{w} PI {algos[w].pi:.1f}" for w in ids if algos[w].pi is not None)
-                print(f"episode {keeper.shape.episode_of(keeper.round - 1):4d} | {cells}", flush=True)
-    finally:
-        metrics.close()
-        for algo in algos.values():
-            algo.close()
-    summary = run_summary(keeper, keeper.done_reason or "stopped", run_id=run_dir.name, seed=seed, mode="in-process",
-                          wall_s=round(time.monotonic() - t0, 2), rejected_messages={})
+    hub = Hub()
+    chief_conn: list[_Timed] = []
+    chief = ChiefService(
+        ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, policy=policy, seed=seed,
+                            max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
+                            idle_timeout=math.inf, run_dir=run_dir),
+        connect=_timed(hub, topics.START, _answers, chief_conn),
+        outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
+    worker_conns: dict[str, list[_Timed]] = {}
+    services: dict[str, Callable[[], int]] = {"chief": chief.run}
+    for i in range(workers):
+        wid = f"w{i}"
+        worker_conns[wid] = []
+        cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, device_noise=device_noise,
+                                   reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
+                                   resend_interval=math.inf, **(env_options or {}))
+        services[wid] = WorkerService(cfg, _timed(hub, topics.STATUS, _NewEpisode(), worker_conns[wid])).run
+    codes = _run_threads(services)
+    if codes["chief"] not in (EXIT_OK, EXIT_ABORTED):  # the workers (daemon threads) are told to stop, not awaited
+        hub.route(topics.chief(RUN_ID, topics.STOP), encode(RunStop(
+            run_id=RUN_ID, reason="the chief failed", episodes=0, all_solved=False, aborted=True,
+            session=chief.session)))
+        raise RuntimeError(f"the in-process chief failed (exit {codes['chief']!r})")
+    for thread in [c for c in codes.values() if isinstance(c, threading.Thread)]:
+        thread.join()
+    failed = {w: c for w, c in codes.items() if c not in (EXIT_OK, EXIT_ABORTED)}
+    if failed:
+        raise RuntimeError(f"in-process workers failed: {failed}")
+    summary = {**json.loads((run_dir / "summary.json").read_text()), "run_id": run_dir.name, "mode": "in-process"}
+    summary.pop("broker", None)
     write_summary(run_dir, summary)
     (run_dir / "timing.json").write_text(json.dumps(
-        {"worker_s": {w: [round(x, 5) for x in v] for w, v in worker_s.items()},
-         "chief_s": [round(x, 5) for x in chief_s]}) + "\n")
-    if plot:
-        plot_learning_curves(run_dir, metrics.curves, spec.tc,
-                             f"{env_id}, {workers} workers, policy {policy}, seed {seed} (in-process)")
+        {"worker_s": {w: [round(x, 5) for x in c[0].seconds] for w, c in worker_conns.items() if c},
+         "chief_s": [round(x, 5) for x in chief_conn[0].seconds]}) + "\n")
     return summary
 
 
-#: Closed rounds whose answers the runner keeps for workers that are behind.
-AHEAD_ROUNDS_KEPT = 1000
+_Threads = dict[str, Any]  # name -> exit code, the exception it raised, or its running thread
 
 
-def _wire(message: Any, *kinds: type) -> Any:
-    """Through the same msgpack encoding as over MQTT (bit-exact tensors, the same validation)."""
-    return decode(encode(message), *kinds)
+def _run_threads(services: dict[str, Callable[[], int]]) -> _Threads:
+    """Start every service in a daemon thread (an interrupted caller does not hang on them); wait for the chief."""
+    out: _Threads = {}
+
+    def run(name: str, target: Callable[[], int]) -> None:
+        try:
+            out[name] = target()
+        except BaseException as exc:  # handed to the caller
+            out[name] = exc
+
+    for name, target in services.items():
+        thread = threading.Thread(target=run, args=(name, target), name=f"inprocess-{name}", daemon=True)
+        out[name] = thread
+        thread.start()
+    chief = out["chief"]
+    chief.join()
+    return out
+
+
+class _Timed(MemoryConnection):
+    """A hub connection that notes its service's own CPU seconds per unit of work: its main thread's (the service
+    publishes from it) plus its handlers' (decoding, on the delivery thread). A unit ends at a publication that
+    ``ends`` accepts; the first ends at the first one on the topic ending with ``start``."""
+
+    def __init__(self, hub: Hub, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter,
+                 start: str, ends: Callable[[str, bytes], bool]) -> None:
+        super().__init__(hub, client_id, will, rejects)
+        self.seconds: list[float] = []
+        self._start, self._ends = start, ends
+        self._since: float | None = None
+        self._handlers_s = 0.0
+
+    def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        def timed(topic: str, payload: bytes) -> None:
+            began = time.thread_time()
+            try:
+                handler(topic, payload)
+            finally:
+                self._handlers_s += time.thread_time() - began
+
+        super().subscribe(topic_filter, timed, qos)
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> Any:
+        now = time.thread_time() + self._handlers_s
+        if self._since is None:
+            if topic.endswith("/" + self._start):
+                self._since = now
+        elif self._ends(topic, payload):
+            self.seconds.append(now - self._since)
+            self._since = now
+        return super().publish(topic, payload, qos, retain)
+
+
+def _timed(hub: Hub, start: str, ends: Callable[[str, bytes], bool], into: list[_Timed]
+           ) -> Callable[[str, tuple[str, bytes] | None, RejectCounter], _Timed]:
+    """A protocol.transport.Connect that makes a _Timed connection and keeps it in ``into``."""
+    def connect(client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> _Timed:
+        conn = _Timed(hub, client_id, will, rejects, start, ends)
+        into.append(conn)
+        return conn
+
+    return connect
+
+
+def _answers(topic: str, payload: bytes) -> bool:
+    """The chief's unit of work: a round, ended by its answer."""
+    return topic.rsplit("/", 1)[-1] in ("aggregate", "transfer")
+
+
+class _NewEpisode:
+    """A worker's unit of work: an episode, ended by its first submission (the CPU seconds of its answers' steps
+    are counted with the next one's)."""
+
+    def __init__(self) -> None:
+        self.last = 0
+
+    def __call__(self, topic: str, payload: bytes) -> bool:
+        if not topic.endswith("/" + topics.UPDATE):
+            return False
+        episode = int(msgpack.unpackb(payload, raw=False)["episode"])
+        new, self.last = episode > self.last, max(episode, self.last)
+        return new
 
 
 @returns_code
@@ -160,6 +184,7 @@ def main(argv: list[str] | None = None) -> int:
     outcome = f"all workers solved by episode {last}" if last is not None else f"not all solved ({reason})"
     print(f"{s.env} / {s.policy} / seed {s.seed}: {outcome}; {summary['wall_s']:.1f} s; results in {s.run_dir}")
     return 0
+
 
 if __name__ == "__main__":
     sys.exit(main())

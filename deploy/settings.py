@@ -53,7 +53,7 @@ class LocalRunSettings(DeviceNoiseSettings, FederationSettings):
 
 
 class InprocessSettings(DeviceNoiseSettings, FederationSettings):
-    """A whole federation in one process, for sweeps: the same chief and worker logic as make run, without MQTT."""
+    """A whole federation in one process, for sweeps: make run's chief and worker services on an in-memory hub."""
 
     workers: int = setting(4, "number of workers", ge=1)
     run_dir: Path = setting(help="the run folder to write")

@@ -1,12 +1,15 @@
 """Algorithm 2 (one worker of the federation) without the transport: play an episode, say what to send the chief,
-apply the chief's answer. worker/service.py carries it over MQTT; deploy/inprocess.py calls it directly for sweeps,
-so both run the same worker logic.
+apply the chief's answer. worker/service.py carries it over a connection (MQTT, or the in-memory hub with which
+deploy/inprocess.py runs a whole federation in one process).
 
 Per episode (paper Algorithm 2): act until the episode ends, storing transitions; PI = mean of the last PI_WINDOW
 returns. If PI >= TC over PI_WINDOW episodes, the worker's submission is its mature actor (MatureParams). Otherwise
 it runs K PPO updates and submits the episode's actor gradient with its PI (WorkerUpdate), then applies the chief's
 answer: the aggregate gradient through its actor's optimizer, or a mature actor blended in with its keep weight
 (Eq. 11). Each submission carries a receipt of what it did with the previous round's answer.
+
+Once the chief has accepted the mature actor (``accepted``), the worker has finished: it submits no mature actor
+again, and goes on sharing only when the strategy lets finishers help.
 
 Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protocol/rounds.py) the K PPO steps are K
 rounds: each step's actor and critic gradients are submitted, and the chief's mean of them is what the worker's
@@ -26,7 +29,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from protocol.messages import STAT_BOUNDS, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
+from protocol.messages import STAT_BOUNDS, ChiefAck, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
@@ -62,11 +65,16 @@ class Algorithm2:
         self._own: StepGradients | None = None  # this step's own gradients (applied if no answer comes)
         self._last = (0.0, 0)  # the episode's return and env steps
         self.refused_answer: str | None = None  # why the last answer was not applied
-        self.finished = False  # the chief holds this worker's mature actor (it may go on helping)
+        self._finished = False
 
     @property
     def pi(self) -> float | None:
         return performance_index(self.returns) if self.returns else None
+
+    @property
+    def finished(self) -> bool:
+        """Whether the chief holds this worker's mature actor (it may go on helping)."""
+        return self._finished
 
     @property
     def next_episode(self) -> int:
@@ -92,11 +100,19 @@ class Algorithm2:
         self.returns.append(ret)
         self.total_steps += steps
         self._last = (ret, steps)
-        if not self.finished and solved(self.returns, self.tc):
+        if not self._finished and solved(self.returns, self.tc):
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,
                                 params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt)
         return self._first_update()
+
+    def accepted(self, ack: ChiefAck) -> None:
+        """The chief acknowledged the mature actor of the episode just played: this worker has finished (Algorithm 2).
+        A ValueError, nothing changed, for an acknowledgement of another worker or episode, or a refusal."""
+        if ack.worker_id != self.worker_id or ack.episode != self.episode or not ack.accepted:
+            raise ValueError(f"{self.worker_id} handed over its mature actor of episode {self.episode}, not the one "
+                             f"of {ack.worker_id}'s episode {ack.episode} (accepted: {ack.accepted})")
+        self._finished = True
 
     def refused(self, mature: MatureParams) -> WorkerUpdate:
         """The chief refused the mature actor: learn on, submitting this episode as an ordinary update."""

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import itertools
 import math
+import threading
 from collections import deque
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, fields
@@ -30,6 +31,9 @@ from gymnasium import spaces
 from torch import nn
 
 VALUE_LOSSES = ("l1", "huber", "mse")
+#: Held while a learner seeds its networks from torch's process-wide RNG, so that learners built in several threads at
+#: once (deploy/inprocess.py) each draw from their own seed.
+_GLOBAL_RNG = threading.Lock()
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
 
 
@@ -375,7 +379,7 @@ class PPOLearner:
         self.obs_space, self.action_space = obs_space, action_space
         self.obs_shape = tuple(obs_space.shape)
         obs_dim = int(np.prod(self.obs_shape))
-        with torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
+        with _GLOBAL_RNG, torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
             torch.manual_seed(seed if init_seed is None else init_seed)
             self.actor = Actor(obs_dim, action_space, self.config)
             self.critic = Critic(obs_dim, self.config)

@@ -35,6 +35,7 @@ from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.routes import qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
+from protocol.transport import Connect, Transport
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
 from worker.settings import WorkerSettings
@@ -51,9 +52,10 @@ def auto_worker_id() -> str:
 
 
 class WorkerService:
-    """One worker process: Algorithm 2 over MQTT."""
+    """One worker process: Algorithm 2 over MQTT (or over whatever ``connect`` makes: protocol.transport.Connect,
+    e.g. protocol/memory.py's hub for a federation in one process)."""
 
-    def __init__(self, cfg: WorkerSettings) -> None:
+    def __init__(self, cfg: WorkerSettings, connect: Connect | None = None) -> None:
         """``cfg``: the worker's settings, already checked; its worker id is this worker's (not ``auto``)."""
         if cfg.worker_id == "auto":
             raise ValueError("resolve worker_id 'auto' before starting the worker (auto_worker_id())")
@@ -70,9 +72,12 @@ class WorkerService:
         self.duplicates = 0
         self.missed_replies = 0
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
-        self.conn = MqttConnection(cfg.address(), client_id=f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
-                                   will=(self._topic(topics.STATUS), will), max_payload=cfg.max_payload,
-                                   rejects=self.rejects)
+        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
+                                                       (self._topic(topics.STATUS), will), self.rejects)
+
+    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
+        return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
+                              rejects=rejects)
 
     def _topic(self, leaf: str) -> str:
         return topics.worker(self.cfg.run_id, self.cfg.worker_id, leaf)
@@ -175,9 +180,9 @@ class WorkerService:
                         self._status("finished", episode=submission.episode, pi=submission.pi)
                         log.info("solved at episode %d with PI %.1f; the chief holds the mature actor",
                                  submission.episode, submission.pi)
+                        algo.accepted(ack)
                         if not start.finishers_help:
                             return EXIT_OK
-                        algo.finished = True  # under this strategy it goes on sharing until the run ends
                         log.info("going on playing and sharing until every worker has finished")
                         if algo.per_step:
                             self._catch_up(algo)

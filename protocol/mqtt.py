@@ -150,6 +150,16 @@ class BrokerAddress:
         return f"{'mqtts' if self.tls else 'mqtt'}://{self.host}:{self.port}"
 
 
+def check_readable(path: str, what: str) -> None:
+    """A ValueError naming the file and the reason (missing, permission denied, a folder) unless it can be read;
+    processes turn it into one line and exit code 2, as for any bad setting."""
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as err:
+        raise ValueError(f"cannot read the {what} {path}: {err.strerror or err}") from None
+
+
 def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -> None:
     """Nagle + delayed ACK turn a 0.6 ms round trip into 40-90 ms (reference/mqtt.md), so disable Nagle."""
     if not isinstance(sock, socket.socket):  # e.g. paho's websocket wrapper: nothing to tune
@@ -203,6 +213,8 @@ class MqttConnection:
         if address.username:
             self._client.username_pw_set(address.username, address.password)
         if address.tls:
+            if address.ca_file:
+                check_readable(address.ca_file, "CA file (FEDRL_MQTT_CA_FILE)")
             self._client.tls_set(ca_certs=address.ca_file, cert_reqs=ssl.CERT_REQUIRED)
 
     # -- lifecycle ---------------------------------------------------------------------------------------------

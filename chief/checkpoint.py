@@ -15,7 +15,6 @@ chief counts each episode once and records it once (``metrics.jsonl`` is cut bac
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Any
 
@@ -23,6 +22,7 @@ import msgpack
 import numpy as np
 
 from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
+from protocol.storage import atomic_write
 from protocol.tasks import TaskSpec
 from protocol.tensors import TensorBlob
 
@@ -114,19 +114,8 @@ def restore_keeper(state: dict[str, Any], task: TaskSpec) -> RoundKeeper:
 def save(run_dir: Path, keeper: RoundKeeper, service: dict[str, Any]) -> Path:
     """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset)."""
     path = run_dir / FILENAME
-    tmp = path.with_suffix(".tmp")
     data = msgpack.packb({"version": VERSION, "keeper": keeper_state(keeper), "service": service}, use_bin_type=True)
-    with tmp.open("wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fd = os.open(run_dir, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    return path
+    return atomic_write(path, data, tmp=path.with_suffix(".tmp"))  # StorageError on a full or read-only disk
 
 
 def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any, Protocol, TextIO
 
 from chief.rounds import RoundKeeper
+from protocol.storage import atomic_write, storage_errors
 
 log = logging.getLogger(__name__)
 
@@ -28,15 +29,16 @@ class MetricsLog:
 
     def __init__(self, run_dir: Path, resume_at: int | None = None) -> None:
         """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
-        run_dir.mkdir(parents=True, exist_ok=True)
         self.path = run_dir / "metrics.jsonl"
         self.curves: dict[str, list[tuple[int, float]]] = {}
         self.sinks: list[RecordSink] = []
-        if resume_at is None:
-            self._file: TextIO = self.path.open("w", encoding="utf-8")
-            return
-        with self.path.open("r+b") as fh:
-            fh.truncate(resume_at)
+        with storage_errors(self.path):  # a full, read-only or foreign folder: one line, exit 5
+            run_dir.mkdir(parents=True, exist_ok=True)
+            if resume_at is None:
+                self._file: TextIO = self.path.open("w", encoding="utf-8")
+                return
+            with self.path.open("r+b") as fh:
+                fh.truncate(resume_at)
         for line in self.path.read_text(encoding="utf-8").splitlines():
             record = json.loads(line)
             if record.get("type") == "episode":
@@ -64,13 +66,15 @@ class MetricsLog:
             self.sinks.append(sink)
 
     def _write(self, record: dict[str, Any]) -> None:
-        self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
-        self._file.flush()
+        with storage_errors(self.path):
+            self._file.write(json.dumps(record, separators=(",", ":")) + "\n")
+            self._file.flush()
         for sink in self.sinks:
             sink.record(record)
 
     def close(self) -> None:
-        self._file.close()
+        with storage_errors(self.path):
+            self._file.close()
         for sink in self.sinks:
             sink.close()
         self.sinks.clear()
@@ -108,9 +112,7 @@ def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]
 
 
 def write_summary(run_dir: Path, summary: dict[str, Any]) -> Path:
-    path = run_dir / "summary.json"
-    path.write_text(json.dumps(summary, indent=2) + "\n", encoding="utf-8")
-    return path
+    return atomic_write(run_dir / "summary.json", (json.dumps(summary, indent=2) + "\n").encode())
 
 
 def plot_learning_curves(

@@ -17,7 +17,6 @@ chief counts each episode once and records it once (``metrics.jsonl`` is cut bac
 from __future__ import annotations
 
 import dataclasses
-import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -30,6 +29,7 @@ from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
 from protocol.rounds import RoundShape
 from protocol.tasks import TaskSpec
 from protocol.tensors import TensorBlob
+from runtime.storage import atomic_write
 
 FILENAME = "chief-state.msgpack"
 VERSION = 1
@@ -126,20 +126,9 @@ def save(run_dir: Path, keeper: RoundKeeper, service: ServiceState | Mapping[str
     """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset: a
     chief.records.ServiceState or its fields)."""
     path = run_dir / FILENAME
-    tmp = path.with_suffix(".tmp")
     state = ChiefState(version=VERSION, keeper=keeper_state(keeper), service=ServiceState.model_validate(service))
     data = msgpack.packb(state.model_dump(), use_bin_type=True)
-    with tmp.open("wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    fd = os.open(run_dir, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    return path
+    return atomic_write(path, data, tmp=path.with_suffix(".tmp"))  # StorageError on a full or read-only disk
 
 
 def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:

@@ -16,6 +16,7 @@ from typing import Annotated, Any, ClassVar, Literal
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
 from protocol.messages import Receipt
+from runtime.storage import atomic_write
 
 METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
@@ -175,9 +176,8 @@ class RunSummary(Record):
         return cls.model_validate(json.loads((run_dir / SUMMARY).read_text(encoding="utf-8")))
 
     def write(self, run_dir: Path) -> Path:
-        path = run_dir / SUMMARY
-        path.write_text(json.dumps(self.dump(), indent=2) + "\n", encoding="utf-8")
-        return path
+        """Write summary.json atomically (a StorageError, one line and exit 5, on a full or read-only disk)."""
+        return atomic_write(run_dir / SUMMARY, (json.dumps(self.dump(), indent=2) + "\n").encode())
 
 
 # -- the chief's saved state (chief/checkpoint.py) ------------------------------------------------------------

@@ -21,6 +21,7 @@ from chief.records import (
     read_metrics,
 )
 from chief.rounds import RoundKeeper
+from runtime.storage import storage_errors
 
 log = logging.getLogger(__name__)
 
@@ -41,15 +42,16 @@ class MetricsLog:
 
     def __init__(self, run_dir: Path, resume_at: int | None = None) -> None:
         """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
-        run_dir.mkdir(parents=True, exist_ok=True)
         self.path = run_dir / METRICS
         self.curves: dict[str, list[tuple[int, float]]] = {}
         self.sinks: list[RecordSink] = []
-        if resume_at is None:
-            self._file: TextIO = self.path.open("w", encoding="utf-8")
-            return
-        with self.path.open("r+b") as fh:
-            fh.truncate(resume_at)
+        with storage_errors(self.path):  # a full, read-only or foreign folder: one line, exit 5
+            run_dir.mkdir(parents=True, exist_ok=True)
+            if resume_at is None:
+                self._file: TextIO = self.path.open("w", encoding="utf-8")
+                return
+            with self.path.open("r+b") as fh:
+                fh.truncate(resume_at)
         for record in read_metrics(run_dir):
             self._note(record)
         self._file = self.path.open("a", encoding="utf-8")
@@ -83,13 +85,15 @@ class MetricsLog:
 
     def _write(self, record: Line) -> None:
         self._note(record)
-        self._file.write(line(record) + "\n")
-        self._file.flush()
+        with storage_errors(self.path):
+            self._file.write(line(record) + "\n")
+            self._file.flush()
         for sink in self.sinks:
             sink.record(record)
 
     def close(self) -> None:
-        self._file.close()
+        with storage_errors(self.path):
+            self._file.close()
         for sink in self.sinks:
             sink.close()
         self.sinks.clear()

@@ -24,7 +24,9 @@ from chief.settings import ChiefSettings
 from deploy.settings import LocalRunSettings
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
+from runtime.cli import exits_on_storage_faults
 from runtime.settings import Settings, returns_code, to_env
+from runtime.storage import EXIT_STORAGE, storage_errors
 from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.service import wait_for_url
 from services.dashboard.settings import DashboardSettings
@@ -81,6 +83,7 @@ class Fleet:
 
 
 @returns_code
+@exits_on_storage_faults("python -m deploy.run_local")
 def main(argv: list[str] | None = None) -> int:
     s = load(argv)
     assert s.workers is not None and s.run_id is not None and s.run_dir is not None  # load fills them in
@@ -104,8 +107,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"using the broker at {address}")
         else:
             # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
-            creds = make_credentials(run_dir / "broker", s.run_id, worker_ids,
-                                     {worker_ids[i]: rig for i, rig in rigs.items()})
+            with storage_errors(run_dir / "broker"):  # a write names no file: name the folder
+                creds = make_credentials(run_dir / "broker", s.run_id, worker_ids,
+                                         {worker_ids[i]: rig for i, rig in rigs.items()})
             login = creds.login
             with (log_dir / "broker.log").open("wb") as broker_log:
                 proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT)
@@ -143,7 +147,9 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.monotonic() - t0
         summary_path = run_dir / "summary.json"
         if not summary_path.exists():
-            print(f"the chief exited with code {code} and wrote no summary; see {log_dir}", file=sys.stderr)
+            hint = (f"; free space or fix the folder's permissions, then the same command with --run-id {s.run_id} "
+                    f"--run-dir {run_dir} resumes from the saved state") if code == EXIT_STORAGE else ""
+            print(f"the chief exited with code {code} and wrote no summary; see {log_dir}{hint}", file=sys.stderr)
             return code or 1
         print_summary(json.loads(summary_path.read_text()), run_dir, wall)
         if s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
@@ -175,8 +181,9 @@ def unreachable(address: BrokerAddress, timeout: float = BROKER_PROBE_S) -> str 
 
 
 
-#: Chief exit codes that end a run (done, bad setting, no workers, aborted); any other means it died.
-CHIEF_FINAL_CODES = (0, 2, 3, 4)
+#: Chief exit codes that end a run (done, bad setting, no workers, aborted, storage fault); any other means it died.
+#: A storage fault is not retried: the chief's state is intact, so the same command resumes once there is room.
+CHIEF_FINAL_CODES = (0, 2, 3, 4, EXIT_STORAGE)
 MAX_CHIEF_RESTARTS = 5
 
 

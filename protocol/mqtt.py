@@ -43,6 +43,8 @@ DEFAULT_BROKER = "mqtt://127.0.0.1:1883"
 KEEPALIVE, CLEAN_SESSION = 15, False
 #: Chunk assembly limits: partial messages held at once, and seconds before a partial message is dropped.
 MAX_PARTIAL, CHUNK_TTL = 64, 60.0
+#: Seconds a clean stop waits for the broker's answers to what it sent last (then it disconnects anyway).
+STOP_TIMEOUT = 2.0
 #: Bytes of a Chunk message around its data (msgpack keys, id, counters), kept below max_payload.
 CHUNK_OVERHEAD = 160
 _CHUNK_SNIFF = b"\xa4kind\xa5chunk"
@@ -148,6 +150,16 @@ class BrokerAddress:
         return f"{'mqtts' if self.tls else 'mqtt'}://{self.host}:{self.port}"
 
 
+def check_readable(path: str, what: str) -> None:
+    """A ValueError naming the file and the reason (missing, permission denied, a folder) unless it can be read;
+    processes turn it into one line and exit code 2, as for any bad setting."""
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as err:
+        raise ValueError(f"cannot read the {what} {path}: {err.strerror or err}") from None
+
+
 def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -> None:
     """Nagle + delayed ACK turn a 0.6 ms round trip into 40-90 ms (measured on loopback; mosquitto
     issues #433, #1526, #1616), so disable Nagle."""
@@ -202,6 +214,8 @@ class MqttConnection:
         if address.username:
             self._client.username_pw_set(address.username, address.password)
         if address.tls:
+            if address.ca_file:
+                check_readable(address.ca_file, "CA file (FEDRL_MQTT_CA_FILE)")
             self._client.tls_set(ca_certs=address.ca_file, cert_reqs=ssl.CERT_REQUIRED)
 
     # -- lifecycle ---------------------------------------------------------------------------------------------
@@ -218,20 +232,46 @@ class MqttConnection:
             )
         return self
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = STOP_TIMEOUT) -> None:
         """Disconnect cleanly (no last will) and stop the network thread. The session is persistent, but this
-        client id is never used again: its subscriptions go first, so the broker queues nothing more for it."""
+        client id is never used again: its subscriptions go first, so the broker queues nothing more for it. Waits
+        up to ``timeout`` s for the broker to acknowledge them and every QoS 1 publish before the DISCONNECT."""
         self._stopping = True
         try:
             if self.connected.is_set():
-                with self._lock:
-                    filters = list(self._subscriptions)
-                for topic_filter in filters:  # sent before the DISCONNECT, on the same connection
-                    self._client.unsubscribe(topic_filter)
+                self._drain(timeout)
             self._client.disconnect()
         finally:
             self._client.loop_stop()
             self.connected.clear()
+
+    def _drain(self, timeout: float) -> None:
+        """Unsubscribe everything, then wait until nothing is left to send and the broker has answered every
+        UNSUBSCRIBE and QoS 1 PUBLISH. paho closes the socket as soon as it has written the DISCONNECT; closing
+        with an answer still unread (an UNSUBACK on its way) sends a TCP reset, and a broker drops what it had not
+        read yet on a reset, the DISCONNECT included, so it published the last will (issue 19)."""
+        acked: set[int] = set()
+
+        def on_unsubscribe(client: paho.Client, userdata: object, mid: int, *rest: object) -> None:
+            acked.add(mid)
+
+        self._client.on_unsubscribe = on_unsubscribe
+        with self._lock:
+            filters = list(self._subscriptions)
+        sent = []
+        for topic_filter in filters:  # sent before the DISCONNECT, on the same connection
+            rc, mid = self._client.unsubscribe(topic_filter)
+            if rc == paho.MQTT_ERR_SUCCESS and mid is not None:
+                sent.append(mid)
+        deadline = time.monotonic() + timeout
+        while self.connected.is_set():  # paho has no public count of unacknowledged publishes: _out_messages
+            if acked.issuperset(sent) and not self._client._out_messages and not self._client.want_write():
+                return
+            if time.monotonic() > deadline:
+                log.warning("%s: the broker did not answer within %.1f s; disconnecting anyway", self.client_id,
+                            timeout)
+                return
+            time.sleep(0.005)
 
     def __enter__(self) -> MqttConnection:
         return self.start()

@@ -29,8 +29,13 @@ def main(argv: list[str] | None = None) -> int:
     except (RuntimeError, OSError) as err:
         print(f"rpi_bridge: cannot open SPI {s.spi_bus}.{s.spi_device}: {err}", file=sys.stderr)
         return 1
-    service = BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
-                            store=CalibrationStore.for_rig(s.state_dir, s.rig_id), recalibrate=s.recalibrate)
+    try:
+        service = BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
+                                store=CalibrationStore.for_rig(s.state_dir, s.rig_id), recalibrate=s.recalibrate)
+    except ValueError as err:  # a setting its parts refuse, e.g. a CA file it cannot read
+        device.close()
+        print(f"rpi_bridge: {err}", file=sys.stderr)
+        return 2
     service.install_signal_handlers()
     try:
         service.run()

@@ -263,6 +263,10 @@ class Settings(BaseSettings):
         path, where = Path(named[0][0]).expanduser(), named[0][1]
         if not path.exists() or path.is_dir():  # /dev/null is fine: no settings
             fail(prog, f"bad setting {where}: no such file")
+        try:
+            path.open("rb").close()
+        except OSError as err:
+            fail(prog, f"bad setting {where}: cannot read it: {err.strerror or err}")
         return path
 
     @classmethod

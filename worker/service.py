@@ -6,6 +6,7 @@ worker/envs.py."""
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import os
@@ -36,6 +37,7 @@ from protocol.routes import qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
 from protocol.transport import Connect, Transport
+from runtime.storage import StorageError, atomic_write, storage_errors
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
 from worker.settings import WorkerSettings
@@ -122,6 +124,9 @@ class WorkerService:
                 log.error("no RunStart naming %s within %.0f s", cfg.worker_id, cfg.start_timeout)
                 return EXIT_NOT_STARTED
             return self._learn(start)
+        except StorageError as exc:  # main prints it as one line: exit 5
+            self._status("error", detail=str(exc))
+            raise
         except Exception as exc:
             log.exception("worker %s failed", cfg.worker_id)
             self._status("error", detail=f"{type(exc).__name__}: {exc}")
@@ -322,7 +327,10 @@ class WorkerService:
     def _save(self, learner: Any) -> None:
         if self.cfg.model_dir is None:
             return
-        self.cfg.model_dir.mkdir(parents=True, exist_ok=True)
         path = self.cfg.model_dir / f"{self.cfg.worker_id}.pt"
-        learner.save(path)
+        with storage_errors(path):  # a full or read-only disk: one line and exit 5, not a traceback
+            self.cfg.model_dir.mkdir(parents=True, exist_ok=True)
+        data = io.BytesIO()  # torch.save reports a full disk as a RuntimeError: serialise first, then write
+        torch.save(learner.state_dict(), data)
+        atomic_write(path, data.getvalue())  # the same bytes as learner.save(path)
         log.info("saved the mature model to %s", path)

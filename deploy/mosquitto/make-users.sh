@@ -45,6 +45,11 @@ while [ $# -gt 0 ]; do
 done
 [[ "$WORKERS" =~ ^[0-9]+$ && "$RIGS" =~ ^[0-9]+$ ]] || { echo "-w and -r take whole numbers" >&2; exit 2; }
 [[ "$RUN" == "+" || "$RUN" =~ ^[A-Za-z0-9_.:-]{1,64}$ ]] || { echo "bad run id: $RUN" >&2; exit 2; }
+# A prefix becomes part of user names, client ids and ACL topics: no MQTT wildcard (+ #), level (/), space or NUL.
+for p in "$WPREFIX" "$RPREFIX"; do
+    [[ "$p" =~ ^[A-Za-z0-9_.:-]{1,32}$ ]] || {
+        echo "bad prefix '$p': letters, digits and _ . : - only (no + # / or spaces)" >&2; exit 2; }
+done
 
 mkdir -p "$OUT"
 if [ "$FORCE" = 0 ] && { [ -e "$OUT/acl" ] || [ -e "$OUT/passwd" ]; }; then

@@ -1,0 +1,121 @@
+"""A clean stop publishes no last will (issue 19, item 5): every queued packet and a DISCONNECT reach the broker
+before the network loop ends, for the connections of a worker, the chief and the bridge, on both brokers, and for a
+real ``python -m rpi_bridge`` (on a simulated SPI peer) and ``python -m services.qube_sim`` stopped by SIGTERM."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from protocol import topics
+from protocol.codec import decode, encode
+from protocol.messages import QubeStatus, WorkerStatus
+from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.routes import qos_of
+
+ROOT = Path(__file__).resolve().parents[1]
+RUN = "stoprun"
+
+#: A spidev module answering with the simulated rig: ``python -m rpi_bridge`` runs unchanged on it.
+FAKE_SPIDEV = '''
+from services.qube_sim.spi_peer import SimulatedQube
+
+
+class SpiDev:
+    def open(self, bus, device):
+        self._rig = SimulatedQube(seed=1)
+
+    def xfer2(self, data):
+        return list(self._rig.transfer(bytes(data)))
+
+    def close(self):
+        pass
+'''
+
+
+class Watcher:
+    """A subscriber that keeps what arrives on one topic."""
+
+    def __init__(self, url: str, topic: str) -> None:
+        self.got: list[bytes] = []
+        self.event = threading.Event()
+        self.conn = MqttConnection(BrokerAddress.parse(url), client_id="watcher").start()
+        self.conn.subscribe(topic, self._on, qos=1)
+        time.sleep(0.3)  # the SUBACK
+
+    def _on(self, topic: str, payload: bytes) -> None:
+        self.got.append(payload)
+        self.event.set()
+
+    def details(self) -> list[str]:
+        return [decode(p).detail for p in self.got]  # type: ignore[attr-defined]
+
+
+ROLES = {
+    # the worker's connection: a will on its status topic, the chief's topics subscribed
+    "worker": (topics.worker(RUN, "w0", topics.STATUS),
+               encode(WorkerStatus(worker_id="w0", state="offline", detail="connection lost")),
+               [topics.chief(RUN, "#")]),
+    # the bridge's: a will on the rig's status, action (QoS 0) and reset (QoS 1) subscribed
+    "bridge": (topics.rig("rig9", topics.STATUS),
+               encode(QubeStatus(rig_id="rig9", state="offline", detail="connection lost")),
+               [topics.rig("rig9", topics.ACTION), topics.rig("rig9", topics.RESET)]),
+    # the chief has no will; its many subscriptions and its last QoS 1 message must still go out
+    "chief": (None, b"", [topics.all_workers(RUN, leaf) for leaf in ("update", "status", "episode", "eval")]),
+}
+
+
+@pytest.mark.parametrize("role", sorted(ROLES))
+def test_a_stopped_connection_leaves_no_will_and_sends_its_last_message(any_broker: str, role: str) -> None:
+    will_topic, will, filters = ROLES[role]
+    last = topics.chief(RUN, "last") if will_topic is None else will_topic
+    watcher = Watcher(any_broker, last)
+    try:
+        for attempt in range(5):  # the lost DISCONNECT was a race: it happened 6 times out of 6 with the bridge
+            conn = MqttConnection(BrokerAddress.parse(any_broker), client_id=f"stop-{role}",
+                                  will=(will_topic, will) if will_topic else None).start()
+            for topic_filter in filters:
+                conn.subscribe(topic_filter, lambda t, p: None, qos=qos_of(topic_filter) if "#" not in topic_filter
+                               and "+" not in topic_filter else 1)
+            time.sleep(0.2)
+            goodbye = (encode(WorkerStatus(worker_id="w0", state="offline", detail=f"stopped {attempt}"))
+                       if role != "bridge" else
+                       encode(QubeStatus(rig_id="rig9", state="offline", detail=f"stopped {attempt}")))
+            conn.publish(last, goodbye, qos=1)
+            conn.stop()
+        time.sleep(1.5)  # a will would be published at once (both brokers), a late one within the keep-alive
+        assert watcher.details() == [f"stopped {i}" for i in range(5)]  # every goodbye, in order, and no will
+    finally:
+        watcher.conn.stop()
+
+
+@pytest.mark.parametrize("module", ["rpi_bridge", "services.qube_sim"])
+def test_sigterm_stops_the_bridge_without_a_will(any_broker: str, tmp_path: Path, module: str) -> None:
+    (tmp_path / "spidev.py").write_text(FAKE_SPIDEV)
+    env = {**os.environ, "PYTHONPATH": f"{tmp_path}{os.pathsep}{ROOT}", "FEDRL_BROKER": any_broker,
+           "FEDRL_RIG_ID": "rig5", "FEDRL_STATE_DIR": str(tmp_path / "state"), "FEDRL_LOG_LEVEL": "INFO"}
+    watcher = Watcher(any_broker, topics.rig("rig5", topics.STATUS))
+    log = (tmp_path / "bridge.log").open("wb")
+    proc = subprocess.Popen([sys.executable, "-m", module], cwd=ROOT, env=env, stdout=log, stderr=subprocess.STDOUT)
+    try:
+        assert watcher.event.wait(15), (tmp_path / "bridge.log").read_text()  # "bridge up"
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(15) == 0, (tmp_path / "bridge.log").read_text()
+        time.sleep(1.5)
+        details = watcher.details()
+        assert details[0] == "bridge up" and details[-1] == "bridge loop stopped", details
+        assert "connection lost" not in details, details
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        log.close()
+        watcher.conn.stop()

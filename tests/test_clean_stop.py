@@ -18,7 +18,7 @@ from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import QubeStatus, WorkerStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.routes import qos_of
+from protocol.routes import CHIEF, qos_of, received_by
 
 ROOT = Path(__file__).resolve().parents[1]
 RUN = "stoprun"
@@ -68,7 +68,7 @@ ROLES = {
                encode(QubeStatus(rig_id="rig9", state="offline", detail="connection lost")),
                [topics.rig("rig9", topics.ACTION), topics.rig("rig9", topics.RESET)]),
     # the chief has no will; its many subscriptions and its last QoS 1 message must still go out
-    "chief": (None, b"", [topics.all_workers(RUN, leaf) for leaf in ("update", "status", "episode", "eval")]),
+    "chief": (None, b"", [route.filter(run=RUN) for route in received_by(CHIEF)]),
 }
 
 

@@ -49,11 +49,15 @@ CHECKPOINT = """
     def keeper(n):
         return RoundKeeper([f"w{i}" for i in range(n)], "weighted", task("CartPole-v0"), 100, 30.0)
 
+    def service(pad):
+        return {"run_id": "r1", "session": "s", "epoch": 0, "duplicates": 0, "hosts": {"w0": "x" * pad},
+                "update_steps": 10, "rejects": {}, "metrics_bytes": 0, "elapsed_s": 0.0}
+
     run_dir = Path(sys.argv[1])
     if sys.argv[2] == "first":
-        checkpoint.save(run_dir, keeper(2), {"run_id": "r1"})
+        checkpoint.save(run_dir, keeper(2), service(1))
     else:
-        checkpoint.save(run_dir, keeper(8), {"run_id": "r1", "pad": "x" * 40000})
+        checkpoint.save(run_dir, keeper(8), service(40000))
 """
 
 
@@ -91,13 +95,14 @@ def test_the_chief_and_its_run_folder(tmp_path: Path, fault: str) -> None:
     (tmp_path / "prepare.py").write_text("import sys, pathlib\npathlib.Path(sys.argv[1], 'run').mkdir()\n")
     probe = (
         "from pathlib import Path; import sys\n"
-        "from protocol.cli import run_service\n"
+        "from runtime.cli import run_service\n"
         "from chief.report import MetricsLog, write_summary\n"
         "class S:\n"
         "    def run(self):\n"
         "        log = MetricsLog(Path(sys.argv[1]) / 'run')\n"
-        "        for i in range(2000): log.round({'round': i, 'pad': 'x' * 100})\n"
-        "        write_summary(Path(sys.argv[1]) / 'run', {'x': 'y' * 100000})\n"
+        "        for i in range(1, 2001):\n"
+        "            log.round({'round': i, 'episode': i, 'kind': 'aggregate', 'strategy': 'plain',\n"
+        "                       'contributors': ['w' * 60], 'digest': 'x' * 100})\n"
         "sys.exit(run_service('chief', S))\n")
     (tmp_path / "probe.py").write_text(probe)
     done = on_tmpfs(tmp_path, fault, "{py}", str(tmp_path / "probe.py"), "{dir}")

@@ -100,3 +100,15 @@ def test_a_gymnasium_record_carries_no_rig_time() -> None:
 
     record = EpisodeRecord(worker="a", round=1, episode=1, **{"return": 1.0}, pi=1.0, steps=1, kind="update")
     assert "balance_s" not in line(record) and "reset_s" not in line(record)
+
+
+def test_the_console_summary_prints_each_rigs_time(rig_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from deploy.run_local import print_rig_time
+
+    summary = json.loads((rig_run / "summary.json").read_text())
+    print_rig_time(summary)
+    out = capsys.readouterr().out
+    assert "balance steps" in out and f"last: {summary['last_rig']['id']}" in out
+    assert all(f"{w['rig']['rig_s']:.1f}" in out for w in summary["workers"])
+    print_rig_time(json.loads(json.dumps({**summary, "workers": [{**w, "rig": None} for w in summary["workers"]]})))
+    assert capsys.readouterr().out == ""

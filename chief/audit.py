@@ -19,7 +19,10 @@ as chief/records.py types them):
   sum to 1;
 - ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
   answer (same tensor digest, same keep weight);
-- ``summary``: the summary's solve episodes, steps and totals agree with the records.
+- ``summary``: the summary's solve episodes, steps and totals agree with the records;
+- ``rig-time``: each rig's balance steps and seconds, reset, idle and rig seconds in the summary are the sums of its
+  records (idle modelled from the rounds when not measured, protocol/rigtime.py), rig time = balance + reset, and
+  ``last_rig`` is the rig that finished last (QUBE-Servo 2 tasks; nothing to check for the gymnasium tasks).
 """
 
 from __future__ import annotations
@@ -38,11 +41,14 @@ import numpy as np
 
 from chief import federation, strategies
 from chief.records import EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from chief.rigtime import last_rig, rig_times
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
 from runtime.settings import program, returns_code
 
 Submitted = EpisodeRecord | StepRecord
+#: Seconds of rig time are summed and rounded to the millisecond (chief/rigtime.py): they agree within this.
+RIG_TOLERANCE = 0.0015
 
 
 class AuditFailure(Exception):
@@ -445,6 +451,31 @@ def summary(run: Run) -> None:
     expected = max(run.solved_at.values()) if len(run.solved_at) == len(run.workers) else None
     _holds(run.summary.episodes_to_all_solved == expected, f"episodes_to_all_solved is "
            f"{run.summary.episodes_to_all_solved}, the records give {expected}")
+
+
+@check("rig-time")
+def rig_time(run: Run) -> None:
+    """The headline figure of a rig learning by Algorithm 2 (chief/rigtime.py): the summary's rig time is what the
+    records add up to."""
+    expected = rig_times(sorted(run.submissions, key=lambda e: e.round))
+    for s in run.summary.workers:
+        got, want = s.rig, expected.get(s.id)
+        _holds((got is None) == (want is None), f"the summary gives {s.id} {'no ' if got is None else ''}rig time, "
+               f"the records {'none' if want is None else 'some'}")
+        if got is None or want is None:
+            continue
+        for name in ("balance_steps", "balance_s", "reset_s", "idle_s", "rig_s"):
+            a, b = getattr(got, name), getattr(want, name)
+            _holds(abs(a - b) <= RIG_TOLERANCE, f"the summary gives {s.id} {name} {a}, the records {b}")
+        _holds(got.idle == want.idle, f"the summary says {s.id}'s idle seconds are {got.idle}, the records "
+               f"{want.idle}")
+        _holds(abs(got.rig_s - got.balance_s - got.reset_s) <= RIG_TOLERANCE, f"{s.id}'s rig time {got.rig_s} s is "
+               f"not its balance {got.balance_s} s plus its reset {got.reset_s} s")
+    last = last_rig(expected)
+    _holds((run.summary.last_rig is None) == (last is None) and (last is None or (
+        run.summary.last_rig is not None and run.summary.last_rig.id == last.id)),
+        f"the summary's last rig is {run.summary.last_rig.id if run.summary.last_rig else None}, the records' "
+        f"{last.id if last else None}")
 
 
 def audit(run_dir: Path) -> AuditReport:

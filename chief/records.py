@@ -41,9 +41,11 @@ class Record(BaseModel):
 class EpisodeRecord(Record):
     """A worker's counted episode (its submission for step 0 of the episode's rounds): an update, or its mature
     actor (``kind: mature``, with the ``recent_returns`` its PI is the mean of). ``ppo``: the PPO statistics the
-    update carried (None values where not sent; absent for a mature actor)."""
+    update carried (None values where not sent; absent for a mature actor). The rig-time fields (protocol/rigtime.py;
+    QUBE-Servo 2 tasks only, absent otherwise): the episode's balance steps and seconds, its reset seconds and the
+    worker's measured idle seconds since its last submission (absent when its rig's clock is simulated)."""
 
-    OPTIONAL = frozenset({"recent_returns", "ppo"})
+    OPTIONAL = frozenset({"recent_returns", "ppo", "balance_steps", "balance_s", "reset_s", "idle_s"})
 
     type: Literal["episode"] = "episode"
     worker: str
@@ -57,6 +59,10 @@ class EpisodeRecord(Record):
     t: float = 0.0
     recent_returns: list[float] | None = None
     ppo: dict[str, float | None] | None = None
+    balance_steps: int | None = Field(default=None, ge=0)
+    balance_s: float | None = Field(default=None, ge=0)
+    reset_s: float | None = Field(default=None, ge=0)
+    idle_s: float | None = Field(default=None, ge=0)
 
 
 class StepRecord(Record):
@@ -130,8 +136,30 @@ def read_metrics(run_dir: Path) -> list[EpisodeRecord | StepRecord | RoundRecord
     return out
 
 
+class RigTime(Record):
+    """A rig's time over every episode its worker had counted (protocol/rigtime.py): balance steps and seconds,
+    reset seconds, idle seconds waiting for the federation (``idle``: ``measured`` by the worker, or ``modelled``
+    from the records when its rig's clock is simulated) and rig time = balance + reset seconds."""
+
+    balance_steps: int = Field(ge=0)
+    balance_s: float = Field(ge=0)
+    reset_s: float = Field(ge=0)
+    idle_s: float = Field(ge=0)
+    rig_s: float = Field(ge=0)
+    idle: Literal["measured", "modelled"]
+
+
+class LastRig(RigTime):
+    """summary.json's ``last_rig``: the rig time of the rig that finished last (the most rig time plus idle)."""
+
+    id: str
+
+
 class WorkerSummary(Record):
-    """One worker's result in summary.json: episodes and env steps until it solved, or so far."""
+    """One worker's result in summary.json: episodes and env steps until it solved, or so far; its ``rig`` time on a
+    QUBE-Servo 2 task (absent for the gymnasium tasks)."""
+
+    OPTIONAL = frozenset({"rig"})
 
     id: str
     index: int
@@ -140,13 +168,16 @@ class WorkerSummary(Record):
     steps: int
     final_pi: float | None = None
     state: WorkerState
+    rig: RigTime | None = None
 
 
 class RunSummary(Record):
     """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what
-    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given)."""
+    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given). ``last_rig``: the rig
+    time of the run's last rig (QUBE-Servo 2 tasks only)."""
 
-    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts"})
+    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
+                          "last_rig"})
 
     run_id: str = ""
     env: str
@@ -169,6 +200,13 @@ class RunSummary(Record):
     rejected_messages: dict[str, int] | None = None
     duplicates: int | None = None
     restarts: int | None = None
+    last_rig: LastRig | None = None
+
+    def dump(self) -> dict[str, Any]:
+        """As Record.dump, each worker's row without its optional fields when None too."""
+        data = super().dump()
+        data["workers"] = [w.dump() for w in self.workers]
+        return data
 
     @classmethod
     def read(cls, run_dir: Path) -> RunSummary:

@@ -12,6 +12,7 @@ from typing import Any, Protocol, TextIO
 from chief.records import (
     METRICS,
     EpisodeRecord,
+    RigTime,
     RoundRecord,
     RunSummary,
     StepRecord,
@@ -20,6 +21,7 @@ from chief.records import (
     parse_record,
     read_metrics,
 )
+from chief.rigtime import last_rig, rig_times
 from chief.rounds import RoundKeeper
 from runtime.storage import storage_errors
 
@@ -44,6 +46,7 @@ class MetricsLog:
         """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
         self.path = run_dir / METRICS
         self.curves: dict[str, list[tuple[int, float]]] = {}
+        self._timed: list[EpisodeRecord | StepRecord] = []  # what rig time is summed from (chief/rigtime.py)
         self.sinks: list[RecordSink] = []
         with storage_errors(self.path):  # a full, read-only or foreign folder: one line, exit 5
             run_dir.mkdir(parents=True, exist_ok=True)
@@ -79,9 +82,16 @@ class MetricsLog:
         if sink is not None:
             self.sinks.append(sink)
 
+    @property
+    def rigs(self) -> dict[str, RigTime]:
+        """Each rig's time so far ({} for the gymnasium tasks)."""
+        return rig_times(self._timed)
+
     def _note(self, record: Line) -> None:
         if isinstance(record, EpisodeRecord):
             self.curves.setdefault(record.worker, []).append((record.episode, record.pi))
+        if isinstance(record, StepRecord) or (isinstance(record, EpisodeRecord) and record.balance_steps is not None):
+            self._timed.append(record)
 
     def _write(self, record: Line) -> None:
         self._note(record)
@@ -99,16 +109,19 @@ class MetricsLog:
         self.sinks.clear()
 
 
-def summarize(keeper: RoundKeeper, reason: str, **meta: Any) -> RunSummary:
+def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,
+              **meta: Any) -> RunSummary:
     """summary.json: the task, the strategy, each worker's result (episodes and env steps until it solved, or so
-    far), the last worker's episodes and steps, and ``meta`` (run id, seed, wall time, broker, reject counts)."""
+    far; ``rigs``: its rig time, chief/rigtime.py), the last worker's episodes and steps, the last rig's time, and
+    ``meta`` (run id, seed, wall time, broker, reject counts)."""
+    rigs = rigs or {}
     workers = []
     for index, (w, rec) in enumerate(keeper.workers.items()):
         solved = rec.state == "finished"
         workers.append(WorkerSummary(id=w, index=index, solved=solved,
                                      episodes=rec.solved_episode if solved else rec.last_episode,
                                      steps=rec.steps_at_solve if solved else rec.steps,
-                                     final_pi=rec.pi, state=rec.state))
+                                     final_pi=rec.pi, state=rec.state, rig=rigs.get(w)))
     all_solved = all(w.solved for w in workers)
     last = max(workers, key=lambda x: (x.episodes, x.steps))
     return RunSummary(
@@ -117,12 +130,13 @@ def summarize(keeper: RoundKeeper, reason: str, **meta: Any) -> RunSummary:
         episodes_to_all_solved=last.episodes if all_solved else None,
         steps_of_last_worker=last.steps if all_solved else None,
         total_steps=sum(rec.steps for rec in keeper.workers.values()), rounds=keeper.round - 1,
-        rounds_per_episode=keeper.rounds_per_episode, end_reason=reason, **meta)
+        rounds_per_episode=keeper.rounds_per_episode, end_reason=reason, last_rig=last_rig(dict(rigs)), **meta)
 
 
-def run_summary(keeper: RoundKeeper, reason: str, **meta: Any) -> dict[str, Any]:
+def run_summary(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,
+                **meta: Any) -> dict[str, Any]:
     """``summarize`` as the JSON data summary.json holds (what the launchers return)."""
-    return summarize(keeper, reason, **meta).dump()
+    return summarize(keeper, reason, rigs, **meta).dump()
 
 
 def write_summary(run_dir: Path, summary: RunSummary | Mapping[str, Any]) -> Path:

@@ -81,7 +81,8 @@ class Submission:
     ``receipt`` is what it did with the answer to the round before (see protocol.messages.Receipt).
     ``step`` is the mini-batch step of a per-step strategy (0 otherwise); ``critic_gradient`` its critic's gradient.
     ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not usable): they decide
-    nothing and are only recorded.
+    nothing and are only recorded. ``rig`` is the episode's rig time (protocol/rigtime.py: balance steps and seconds,
+    reset seconds, measured idle seconds; None for the gymnasium tasks): recorded and summed, deciding nothing.
     """
 
     worker_id: str
@@ -96,6 +97,7 @@ class Submission:
     step: int = 0
     critic_gradient: Arrays | None = None
     stats: dict[str, float | None] | None = None
+    rig: dict[str, float | int | None] | None = None
 
     @property
     def mature(self) -> bool:
@@ -188,6 +190,8 @@ class Verdict:
             line["recent_returns"] = list(sub.recent_returns)
         elif sub.stats is not None:
             line["ppo"] = dict(sub.stats)
+        if sub.step == 0 and sub.rig is not None:
+            line.update({k: v for k, v in sub.rig.items() if v is not None})
         return line
 
 

@@ -32,6 +32,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import MqttConnection
+from protocol.rigtime import RIG_FIELDS
 from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
@@ -357,7 +358,8 @@ class ChiefService:
     def summary(self, reason: str, all_solved: bool, rounds: int) -> dict[str, Any]:
         keeper = self.keeper
         assert keeper is not None
-        return run_summary(keeper, reason, run_id=self.cfg.run_id, seed=self.cfg.seed,
+        assert self.metrics is not None
+        return run_summary(keeper, reason, rigs=self.metrics.rigs, run_id=self.cfg.run_id, seed=self.cfg.seed,
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                            broker=str(self.broker), rejected_messages=self.rejects.as_dict(),
@@ -376,7 +378,8 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
                       steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
                       receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
                       step=0 if mature else msg.step, critic_gradient=critic,  # type: ignore[union-attr]
-                      stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS})
+                      stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS},
+                      rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS})
 
 
 def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:

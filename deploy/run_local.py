@@ -216,8 +216,25 @@ def print_summary(summary: dict, run_dir: Path, wall: float) -> None:
           + (f"all workers solved by episode {all_solved}" if all_solved is not None
              else f"not all solved ({summary['end_reason']})")
           + f"; chief wall time {summary['wall_s']:.1f} s, launcher {wall:.1f} s")
+    print_rig_time(summary)
     print(f"results: {run_dir}/summary.json, metrics.jsonl, learning_curve.png")
     print_next_steps(summary, run_dir)
+
+
+def print_rig_time(summary: dict) -> None:
+    """QUBE-Servo 2 tasks: each rig's time (balance + reset = rig time; idle waiting for the federation) and the last
+    rig's, from summary.json (nothing for the gymnasium tasks)."""
+    rigs = [(w["id"], w["rig"]) for w in summary["workers"] if w.get("rig")]
+    if not rigs:
+        return
+    print(f"\n{'rig time':<12}{'balance steps':>14}{'balance s':>11}{'reset s':>10}{'rig s':>10}{'idle s':>10}")
+    last = summary.get("last_rig") or {}
+    for wid, r in rigs + ([(f"last: {last['id']}", last)] if last else []):
+        idle = f"{r['idle_s']:.1f}" + ("*" if r["idle"] == "modelled" else "")
+        print(f"{wid:<12}{r['balance_steps']:>14}{r['balance_s']:>11.1f}{r['reset_s']:>10.1f}{r['rig_s']:>10.1f}"
+              f"{idle:>10}")
+    if any(r["idle"] == "modelled" for _, r in rigs):
+        print("(* idle modelled on the simulated clock: a round closes when its slowest rig is ready)")
 
 
 def print_next_steps(summary: dict, run_dir: Path) -> None:

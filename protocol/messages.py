@@ -14,6 +14,7 @@ from typing import Annotated, Final, Literal
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints
 
 from protocol.qube import Phase, RigState
+from protocol.rigtime import SECONDS_LIMIT
 from protocol.rounds import MAX_PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import TensorDict
@@ -42,6 +43,9 @@ STAT_BOUNDS: dict[str, tuple[float, float]] = {
 Stat = Annotated[float, Field(ge=-STAT_LIMIT, le=STAT_LIMIT)]
 NonNegativeStat = Annotated[float, Field(ge=0.0, le=STAT_LIMIT)]
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+#: Seconds of rig time on the wire (protocol/rigtime.py): finite, 0..SECONDS_LIMIT.
+RigSeconds = Annotated[float, Field(ge=0.0, le=SECONDS_LIMIT)]
+BalanceSteps = Annotated[int, Field(ge=0, le=10**9)]
 
 
 class Strict(BaseModel):
@@ -125,12 +129,17 @@ class WorkerUpdate(Message):
     entropy: Stat | None = None
     approx_kl: NonNegativeStat | None = None
     clip_fraction: Fraction | None = None
+    balance_steps: BalanceSteps | None = None
+    balance_s: RigSeconds | None = None
+    reset_s: RigSeconds | None = None
+    idle_s: RigSeconds | None = None
 
 
 class MatureParams(Message):
     """Algorithm 2, learning finished (PI >= TC over PI_WINDOW episodes): the worker's mature actor theta_n.
 
-    This is the worker's finish. It sends it again until a ChiefAck for this episode arrives.
+    This is the worker's finish. It sends it again until a ChiefAck for this episode arrives. The rig-time fields
+    are those of WorkerUpdate.
     """
 
     kind: Literal["mature"] = "mature"
@@ -142,6 +151,10 @@ class MatureParams(Message):
     steps: int = Field(default=0, ge=0)
     params: TensorDict
     receipt: Receipt | None = None
+    balance_steps: BalanceSteps | None = None
+    balance_s: RigSeconds | None = None
+    reset_s: RigSeconds | None = None
+    idle_s: RigSeconds | None = None
 
 
 class ChiefAggregate(Message):

@@ -434,3 +434,28 @@ def test_dashboard_imports_no_torch() -> None:
             "bad = [m for m in ('torch', 'gymnasium') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_view_shows_each_rigs_time_and_the_last_rig() -> None:
+    """QUBE-Servo 2: each worker's rig time (balance + reset, summed once per episode), its idle seconds modelled
+    round by round (a round closes when its slowest rig is ready, protocol/rigtime.py) and the run's last rig."""
+    view = RunView(RUN)
+    feed(view, start(["w0", "w1"]))
+
+    def timed(worker: str, episode: int, steps: int, reset: float) -> WorkerUpdate:
+        return update(worker, episode, 1.0).model_copy(update={
+            "balance_steps": steps, "balance_s": steps * 0.007, "reset_s": reset})
+
+    # Round 1: w0 3.7 s, w1 1.0 + 0.7 = 1.7 s (sent twice: summed once) -> w1 waits 2 s.
+    feed(view, timed("w0", 1, 100, 3.0), timed("w1", 1, 100, 1.0), timed("w1", 1, 100, 1.0),
+         aggregate(1, {"w0": 0.5, "w1": 0.5}))
+    rows = {w: r["rig"] for w, r in workers_of(view).items()}
+    assert rows["w0"] == {"balance_steps": 100, "balance_s": 0.7, "reset_s": 3.0, "idle_s": 0.0, "rig_s": 3.7,
+                          "idle": "modelled"}
+    assert rows["w1"]["rig_s"] == 1.7 and rows["w1"]["idle_s"] == 2.0
+    last = view.snapshot()["run"]["last_rig"]
+    assert last["id"] in ("w0", "w1") and last["rig_s"] + last["idle_s"] == pytest.approx(3.7)
+    # A gymnasium run shows no rig time.
+    plain = RunView(RUN)
+    feed(plain, start(["w0"]), update("w0", 1, 1.0), aggregate(1, {"w0": 1.0}))
+    assert workers_of(plain)["w0"]["rig"] is None and plain.snapshot()["run"]["last_rig"] is None

@@ -44,12 +44,15 @@ def test_lockstep_episode_over_the_broker_reaches_the_cap(any_broker: str, tmp_p
     rig = start_rig(any_broker, "rigE", "lockstep", tmp_path)
     conn = MqttConnection(BrokerAddress.parse(any_broker), client_id="qube-e2e").start()
     try:
-        env = QubeMqttEnv(conn, "rigE", reset_timeout_s=30)
+        env = QubeMqttEnv(conn, "rigE", reset_timeout_s=30, qube_clock="lockstep")
         ret, terminated, truncated, n = play(env)
         assert (ret, truncated, terminated, n) == (MAX_RETURN, True, False, MAX_RETURN)
-        # A second episode: the rig swings up again on request.
+        # A second episode: the rig swings up again on request. Its rig time is read from the simulated clock: the
+        # ticks from the end of the first episode to the ready state of the second, and 7 ms per step.
         ret2, *_ = play(env, steps=100)
         assert ret2 == 100.0
+        spent = env.episode_time
+        assert spent.balance_steps == 100 and spent.balance_s == pytest.approx(0.7) and 0 < spent.reset_s < 60
         assert env.rejected == 0 and env.timeouts == 0
     finally:
         conn.stop()

@@ -30,6 +30,7 @@ import gymnasium as gym
 import numpy as np
 
 from protocol.messages import STAT_BOUNDS, ChiefAck, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
+from protocol.rigtime import SECONDS_LIMIT, EpisodeTime
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
@@ -64,6 +65,7 @@ class Algorithm2:
         self._batch: Batch | None = None
         self._own: StepGradients | None = None  # this step's own gradients (applied if no answer comes)
         self._last = (0.0, 0)  # the episode's return and env steps
+        self._rig: dict[str, Any] = {}  # the episode's rig time as the wire takes it (rigs only)
         self.refused_answer: str | None = None  # why the last answer was not applied
         self._finished = False
 
@@ -100,10 +102,12 @@ class Algorithm2:
         self.returns.append(ret)
         self.total_steps += steps
         self._last = (ret, steps)
+        self._rig = _rig_fields(self.env)
         if not self._finished and solved(self.returns, self.tc):
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,
-                                params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt)
+                                params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt,
+                                **self._rig)
         return self._first_update()
 
     def accepted(self, ack: ChiefAck) -> None:
@@ -138,7 +142,7 @@ class Algorithm2:
                             pi=self.pi, recent_returns=self.returns[-PI_WINDOW:], steps=steps,
                             gradient=pack_arrays(actor), receipt=self.receipt,
                             critic_gradient=pack_arrays(critic) if critic is not None else None,
-                            **_loss_fields(stats))
+                            **_loss_fields(stats), **(self._rig if self.step == 0 else {}))
 
     def apply(self, reply: ChiefAggregate | ChiefTransfer | None) -> WorkerUpdate | None:
         """Apply the chief's answer to the open submission (None: no answer came) and return the next submission
@@ -214,6 +218,21 @@ class Algorithm2:
         close: Any = getattr(self.env, "close", None)
         if close is not None:
             close()
+
+
+def _rig_fields(env: Any) -> dict[str, Any]:
+    """The rig time of the episode just played (protocol/rigtime.py), as WorkerUpdate/MatureParams fields; empty for
+    an env that is no rig (the gymnasium tasks)."""
+    timing: EpisodeTime | None = getattr(env, "episode_time", None)
+    if not isinstance(timing, EpisodeTime):
+        return {}
+    return {"balance_steps": timing.balance_steps, "balance_s": _seconds(timing.balance_s),
+            "reset_s": _seconds(timing.reset_s)}
+
+
+def _seconds(value: float) -> float:
+    """Seconds as the wire bounds them (finite, 0..SECONDS_LIMIT), to the microsecond."""
+    return round(min(max(0.0, value), SECONDS_LIMIT), 6) if math.isfinite(value) else 0.0
 
 
 def _shared(grads: dict[str, np.ndarray] | None, spec: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:

@@ -28,6 +28,7 @@ from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
 from protocol.qube import BALANCE_BAND, MAX_RETURN, PERIOD_S
+from protocol.rigtime import MEASURED_CLOCKS, EpisodeTime, ticks_to_s
 from protocol.routes import qos_of
 from rpi_bridge.control import ControlConfig, ControlCore, Sensed
 
@@ -50,18 +51,36 @@ class ResetFailed(RuntimeError):
 
 
 class _QubeTask(gym.Env):
-    """Spaces and bookkeeping shared by the two envs."""
+    """Spaces and bookkeeping shared by the two envs, with the rig time of the episode (protocol/rigtime.py)."""
 
     observation_space = spaces.Box(-np.inf, np.inf, shape=(4,), dtype=np.float32)
     action_space = spaces.Discrete(len(ACTIONS))
+    #: Whether this env's rig time is measured in wall seconds (else it comes from the simulated clock).
+    measured = False
 
     def __init__(self) -> None:
         self.episode_return = 0.0
+        self.balance_steps = 0
+        self.reset_s = 0.0
+        self._balance_from = 0.0  # wall time of the episode's first state (measured clocks)
+        self._balance_wall = 0.0
+
+    @property
+    def episode_time(self) -> EpisodeTime:
+        """The rig time of the episode played last (or being played): its swing-up and its steps so far."""
+        balance_s = self._balance_wall if self.measured else ticks_to_s(self.balance_steps)
+        return EpisodeTime(self.balance_steps, balance_s, self.reset_s)
+
+    def _started(self, reset_s: float) -> None:
+        self.episode_return, self.balance_steps, self.reset_s = 0.0, 0, reset_s
+        self._balance_from, self._balance_wall = time.perf_counter(), 0.0
 
     def _outcome(self, alpha: float, ended: bool) -> tuple[float, bool, bool]:
         reward = 0.0 if ended else balance_reward(alpha)
         terminated = ended or reward == 0.0
         self.episode_return += reward
+        self.balance_steps += 1
+        self._balance_wall = time.perf_counter() - self._balance_from
         truncated = not terminated and self.episode_return >= MAX_RETURN
         return reward, terminated, truncated
 
@@ -70,11 +89,15 @@ class QubeMqttEnv(_QubeTask):
     """One rig reached through the broker (topics qube/<rig>/...)."""
 
     def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 10.0,
-                 reset_attempts: int = 5, settle_s: float = 3.0) -> None:
+                 reset_attempts: int = 5, settle_s: float = 3.0, qube_clock: str = "realtime") -> None:
         """``step_timeout_s``: a state that does not come within this many seconds of wall time ends the episode
         (a dead rig or link; a live rig reports a fault or goes offline long before). It must be long enough for a
-        lockstep rig on a loaded machine, whose episodes would otherwise depend on wall time."""
+        lockstep rig on a loaded machine, whose episodes would otherwise depend on wall time. ``qube_clock``: the
+        rig's clock, which says whether rig time is measured or read from the simulated clock (the ticks between
+        the last state of an episode and the ``ready`` state of the next: a lockstep rig does not tick meanwhile)."""
         super().__init__()
+        self.measured = qube_clock in MEASURED_CLOCKS
+        self._end_seq: int | None = None  # seq of the last state of the episode before
         self.reset_attempts = reset_attempts
         self.settle_s = settle_s
         self.failed_resets = 0
@@ -119,18 +142,27 @@ class QubeMqttEnv(_QubeTask):
         """Ask the rig for a new episode. A swing-up that fails (it happens, from a messy fall) is retried after
         the pendulum has had time to settle; ``reset_attempts`` failures in a row raise RuntimeError."""
         super().reset(seed=seed)
+        began, settled = time.perf_counter(), 0.0
         for attempt in range(1, self.reset_attempts + 1):
             try:
-                return self._reset_once()
+                obs, info = self._reset_once()
             except ResetFailed as err:
                 self.failed_resets += 1
                 if attempt == self.reset_attempts:
                     raise RuntimeError(f"{err} ({attempt} attempts in a row)") from None
                 time.sleep(self.settle_s)
+                settled += self.settle_s
+                continue
+            ticks = info.pop("reset_ticks")
+            self._started(time.perf_counter() - began if self.measured else ticks_to_s(ticks) + settled)
+            return obs, info
         raise AssertionError("unreachable")
 
     def _reset_once(self) -> tuple[np.ndarray, dict]:
+        """One swing-up; its info's ``reset_ticks``: rig ticks from the end of the last episode (or from the first
+        state this request brought) to the ``ready`` state."""
         self.episode_return = 0.0
+        first_seq: int | None = None
         self._request = next(self._request_ids)
         request = encode(QubeReset(rig_id=self.rig_id, request_id=self._request))
         deadline = time.monotonic() + self.reset_timeout_s
@@ -148,9 +180,14 @@ class QubeMqttEnv(_QubeTask):
                 acknowledged = True
                 if msg.state in ("reset_failed", "fault"):  # a fault during the reset (e.g. the arm limit)
                     raise ResetFailed(f"rig {self.rig_id}: reset {msg.state.replace('_', ' ')}: {msg.detail}")
+            if isinstance(msg, QubeState) and first_seq is None and (self._end_seq is None or msg.seq > self._end_seq):
+                first_seq = msg.seq
             if isinstance(msg, QubeState) and msg.episode == self._request and msg.phase == "ready":
                 self._last = msg
-                return observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot), {"seq": msg.seq}
+                since = self._end_seq if self._end_seq is not None else (first_seq or msg.seq) - 1
+                self._end_seq = None
+                return (observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot),
+                        {"seq": msg.seq, "reset_ticks": max(0, msg.seq - since)})
         raise TimeoutError(f"rig {self.rig_id} did not finish reset {self._request} within {self.reset_timeout_s} s "
                            "(is the bridge or qube-sim running? FEDRL_RIG_ID must match)")
 
@@ -173,6 +210,8 @@ class QubeMqttEnv(_QubeTask):
             self._last = msg
             ended = msg.phase not in ("ready", "running")
             reward, terminated, truncated = self._outcome(msg.alpha, ended)
+            if terminated or truncated:
+                self._end_seq = msg.seq
             obs = observation(msg.alpha, msg.alpha_dot, msg.theta, msg.theta_dot)
             return obs, reward, terminated, truncated, {"seq": msg.seq, "phase": msg.phase}
         self.timeouts += 1
@@ -213,7 +252,15 @@ class QubeLocalEnv(_QubeTask):
         return self.core.sense()
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
+        """A swing-up on the simulated clock (its seconds, failed attempts and settling included, are the episode's
+        reset seconds)."""
         super().reset(seed=seed)
+        began = self.clock()
+        obs, info = self._swing_up()
+        self._started(self.clock() - began)
+        return obs, info
+
+    def _swing_up(self) -> tuple[np.ndarray, dict]:
         if self.profile is not None:  # domain randomisation: this episode's physics
             params = self.profile.episode_params(self.seed, next(self._episodes), self.randomize)
             if params is not None:
@@ -259,7 +306,7 @@ class QubeLocalEnv(_QubeTask):
 
 
 def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, conn: Any = None,
-                  probe: bool = False, **_: Any) -> gym.Env:
+                  probe: bool = False, qube_clock: str = "realtime", **_: Any) -> gym.Env:
     """Factory for the ``qube`` task: the rig ``rig_id`` over the worker's MQTT connection.
 
     Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed and its own
@@ -269,7 +316,7 @@ def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, c
         return _QubeTask()
     if conn is None or not rig_id:
         raise ValueError("env 'qube' drives a rig over MQTT: give the worker --rig-id (FEDRL_RIG_ID)")
-    return QubeMqttEnv(conn, rig_id)
+    return QubeMqttEnv(conn, rig_id, qube_clock=qube_clock)
 
 
 def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, rig_profile: Any = None,

@@ -32,6 +32,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import MqttConnection
+from protocol.rigtime import SECONDS_LIMIT
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.routes import qos_of
 from protocol.tasks import worker_seed
@@ -73,6 +74,8 @@ class WorkerService:
         self.epoch = 0
         self.duplicates = 0
         self.missed_replies = 0
+        self.measured = False  # whether this worker's rig time is measured (a rig on a realtime or delayed clock)
+        self.idle_s = 0.0  # measured: wall seconds spent waiting for the chief since the last submission
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
@@ -173,6 +176,7 @@ class WorkerService:
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
+        self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
                           shape=start.shape)
         try:
@@ -235,7 +239,8 @@ class WorkerService:
     def _hand_over(self, mature: MatureParams) -> ChiefAck | None:
         """Send the mature actor until the chief acknowledges it (accepted or refused); None on RunStop or when no
         answer came within ``ack_timeout``. Resending is safe: the chief counts a worker's episode once."""
-        payload = encode(mature)
+        began = time.monotonic()
+        payload = encode(self._stamp(mature))
         round_ = self.shape.number(mature.episode)
         deadline = time.monotonic() + self.cfg.ack_timeout
         interval = 2.0
@@ -245,10 +250,20 @@ class WorkerService:
             while self.stop is None and round_ not in self.acks and time.monotonic() < resend_at:
                 self._receive(timeout=min(0.5, max(0.0, resend_at - time.monotonic())))
             if round_ in self.acks:
+                self.idle_s += time.monotonic() - began
                 return self.acks.pop(round_)
             interval = min(2 * interval, 30.0)
             log.warning("no acknowledgement of the mature actor of episode %d yet; sending it again", mature.episode)
+        self.idle_s += time.monotonic() - began
         return None
+
+    def _stamp(self, submission: WorkerUpdate | MatureParams) -> WorkerUpdate | MatureParams:
+        """A rig's episode submission (step 0) with the idle seconds measured since the last one (only when this
+        worker measures its rig time: under a simulated clock the chief models them, protocol/rigtime.py)."""
+        if not self.measured or submission.balance_steps is None:
+            return submission
+        idle, self.idle_s = min(self.idle_s, SECONDS_LIMIT), 0.0
+        return submission.model_copy(update={"idle_s": round(idle, 6)})
 
     def _receive(self, timeout: float) -> None:
         """Take one message from the chief (if any within ``timeout``) and file it; count what is dropped."""
@@ -297,8 +312,9 @@ class WorkerService:
         have restarted) and every ``resend_interval`` seconds: the chief counts it once, and answers a round it
         already closed again, so a lost message costs seconds, not ``reply_timeout``.
         """
-        payload = encode(submission)
-        deadline = time.monotonic() + self.cfg.reply_timeout
+        payload = encode(self._stamp(submission))
+        began = time.monotonic()
+        deadline = began + self.cfg.reply_timeout
         sent_at, connects = -math.inf, -1
         self.restarted = False
         while round_ not in self.replies and self.stop is None:
@@ -307,6 +323,7 @@ class WorkerService:
                 self.missed_replies += 1
                 log.warning("no answer from the chief for round %d within %.0f s; going on alone (missed %d)",
                             round_, self.cfg.reply_timeout, self.missed_replies)
+                self.idle_s += now - began
                 return None
             if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
                 if connects != -1:
@@ -319,6 +336,7 @@ class WorkerService:
             self.rejects.reject(topics.chief(self.cfg.run_id, self.replies[old].kind), "stale",
                                 f"round {old}'s answer came after this worker had moved on")
             del self.replies[old]
+        self.idle_s += time.monotonic() - began
         reply = self.replies.pop(round_, None)
         if reply is not None:
             self.answered.add(round_)

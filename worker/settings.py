@@ -9,6 +9,7 @@ from typing import Any
 from pydantic import field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
 
+from protocol.rigtime import Clock
 from protocol.topics import check_id
 from runtime.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
 
@@ -27,6 +28,9 @@ class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
                              aliases=["--id"])
     env: TaskName = setting("CartPole-v0", "task to learn; must match the chief's")
     rig_id: str | None = setting(None, "QUBE-Servo 2 rig to drive when --env qube")
+    qube_clock: Clock = setting("realtime", "--env qube: the clock of the rig (a real rig runs in realtime; a "
+                                "services.qube_sim rig in its --clock): under realtime and delayed the rig time is "
+                                "measured, under lockstep it is read from the simulated clock", aliases=["--clock"])
     reply_timeout: float = setting(120.0, "seconds to wait for the chief's answer to an episode before going on "
                                    "alone", gt=0)
     ack_timeout: float = setting(600.0, "after solving, seconds to keep sending the mature actor until the chief "
@@ -56,7 +60,9 @@ class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
         return value
 
     def env_options(self) -> dict[str, Any]:
-        """Options for the task's factory: the rig profile and randomisation of qube-local."""
+        """Options for the task's factory: the rig's clock of qube, the rig profile and randomisation of qube-local."""
+        if self.env == "qube":
+            return {"qube_clock": self.qube_clock}
         if self.env != "qube-local":
             return {}
         return {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}

@@ -6,9 +6,11 @@ HTTP, no threads here; tensors (gradients, actors) are never kept, only the scal
 
 Events (``type`` plus fields):
 
-- ``run``: the run's settings and progress (env, policy, TC, workers, open round, who solved, how it ended);
+- ``run``: the run's settings and progress (env, policy, TC, workers, open round, who solved, how it ended, the rig
+  time of its last rig so far);
   rounds are numbered as the chief's answers number them (K per episode under a per-step strategy such as ``sync``);
-- ``worker``: one worker's summary (state, episode, PI, last return, weights) without its curve;
+- ``worker``: one worker's summary (state, episode, PI, last return, weights; on a QUBE-Servo 2 task its ``rig``
+  time: balance steps and seconds, reset, idle and rig seconds, protocol/rigtime.py) without its curve;
 - ``point``: one new point of a worker's curve, ``[episode, PI, return]``;
 - ``round``: one closed round (its number, episode and step; aggregate or transfer: weights, contributors, source,
   keep weights);
@@ -36,6 +38,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
+from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
 
 Event = dict[str, Any]
 
@@ -61,6 +64,17 @@ class WorkerView:
     host: str = ""
     last_seen: float = 0.0
     points: list[list[float | None]] = field(default_factory=list)  # [episode, PI, return], thinned past max_points
+    rig: RigTotals | None = None  # its rig's time (QUBE-Servo 2 tasks), summed from its submissions
+    idle_measured: bool = False  # idle seconds as its worker measured them (else modelled from the rounds)
+    timed: set[int] = field(default_factory=set)  # episodes whose rig time is summed (a resend is summed once)
+
+    def rig_row(self, modelled_idle: float) -> Event | None:
+        """Its rig time as the page shows it (None without a rig)."""
+        if self.rig is None:
+            return None
+        if not self.idle_measured:
+            self.rig.idle_s = modelled_idle
+        return {**self.rig.fields(), "idle": "measured" if self.idle_measured else "modelled"}
 
     def summary(self, last_episode: int, last_contributors: frozenset[str]) -> Event:
         """Its row; ``last_episode`` and ``last_contributors`` are those of the last closed round."""
@@ -130,6 +144,8 @@ class RunView:
         self.last_round = 0  # number of the last closed round
         self.last_episode = 0  # and its episode
         self.last_contributors: frozenset[str] = frozenset()
+        self.idle_model = IdleModel()  # idle seconds of rigs on a simulated clock, round by round
+        self.spent: dict[int, dict[str, float]] = {}  # open round -> contributor -> rig seconds of its submission
 
     # -- feeding ---------------------------------------------------------------------------------------------
 
@@ -149,7 +165,34 @@ class RunView:
         return self.workers[worker_id]
 
     def _worker_event(self, w: WorkerView) -> Event:
-        return w.summary(self.last_episode, self.last_contributors)
+        return {**w.summary(self.last_episode, self.last_contributors),
+                "rig": w.rig_row(self.idle_model.idle.get(w.id, 0.0))}
+
+    def _timed(self, w: WorkerView, msg: WorkerUpdate | MatureParams) -> None:
+        """Sum a submission's rig time (once per episode) and note what it spent for its round's idle model."""
+        step = msg.step if isinstance(msg, WorkerUpdate) else 0
+        if self.start is None or (msg.balance_steps is None and step == 0):
+            return
+        number = self.start.shape.number(msg.episode, step)
+        if step > 0 or msg.balance_steps is None:
+            self.spent.setdefault(number, {})[w.id] = 0.0
+            return
+        spent = EpisodeTime(msg.balance_steps, msg.balance_s or 0.0, msg.reset_s or 0.0, msg.idle_s)
+        self.spent.setdefault(number, {})[w.id] = spent.rig_s
+        if msg.episode in w.timed:
+            return
+        w.timed.add(msg.episode)
+        w.rig = w.rig or RigTotals()
+        w.rig.add(spent)
+        w.idle_measured |= msg.idle_s is not None
+
+    def _last_rig(self) -> Event | None:
+        """The rig time of the rig that is last so far (the most rig time plus idle)."""
+        rows = {w.id: row for w in self.workers.values() if (row := self._worker_event(w)["rig"]) is not None}
+        if not rows:
+            return None
+        last = max(rows, key=lambda k: (rows[k]["rig_s"] + rows[k]["idle_s"], rows[k]["rig_s"]))
+        return {"id": last, **rows[last]}
 
     def _all_workers(self) -> list[Event]:
         return [self._worker_event(w) for w in self.workers.values()]
@@ -201,11 +244,13 @@ class RunView:
         elif w.status in ("waiting", "offline", "stopped", "error"):
             w.status = "training"
         w.steps = msg.steps
+        self._timed(w, msg)
         return [*self._point(w, msg.episode, msg.pi, msg.episode_return, now), self._worker_event(w), *out]
 
     def _on_mature(self, msg: MatureParams, now: float) -> list[Event]:
         w = self._worker(msg.worker_id)
         w.status, w.solved_episode, w.steps = "finished", msg.episode, msg.steps
+        self._timed(w, msg)
         return [*self._point(w, msg.episode, msg.pi, msg.episode_return, now), self._worker_event(w),
                 self.run_summary()]
 
@@ -251,6 +296,11 @@ class RunView:
             self.last_round, self.last_episode = msg.round, msg.episode
         self.last_contributors = frozenset(contributors)
         self.rounds.append(record)
+        spent = self.spent.pop(msg.round, {})
+        for old in [r for r in self.spent if r < msg.round]:  # rounds closed while the page was away
+            del self.spent[old]
+        if spent:
+            self.idle_model.close({w: spent.get(w, 0.0) for w in self.last_contributors if w in spent})
 
     def _on_aggregate(self, msg: ChiefAggregate, now: float) -> list[Event]:
         record = {"type": "round", "round": msg.round, "episode": msg.episode, "step": msg.step, "kind": "aggregate",
@@ -321,6 +371,7 @@ class RunView:
             "transfers": len(self.transfers), "solved": [{"worker": w, "episode": e} for w, e in solved],
             "stop": {"reason": stop.reason, "episodes": stop.episodes, "all_solved": stop.all_solved} if stop else None,
             "started_at": self.started_at, "stopped_at": self.stopped_at, "first_point_at": self.first_point_at,
+            "last_rig": self._last_rig(),
         }
 
     def snapshot(self) -> dict[str, Any]:

@@ -7,12 +7,11 @@ from typing import Literal
 
 from pydantic import field_validator
 
+from protocol.rigtime import Clock
 from rpi_bridge.runner import InjectedTiming
 from rpi_bridge.settings import LoopSettings
 from runtime.settings import MqttSettings, setting
 from services.qube_sim.profile import RigProfile, load_profile
-
-Clock = Literal["lockstep", "delayed", "realtime"]
 
 
 class SimRigSettings(MqttSettings, LoopSettings):

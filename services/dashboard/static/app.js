@@ -145,6 +145,8 @@ function renderHeader() {
   const openRound = run.rounds_per_episode > 1 ? `${run.round} (episode ${run.episode})` : String(run.round);
   setText("run-round", run.round === null ? "–" : openRound);
   setText("run-solved", `${run.solved.length} / ${workerIds().length}`);
+  $("run-last-rig-card").hidden = !run.last_rig;
+  if (run.last_rig) setText("run-last-rig", `${run.last_rig.id}: ${rigText(run.last_rig)}`);
   setText("run-transfers", String(run.transfers));
   let status = "waiting for the chief to start the run";
   if (run.stop) {
@@ -158,6 +160,12 @@ function renderHeader() {
   const end = run.stopped_at || now;
   const verb = run.stopped_at ? "ran for" : "running for";
   setText("run-clock", run.started_at && end ? `${verb} ${fmt(Math.max(0, end - run.started_at), 0)} s` : "");
+}
+
+function rigText(rig) {
+  if (!rig) return "–";
+  const idle = `idle ${fmt(rig.idle_s, 1)}${rig.idle === "modelled" ? " (modelled)" : ""}`;
+  return `${fmt(rig.rig_s, 1)} (${fmt(rig.balance_s, 1)} + ${fmt(rig.reset_s, 1)}) · ${idle}`;
 }
 
 function renderWorkers() {
@@ -179,6 +187,7 @@ function renderWorkers() {
       el("td", { class: "num" }, fmt(w.weight, 3)),
       el("td", { class: "num" }, fmt(w.keep, 3)),
       el("td", { class: "num" }, w.solved_episode || "–"),
+      el("td", { class: "num", "data-rig": w.rig ? w.rig.rig_s : "" }, rigText(w.rig)),
       el("td", { class: "num" }, ago(w.last_seen)),
       el("td", { class: "muted" }, w.detail || "")));
   }

@@ -6,7 +6,7 @@ import sys
 
 from chief.service import ChiefService
 from chief.settings import ChiefSettings
-from runtime.cli import run_service, setup_logging
+from runtime.cli import run_service, setup_logging, stop_on_signals
 from runtime.settings import returns_code
 
 DESCRIPTION = (
@@ -16,7 +16,8 @@ DESCRIPTION = (
     "Started again with the same --run-id and --run-dir, it resumes the run from its saved state "
     "(chief-state.msgpack). Exit code 0 when the run ended normally (all solved or the episode limit), 2 on a bad "
     "setting or an unusable run folder, 3 when no worker came, 4 when the run was aborted (every unfinished worker "
-    "offline for --idle-timeout s)."
+    "offline for --idle-timeout s), 130 when it was interrupted (Ctrl-C or SIGTERM: the summary says "
+    "'interrupted', and the same command resumes the run)."
 )
 
 
@@ -25,7 +26,12 @@ def main(argv: list[str] | None = None) -> int:
     s = ChiefSettings.load(argv, prog="python -m chief", description=DESCRIPTION)
     setup_logging(s.log_level, "chief")
 
-    return run_service("chief", lambda: ChiefService(s))
+    def build() -> ChiefService:
+        service = ChiefService(s)
+        stop_on_signals(service.interrupt)  # Ctrl-C ends the run resumably, with its summary and curve
+        return service
+
+    return run_service("chief", build)
 
 
 if __name__ == "__main__":

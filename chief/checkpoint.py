@@ -82,7 +82,7 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
         round=k.round, workers=workers, pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
-        done_reason=k.done_reason, aborted=k.aborted)
+        done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted)
 
 
 #: WorkerRecord's per-episode maps, saved as sorted (episode, value) pairs.
@@ -118,7 +118,7 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
         k.ahead.setdefault(k.shape.number(sub.episode, sub.step), {})[sub.worker_id] = sub
     k.counted = {(w, e) for w, e in state.counted}
     k.answers = {o.round: o for o in map(_unoutcome, state.answers)}
-    k.done_reason, k.aborted = state.done_reason, state.aborted
+    k.done_reason, k.aborted, k.interrupted = state.done_reason, state.aborted, state.interrupted
     return k
 
 

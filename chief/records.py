@@ -257,6 +257,7 @@ class KeeperState(Record):
     answers: list[dict[str, Any]]
     done_reason: str | None
     aborted: bool
+    interrupted: bool = False  # ended by Ctrl-C or SIGTERM: a chief started again resumes it
 
 
 class ServiceState(Record):

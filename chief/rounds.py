@@ -40,7 +40,8 @@ Closing a round yields a RoundOutcome for the service to publish:
   CartPole-v0 and Acrobot-v1, per episode and per mini-batch step).
 
 The run is done when every worker has finished or after the last round of ``max_episodes`` episodes; the service may
-``abort`` it.
+``abort`` it (it ended for good) or ``interrupt`` it (Ctrl-C, SIGTERM: it ended early, and ``resume`` takes it up
+again from its saved state).
 """
 
 from __future__ import annotations
@@ -69,6 +70,8 @@ AHEAD_WINDOW = 10
 RETURN_MARGIN = 0.1
 #: A gradient above this many times the round's median norm is scaled down to it.
 NORM_FACTOR = 10.0
+#: The end reason of an interrupted run (summary.json's ``end_reason``).
+INTERRUPTED = "interrupted"
 #: Closed rounds whose answers are kept for workers that missed them.
 ANSWERS_KEPT = 32
 
@@ -254,6 +257,7 @@ class RoundKeeper:
         self.round_opened_at: float | None = None  # time of the round's first submission
         self.done_reason: str | None = None
         self.aborted = False
+        self.interrupted = False  # ended early by ``interrupt``: resumable
 
     # -- rounds and episodes ---------------------------------------------------------------------------------
 
@@ -277,6 +281,11 @@ class RoundKeeper:
     @property
     def done(self) -> bool:
         return self.done_reason is not None
+
+    @property
+    def resumable(self) -> bool:
+        """Whether a chief may go on with this run: it is not over, or it was only interrupted."""
+        return not self.done or self.interrupted
 
     @property
     def tc(self) -> float:
@@ -369,6 +378,17 @@ class RoundKeeper:
         """End the run early (e.g. every worker stayed offline past the service's idle limit)."""
         if not self.done:
             self.done_reason, self.aborted = reason, True
+
+    def interrupt(self) -> None:
+        """End the run now, resumably (the operator stopped the chief): the open round stays open, with what was
+        submitted for it, and ``resume`` takes the run up again where it stopped."""
+        if not self.done:
+            self.done_reason, self.interrupted = INTERRUPTED, True
+
+    def resume(self) -> None:
+        """Take up an interrupted run again (a run that ended for good stays over)."""
+        if self.interrupted:
+            self.done_reason, self.interrupted = None, False
 
     # -- internals -------------------------------------------------------------------------------------------
 

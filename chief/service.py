@@ -8,11 +8,13 @@ import datetime as dt
 import logging
 import queue
 import secrets
+import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from chief import checkpoint, strategies, tensorboard
+from chief.records import SUMMARY
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
@@ -41,6 +43,8 @@ from protocol.transport import Connect, Transport
 log = logging.getLogger("chief")
 
 EXIT_OK, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 3, 4
+#: The exit code of a chief that was interrupted (SIGINT or SIGTERM): the run is saved and resumable.
+EXIT_INTERRUPTED = 130
 
 
 #: Seconds between two progress lines.
@@ -86,6 +90,7 @@ class ChiefService:
         self._must_save = False
         self.duplicates = 0
         self.epoch = 0  # how often this run's chief has restarted
+        self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
 
     def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
         return MqttConnection(self.broker, client_id=client_id, will=will, max_payload=self.cfg.max_payload,
@@ -95,10 +100,16 @@ class ChiefService:
         if service.get("run_id") != self.cfg.run_id:
             raise ValueError(f"{self.cfg.run_dir} holds run {service.get('run_id')!r}, not {self.cfg.run_id!r}: "
                              "use the same --run-id to resume it, or another --run-dir")
-        if keeper.done:
+        if not keeper.resumable:
             raise ValueError(f"the run in {self.cfg.run_dir} is over ({keeper.done_reason}); choose another --run-dir")
         if keeper.policy != self.cfg.policy:
             raise ValueError(f"the saved run uses policy {keeper.policy!r}, not {self.cfg.policy!r}")
+
+    def interrupt(self) -> None:
+        """Ask the run to end early and resumably (SIGINT, SIGTERM): the main thread tells the RoundKeeper, then
+        saves the state, tells the workers and writes the summary and the curve. Safe from any thread or a signal
+        handler."""
+        self._interrupt.set()
 
     # -- network thread: decode, validate, enqueue -------------------------------------------------------------
 
@@ -126,6 +137,9 @@ class ChiefService:
                          cfg.env, cfg.policy)
                 self.metrics = MetricsLog(cfg.run_dir)
                 workers = self._gather_workers()
+                if self._interrupt.is_set():
+                    log.warning("interrupted before the run started: nothing to save")
+                    return EXIT_INTERRUPTED
                 if not workers:
                     log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
                     return EXIT_NO_WORKERS
@@ -150,6 +164,11 @@ class ChiefService:
     def _resume(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
         """Carry on a run from its saved state: the records are cut back to what the state had seen."""
         self.keeper = keeper
+        if keeper.interrupted:  # its summary told how it stopped; the run goes on and will write another
+            log.warning("run %s was interrupted (%s): taking it up again", self.cfg.run_id,
+                        self.cfg.run_dir / SUMMARY)
+            keeper.resume()
+            (self.cfg.run_dir / SUMMARY).unlink(missing_ok=True)
         self.session, self.epoch, self.duplicates = service["session"], service["epoch"] + 1, service["duplicates"]
         self.roster = Roster(self.cfg.env, started=True, actor_spec=keeper.actor_spec,
                              critic_spec=keeper.critic_spec, update_steps=service["update_steps"],
@@ -175,7 +194,8 @@ class ChiefService:
 
     def _gather_workers(self) -> list[str]:
         deadline = time.monotonic() + self.cfg.start_timeout
-        while len(self.roster.workers) < self.cfg.workers and time.monotonic() < deadline:
+        while (len(self.roster.workers) < self.cfg.workers and time.monotonic() < deadline
+               and not self._interrupt.is_set()):
             try:
                 _, msg = self.events.get(timeout=0.2)
             except queue.Empty:
@@ -214,6 +234,9 @@ class ChiefService:
         assert keeper is not None
         idle_since: float | None = None
         while not keeper.done:
+            if self._interrupt.is_set():
+                keeper.interrupt()
+                break
             outcomes: list[RoundOutcome] = []
             try:
                 topic, msg = self.events.get(timeout=0.1)
@@ -333,12 +356,13 @@ class ChiefService:
         print(f"[{now - self.t0:7.1f}s] {line}", flush=True)
 
     def _finish(self) -> int:
-        """Tell the workers, write the summary and the plot; the exit code (EXIT_ABORTED for an aborted run)."""
+        """Save the state, tell the workers, write the summary and the plot; the exit code (EXIT_ABORTED for an
+        aborted run, EXIT_INTERRUPTED for an interrupted one, which the saved state lets a chief resume)."""
         keeper = self.keeper
         assert keeper is not None and self.metrics is not None
         cfg = self.cfg
         reason = keeper.done_reason or "stopped"
-        aborted = keeper.aborted
+        aborted = keeper.aborted or keeper.interrupted  # ended early, not by the run's rule
         all_solved = all(r.state == "finished" for r in keeper.workers.values())
         rounds = keeper.round - 1
         self._save()
@@ -353,6 +377,10 @@ class ChiefService:
             plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
                                  f"{cfg.env}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")
         log.info("run over (%s) after %d rounds; results in %s", reason, rounds, cfg.run_dir)
+        if keeper.interrupted:
+            log.warning("the same command with --run-id %s --run-dir %s resumes the run from round %d", cfg.run_id,
+                        cfg.run_dir, keeper.round)
+            return EXIT_INTERRUPTED
         return EXIT_ABORTED if aborted else EXIT_OK
 
     def summary(self, reason: str, all_solved: bool, rounds: int) -> dict[str, Any]:

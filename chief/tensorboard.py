@@ -295,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     if board is None or board.failed:
         return 1  # logged why
     workers = len(board.translator.workers)
-    print(f"wrote {board.points} points for {workers} workers into {board.root}; view them with: "
+    print(f"wrote {board.points} points for {workers} workers into {board.root}; view them with the TensorBoard "
+          f"viewer (not installed with this package): python -m pip install tensorboard, then "
           f"tensorboard --logdir {board.root}")
     return 0
 

@@ -5,6 +5,10 @@ Starts the embedded broker (unless FEDRL_BROKER points at one) with this run's o
 QUBE-Servo 2 rig per worker, lockstep clock, when the env is ``qube``), relays the chief's live progress (restarting
 a chief that died: it resumes from its saved state), prints a summary table at the end and leaves summary.json,
 metrics.jsonl, learning_curve.png, the workers' mature models and every process's log in the run folder.
+
+Ctrl-C reaches only the launcher (each child runs in its own process group): it passes the interrupt on to the chief,
+which ends the run resumably (summary.json with end reason ``interrupted``, the curve, its saved state), and prints
+the command that resumes the run. A second Ctrl-C stops every process at once.
 """
 
 from __future__ import annotations
@@ -12,6 +16,8 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
+import shlex
+import signal
 import socket
 import subprocess
 import sys
@@ -20,6 +26,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from chief.rounds import INTERRUPTED
+from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy.settings import LocalRunSettings
 from protocol.mqtt import BrokerAddress
@@ -53,14 +61,16 @@ class Fleet:
         self._files: list[IO[bytes]] = []
 
     def start(self, name: str, module: str, settings: Settings, stream: bool = False) -> subprocess.Popen:
-        """``python -m module`` with ``settings`` as its FEDRL_* variables."""
+        """``python -m module`` with ``settings`` as its FEDRL_* variables, in its own process group (a Ctrl-C in
+        the terminal reaches the launcher only, which decides who hears of it). Logs are appended to: a resumed
+        run keeps the first part's."""
         out: int | IO[bytes] = subprocess.PIPE
         if not stream:
-            fh = (self.log_dir / f"{name}.log").open("wb")
+            fh = (self.log_dir / f"{name}.log").open("ab")
             self._files.append(fh)
             out = fh
         proc = subprocess.Popen([sys.executable, "-m", module], stdout=out, stderr=subprocess.STDOUT,
-                                env={**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"})
+                                env={**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"}, process_group=0)
         self.procs[name] = proc
         return proc
 
@@ -111,8 +121,9 @@ def main(argv: list[str] | None = None) -> int:
                 creds = make_credentials(run_dir / "broker", s.run_id, worker_ids,
                                          {worker_ids[i]: rig for i, rig in rigs.items()})
             login = creds.login
-            with (log_dir / "broker.log").open("wb") as broker_log:
-                proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT)
+            with (log_dir / "broker.log").open("ab") as broker_log:
+                proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT,
+                                                  process_group=0)  # as Fleet.start: Ctrl-C is the launcher's
             fleet.add("broker", proc)
             broker = f"mqtt://127.0.0.1:{port}"
             print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
@@ -151,7 +162,12 @@ def main(argv: list[str] | None = None) -> int:
                     f"--run-dir {run_dir} resumes from the saved state") if code == EXIT_STORAGE else ""
             print(f"the chief exited with code {code} and wrote no summary; see {log_dir}{hint}", file=sys.stderr)
             return code or 1
-        print_summary(json.loads(summary_path.read_text()), run_dir, wall)
+        summary = json.loads(summary_path.read_text())
+        print_summary(summary, run_dir, wall)
+        if summary["end_reason"] == INTERRUPTED:
+            print(f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:\n"
+                  f"  {resume_command(argv if argv is not None else sys.argv[1:], s.run_id, run_dir)}", flush=True)
+            return EXIT_INTERRUPTED
         if s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
             print(f"the dashboard stays up for {s.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
             time.sleep(s.dashboard_linger)
@@ -181,14 +197,27 @@ def unreachable(address: BrokerAddress, timeout: float = BROKER_PROBE_S) -> str 
 
 
 
-#: Chief exit codes that end a run (done, bad setting, no workers, aborted, storage fault); any other means it died.
-#: A storage fault is not retried: the chief's state is intact, so the same command resumes once there is room.
-CHIEF_FINAL_CODES = (0, 2, 3, 4, EXIT_STORAGE)
+#: Chief exit codes that end a run (done, bad setting, no workers, aborted, storage fault, interrupted); any other
+#: means it died. A storage fault is not retried: the chief's state is intact, so the same command resumes once
+#: there is room.
+CHIEF_FINAL_CODES = (0, 2, 3, 4, EXIT_STORAGE, EXIT_INTERRUPTED)
 MAX_CHIEF_RESTARTS = 5
 
 
 def relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> int:
-    """Print the chief's progress as it comes and keep a copy; warn when a worker dies."""
+    """Print the chief's progress as it comes and keep a copy; warn when a worker dies. A Ctrl-C goes on to the
+    chief, which ends the run resumably, and the relay goes on until it has; a second one propagates."""
+    try:
+        _relay(chief, log_path, fleet)
+    except KeyboardInterrupt:
+        print("\ninterrupted: the chief saves the run and writes its summary (Ctrl-C again stops every process at "
+              "once)", file=sys.stderr, flush=True)
+        chief.send_signal(signal.SIGINT)
+        _relay(chief, log_path, fleet)
+    return chief.wait()
+
+
+def _relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> None:
     assert chief.stdout is not None
     reported: set[str] = set()
     with log_path.open("ab") as log_file:
@@ -202,7 +231,22 @@ def relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> int:
                 if code not in (None, 0) and name not in reported:
                     reported.add(name)
                     print(f"!! {name} exited with code {code}; see {fleet.log_dir / (name + '.log')}", flush=True)
-    return chief.wait()
+
+
+def resume_command(argv: list[str], run_id: str, run_dir: Path) -> str:
+    """This launcher's command line with ``--run-id`` and ``--run-dir`` naming the run (its other settings as they
+    were given: the same shell's FEDRL_* variables and .env file apply again)."""
+    py = os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else "python"
+    kept: list[str] = []
+    skip = False
+    for arg in argv:
+        if skip:
+            skip = False
+        elif arg in ("--run-id", "--run-dir"):
+            skip = True
+        elif not arg.startswith(("--run-id=", "--run-dir=")):
+            kept.append(arg)
+    return shlex.join([py, "-m", "deploy.run_local", *kept, "--run-id", run_id, "--run-dir", str(run_dir)])
 
 
 def print_summary(summary: dict, run_dir: Path, wall: float) -> None:

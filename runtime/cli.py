@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import logging
+import signal
 import sys
 from collections.abc import Callable
 from typing import Any
@@ -41,6 +42,21 @@ def run_service(name: str, build: Callable[[], Any]) -> int:
     except KeyboardInterrupt:
         return 130
     return 0 if code is None else int(code)
+
+
+def stop_on_signals(stop: Callable[[], None]) -> None:
+    """Make the first SIGINT (Ctrl-C) or SIGTERM call ``stop``, so that a service ends its work cleanly; a second
+    one acts as usual (KeyboardInterrupt, or the end of the process). Call it from the main thread."""
+
+    def first(signum: int, frame: Any) -> None:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        logging.getLogger(__name__).warning("%s: stopping cleanly (again to stop at once)",
+                                            signal.Signals(signum).name)
+        stop()
+
+    signal.signal(signal.SIGINT, first)
+    signal.signal(signal.SIGTERM, first)
 
 
 def exits_on_storage_faults(name: str) -> Callable[[Callable[..., int]], Callable[..., int]]:

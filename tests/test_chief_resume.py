@@ -98,3 +98,11 @@ def test_an_unusable_state_is_refused_with_a_clear_error(tmp_path: Path) -> None
     out = chief_in(over)
     assert out.returncode == 2 and "is over (aborted: test); choose another --run-dir" in out.stderr
     assert chief_in(over, run_id="other").stderr.strip().endswith("or another --run-dir")
+
+
+def test_the_resume_command_names_the_run_and_keeps_the_other_flags() -> None:
+    from deploy.run_local import resume_command
+
+    cmd = resume_command(["--env", "Acrobot-v1", "--run-id=old", "--run-dir", "x y", "--workers", "2"], "r1",
+                         Path("runs/a b"))
+    assert cmd.endswith("-m deploy.run_local --env Acrobot-v1 --workers 2 --run-id r1 --run-dir 'runs/a b'")

@@ -40,7 +40,7 @@ from protocol.tensors import pack_arrays
 from services.dashboard.feed import MqttFeed, subscriptions
 from services.dashboard.hub import Hub
 from services.dashboard.service import DashboardConfig, DashboardService
-from services.dashboard.view import RunView
+from services.dashboard.view import NO_TELEMETRY, NO_TRANSFER, NO_TRANSFER_YET, RunView
 
 RUN = "dash1"
 BIG = {"w": np.ones((256, 256), np.float32)}  # a 256 KiB tensor: must never end up in the view
@@ -92,6 +92,7 @@ def test_view_follows_a_run_from_hello_to_stop() -> None:
     run = view.snapshot()["run"]
     assert (run["phase"], run["tc"], run["policy"], run["workers"], run["round"]) == (
         "running", 195.0, "weighted", ["w0", "w1"], 1)
+    assert (run["round_label"], run["no_transfer"]) == ("open round", NO_TRANSFER_YET)
     assert {w["id"]: w["state"] for w in workers_of(view).values()} == {"w0": "training", "w1": "training"}
 
     events = feed(view, update("w0", 1, 10.0, 12.0), update("w1", 1, 30.0))
@@ -120,6 +121,7 @@ def test_view_follows_a_run_from_hello_to_stop() -> None:
     feed(view, RunStop(run_id=RUN, reason="episode limit", episodes=3, all_solved=False))
     snap = view.snapshot()
     assert snap["run"]["phase"] == "stopped" and snap["run"]["stop"]["reason"] == "episode limit"
+    assert (snap["run"]["round_label"], snap["run"]["rounds"]) == ("rounds", 3)  # no open round once it is over
     assert workers_of(view)["w0"]["state"] == "stopped" and workers_of(view)["w1"]["state"] == "finished"
     assert [p[0] for p in workers_of(view)["w0"]["curve"]] == [1, 2, 3]
 
@@ -192,6 +194,30 @@ def test_view_resent_points_replace_and_long_curves_are_thinned() -> None:
     curve = [p[0] for p in workers_of(view)["w0"]["curve"]]
     assert len(curve) <= 8 and curve[-1] == 9 and curve == sorted(curve)
     assert curve[0] <= 2, "thinning keeps the start of the curve"
+
+
+def test_view_end_state_says_the_run_is_over() -> None:
+    """After the run: the number of rounds (no open round), and nobody "has finished yet" but nobody finished."""
+    view = RunView(RUN)
+    feed(view, start(["w0"]), update("w0", 1, 10.0), aggregate(1, {"w0": 1.0}), update("w0", 2, 12.0),
+         aggregate(2, {"w0": 1.0}))
+    assert view.snapshot()["run"]["round"] == 3 and view.snapshot()["run"]["no_transfer"] == NO_TRANSFER_YET
+    feed(view, RunStop(run_id=RUN, reason="interrupted", episodes=2, all_solved=False, aborted=True))
+    run = view.snapshot()["run"]
+    assert (run["round_label"], run["rounds"], run["no_transfer"]) == ("rounds", 2, NO_TRANSFER)
+
+
+def test_view_rig_without_telemetry_says_why() -> None:
+    """A lockstep rig publishes no loop telemetry: its row says so instead of showing 0 ticks and no timing."""
+    view = RunView(RUN)
+    feed(view, QubeStatus(rig_id="rig0", state="running", episode=1))
+    rig = view.snapshot()["rigs"][0]
+    assert (rig["telemetry"], rig["note"], rig["ticks"]) == (False, NO_TELEMETRY, 0)
+    assert "lockstep" in rig["note"] and "answers" in rig["note"]
+    feed(view, QubeTelemetry(rig_id="rig0", ticks=50, deadline_misses=0, late_actions=0, faults=0,
+                             jitter_ms={"p99": 0.1}, latency_ms={"p50": 1.0, "p99": 2.0, "max": 3.0}))
+    rig = view.snapshot()["rigs"][0]
+    assert (rig["telemetry"], rig["note"], rig["ticks"]) == (True, "", 50)
 
 
 def test_view_rigs_other_runs_and_unshown_kinds() -> None:

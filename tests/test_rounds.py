@@ -418,3 +418,36 @@ def test_a_per_step_strategy_keeps_its_finishers_sharing_until_all_have_finished
     # ... but it cannot finish twice, and its solve episode stays.
     again = k.submit(w["w0"].sub(PI_WINDOW + 2, 200.0, mature=True), now=0.0)
     assert again.reason == "finished" and rec.solved_episode == PI_WINDOW
+
+
+def test_an_interrupted_run_keeps_its_open_round_and_resumes_through_the_saved_state(tmp_path) -> None:
+    """Ctrl-C: the run ends as ``interrupted`` with its open round's submissions kept; the saved state says so, and
+    a keeper restored from it goes on where it stopped (an aborted run stays over)."""
+    from chief import checkpoint
+    from chief.records import ServiceState
+    from chief.rounds import INTERRUPTED
+
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    k.submit(w["w0"].sub(1, 20.0), 0.0)
+    k.submit(w["w1"].sub(1, 30.0), 0.1)
+    k.submit(w["w0"].sub(2, 22.0), 0.2)
+    k.interrupt()
+    assert (k.done, k.done_reason, k.interrupted, k.aborted, k.resumable) == (True, INTERRUPTED, True, False, True)
+    assert k.submit(w["w1"].sub(2, 31.0), 0.3).reason == "run_over"
+    k.abort("aborted: later")  # an interrupted run is already over: nothing changes
+    assert (k.done_reason, k.aborted) == (INTERRUPTED, False)
+    service = ServiceState(run_id="r", session="0" * 16, epoch=0, duplicates=0, hosts={}, update_steps=0, rejects={},
+                           metrics_bytes=0, elapsed_s=0.0)
+    checkpoint.save(tmp_path, k, service)
+    loaded = checkpoint.load(tmp_path, CARTPOLE)
+    assert loaded is not None
+    back = loaded[0]
+    assert (back.interrupted, back.resumable, back.round, sorted(back.pending)) == (True, True, 2, ["w0"])
+    back.resume()
+    assert (back.done, back.interrupted) == (False, False)
+    [out] = outcomes(back.submit(Fake("w1").sub(2, 31.0), 1.0))
+    assert (out.round, out.contributors) == (2, ["w0", "w1"])
+    over = keeper(["w0"])
+    over.abort("aborted: test")
+    over.resume()
+    assert (over.done, over.resumable) == (True, False)

@@ -9,12 +9,14 @@ Events (``type`` plus fields):
 - ``run``: the run's settings and progress (env, policy, TC, workers, open round, who solved, how it ended, the rig
   time of its last rig so far);
   rounds are numbered as the chief's answers number them (K per episode under a per-step strategy such as ``sync``);
+  ``round_label`` and ``no_transfer`` are the page's words for them (a run that is over has no open round, and its
+  workers that did not finish never will);
 - ``worker``: one worker's summary (state, episode, PI, last return, weights; on a QUBE-Servo 2 task its ``rig``
   time: balance steps and seconds, reset, idle and rig seconds, protocol/rigtime.py) without its curve;
 - ``point``: one new point of a worker's curve, ``[episode, PI, return]``;
 - ``round``: one closed round (its number, episode and step; aggregate or transfer: weights, contributors, source,
   keep weights);
-- ``rig``: one QUBE-Servo 2 rig's phase and loop timing;
+- ``rig``: one QUBE-Servo 2 rig's phase and loop timing, or ``note`` saying why there is none;
 - ``reset``: a new run under the same id started; the page clears what it has.
 """
 
@@ -102,12 +104,21 @@ class RigView:
     latency_ms: dict[str, float] = field(default_factory=dict)
     jitter_ms: dict[str, float] = field(default_factory=dict)
     last_seen: float = 0.0
+    telemetry: bool = False  # a QubeTelemetry arrived
 
     def summary(self) -> Event:
         return {"type": "rig", "id": self.id, "phase": self.phase, "detail": self.detail, "episode": self.episode,
-                "ticks": self.ticks, "deadline_misses": self.deadline_misses, "late_actions": self.late_actions,
+                "telemetry": self.telemetry, "note": "" if self.telemetry else NO_TELEMETRY, "ticks": self.ticks,
+                "deadline_misses": self.deadline_misses, "late_actions": self.late_actions,
                 "faults": self.faults, "latency_ms": dict(self.latency_ms), "jitter_ms": dict(self.jitter_ms),
                 "last_seen": round(self.last_seen, 3)}
+
+
+#: Why a rig's loop timing is missing: a lockstep rig (the simulator's default clock) publishes no telemetry.
+NO_TELEMETRY = ("no loop telemetry: a lockstep rig sends none (its clock advances only with the worker's answers, so "
+                "it has no real-time loop to time); a real-time rig reports every second")
+#: The transfers panel without any: while the run goes on, and once it is over.
+NO_TRANSFER_YET, NO_TRANSFER = "No worker has finished yet.", "No worker finished."
 
 
 class RunView:
@@ -344,7 +355,7 @@ class RunView:
                                                                          msg.late_actions, msg.faults)
         rig.latency_ms = {k: round(v, 3) for k, v in msg.latency_ms.items()}
         rig.jitter_ms = {k: round(v, 3) for k, v in msg.jitter_ms.items()}
-        rig.last_seen = now
+        rig.last_seen, rig.telemetry = now, True
         return [rig.summary()]
 
     # -- reading ---------------------------------------------------------------------------------------------
@@ -366,6 +377,8 @@ class RunView:
             "max_episodes": start.max_episodes if start else None,
             "workers": list(start.workers) if start else sorted(self.workers),
             "round": self.last_round + 1 if start else None, "rounds": self.round_count,
+            "round_label": "rounds" if stop is not None else "open round",
+            "no_transfer": NO_TRANSFER if stop is not None else NO_TRANSFER_YET,
             "episode": start.shape.episode_of(self.last_round + 1) if start else None,
             "rounds_per_episode": start.rounds_per_episode if start else None,
             "transfers": len(self.transfers), "solved": [{"worker": w, "episode": e} for w, e in solved],

@@ -143,7 +143,9 @@ function renderHeader() {
   setText("run-tc", run.tc === null ? "–" : fmt(run.tc, 0));
   setText("run-workers", String(workerIds().length));
   const openRound = run.rounds_per_episode > 1 ? `${run.round} (episode ${run.episode})` : String(run.round);
-  setText("run-round", run.round === null ? "–" : openRound);
+  setText("run-round-label", run.round_label || "open round");
+  setText("run-round", run.stop ? String(run.rounds) : run.round === null ? "–" : openRound);
+  setText("transfers-empty", run.no_transfer || "No worker has finished yet.");
   setText("run-solved", `${run.solved.length} / ${workerIds().length}`);
   $("run-last-rig-card").hidden = !run.last_rig;
   if (run.last_rig) setText("run-last-rig", `${run.last_rig.id}: ${rigText(run.last_rig)}`);
@@ -241,12 +243,12 @@ function renderRigs() {
   const rows = Array.from(state.rigs.values()).sort((a, b) => a.id.localeCompare(b.id)).map((r) => {
     const lat = r.latency_ms || {};
     return el("tr", { "data-rig": r.id },
-      el("td", {}, r.id), el("td", {}, badge(r.phase)), el("td", { class: "num" }, r.ticks),
+      el("td", {}, r.id), el("td", {}, badge(r.phase)), el("td", { class: "num" }, r.telemetry ? r.ticks : "–"),
       el("td", { class: "num" }, `${fmt(lat.p50, 2)} / ${fmt(lat.p99, 2)} / ${fmt(lat.max, 2)}`),
       el("td", { class: "num" }, fmt((r.jitter_ms || {}).p99, 2)),
       el("td", { class: "num" }, r.deadline_misses), el("td", { class: "num" }, r.late_actions),
       el("td", { class: "num" }, r.faults), el("td", { class: "num" }, ago(r.last_seen)),
-      el("td", { class: "muted" }, r.detail || ""));
+      el("td", { class: "muted" }, [r.detail, r.note].filter(Boolean).join("; ")));
   });
   replaceRows(document.querySelector("#rigs tbody"), rows);
   $("rigs-empty").hidden = rows.length > 0;

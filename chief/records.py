@@ -142,11 +142,21 @@ class WorkerSummary(Record):
     state: WorkerState
 
 
+class InitModelRecord(Record):
+    """The model a warm-started run's workers started from: its path as given (to the chief, or else to its first
+    worker) and its network digest (runtime/model_file.py)."""
+
+    path: str
+    digest: str
+
+
 class RunSummary(Record):
     """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what
-    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given)."""
+    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given). ``init_model``: the
+    model every worker started from (absent from scratch)."""
 
-    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts"})
+    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
+                          "init_model"})
 
     run_id: str = ""
     env: str
@@ -169,6 +179,7 @@ class RunSummary(Record):
     rejected_messages: dict[str, int] | None = None
     duplicates: int | None = None
     restarts: int | None = None
+    init_model: InitModelRecord | None = None
 
     @classmethod
     def read(cls, run_dir: Path) -> RunSummary:
@@ -233,6 +244,8 @@ class ServiceState(Record):
     rejects: dict[str, int]
     metrics_bytes: int = Field(ge=0)
     elapsed_s: float
+    init_model: InitModelRecord | None = None  # the run's model, once decided (None: from scratch or not yet)
+    init_model_known: bool = False
 
 
 class ChiefState(Record):

@@ -4,10 +4,10 @@ It starts one ChiefService and N WorkerServices, each in its own thread, on an i
 instead of an MQTT broker: the same services as ``make run``, unchanged, and every message goes through the same
 msgpack codec. Only the broker, the sockets and the process start-ups are left out, and nothing times out (rounds
 wait for every worker, as a sweep must be reproducible). It writes the same run folder (summary.json with ``"mode":
-"in-process"``, metrics.jsonl, learning_curve.png), which ``python -m chief.audit`` checks like any other, without
-the chief's saved state (there is nothing to resume), plus timing.json for bench.runs: each worker's own CPU seconds
-per episode and the chief's per round. For a given seed it gives the same per-worker episodes and round records as a
-federation over MQTT (tests/test_inprocess_equivalence.py).
+"in-process"``, metrics.jsonl, learning_curve.png, models/<id>.pt), which ``python -m chief.audit`` checks like any
+other, without the chief's saved state (there is nothing to resume), plus timing.json for bench.runs: each worker's
+own CPU seconds per episode and the chief's per round. For a given seed it gives the same per-worker episodes and
+round records as a federation over MQTT (tests/test_inprocess_equivalence.py).
 """
 
 from __future__ import annotations

@@ -171,13 +171,22 @@ class WorkerSummary(Record):
     rig: RigTime | None = None
 
 
+class InitModelRecord(Record):
+    """The model a warm-started run's workers started from: its path as given (to the chief, or else to its first
+    worker) and its network digest (runtime/model_file.py)."""
+
+    path: str
+    digest: str
+
+
 class RunSummary(Record):
     """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what
     the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given). ``last_rig``: the rig
-    time of the run's last rig (QUBE-Servo 2 tasks only)."""
+    time of the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent
+    from scratch)."""
 
     OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
-                          "last_rig"})
+                          "last_rig", "init_model"})
 
     run_id: str = ""
     env: str
@@ -201,6 +210,7 @@ class RunSummary(Record):
     duplicates: int | None = None
     restarts: int | None = None
     last_rig: LastRig | None = None
+    init_model: InitModelRecord | None = None
 
     def dump(self) -> dict[str, Any]:
         """As Record.dump, each worker's row without its optional fields when None too."""
@@ -272,6 +282,8 @@ class ServiceState(Record):
     rejects: dict[str, int]
     metrics_bytes: int = Field(ge=0)
     elapsed_s: float
+    init_model: InitModelRecord | None = None  # the run's model, once decided (None: from scratch or not yet)
+    init_model_known: bool = False
 
 
 class ChiefState(Record):

@@ -39,6 +39,7 @@ from protocol.routes import CHIEF, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 from protocol.transport import Connect, Transport
+from runtime.model_file import InitModel
 
 log = logging.getLogger("chief")
 
@@ -75,7 +76,11 @@ class ChiefService:
         self.spec = task(cfg.env)
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
-        self.roster = Roster(cfg.env)
+        # The run's model, when the chief is told it (a ValueError, exit 2, for an unreadable one); else the first
+        # worker's decides (chief/roster.py).
+        model = InitModel.open(cfg.init_model) if cfg.init_model is not None else None
+        self.roster = Roster(cfg.env, init_model=model.digest if model else None, init_model_known=model is not None,
+                             init_model_path=model.given if model else "")
         self.keeper: RoundKeeper | None = None
         self.session = secrets.token_hex(8)
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
@@ -172,7 +177,10 @@ class ChiefService:
         self.session, self.epoch, self.duplicates = service["session"], service["epoch"] + 1, service["duplicates"]
         self.roster = Roster(self.cfg.env, started=True, actor_spec=keeper.actor_spec,
                              critic_spec=keeper.critic_spec, update_steps=service["update_steps"],
-                             hosts=service["hosts"])
+                             hosts=service["hosts"], init_model_known=service["init_model_known"])
+        if service["init_model"] is not None:
+            self.roster.init_model = service["init_model"]["digest"]
+            self.roster.init_model_path = service["init_model"]["path"]
         self.rejects.restore(service["rejects"])
         self.metrics = MetricsLog(self.cfg.run_dir, resume_at=service["metrics_bytes"])
         self.t0 = time.monotonic() - service["elapsed_s"]
@@ -190,7 +198,13 @@ class ChiefService:
             "run_id": self.cfg.run_id, "session": self.session, "epoch": self.epoch, "duplicates": self.duplicates,
             "hosts": self.roster.hosts, "update_steps": self.roster.update_steps,
             "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
-            "elapsed_s": time.monotonic() - self.t0})
+            "elapsed_s": time.monotonic() - self.t0, "init_model": self._init_model(),
+            "init_model_known": self.roster.init_model_known})
+
+    def _init_model(self) -> dict[str, str] | None:
+        """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""
+        roster = self.roster
+        return None if roster.init_model is None else {"path": roster.init_model_path, "digest": roster.init_model}
 
     def _gather_workers(self) -> list[str]:
         deadline = time.monotonic() + self.cfg.start_timeout
@@ -211,7 +225,8 @@ class ChiefService:
     def _register(self, hello: WorkerHello) -> bool:
         new = hello.worker_id not in self.roster.hosts
         refused = self.roster.offer(hello.worker_id, hello.env_id, dict(hello.actor_spec), hello.host,
-                                    critic_spec=dict(hello.critic_spec), update_steps=hello.update_steps)
+                                    critic_spec=dict(hello.critic_spec), update_steps=hello.update_steps,
+                                    init_model=hello.init_model, init_model_path=hello.init_model_path)
         if refused is not None:
             self.rejects.reject(topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO), *refused)
             return False
@@ -391,7 +406,7 @@ class ChiefService:
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                            broker=str(self.broker), rejected_messages=self.rejects.as_dict(),
-                           duplicates=self.duplicates, restarts=self.epoch)
+                           duplicates=self.duplicates, restarts=self.epoch, init_model=self._init_model())
 
 
 # -- translation between the wire and the round state machine --------------------------------------------------

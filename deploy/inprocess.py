@@ -4,10 +4,10 @@ It starts one ChiefService and N WorkerServices, each in its own thread, on an i
 instead of an MQTT broker: the same services as ``make run``, unchanged, and every message goes through the same
 msgpack codec. Only the broker, the sockets and the process start-ups are left out, and nothing times out (rounds
 wait for every worker, as a sweep must be reproducible). It writes the same run folder (summary.json with ``"mode":
-"in-process"``, metrics.jsonl, learning_curve.png), which ``python -m chief.audit`` checks like any other, without
-the chief's saved state (there is nothing to resume), plus timing.json for bench.runs: each worker's own CPU seconds
-per episode and the chief's per round. For a given seed it gives the same per-worker episodes and round records as a
-federation over MQTT (tests/test_inprocess_equivalence.py).
+"in-process"``, metrics.jsonl, learning_curve.png, models/<id>.pt), which ``python -m chief.audit`` checks like any
+other, without the chief's saved state (there is nothing to resume), plus timing.json for bench.runs: each worker's
+own CPU seconds per episode and the chief's per round. For a given seed it gives the same per-worker episodes and
+round records as a federation over MQTT (tests/test_inprocess_equivalence.py).
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import RunStop
 from protocol.transport import Handler
+from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
 from worker.service import WorkerService
 from worker.settings import WorkerSettings
@@ -44,18 +45,21 @@ START_TIMEOUT = 600.0
 
 def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
-                   tensorboard_files: bool = True, env_options: dict[str, Any] | None = None) -> dict[str, Any]:
+                   tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
+                   init_model: Path | None = None, models: bool = True) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
     write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
     ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
-    task options (qube-local: ``rig_profile``, ``randomize``)."""
+    task options (qube-local: ``rig_profile``, ``randomize``); ``init_model``: a warm start, every worker from this
+    model (a file or a run folder; a ValueError, before anything runs, when it does not fit the task); ``models``:
+    save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does."""
     torch.set_num_threads(1)
     hub = Hub()
     chief_conn: list[_Timed] = []
     chief = ChiefService(
         ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
-                            idle_timeout=math.inf, run_dir=run_dir),
+                            idle_timeout=math.inf, run_dir=run_dir, init_model=init_model),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
     worker_conns: dict[str, list[_Timed]] = {}
@@ -65,7 +69,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         worker_conns[wid] = []
         cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, device_noise=device_noise,
                                    reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
-                                   resend_interval=math.inf, **(env_options or {}))
+                                   resend_interval=math.inf, init_model=init_model,
+                                   model_dir=run_dir / "models" if models else None, **(env_options or {}))
         services[wid] = WorkerService(cfg, _timed(hub, topics.STATUS, _NewEpisode(), worker_conns[wid])).run
     codes = _run_threads(services)
     if codes["chief"] not in (EXIT_OK, EXIT_ABORTED):  # the workers (daemon threads) are told to stop, not awaited
@@ -177,8 +182,12 @@ class _NewEpisode:
 @returns_code
 def main(argv: list[str] | None = None) -> int:
     s = InprocessSettings.load(argv, prog="python -m deploy.inprocess", description=__doc__.splitlines()[0])
-    summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
-                             device_noise=s.device_noise, progress=True)
+    try:
+        summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
+                                 device_noise=s.device_noise, progress=True, init_model=s.init_model)
+    except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
+        print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
+        return 2
     last = summary["episodes_to_all_solved"]
     reason = summary["end_reason"]
     outcome = f"all workers solved by episode {last}" if last is not None else f"not all solved ({reason})"

@@ -97,6 +97,15 @@ class Fleet:
 def main(argv: list[str] | None = None) -> int:
     s = load(argv)
     assert s.workers is not None and s.run_id is not None and s.run_dir is not None  # load fills them in
+    if s.init_model is not None:  # before anything starts: a model for another task is one line, exit 2
+        from worker.model import open_init_model  # torch: only for a warm start
+
+        try:
+            init, _ = open_init_model(s.init_model, s.env)
+        except ValueError as err:
+            print(f"python -m deploy.run_local: {err}", file=sys.stderr)
+            return 2
+        print(f"warm start: every worker from {init.file} (networks {init.digest[:12]})")
     run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)

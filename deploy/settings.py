@@ -10,7 +10,7 @@ from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, Positiv
 from chief.settings import FederationSettings
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
-from runtime.settings import Counts, Port, setting
+from runtime.settings import Counts, Port, Settings, setting
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
 
@@ -25,7 +25,14 @@ def _off(value: Any) -> Any:
 PortOrOff = Annotated[Port | None, BeforeValidator(_off), PlainSerializer(lambda v: "off" if v is None else v)]
 
 
-class LocalRunSettings(DeviceNoiseSettings, FederationSettings):
+class WarmStartSettings(Settings):
+    """Where a federation's workers start (docs/how-to/warm-start.md)."""
+
+    init_model: Path | None = setting(None, "warm start every worker from this model (a models/<id>.pt, or a run "
+                                      "folder: its first worker to solve); unset: from scratch", metavar="PATH")
+
+
+class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettings):
     """A federation on this machine: embedded MQTT broker, chief and N workers as separate processes (make run)."""
 
     workers: PositiveInt | None = setting(None, "number of workers (unset: 4, or 3 for qube as in the paper)")
@@ -52,7 +59,7 @@ class LocalRunSettings(DeviceNoiseSettings, FederationSettings):
         return check_id(value, "run id") if value else None
 
 
-class InprocessSettings(DeviceNoiseSettings, FederationSettings):
+class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettings):
     """A whole federation in one process, for sweeps: make run's chief and worker services on an in-memory hub."""
 
     workers: int = setting(4, "number of workers", ge=1)

@@ -74,6 +74,9 @@ class WorkerHello(Message):
     update_steps: int = Field(default=0, ge=0, le=1000)  # K, the PPO mini-batch steps per episode
     host: str = ""
     pid: int = 0
+    #: The network digest (runtime/model_file.py) of the model this worker was warm-started from; None from scratch.
+    init_model: str | None = Field(default=None, pattern=r"^[0-9a-f]{64}$")
+    init_model_path: str = Field(default="", max_length=1000)  # that model's path as the worker was given it
 
 
 class WorkerStatus(Message):

@@ -1,12 +1,14 @@
-"""``python -m worker.evaluate MODEL --env ENV``: run a saved controller greedily and report its returns.
+"""``python -m worker.evaluate MODEL [--env ENV]``: run a saved controller greedily and report its returns.
 
-    python -m worker.evaluate runs/<run>/models/w0.pt --env CartPole-v0 --episodes 10 --json eval.json
+    python -m worker.evaluate runs/<run>/models/w0.pt --episodes 10 --json eval.json   # on the model's own task
     python -m worker.evaluate runs/<run>/models/w0.pt --env CartPole-v0 --video videos/
     python -m worker.evaluate model.pt --env qube-local
     python -m worker.evaluate model.pt --env qube --rig-id rig0 --broker mqtt://lab:1883   # a rig over MQTT
     python -m worker.evaluate model.pt --env qube-local --rig-profile lab --rigs 10 --json robust.json
 
-MODEL is a ``models/<worker>.pt`` that a worker saved when it solved its task (worker/ppo.py ``save``). Each episode
+MODEL is a ``models/<worker>.pt`` that a worker saved when it solved its task (worker/ppo.py ``save``). The task is
+the one the model records (worker/model.py provenance; a rig model over MQTT runs on the simulated qube-local unless
+``--rig-id`` is given); ``--env`` names it explicitly, and one that disagrees with the model is an error. Each episode
 takes the deterministic action (arg-max for discrete actions, the Gaussian mean for continuous ones), episode i is
 seeded with ``seed + i``, and nothing is learned. The report: every return, mean +- standard deviation, and whether
 the mean reaches the task's TC (protocol/tasks.py). ``--video DIR`` writes an animated GIF per recorded episode
@@ -37,7 +39,9 @@ import numpy as np
 
 from protocol.mqtt import MqttConnection
 from runtime.cli import setup_logging
+from runtime.model_file import ModelFileError, provenance
 from runtime.settings import returns_code
+from worker import model
 from worker.envs import DeviceNoise, env_spec, make_env
 from worker.ppo import PPOConfig, PPOLearner
 from worker.settings import EvaluateSettings
@@ -89,36 +93,37 @@ class Robustness:
 
 def load_learner(path: Path, env_id: str, observation_space: gym.Space, action_space: gym.Space) -> PPOLearner:
     """A learner with the saved networks, checked against the env's spaces; EvalError with the reason otherwise."""
-    import torch
-
-    if not path.is_file():
-        raise EvalError(f"no model file at {path}")
     try:
-        state = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises many types for a file that is not a checkpoint
-        first = (str(exc).splitlines() or [""])[0][:200]
-        raise EvalError(f"{path} is not a saved model ({type(exc).__name__}: {first})") from None
-    if not isinstance(state, dict) or not {"config", "actor", "critic", "obs_norm"} <= set(state):
-        raise EvalError(f"{path} is not a model saved by a fedrl worker (no actor/critic/config in it)")
-    try:
+        state = model.load_state(path)
         config = PPOConfig.from_dict(state["config"])
         learner = PPOLearner(observation_space, action_space, config, seed=0)
+        model.check_fits(state, learner, env_id, path)
     except (TypeError, ValueError) as exc:
-        raise EvalError(f"{path}: {exc}") from None
-    for net in ("actor", "critic"):
-        expected = {k: tuple(v.shape) for k, v in getattr(learner, net).state_dict().items()}
-        saved = {k: tuple(getattr(v, "shape", ())) for k, v in state[net].items()}
-        names = [*expected, *(k for k in saved if k not in expected)]
-        for name in sorted(names, key=lambda k: "." not in k):  # layers (the input layer first), then the rest
-            if expected.get(name) != saved.get(name):
-                raise EvalError(f"{path} does not fit {env_id}: {net} {name} is {saved.get(name)} in the model but "
-                                f"{expected.get(name)} for {env_id} (was it saved for another env?)")
+        raise EvalError(str(exc) if isinstance(exc, ModelFileError) else f"{path}: {exc}") from None
     try:
         learner.load_state_dict(state)
     except (KeyError, RuntimeError, ValueError) as exc:
         first = (str(exc).splitlines() or [""])[0][:300]
         raise EvalError(f"{path} could not be loaded for {env_id}: {first}") from None
     return learner
+
+
+def task_of(path: Path, given: str | None, rig_id: str | None = None) -> str:
+    """The task to evaluate on: ``given`` (``--env``), which must be the model's recorded task, or else the model's
+    (a model made on rigs over MQTT runs on the in-process simulated rig unless a ``rig_id`` is given)."""
+    try:
+        recorded = (provenance(path) or {}).get("task")
+    except ModelFileError as err:
+        raise EvalError(str(err)) from None
+    if given is not None:
+        if isinstance(recorded, str) and not model.same_task(recorded, given):
+            raise EvalError(f"{path} was made for {recorded}, not {given} (leave --env out to use the model's task)")
+        return given
+    if not isinstance(recorded, str):
+        raise EvalError(f"{path} records no task (saved before models recorded their provenance): give --env")
+    if recorded == "qube" and rig_id is None:
+        return "qube-local"
+    return recorded
 
 
 # -- episodes ----------------------------------------------------------------------------------------------------
@@ -253,28 +258,32 @@ def report(result: Evaluation | Robustness) -> str:
 def main(argv: list[str] | None = None) -> int:
     s = EvaluateSettings.load(argv, prog="python -m worker.evaluate", description=__doc__.split("\n")[0],
                               epilog="Exit codes: 0 evaluated, 2 bad setting or model, 1 broker/rig unreachable.")
-    assert s.env is not None  # the settings require it
     setup_logging(s.log_level, "evaluate")
     import torch
 
     torch.set_num_threads(1)
     conn = None
     try:
+        env = task_of(s.model, s.env, s.rig_id)
+        if env != s.env:
+            print(f"task: {env} (from the model)", flush=True)
+        if (s.rigs or s.rig_profile) and env != "qube-local":
+            raise EvalError(f"--rig-profile and --rigs are for the simulated rigs of qube-local, not {env}")
         if s.eval_video is not None:
-            check_video_support(s.env)
+            check_video_support(env)
         if not s.model.is_file():
             raise EvalError(f"no model file at {s.model}")
-        if s.env == "qube":
+        if env == "qube":
             conn = MqttConnection(s.address(), client_id=f"fedrl-eval-{s.rig_id}-{uuid.uuid4().hex[:6]}",
                                   max_payload=s.max_payload).start()
         if s.rigs:
             from worker.robustness import Disturbances
 
             result: Evaluation | Robustness = robustness(
-                s.model, s.env, s.rig_profile, s.rigs, s.eval_seed,
+                s.model, env, s.rig_profile, s.rigs, s.eval_seed,
                 Disturbances(pulse_ms=s.pulse_ms, sensor_noise_counts=s.sensor_noise))
         else:
-            result = evaluate(s.model, s.env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
+            result = evaluate(s.model, env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
                               s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile)
     except EvalError as err:
         print(f"evaluate: {err}", file=sys.stderr)

@@ -620,8 +620,27 @@ class PPOLearner:
         self.config = config
         self.memory = deque(self.memory, maxlen=config.memory_size)
 
-    def save(self, path: str | Path) -> None:
-        torch.save(self.state_dict(), Path(path))
+    def warm_start(self, state: Mapping[str, Any]) -> None:
+        """Start from another learner's ``state_dict()`` (a warm start, ``--init-model``): its actor and critic, its
+        observation statistics and its optimizers' Adam moments, so that fine-tuning goes on where the model's training
+        stopped. Not taken: its configuration (this learner's, whose architecture the caller checked is the same; the
+        optimizers keep this learner's learning rates) and its sampling RNG (each worker keeps its own seed's)."""
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.obs_norm.load_state_dict(state["obs_norm"])
+        for name, optimizer, lr in (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
+                                    ("critic_optimizer", self.critic_optimizer, self.config.critic_lr)):
+            if name in state:
+                optimizer.load_state_dict(state[name])
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+
+    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
+        """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
+        state = self.state_dict()
+        if provenance is not None:
+            state["provenance"] = dict(provenance)
+        torch.save(state, Path(path))
 
     def load(self, path: str | Path) -> None:
         self.load_state_dict(torch.load(Path(path), weights_only=True))

@@ -38,7 +38,9 @@ from protocol.routes import qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
 from protocol.transport import Connect, Transport
+from runtime.model_file import InitModel
 from runtime.storage import StorageError, atomic_write, storage_errors
+from worker import model
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
 from worker.settings import WorkerSettings
@@ -76,6 +78,11 @@ class WorkerService:
         self.missed_replies = 0
         self.measured = False  # whether this worker's rig time is measured (a rig on a realtime or delayed clock)
         self.idle_s = 0.0  # measured: wall seconds spent waiting for the chief since the last submission
+        # A warm start's model, checked against the task before anything connects (a ValueError: one line, exit 2).
+        self.init_model: InitModel | None = None
+        self.init_state: dict[str, Any] | None = None
+        if cfg.init_model is not None:
+            self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id)
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
@@ -145,7 +152,9 @@ class WorkerService:
                                          spec_only=True)
         hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env, actor_spec=probe.actor_spec(),
                             critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs,
-                            host=socket.gethostname(), pid=os.getpid())
+                            host=socket.gethostname(), pid=os.getpid(),
+                            init_model=self.init_model.digest if self.init_model else None,
+                            init_model_path=self.init_model.given[:1000] if self.init_model else "")
         self.actor_spec = probe.actor_spec()
         deadline = time.monotonic() + cfg.start_timeout
         next_hello = 0.0
@@ -173,6 +182,9 @@ class WorkerService:
         env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
                                              env_options=cfg.env_options())
+        if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
+            model.warm_start(learner, self.init_state, cfg.env, self.init_model.file)
+            log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])
         log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
                  seed, cfg.env, start.policy, start.first_episode)
         self._status("training", episode=start.first_episode - 1)
@@ -183,7 +195,7 @@ class WorkerService:
             while algo.next_episode <= start.max_episodes and self.stop is None:
                 submission: WorkerUpdate | MatureParams | None = algo.play()
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
-                    self._save(learner)
+                    self._save(learner, algo, start)
                     ack = self._hand_over(submission)
                     if ack is not None and ack.accepted:
                         self._status("finished", episode=submission.episode, pi=submission.pi)
@@ -342,13 +354,17 @@ class WorkerService:
             self.answered.add(round_)
         return reply
 
-    def _save(self, learner: Any) -> None:
+    def _save(self, learner: Any, algo: Algorithm2, start: RunStart) -> None:
+        """Save the mature model with its provenance (worker/model.py) as <model_dir>/<id>.pt."""
         if self.cfg.model_dir is None:
             return
+        cfg = self.cfg
+        prov = model.provenance(cfg.env, cfg.env_options(), algo.seed, start.seed, algo.episode, algo.total_steps,
+                                self.init_model, worker_id=cfg.worker_id, run_id=cfg.run_id)
         path = self.cfg.model_dir / f"{self.cfg.worker_id}.pt"
         with storage_errors(path):  # a full or read-only disk: one line and exit 5, not a traceback
             self.cfg.model_dir.mkdir(parents=True, exist_ok=True)
         data = io.BytesIO()  # torch.save reports a full disk as a RuntimeError: serialise first, then write
-        torch.save(learner.state_dict(), data)
-        atomic_write(path, data.getvalue())  # the same bytes as learner.save(path)
+        torch.save({**learner.state_dict(), "provenance": prov}, data)
+        atomic_write(path, data.getvalue())  # the same bytes as learner.save(path, prov)
         log.info("saved the mature model to %s", path)

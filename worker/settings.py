@@ -44,6 +44,17 @@ class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
     randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
                                       "each reset from +-FRACTION of the profile's values (unset: the profile's)",
                                       ge=0, le=0.5, metavar="FRACTION")
+    init_model: Path | None = setting(None, "warm start: begin from this model (a models/<id>.pt, or a run folder: "
+                                      "its first worker to solve); unset: from scratch", metavar="PATH")
+
+    @field_validator("init_model")
+    @classmethod
+    def _init_model(cls, value: Path | None) -> Path | None:
+        if value is not None:
+            from runtime.model_file import resolve
+
+            resolve(value)  # exists, and a run folder names a model
+        return value
 
     @field_validator("worker_id")
     @classmethod
@@ -72,7 +83,7 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     """Run a saved controller greedily and report its returns."""
 
     model: CliPositionalArg[Path] = setting(help="a models/<worker>.pt saved by a worker", env=False)
-    env: TaskName | None = setting(None, "task to run it on (required)")
+    env: TaskName | None = setting(None, "task to run it on (unset: the task the model records)")
     eval_episodes: int = setting(10, "number of episodes", aliases=["--episodes"], ge=1)
     eval_seed: int = setting(0, "episode i is seeded with seed + i", aliases=["--seed"])
     eval_json: Path | None = setting(None, "also write the results to this JSON file", aliases=["--json"])
@@ -91,11 +102,9 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
 
     @model_validator(mode="after")
     def _task_given(self) -> EvaluateSettings:
-        if self.env is None:
-            raise ValueError("--env is required (or set FEDRL_ENV)")
         if self.env == "qube" and not self.rig_id:
             raise ValueError("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
-        if (self.rigs or self.rig_profile) and self.env != "qube-local":
+        if (self.rigs or self.rig_profile) and self.env not in ("qube-local", None):
             raise ValueError("--rig-profile and --rigs are for the simulated rigs of --env qube-local")
         if self.rig_profile is not None:
             from services.qube_sim.profile import load_profile  # torch-free, pydantic only

@@ -1,0 +1,140 @@
+"""Warm start (``--init-model``): a federation started from a trained model plays well from its first episode; the
+model's digest, what the chief admits and what summary.json names; a model for another task is one line and exit 2;
+the run-folder form of the path; the provenance a saved model records; evaluate without --env."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from chief.roster import Roster
+from chief.service import ChiefService, Outputs
+from chief.settings import ChiefSettings
+from deploy.inprocess import run_federation
+from protocol.memory import Hub, MemoryConnection
+from protocol.messages import WorkerHello
+from runtime.model_file import InitModel, ModelFileError, network_digest, provenance, resolve
+from worker.__main__ import main as worker_main
+from worker.evaluate import main as evaluate_main
+
+#: CartPole-v0's random policy scores about 22; a solved one 200.
+GOOD_RETURN = 150.0
+
+
+@pytest.fixture(scope="module")
+def pretrained(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A run folder of one in-process worker that solved CartPole-v0 (seed 101: 55 episodes), with its model."""
+    run_dir = tmp_path_factory.mktemp("pretrain")
+    summary = run_federation("CartPole-v0", "weighted", 101, 1, 120, run_dir, plot=False, tensorboard_files=False)
+    assert summary["episodes_to_all_solved"] is not None, "the pretraining did not solve CartPole-v0"
+    return run_dir
+
+
+def test_warm_started_federation_plays_well_from_its_first_episode(pretrained: Path, tmp_path: Path) -> None:
+    model = pretrained / "models" / "w0.pt"
+    summary = run_federation("CartPole-v0", "weighted", 7, 2, 12, tmp_path, plot=False, tensorboard_files=False,
+                             init_model=pretrained)  # the run-folder form
+    firsts = {r["worker"]: r["return"] for r in map(json.loads, (tmp_path / "metrics.jsonl").open())
+              if r["type"] == "episode" and r["episode"] == 1}
+    assert set(firsts) == {"w0", "w1"} and min(firsts.values()) >= GOOD_RETURN, firsts
+    assert summary["episodes_to_all_solved"] is not None and summary["episodes_to_all_solved"] <= 12
+    assert summary["init_model"] == {"path": str(pretrained), "digest": network_digest(model)}
+    prov = provenance(tmp_path / "models" / "w0.pt")
+    assert prov is not None and prov["task"] == "CartPole-v0" and prov["run_seed"] == 7 and prov["seed"] == 7000
+    assert prov["init_model"] == {"path": str(pretrained), "digest": network_digest(model)}
+    assert prov["episodes"] == summary["workers"][0]["episodes"] and prov["env_steps"] > 0 and prov["code_version"]
+    # The fine-tuned networks are another model: a run warm-started from it would have another digest.
+    assert network_digest(tmp_path / "models" / "w0.pt") != network_digest(model)
+
+
+def test_digest_covers_the_networks_only(pretrained: Path, tmp_path: Path) -> None:
+    model = pretrained / "models" / "w0.pt"
+    state = torch.load(model, weights_only=True)
+    state["provenance"] = {"task": "CartPole-v0", "note": "copied"}
+    state["actor_optimizer"]["state"] = {}
+    torch.save(state, tmp_path / "resaved.pt")
+    assert network_digest(tmp_path / "resaved.pt") == network_digest(model)
+    state["critic"]["net.0.bias"] = state["critic"]["net.0.bias"] + 1e-3
+    torch.save(state, tmp_path / "changed.pt")
+    assert network_digest(tmp_path / "changed.pt") != network_digest(model)
+
+
+def test_run_folder_names_its_first_worker_to_solve(pretrained: Path, tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    (run / "models").mkdir(parents=True)
+    for wid in ("w0", "w1", "w2"):
+        shutil.copy(pretrained / "models" / "w0.pt", run / "models" / f"{wid}.pt")
+    workers = [{"id": "w0", "solved": True, "episodes": 40}, {"id": "w1", "solved": True, "episodes": 31},
+               {"id": "w2", "solved": False, "episodes": 12}]
+    (run / "summary.json").write_text(json.dumps({"workers": workers}))
+    assert resolve(run) == run / "models" / "w1.pt"
+    assert InitModel.open(run).given == str(run)
+    (run / "summary.json").write_text(json.dumps({"workers": [{**workers[2]}]}))
+    with pytest.raises(ModelFileError, match=r"no worker of the run .* solved"):
+        resolve(run)
+    with pytest.raises(ModelFileError, match="not a finished run folder"):
+        resolve(tmp_path)
+    (tmp_path / "junk.pt").write_bytes(b"PK not a zip")
+    with pytest.raises(ModelFileError, match="is not a saved model"):
+        network_digest(tmp_path / "junk.pt")
+
+
+def test_roster_admits_only_the_runs_model() -> None:
+    spec = {"net.0.weight": (128, 4)}
+    roster = Roster("CartPole-v0")  # no model given: the first worker's decides
+    assert roster.offer("w0", "CartPole-v0", spec, init_model="a" * 64, init_model_path="m.pt") is None
+    assert roster.offer("w1", "CartPole-v0", spec, init_model=None)[0] == "wrong_init_model"  # type: ignore[index]
+    assert roster.offer("w2", "CartPole-v0", spec, init_model="b" * 64)[0] == "wrong_init_model"  # type: ignore[index]
+    assert roster.offer("w3", "CartPole-v0", spec, init_model="a" * 64) is None
+    scratch = Roster("CartPole-v0")
+    assert scratch.offer("w0", "CartPole-v0", spec) is None
+    assert scratch.offer("w1", "CartPole-v0", spec, init_model="a" * 64)[0] == "wrong_init_model"  # type: ignore[index]
+
+
+def test_chief_refuses_a_worker_started_from_another_model(pretrained: Path, tmp_path: Path) -> None:
+    """The chief told --init-model counts a hello from another model (or from scratch) as a refusal."""
+    digest = network_digest(pretrained / "models" / "w0.pt")
+    hub = Hub()
+    chief = ChiefService(ChiefSettings.given(run_id="ws", workers=2, run_dir=tmp_path, init_model=pretrained),
+                         connect=lambda cid, will, rejects: MemoryConnection(hub, cid, will, rejects),
+                         outputs=Outputs(state=False, tensorboard=False, plot=False, progress=False))
+    spec = {"net.0.weight": (128, 4)}
+
+    def hello(wid: str, model: str | None) -> WorkerHello:
+        return WorkerHello(worker_id=wid, env_id="CartPole-v0", actor_spec=spec, init_model=model)
+
+    assert chief._register(hello("w0", digest))
+    assert not chief._register(hello("w1", "0" * 64))
+    assert not chief._register(hello("w2", None))
+    assert chief.rejects.as_dict().get("wrong_init_model") == 2
+    assert chief.roster.workers == ["w0"]
+
+
+def test_model_for_another_task_is_one_line_and_exit_2(pretrained: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    model = pretrained / "models" / "w0.pt"
+    assert worker_main(["--env", "Acrobot-v1", "--init-model", str(model), "--worker-id", "w0"]) == 2
+    err = capsys.readouterr().err
+    assert f"{model} was made for CartPole-v0, not Acrobot-v1" in err and len(err.strip().splitlines()) == 1, err
+    state = torch.load(model, weights_only=True)
+    del state["provenance"]  # an older model without a recorded task: its shapes tell
+    bare = pretrained / "bare.pt"
+    torch.save(state, bare)
+    assert worker_main(["--env", "Pendulum-v1", "--init-model", str(bare), "--worker-id", "w0"]) == 2
+    err = capsys.readouterr().err
+    assert "does not fit Pendulum-v1: actor net.0.weight" in err and len(err.strip().splitlines()) == 1, err
+    assert worker_main(["--init-model", str(pretrained / "missing.pt"), "--worker-id", "w0"]) == 2
+    assert "no model file or run folder at" in capsys.readouterr().err
+
+
+def test_evaluate_takes_the_task_from_the_model(pretrained: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    model = pretrained / "models" / "w0.pt"
+    assert evaluate_main([str(model), "--episodes", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "task: CartPole-v0 (from the model)" in out and "TC 195: reached" in out
+    assert evaluate_main([str(model), "--env", "Acrobot-v1"]) == 2
+    err = capsys.readouterr().err
+    assert "was made for CartPole-v0, not Acrobot-v1" in err and len(err.strip().splitlines()) == 1, err

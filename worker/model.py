@@ -1,0 +1,141 @@
+"""A worker's model file: the provenance it records, and a warm start from one (``--init-model PATH``).
+
+The file (worker/ppo.py ``state_dict`` saved with ``torch.save``) holds the actor, the critic, the observation
+statistics, the optimizers' state, the sampling RNG's state and the learner's configuration (``config``), and, since
+models record where they come from, a ``provenance`` dict: the task, the rig profile and randomisation where the task
+has them, the worker's seed, its episodes and env steps, the code version and the model it was warm-started from.
+
+A warm start checks the model against the task first (its recorded task, the observation and action spaces through
+the networks' shapes, and the architecture), so that a model made for another task or shape is one line, exit 2
+(``ModelFileError``). It then takes what ``PPOLearner.warm_start`` takes: networks, observation statistics and Adam
+moments, never the RNG (runtime/model_file.py reads the file's digest without torch, for the chief).
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import functools
+import subprocess
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+from runtime.model_file import InitModel, ModelFileError
+from worker.ppo import PPOConfig, PPOLearner
+
+#: Configuration fields that shape the networks or their inputs: a warm start needs them equal.
+ARCHITECTURE = ("hidden_sizes", "activation", "obs_scale", "normalize_obs")
+#: Tasks whose models fit each other (one QUBE-Servo 2, over MQTT or simulated in process).
+FAMILIES = ({"qube", "qube-local"},)
+
+
+def same_task(a: str, b: str) -> bool:
+    """Whether a model made for task ``a`` is one for task ``b``."""
+    return a == b or any(a in family and b in family for family in FAMILIES)
+
+
+@functools.cache
+def code_version() -> str:
+    """``git describe --always --dirty`` of the source tree when it is a git checkout, else the package version."""
+    root = Path(__file__).resolve().parent.parent
+    try:
+        out = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=root, capture_output=True, text=True,
+                             timeout=10, check=False)
+        if out.returncode == 0 and out.stdout.strip():
+            return out.stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        pass
+    try:
+        return f"fedrl {metadata.version('fedrl')}"
+    except metadata.PackageNotFoundError:
+        return "unknown"
+
+
+def provenance(task: str, env_options: dict[str, Any], seed: int, run_seed: int | None, episodes: int,
+               env_steps: int, init_model: InitModel | None, worker_id: str = "", run_id: str = "") -> dict[str, Any]:
+    """What a saved model records about where it comes from (plain data: ``torch.load(weights_only=True)`` reads
+    it). ``env_options``: the task's options (worker/settings.py ``env_options``); a rig profile is recorded whole,
+    as the JSON data of its parameters and ranges, so the record does not depend on a file that may move."""
+    profile = env_options.get("rig_profile")
+    rig: dict[str, Any] | None = None
+    if profile is not None or task == "qube-local":
+        from services.qube_sim.profile import load_profile
+
+        loaded = load_profile(profile or "ideal")
+        rig = {"given": str(profile or "ideal"), "profile": loaded.model_dump(mode="json")}
+    return {
+        "task": task, "rig": rig, "randomize": env_options.get("randomize"), "seed": seed, "run_seed": run_seed,
+        "episodes": episodes, "env_steps": env_steps, "worker_id": worker_id, "run_id": run_id,
+        "code_version": code_version(),
+        "init_model": None if init_model is None else {"path": init_model.given, "digest": init_model.digest},
+        "saved_at": dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def load_state(path: Path) -> dict[str, Any]:
+    """The saved dict of a model file (torch tensors); ModelFileError when it is not a worker's model."""
+    import torch
+
+    if not path.is_file():
+        raise ModelFileError(f"no model file at {path}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises many types for a file that is not a checkpoint
+        first = (str(exc).splitlines() or [""])[0][:200]
+        raise ModelFileError(f"{path} is not a saved model ({type(exc).__name__}: {first})") from None
+    if not isinstance(state, dict) or not {"config", "actor", "critic", "obs_norm"} <= set(state):
+        raise ModelFileError(f"{path} is not a model saved by a fedrl worker (no actor/critic/config in it)")
+    return state
+
+
+def recorded_task(state: dict[str, Any]) -> str | None:
+    """The task a model's provenance names (None for a model saved before models recorded one)."""
+    prov = state.get("provenance")
+    task = prov.get("task") if isinstance(prov, dict) else None
+    return task if isinstance(task, str) else None
+
+
+def check_fits(state: dict[str, Any], learner: PPOLearner, env_id: str, path: Path) -> None:
+    """A ModelFileError naming the first difference when the model was made for another task, or its networks do
+    not have ``learner``'s shapes (the observation and action spaces) or architecture."""
+    task = recorded_task(state)
+    if task is not None and not same_task(task, env_id):
+        raise ModelFileError(f"{path} was made for {task}, not {env_id}")
+    try:
+        config = PPOConfig.from_dict(state["config"])
+    except (TypeError, ValueError) as exc:
+        raise ModelFileError(f"{path}: {exc}") from None
+    for net in ("actor", "critic"):
+        expected = {k: tuple(v.shape) for k, v in getattr(learner, net).state_dict().items()}
+        saved = {k: tuple(getattr(v, "shape", ())) for k, v in state[net].items()}
+        names = [*expected, *(k for k in saved if k not in expected)]
+        for name in sorted(names, key=lambda k: "." not in k):  # layers (the input layer first), then the rest
+            if expected.get(name) != saved.get(name):
+                raise ModelFileError(f"{path} does not fit {env_id}: {net} {name} is {saved.get(name)} in the model "
+                                     f"but {expected.get(name)} for {env_id} (was it made for another task?)")
+    for key in ARCHITECTURE:
+        if getattr(config, key) != getattr(learner.config, key):
+            raise ModelFileError(f"{path} does not fit {env_id}'s learner: its {key} is {getattr(config, key)!r}, "
+                                 f"{env_id}'s is {getattr(learner.config, key)!r}")
+
+
+def warm_start(learner: PPOLearner, state: dict[str, Any], env_id: str, path: Path) -> None:
+    """Check the model against the task (``check_fits``), then start ``learner`` from it."""
+    check_fits(state, learner, env_id, path)
+    try:
+        learner.warm_start(state)
+    except (KeyError, RuntimeError, ValueError) as exc:
+        first = (str(exc).splitlines() or [""])[0][:300]
+        raise ModelFileError(f"{path} could not be loaded for {env_id}: {first}") from None
+
+
+def open_init_model(path: Path, env_id: str, rig_id: str | None = None) -> tuple[InitModel, dict[str, Any]]:
+    """``--init-model PATH`` for task ``env_id``: the model (resolved, digested) and its saved dict, checked against
+    the task's spaces and learner; ModelFileError (one line, exit 2) otherwise."""
+    from worker.episode import build_learner_and_env
+
+    init = InitModel.open(path)
+    state = load_state(init.file)
+    _, probe = build_learner_and_env(env_id, seed=0, device_noise=0.0, rig_id=rig_id, spec_only=True)
+    check_fits(state, probe, env_id, init.file)
+    return init, state

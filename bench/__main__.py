@@ -9,6 +9,8 @@ BENCHES = {
     "bench.latency": "state-to-action latency through the real-time bridge loop, per broker",
     "bench.reset": "swing-up reset success over pendulum damping x rig spread x Coulomb friction",
     "bench.loop_cost": "per-tick cost of the bridge loop (SPI transfer, sense, publish, wait, write)",
+    "bench.sim2real": "sim-to-real: lab rigs from scratch, warm-started from an ideal or a randomised pretrain, "
+                      "zero-shot; the last rig's episodes, balance steps and rig minutes",
     "bench.soak": "16 workers over Mosquitto to the end: broker and chief memory over time, round latency",
 }
 

@@ -1,0 +1,216 @@
+"""``python -m bench.sim2real``: what a simulator pretrain saves a lab in rig time (the sim-to-real table).
+
+The setting: 3 rigs drawn from the ``lab`` rig profile (services/qube_sim/profile.py), on report seeds never used
+for tuning, learning the QUBE-Servo 2 balance task in process (``qube-local``: the same services, physics and bridge
+code as over MQTT, lockstep clock, rig time from the simulated clock). Compared, per report seed:
+
+- ``scratch``: the rigs learn from nothing;
+- ``ideal``: warm-started (``--init-model``) from a federation pretrained on ``ideal`` rigs;
+- ``randomised``: warm-started from a federation pretrained on ``lab`` rigs whose parameters are drawn afresh at each
+  reset (``--randomize``);
+- and each pretrained model zero-shot, before any fine-tuning: balanced to the end or not on held-out ``lab`` rigs
+  (worker/evaluate.py's robustness test without disturbances), and the fine-tuned controllers under the disturbances.
+
+Each pretrain runs once, on a tuning seed (PRETRAIN_SEED). Reported for the last rig (chief.records.LastRig): episodes,
+balance steps, rig minutes (balance + reset), idle minutes and wall minutes, as median [IQR] with unfinished runs
+counted as worse (bench.stats.spread_censored), against the targets of the rig-time issue. Results:
+``<out>/sim2real.json``; run folders under ``<runs-dir>``. ``--quick`` is a smoke-sized variant (one seed, small caps)
+that checks the pipeline, not the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import os
+import platform
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any
+
+from bench import stats
+
+TASK = "qube-local"
+POLICY = "plain"  # the QUBE's best strategy in bench/results/paper.json (plain 108 episodes, weighted 128, sync 131)
+RIGS = 3
+#: Report seeds (never used for tuning) and the pretrain's tuning seed.
+REPORT_SEEDS = tuple(range(101, 111))
+PRETRAIN_SEED = 1
+#: Domain randomisation of the ``randomised`` pretrain: each parameter drawn within +-this fraction at each reset.
+RANDOMIZE = 0.2
+HELD_OUT_SEED = 900_000  # held-out zero-shot rigs: seeds 900000.. (the report runs' rigs are seed*1000 + i)
+HELD_OUT_RIGS = 10
+DISTURBED_TRIALS = 10
+DEFAULT_M = 600
+PRETRAIN_M = 600
+#: The rig-time issue's targets, for the last of 3 rigs, median over the report seeds.
+TARGETS: dict[str, dict[str, float]] = {
+    "randomised": {"episodes": 12, "balance_steps": 30_000, "rig_min": 4.0},
+    "scratch": {"balance_steps": 34_000},
+}
+PRETRAINS: dict[str, dict[str, Any]] = {
+    "ideal": {"rig_profile": "ideal"},
+    "randomised": {"rig_profile": "lab", "randomize": RANDOMIZE},
+}
+QUICK: dict[str, Any] = {"seeds": (101,), "max_episodes": 6, "pretrain_episodes": 6, "held_out": 2, "trials": 1}
+
+
+def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str, Any],
+             init_model: Path | None = None) -> dict[str, Any]:
+    """One in-process federation of RIGS rigs; its summary plus the run folder (reuses a finished run)."""
+    summary_path = run_dir / "summary.json"
+    if summary_path.exists():
+        return {**json.loads(summary_path.read_text()), "run_dir": str(run_dir)}
+    from deploy.inprocess import run_federation
+
+    run_dir.mkdir(parents=True, exist_ok=True)
+    summary = run_federation(TASK, POLICY, seed, RIGS, max_episodes, run_dir, plot=False, tensorboard_files=False,
+                             env_options=env_options, init_model=init_model)
+    return {**summary, "run_dir": str(run_dir)}
+
+
+def last_rig(summary: dict[str, Any]) -> dict[str, Any]:
+    """The figures the table reports for a run's last rig (None where the run did not finish)."""
+    rig = summary.get("last_rig") or {}
+    solved = summary.get("episodes_to_all_solved") is not None
+    return {"finished": solved, "episodes": summary.get("episodes_to_all_solved"),
+            "balance_steps": rig.get("balance_steps") if solved else None,
+            "rig_min": round(rig["rig_s"] / 60, 3) if solved and rig else None,
+            "idle_min": round(rig["idle_s"] / 60, 3) if rig else None,
+            "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"]}
+
+
+def zero_shot(model: Path, rigs: int, disturbed: bool) -> dict[str, Any]:
+    """Balanced to the end on ``rigs`` held-out lab rigs: undisturbed (zero-shot) or under the disturbances."""
+    from worker import robustness as rb
+    from worker.evaluate import robustness
+
+    d = rb.Disturbances() if disturbed else rb.Disturbances(pulse_ms=0, sensor_noise_counts=0)
+    result = robustness(model, TASK, "lab", rigs, seed=HELD_OUT_SEED, disturbances=d)
+    return {"model": str(model), "rigs": rigs, "balanced_to_end": result.summary["balanced_to_end"],
+            "median_balance_s": result.summary["median_balance_s"]}
+
+
+def pretrain(name: str, runs_dir: Path, max_episodes: int) -> dict[str, Any]:
+    """The ``name`` pretrain's federation; its model is that of the first rig to solve (runtime.model_file)."""
+    summary = federate(runs_dir / f"pretrain-{name}", PRETRAIN_SEED, max_episodes, PRETRAINS[name])
+    return {"name": name, **last_rig(summary), "options": PRETRAINS[name], "seed": PRETRAIN_SEED}
+
+
+def _job(setting: str, seed: int, runs_dir: Path, max_episodes: int, model: str | None) -> dict[str, Any]:
+    import torch
+
+    torch.set_num_threads(1)
+    summary = federate(runs_dir / f"{setting}-s{seed}", seed, max_episodes, {"rig_profile": "lab"},
+                       Path(model) if model else None)
+    return {"setting": setting, "seed": seed, **last_rig(summary)}
+
+
+def fine_tune(models: dict[str, str | None], seeds: list[int], runs_dir: Path, max_episodes: int,
+              jobs: int) -> list[dict[str, Any]]:
+    """Every setting on every report seed, ``jobs`` at a time (each single-threaded)."""
+    work = [(setting, seed) for seed in seeds for setting in models]
+    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+        futures = [pool.submit(_job, setting, seed, runs_dir, max_episodes, models[setting]) for setting, seed in work]
+        out = []
+        for (setting, seed), fut in zip(work, futures, strict=True):
+            out.append(fut.result())
+            r = out[-1]
+            print(f"{setting:10s} seed {seed}: " + (f"last rig at episode {r['episodes']}, {r['balance_steps']} "
+                  f"balance steps, {r['rig_min']} rig min" if r["finished"] else "not finished"), flush=True)
+    return out
+
+
+def table(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Per setting: median [IQR] of the last rig's figures (unfinished runs count as worse) and the targets met."""
+    out: dict[str, dict[str, Any]] = {}
+    for setting in dict.fromkeys(r["setting"] for r in runs):
+        rows = [r for r in runs if r["setting"] == setting]
+        cells = {key: stats.spread_censored([r[key] for r in rows])
+                 for key in ("episodes", "balance_steps", "rig_min")}
+        cells["wall_min"] = stats.spread([r["wall_min"] for r in rows])
+        cells["idle_min"] = stats.spread([r["idle_min"] or 0.0 for r in rows])
+        met = {k: _at_most(cells[k]["median"], v) for k, v in TARGETS.get(setting, {}).items()}
+        out[setting] = {"runs": len(rows), "finished": sum(r["finished"] for r in rows), **cells, "targets_met": met}
+    return out
+
+
+def _at_most(value: float | int | None, target: float) -> bool:
+    return value is not None and value <= target
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse(argv)
+    start = time.monotonic()
+    pre = {name: pretrain(name, args.runs_dir, args.pretrain_episodes) for name in PRETRAINS}
+    models: dict[str, str | None] = {"scratch": None}
+    for name, p in pre.items():
+        if p["finished"]:
+            models[name] = p["run_dir"]  # a run folder: the model of its first rig to solve
+        else:
+            print(f"!! the {name} pretrain did not finish within {args.pretrain_episodes} episodes: no model",
+                  flush=True)
+    shots = {name: zero_shot(Path(p["run_dir"]) / "models" / _first(p), args.held_out, disturbed=False)
+             for name, p in pre.items() if p["finished"]}
+    runs = fine_tune(models, args.seeds, args.runs_dir, args.max_episodes, args.jobs)
+    tuned = [r for r in runs if r["setting"] == "randomised" and r["finished"]][:args.trials]
+    disturbed = [zero_shot(Path(r["run_dir"]) / "models" / _first_of(r["run_dir"]), 1, disturbed=True)
+                 for r in tuned]
+    result = {"config": config(args), "pretrains": pre, "zero_shot": shots, "runs": runs, "table": table(runs),
+              "disturbed_trials": disturbed, "wall_s": round(time.monotonic() - start, 1)}
+    args.out.mkdir(parents=True, exist_ok=True)
+    path = args.out / ("sim2real-quick.json" if args.quick else "sim2real.json")
+    path.write_text(json.dumps(result, indent=2) + "\n")
+    print(f"results in {path}")
+    return 0
+
+
+def _first(p: dict[str, Any]) -> str:
+    return _first_of(p["run_dir"])
+
+
+def _first_of(run_dir: str) -> str:
+    """models/<id>.pt of the run's first worker to solve."""
+    summary = json.loads((Path(run_dir) / "summary.json").read_text())
+    solved = [w for w in summary["workers"] if w["solved"]]
+    return f"{min(solved, key=lambda w: (w['episodes'], w['index']))['id']}.pt"
+
+
+def config(args: argparse.Namespace) -> dict[str, Any]:
+    return {"task": TASK, "policy": POLICY, "rigs": RIGS, "seeds": args.seeds, "max_episodes": args.max_episodes,
+            "pretrain_seed": PRETRAIN_SEED, "pretrain_episodes": args.pretrain_episodes, "randomize": RANDOMIZE,
+            "held_out_rigs": args.held_out, "quick": args.quick, "jobs": args.jobs,
+            "date": dt.date.today().isoformat(), "python": platform.python_version(), "cores": os.cpu_count(),
+            "load_average": os.getloadavg(), "targets": TARGETS}
+
+
+def parse(argv: list[str] | None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="one seed, small caps: checks the pipeline only")
+    parser.add_argument("--seeds", nargs="+", type=int, help="report seeds (default 101-110)")
+    parser.add_argument("--max-episodes", type=int, help=f"episode cap of a fine-tuning run (default {DEFAULT_M})")
+    parser.add_argument("--pretrain-episodes", type=int, help=f"episode cap of a pretrain (default {PRETRAIN_M})")
+    parser.add_argument("--held-out", type=int, help=f"held-out lab rigs for zero-shot (default {HELD_OUT_RIGS})")
+    parser.add_argument("--trials", type=int, help=f"disturbed trials (default {DISTURBED_TRIALS})")
+    parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at a time (default: cores)")
+    parser.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")
+    parser.add_argument("--runs-dir", type=Path, help="run folders (default bench/results/runs/sim2real[-quick])")
+    args = parser.parse_args(argv)
+    q = args.quick
+    args.seeds = args.seeds or list(QUICK["seeds"] if q else REPORT_SEEDS)
+    args.max_episodes = args.max_episodes or (QUICK["max_episodes"] if q else DEFAULT_M)
+    args.pretrain_episodes = args.pretrain_episodes or (QUICK["pretrain_episodes"] if q else PRETRAIN_M)
+    args.held_out = args.held_out or (QUICK["held_out"] if q else HELD_OUT_RIGS)
+    args.trials = args.trials or (QUICK["trials"] if q else DISTURBED_TRIALS)
+    args.runs_dir = args.runs_dir or Path("bench/results/runs") / ("sim2real-quick" if q else "sim2real")
+    if any(v < 1 for v in (args.max_episodes, args.pretrain_episodes, args.held_out, args.trials, args.jobs)):
+        parser.error("the caps, --held-out, --trials and --jobs must be at least 1")
+    return args
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -3,8 +3,11 @@ PYTHON ?= $(shell command -v python3.11 2>/dev/null || command -v python3)
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
+# What a run needs (make run); the full set (tests, lint, docs, benchmarks, Docker SDK) goes on top of it.
+RUN_STAMP := $(VENV)/.installed-run
+PIP    := $(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt
 
-.PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build
+.PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build tensorboard
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
@@ -16,19 +19,30 @@ help:
 	@echo "make bench-quick - its reduced variant into bench/results/quick/ (under 15 min on 2 cores)"
 	@echo "make docs   - serve the documentation site on http://127.0.0.1:8000/ (mkdocs serve; Ctrl-C stops it)"
 	@echo "make docs-build - build it into site/ with warnings as errors (mkdocs build --strict)"
+	@echo "make tensorboard RUN=runs/<run> - install the TensorBoard viewer (the viewer extra) and serve the run's event files"
 	@echo "make soak   - 16 workers over Mosquitto to the end, memory and round latency watched (bench/results/soak.*)"
 	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
 	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
 
 venv: $(STAMP)
 
-$(STAMP): pyproject.toml constraints.txt
-	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt -e ".[learn,broker,dev,deploy,video,bench,tb,docs]"
+$(RUN_STAMP): pyproject.toml constraints.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(PIP) -e ".[learn,broker,tb]"
+	touch $(RUN_STAMP)
+
+$(STAMP): $(RUN_STAMP)
+	$(PIP) -e ".[learn,broker,tb,dev,deploy,video,bench,docs]"
 	touch $(STAMP)
 
-run: $(STAMP)
+run: $(RUN_STAMP)
 	$(BIN)/python -m deploy.run_local
+
+# The TensorBoard viewer is not part of a run (the chief writes the event files with tensorboardX).
+tensorboard: $(RUN_STAMP)
+	@test -n "$(RUN)" || { echo "usage: make tensorboard RUN=runs/<run>"; exit 2; }
+	$(PIP) -e ".[viewer]"
+	$(BIN)/tensorboard --logdir "$(RUN)/tensorboard" --host 127.0.0.1
 
 test: lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --quiet

@@ -177,7 +177,17 @@ def doctor_weights_sum(lines: list[dict]) -> None:
     r["weights"] = {w: 2 * v for w, v in r["weights"].items()}
 
 
+def doctor_fakexfer(lines: list[dict]) -> None:
+    """Issue 19's "fakexfer" run: round 2 closed with no contributors (every submission of episode 2 was late), and a
+    worker applied, as its answer, a transfer the chief never sent (a forger's): ``delivery`` has nobody to check."""
+    lines[:] = [x for x in lines if not (x["type"] == "episode" and x["episode"] == 2)]
+    first(lines, type="round", round=2).update(contributors=[], pis={}, weights={}, digest="")
+    first(lines, type="episode", worker="w2", episode=3)["receipt"] = {"round": 2, "applied": "transfer",
+                                                                      "digest": "f" * 16, "keep": 0.0}
+
+
 DOCTORED = [
+    (doctor_fakexfer, "receipts"),
     (doctor_weight, "eq8-weights"),
     (doctor_weights_sum, "eq8-weights"),
     (doctor_keep, "transfer"),
@@ -202,7 +212,7 @@ def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     """Each registered check is failed by some doctored run folder below (``summary`` by a doctored summary.json),
     and its docstring says which equation, algorithm or figure of the paper it protects."""
     assert {invariant for _, invariant in DOCTORED} | {"summary"} == {c.invariant for c in CHECKS}
-    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 9
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 10
     for c in CHECKS:
         assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
 

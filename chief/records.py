@@ -233,6 +233,7 @@ class ServiceState(Record):
     rejects: dict[str, int]
     metrics_bytes: int = Field(ge=0)
     elapsed_s: float
+    claimed_since: float = 0.0  # when this session first claimed the run (chief/claim.py); 0: a state from before
 
 
 class ChiefState(Record):

@@ -111,4 +111,8 @@ class RunClaim:
     def clear(self) -> None:
         """The run is over: remove the claim."""
         self.conn.unsubscribe(self.topic)
-        self.conn.publish(self.topic, b"", qos=qos_of(self.topic), retain=True).wait_for_publish(timeout=5)
+        try:
+            self.conn.publish(self.topic, b"", qos=qos_of(self.topic), retain=True).wait_for_publish(timeout=5)
+        except (RuntimeError, ValueError) as err:  # paho: not connected
+            log.warning("could not clear the claim of run %s (%s): clear it by hand (mosquitto_pub -r -n -t %s)",
+                        self.claim.run_id, err, self.topic)

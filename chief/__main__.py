@@ -16,7 +16,7 @@ DESCRIPTION = (
     "Started again with the same --run-id and --run-dir, it resumes the run from its saved state "
     "(chief-state.msgpack). Exit code 0 when the run ended normally (all solved or the episode limit), 2 on a bad "
     "setting or an unusable run folder, 3 when no worker came, 4 when the run was aborted (every unfinished worker "
-    "offline for --idle-timeout s)."
+    "offline for --idle-timeout s), 6 when another chief holds the run (its claim on fedrl/<run>/claim)."
 )
 
 

@@ -26,6 +26,8 @@ from protocol.transport import Transport
 
 log = logging.getLogger("chief")
 
+#: The chief's exit code when another chief holds its run: it did not start (or stopped).
+EXIT_CLAIMED = 6
 #: Seconds to wait for the broker to hand back this chief's own claim (then it goes on, warning).
 ECHO_TIMEOUT = 5.0
 #: Seconds, beyond twice the round trip of the echo, to wait for a running chief to re-assert an older claim.

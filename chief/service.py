@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from chief import checkpoint, strategies, tensorboard
-from chief.claim import RunClaim
+from chief.claim import EXIT_CLAIMED, RunClaim
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
@@ -45,8 +45,6 @@ from protocol.transport import Connect, Published, Transport
 log = logging.getLogger("chief")
 
 EXIT_OK, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 3, 4
-#: Another chief holds the run (chief/claim.py): this one did not start, or stopped.
-EXIT_CLAIMED = 6
 
 
 #: Seconds between two progress lines.

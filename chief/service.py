@@ -197,6 +197,7 @@ class ChiefService:
     def _gather_workers(self) -> list[str]:
         deadline = time.monotonic() + self.cfg.start_timeout
         while len(self.roster.workers) < self.cfg.workers and time.monotonic() < deadline:
+            self.claim.watch()  # a younger chief's claim overwrote ours: claim the run again (it refuses to start)
             try:
                 _, msg = self.events.get(timeout=0.2)
             except queue.Empty:

@@ -17,7 +17,8 @@ DESCRIPTION = (
     "(chief-state.msgpack). Exit code 0 when the run ended normally (all solved or the episode limit), 2 on a bad "
     "setting or an unusable run folder, 3 when no worker came, 4 when the run was aborted (every unfinished worker "
     "offline for --idle-timeout s), 130 when it was interrupted (Ctrl-C or SIGTERM: the summary says "
-    "'interrupted', and the same command resumes the run)."
+    "'interrupted', and the same command resumes the run), 6 when another chief holds the run (its claim on "
+    "fedrl/<run>/claim)."
 )
 
 

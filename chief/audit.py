@@ -19,6 +19,9 @@ as chief/records.py types them):
   sum to 1;
 - ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
   answer (same tensor digest, same keep weight);
+- ``receipts``: every receipt of an applied answer, in any counted submission, names a round the chief closed and
+  matches the answer it recorded for that round (kind, tensor digest, the worker's keep weight), including rounds that
+  closed with no contributors: a worker applied nothing the chief did not send;
 - ``summary``: the summary's solve episodes, steps and totals agree with the records;
 - ``rig-time``: each rig's balance steps and seconds, reset, idle and rig seconds in the summary are the sums of its
   records (idle modelled from the rounds when not measured, protocol/rigtime.py), rig time = balance + reset, and
@@ -430,6 +433,28 @@ def _rejoined(run: Run) -> None:
                f"without confirming round {later - 1}'s answer ({receipt and receipt.model_dump()}): it missed the "
                "answers of its finishing episode")
         run.report.receipts += 1
+
+
+@check("receipts")
+def receipts(run: Run) -> None:
+    """Algorithm 2 applies only the chief's answers (Eq. 9's g_bar, Eq. 11's blend): every receipt of an applied
+    answer in a counted submission names a closed round and matches what the chief recorded for it (kind, digest and
+    this worker's w_T), also for a round that closed with no contributors (whose answer ``delivery`` cannot check):
+    an answer the chief never sent (a forged or another chief's) shows here."""
+    closed = {r.round: r for r in run.rounds}
+    for e in run.submissions:
+        receipt = e.receipt
+        if receipt is None or receipt.applied == "missed":
+            continue
+        r = closed.get(receipt.round)
+        _holds(r is not None, f"{e.worker} applied a {receipt.applied} as the answer to round {receipt.round}, which "
+               "the chief never closed")
+        assert r is not None
+        _holds(receipt.applied == r.kind and receipt.digest == r.digest, f"{e.worker} applied {receipt.applied} "
+               f"{receipt.digest!r} as round {r.round}'s answer, the chief recorded {r.kind} {r.digest!r}")
+        if r.kind == "transfer":
+            _holds(_close(receipt.keep, r.keep_weights.get(e.worker)), f"{e.worker} kept {receipt.keep} of its actor "
+                   f"in round {r.round}, the chief recorded {r.keep_weights.get(e.worker)}")
 
 
 @check("summary")

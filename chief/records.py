@@ -284,6 +284,7 @@ class ServiceState(Record):
     elapsed_s: float
     init_model: InitModelRecord | None = None  # the run's model, once decided (None: from scratch or not yet)
     init_model_known: bool = False
+    claimed_since: float = 0.0  # when this session first claimed the run (chief/claim.py); 0: a state from before
 
 
 class ChiefState(Record):

@@ -6,25 +6,30 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import os
 import queue
 import secrets
+import socket
 import threading
 import time
 from dataclasses import dataclass
 from typing import Any
 
 from chief import checkpoint, strategies, tensorboard
+from chief.claim import EXIT_CLAIMED, RunClaim
 from chief.records import SUMMARY
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
 from chief.settings import ChiefSettings
 from protocol import topics
+from protocol.auth import signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     STAT_BOUNDS,
     ChiefAck,
     ChiefAggregate,
+    ChiefClaim,
     ChiefTransfer,
     MatureParams,
     RunStart,
@@ -35,10 +40,10 @@ from protocol.messages import (
 )
 from protocol.mqtt import MqttConnection
 from protocol.rigtime import RIG_FIELDS
-from protocol.routes import CHIEF, qos_of, received_by
+from protocol.routes import CHIEF, chief_route, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
-from protocol.transport import Connect, Transport
+from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
 
 log = logging.getLogger("chief")
@@ -83,6 +88,7 @@ class ChiefService:
                              init_model_path=model.given if model else "")
         self.keeper: RoundKeeper | None = None
         self.session = secrets.token_hex(8)
+        self.key = cfg.key()  # every message this chief sends carries its HMAC under the run's key (protocol/auth.py)
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
         if self.saved is not None:
             self._check_resumable(*self.saved)
@@ -96,6 +102,11 @@ class ChiefService:
         self.duplicates = 0
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
+        session, since = ((self.saved[1]["session"], self.saved[1].get("claimed_since", 0.0)) if self.saved is not None
+                          else (self.session, time.time()))  # a resumed chief is the same chief: its claim too
+        self.claim = RunClaim(self.conn, ChiefClaim(run_id=cfg.run_id, session=session, since=since,
+                                                    host=socket.gethostname()[:255], pid=os.getpid()),
+                              self.key, self.rejects)
 
     def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
         return MqttConnection(self.broker, client_id=client_id, will=will, max_payload=self.cfg.max_payload,
@@ -132,9 +143,18 @@ class ChiefService:
         cfg = self.cfg
         run = cfg.run_id
         self.conn.start()
-        for route in received_by(CHIEF):  # the workers' hello, status and update
-            self.conn.subscribe(route.filter(run=run), self._on_message, qos=route.qos)
         try:
+            other = self.claim.take()
+            if other is not None:
+                log.error("run %s is held by another chief (session %s on %s, pid %d, since %s): not starting a "
+                          "second one (if that chief is gone for good, clear its claim: mosquitto_pub -r -n -t %s)",
+                          run, other.session, other.host or "?", other.pid,
+                          dt.datetime.fromtimestamp(other.since).isoformat(timespec="seconds"), self.claim.topic)
+                return EXIT_CLAIMED
+            for route in received_by(CHIEF):  # the workers' hello, status and update
+                if route.retain:
+                    continue  # the claim: RunClaim's
+                self.conn.subscribe(route.filter(run=run), self._on_message, qos=route.qos)
             if self.saved is not None:
                 self._resume(*self.saved)
             else:
@@ -147,6 +167,7 @@ class ChiefService:
                     return EXIT_INTERRUPTED
                 if not workers:
                     log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
+                    self.claim.clear()  # nothing to resume
                     return EXIT_NO_WORKERS
                 shape = strategies.get(cfg.policy).rounds(self.roster.update_steps)  # ValueError if it cannot run
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
@@ -159,7 +180,8 @@ class ChiefService:
                     cfg.run_dir, self.keeper.shape.per_episode,
                     wall_start=time.time() - (time.monotonic() - self.t0)))
             self._announce()
-            self._federate()
+            if not self._federate():
+                return EXIT_CLAIMED
             return self._finish()
         finally:
             if self.metrics is not None:
@@ -199,7 +221,7 @@ class ChiefService:
             "hosts": self.roster.hosts, "update_steps": self.roster.update_steps,
             "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
             "elapsed_s": time.monotonic() - self.t0, "init_model": self._init_model(),
-            "init_model_known": self.roster.init_model_known})
+            "init_model_known": self.roster.init_model_known, "claimed_since": self.claim.claim.since})
 
     def _init_model(self) -> dict[str, str] | None:
         """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""
@@ -210,6 +232,7 @@ class ChiefService:
         deadline = time.monotonic() + self.cfg.start_timeout
         while (len(self.roster.workers) < self.cfg.workers and time.monotonic() < deadline
                and not self._interrupt.is_set()):
+            self.claim.watch()  # a younger chief's claim overwrote ours: claim the run again (it refuses to start)
             try:
                 _, msg = self.events.get(timeout=0.2)
             except queue.Empty:
@@ -241,10 +264,19 @@ class ChiefService:
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
                        finishers_help=self.keeper.strategy.finishers_help)
-        topic = topics.chief(self.cfg.run_id, topics.START)
-        self.conn.publish(topic, encode(msg), qos=qos_of(topic))
+        self._send(msg)
 
-    def _federate(self) -> None:
+    def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
+        """Tag a message with the run's key and publish it on its topic, with its route's QoS."""
+        topic, payload = self._outgoing(msg)
+        return self.conn.publish(topic, payload, qos=qos_of(topic))
+
+    def _outgoing(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> tuple[str, bytes]:
+        """A message as it goes out (or is held back for ``_flush``): its topic and its tagged payload."""
+        return chief_route(msg.kind).filter(run=self.cfg.run_id), encode(signed(msg, self.key))
+
+    def _federate(self) -> bool:
+        """Run rounds until the run is over (True), or another chief's claim beats this one's (False)."""
         keeper = self.keeper
         assert keeper is not None
         idle_since: float | None = None
@@ -252,6 +284,11 @@ class ChiefService:
             if self._interrupt.is_set():
                 keeper.interrupt()
                 break
+            other = self.claim.watch()
+            if other is not None:
+                log.error("run %s: chief session %s on %s holds the run since before this one; stopping (the run "
+                          "is that chief's)", self.cfg.run_id, other.session, other.host or "?")
+                return False
             outcomes: list[RoundOutcome] = []
             try:
                 topic, msg = self.events.get(timeout=0.1)
@@ -278,6 +315,7 @@ class ChiefService:
                 keeper.abort(f"aborted: every unfinished worker stayed offline for {self.cfg.idle_timeout:.0f} s")
             self._progress(now)
         self._progress(time.monotonic(), force=True)
+        return True
 
     def _handle(self, msg: Any) -> list[RoundOutcome]:
         keeper = self.keeper
@@ -314,11 +352,10 @@ class ChiefService:
         if verdict.ack is not None:
             # Sent once the state is saved (_flush): what the chief confirms is on disk first.
             self._must_save |= verdict.ack.accepted and verdict.status == "accepted"
-            self._outbox.append((topics.chief(self.cfg.run_id, topics.ACK), encode(ack_of(verdict.ack))))
+            self._outbox.append(self._outgoing(ack_of(verdict.ack, self.session)))
         if verdict.replay is not None:
             log.info("%s sent round %d again: answering it again", sub.worker_id, verdict.replay.round)
-            msg = answer_of(verdict.replay)
-            self._outbox.append((topics.chief(self.cfg.run_id, msg.kind), encode(msg)))
+            self._outbox.append(self._outgoing(answer_of(verdict.replay, self.session)))
 
     def _flush(self) -> None:
         """Send the acknowledgements and repeated answers held back until the state was saved."""
@@ -338,9 +375,7 @@ class ChiefService:
             self._publish(outcome)
 
     def _publish(self, outcome: RoundOutcome) -> None:
-        msg = answer_of(outcome)
-        topic = topics.chief(self.cfg.run_id, msg.kind)
-        self.conn.publish(topic, encode(msg), qos=qos_of(topic))
+        self._send(answer_of(outcome, self.session))
 
     def _log_outcome(self, outcome: RoundOutcome) -> None:
         if outcome.kind == "transfer":
@@ -381,11 +416,10 @@ class ChiefService:
         all_solved = all(r.state == "finished" for r in keeper.workers.values())
         rounds = keeper.round - 1
         self._save()
-        stop = topics.chief(cfg.run_id, topics.STOP)
         episodes = keeper.shape.episode_of(rounds) if rounds else 0
-        self.conn.publish(stop, encode(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes,
-                                               all_solved=all_solved, aborted=aborted, session=self.session)),
-                          qos=qos_of(stop)).wait_for_publish(timeout=5)
+        self._send(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes, all_solved=all_solved,
+                           aborted=aborted, session=self.session)).wait_for_publish(timeout=5)
+        self.claim.clear()
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
         if self.outputs.plot:
@@ -425,20 +459,21 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
                       rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS})
 
 
-def answer_of(outcome: RoundOutcome) -> ChiefAggregate | ChiefTransfer:
-    """A closed round's answer to the workers."""
+def answer_of(outcome: RoundOutcome, session: str) -> ChiefAggregate | ChiefTransfer:
+    """A closed round's answer to the workers, from the chief of ``session``."""
     if outcome.kind == "transfer":
         assert outcome.params is not None and outcome.source_worker is not None
         return ChiefTransfer(round=outcome.round, episode=outcome.episode, source_worker=outcome.source_worker,
                              source_pi=float(outcome.source_pi or 0), params=pack_arrays(outcome.params),
-                             keep_weights=outcome.keep_weights, finished=outcome.finished)
+                             keep_weights=outcome.keep_weights, finished=outcome.finished, session=session)
     return ChiefAggregate(round=outcome.round, episode=outcome.episode, step=outcome.step,
                           gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
                           critic_gradient=(pack_arrays(outcome.critic_gradient)
                                            if outcome.critic_gradient is not None else None),
-                          weights=outcome.weights, contributors=outcome.contributors)
+                          weights=outcome.weights, contributors=outcome.contributors, session=session)
 
 
-def ack_of(ack: Ack) -> ChiefAck:
+def ack_of(ack: Ack, session: str) -> ChiefAck:
+    """An acknowledgement as the workers take it, from the chief of ``session``."""
     return ChiefAck(worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=ack.accepted,
-                    reason=ack.reason)
+                    reason=ack.reason, session=session)

@@ -9,7 +9,7 @@ from pydantic import field_validator
 
 from chief import strategies
 from runtime.model_file import resolve
-from runtime.settings import OneOf, RunMqttSettings, Settings, TaskName, setting
+from runtime.settings import OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
 
 PolicyName = Annotated[str, OneOf(strategies.names)]
 
@@ -25,7 +25,7 @@ class FederationSettings(Settings):
                                    gt=0)
 
 
-class ChiefSettings(RunMqttSettings, FederationSettings):
+class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     """The chief of a federated RL run (paper Algorithm 1)."""
 
     workers: int = setting(4, "number of workers to wait for", ge=1)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import secrets
 import sys
 import threading
 import time
@@ -55,11 +56,12 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does."""
     torch.set_num_threads(1)
     hub = Hub()
+    key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)
     chief_conn: list[_Timed] = []
     chief = ChiefService(
         ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
-                            idle_timeout=math.inf, run_dir=run_dir, init_model=init_model),
+                            idle_timeout=math.inf, run_dir=run_dir, init_model=init_model, run_key=key),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
     worker_conns: dict[str, list[_Timed]] = {}
@@ -69,7 +71,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         worker_conns[wid] = []
         cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, device_noise=device_noise,
                                    reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
-                                   resend_interval=math.inf, init_model=init_model,
+                                   resend_interval=math.inf, init_model=init_model, run_key=key,
                                    model_dir=run_dir / "models" if models else None, **(env_options or {}))
         services[wid] = WorkerService(cfg, _timed(hub, topics.STATUS, _NewEpisode(), worker_conns[wid])).run
     codes = _run_threads(services)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import datetime as dt
 import json
 import os
+import secrets
 import shlex
 import signal
 import socket
@@ -26,6 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from chief.claim import EXIT_CLAIMED
 from chief.rounds import INTERRUPTED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
@@ -137,6 +139,9 @@ def main(argv: list[str] | None = None) -> int:
             broker = f"mqtt://127.0.0.1:{port}"
             print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
         common: dict[str, Any] = {"broker": broker, "run_id": s.run_id}
+        # The run's key (protocol/auth.py): FEDRL_RUN_KEY if set, else a new one; children get it in their
+        # environment (to_env), never on a command line.
+        key = s.child(ChiefSettings, **common, run_dir=run_dir).run_key or secrets.token_hex(32)
         url_file = log_dir / "dashboard.url"
         if s.dashboard_port is not None:  # first, so that it sees the run start
             url_file.unlink(missing_ok=True)
@@ -149,13 +154,13 @@ def main(argv: list[str] | None = None) -> int:
         for i, wid in enumerate(worker_ids):
             fleet.start(f"worker-{wid}", "worker", s.child(
                 WorkerSettings, **common, **login(wid), worker_id=wid, model_dir=run_dir / "models",
-                rig_id=rigs.get(i), reply_timeout=max(120.0, 4 * s.round_timeout)))
+                rig_id=rigs.get(i), reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key))
         print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
         if s.dashboard_port is not None:
             url = wait_for_url(dashboard, url_file)
             print(f"dashboard: {url}" if url else f"!! the dashboard did not start; see {log_dir / 'dashboard.log'}",
                   flush=True)
-        chief = s.child(ChiefSettings, **common, **login("chief"), run_dir=run_dir)
+        chief = s.child(ChiefSettings, **common, **login("chief"), run_key=key, run_dir=run_dir)
         restarts = 0
         while True:
             code = relay(fleet.start("chief", "chief", chief, stream=True), log_dir / "chief.log", fleet)
@@ -206,10 +211,10 @@ def unreachable(address: BrokerAddress, timeout: float = BROKER_PROBE_S) -> str 
 
 
 
-#: Chief exit codes that end a run (done, bad setting, no workers, aborted, storage fault, interrupted); any other
-#: means it died. A storage fault is not retried: the chief's state is intact, so the same command resumes once
-#: there is room.
-CHIEF_FINAL_CODES = (0, 2, 3, 4, EXIT_STORAGE, EXIT_INTERRUPTED)
+#: Chief exit codes that end a run (done, bad setting, no workers, aborted, storage fault, another chief holds the
+#: run, interrupted); any other means it died. A storage fault is not retried: the chief's state is intact, so the
+#: same command resumes once there is room.
+CHIEF_FINAL_CODES = (0, 2, 3, 4, EXIT_STORAGE, EXIT_CLAIMED, EXIT_INTERRUPTED)
 MAX_CHIEF_RESTARTS = 5
 
 

@@ -81,7 +81,11 @@ def overview() -> list[str]:
         "MQTT 3.1.1. Every payload is the msgpack map of one message (below), with `schema_version` = "
         f"{SCHEMA_VERSION} and its `kind`; unknown fields are errors and floats must be finite. Payloads over "
         f"{MAX_PAYLOAD_BYTES:,} bytes are refused. "
-        "Nothing is retained, and a retained message is never acted on. Topic levels `<run>`, `<id>` and `<rig>` are "
+        "Nothing is retained but the chief's claim of its run (`fedrl/<run>/claim`), and any other retained message "
+        "is never acted on. Every chief message carries `tag`: an HMAC-SHA256 (hex) under the run's key "
+        "(`FEDRL_RUN_KEY`) of the message's msgpack encoding without `tag`, map keys sorted (protocol/auth.py); "
+        "workers with the key refuse a message without a valid tag, and an answer of another session than their "
+        "RunStart's or for a round they have not submitted to. Topic levels `<run>`, `<id>` and `<rig>` are "
         "1-64 of `A-Z a-z 0-9 _ . : -`. A message must be of a kind its topic carries, and its `worker_id` or "
         "`rig_id` must be the `<id>` or `<rig>` of its topic (protocol/routes.py).",
         "Sessions are persistent (clean session off) under a client id with a random part; QoS 1 messages are "

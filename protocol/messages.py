@@ -3,7 +3,9 @@
 Federation (paper Algorithms 1-2): WorkerHello, WorkerStatus, WorkerUpdate (actor gradient + PI),
 MatureParams (a finished worker's actor), ChiefAggregate (Eq. 9 mean gradient), ChiefTransfer (Eq. 10-11),
 ChiefAck (the chief holds a worker's mature actor, or refuses it), RunStart, RunStop. The chief's answers carry the
-number of the round they answer (protocol/rounds.py) next to its episode and step.
+number of the round they answer (protocol/rounds.py) next to its episode and step, and the chief's ``session``;
+ChiefClaim is a chief's exclusive, retained claim of a run. Every chief message carries ``tag``: its HMAC-SHA256
+under the run's key (protocol/auth.py), empty when the run has no key.
 Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
 """
 
@@ -46,6 +48,8 @@ Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 #: Seconds of rig time on the wire (protocol/rigtime.py): finite, 0..SECONDS_LIMIT.
 RigSeconds = Annotated[float, Field(ge=0.0, le=SECONDS_LIMIT)]
 BalanceSteps = Annotated[int, Field(ge=0, le=10**9)]
+#: A chief message's authenticator: HMAC-SHA256 (hex) under the run's key (protocol/auth.py); empty without a key.
+Tag = Annotated[str, StringConstraints(max_length=64, pattern=r"^([0-9a-f]{64})?$")]
 
 
 class Strict(BaseModel):
@@ -173,6 +177,8 @@ class ChiefAggregate(Message):
     contributors: tuple[Ident, ...]
     step: int = Field(default=0, ge=0)
     critic_gradient: TensorDict | None = None
+    session: str = Field(default="", max_length=32)
+    tag: Tag = ""
 
 
 class ChiefTransfer(Message):
@@ -187,6 +193,8 @@ class ChiefTransfer(Message):
     params: TensorDict
     keep_weights: dict[str, Annotated[float, Field(ge=0.0, le=1.0)]]
     finished: tuple[Ident, ...]
+    session: str = Field(default="", max_length=32)
+    tag: Tag = ""
 
 
 class ChiefAck(Message):
@@ -201,6 +209,8 @@ class ChiefAck(Message):
     episode: int = Field(ge=1)
     accepted: bool
     reason: str = Field(default="", max_length=2000)
+    session: str = Field(default="", max_length=32)
+    tag: Tag = ""
 
 
 class RunStart(Message):
@@ -208,7 +218,8 @@ class RunStart(Message):
 
     ``first_episode`` is the open round's episode (the next one when the open round is a later step of its episode):
     a worker that restarts mid-run numbers its episodes from there. ``session`` names this run of the chief (kept
-    when it resumes): a worker acts only on a RunStop of the same session. ``epoch`` counts the chief's restarts: a
+    when it resumes): a worker acts only on answers (aggregate, transfer, acknowledgement, RunStop) of the session
+    of the RunStart that named it. ``epoch`` counts the chief's restarts: a
     worker waiting for an answer sends its submission again when it sees a new one. ``rounds_per_episode`` is K of the
     run's round shape (``shape``): 1 for the paper's strategies, the PPO steps per episode for a per-step strategy.
     ``finishers_help``: a worker whose mature actor was acknowledged goes on playing and sharing until the RunStop.
@@ -228,6 +239,7 @@ class RunStart(Message):
     epoch: int = Field(default=0, ge=0)
     rounds_per_episode: int = Field(default=1, ge=1, le=MAX_PER_EPISODE)
     finishers_help: bool = False
+    tag: Tag = ""
 
     @property
     def shape(self) -> RoundShape:
@@ -246,6 +258,22 @@ class RunStop(Message):
     all_solved: bool
     aborted: bool = False
     session: str = Field(default="", max_length=32)
+    tag: Tag = ""
+
+
+class ChiefClaim(Message):
+    """A chief holds run ``run_id``: published retained (the one retained message of the contract), so a chief that
+    starts later sees it. ``since`` (Unix time) is when ``session`` first took the run; a chief resumed from its saved
+    state claims again with both. Of two claims the older wins (then the smaller session); an empty retained message
+    clears the claim at the run's end (chief/claim.py)."""
+
+    kind: Literal["claim"] = "claim"
+    run_id: Ident
+    session: str = Field(min_length=1, max_length=32)
+    since: float = Field(ge=0.0)
+    host: str = Field(default="", max_length=255)
+    pid: int = Field(default=0, ge=0)
+    tag: Tag = ""
 
 
 # --- QUBE-Servo 2 rigs --------------------------------------------------------------------------------------
@@ -342,6 +370,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         ChiefAck,
         RunStart,
         RunStop,
+        ChiefClaim,
         QubeState,
         QubeAction,
         QubeReset,

@@ -6,7 +6,8 @@
   sends our unacknowledged ones again after a reconnect. ``connects`` and ``session_present`` tell whether the broker
   still had our session (the embedded amqtt loses sessions when it restarts).
 - **Retained messages are never delivered to handlers**: a retained message is a leftover of an earlier run (or a
-  trap), and nothing in the contract is retained. They are counted as rejects (``retained``).
+  trap). They are counted as rejects (``retained``). The one exception is a route marked ``retain`` in
+  protocol/routes.py (the chief's claim of its run, chief/claim.py), whose retained message is the point.
 - **Chunking.** With ``max_payload`` set (``FEDRL_MAX_PAYLOAD``, e.g. 131072 for AWS IoT Core's 128 KB cap), a larger
   payload is sent as Chunk messages on the same topic; every connection rejoins chunks before its handlers see them,
   so services never do. Bounded: at most MAX_PARTIAL messages in assembly, each within the codec's payload limit, and
@@ -171,6 +172,12 @@ def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -
         pass
 
 
+def _retained_by_contract(topic: str) -> bool:
+    """Whether the contract (protocol/routes.py) retains messages on ``topic``: then a retained one is delivered."""
+    route = route_of(topic)
+    return route is not None and route.retain
+
+
 class MqttConnection:
     """One paho client with subscriptions that survive reconnects."""
 
@@ -312,7 +319,7 @@ class MqttConnection:
     def _wrap(self, handler: Handler) -> Callable[[paho.Client, object, paho.MQTTMessage], None]:
         def on_message(client: paho.Client, userdata: object, msg: paho.MQTTMessage) -> None:
             try:
-                if msg.retain:
+                if msg.retain and not _retained_by_contract(msg.topic):
                     self.rejects.reject(msg.topic, "retained", "a retained message (left on the broker earlier)")
                     return
                 payload = bytes(msg.payload)  # paho reads bytes, and bytes() of bytes is the same object

@@ -110,6 +110,9 @@ ROUTES: tuple[Route, ...] = (
           "the answer to a round in which a worker finished"),
     Route(_c(topics.ACK), CHIEF, _WORKERS, (M["ack"],), 1, "the answer to every MatureParams"),
     Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
+    Route(f"{topics.FEDRL}/<run>/{topics.CLAIM}", CHIEF, _FEDERATION, (M["claim"],), 1,
+          "the one retained message: the chief that holds the run (so a second chief sees it and does not start); "
+          "cleared by an empty retained message when the run ends", retain=True),
     Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0,
           f"every control tick ({qube.PERIOD_S * 1e3:g} ms)"),
     Route(_r(topics.ACTION), WORKER, (BRIDGE,), (M["qube_action"],), 0,
@@ -124,6 +127,14 @@ ROUTES: tuple[Route, ...] = (
 def route_of(topic: str) -> Route | None:
     """The route a concrete topic belongs to (None: not a topic of the contract)."""
     return next((r for r in ROUTES if r.matches(topic)), None)
+
+
+def chief_route(kind: str) -> Route:
+    """The route the chief publishes messages of ``kind`` on (a KeyError for a kind it does not send)."""
+    found = [r for r in ROUTES if r.publisher == CHIEF and kind in r.kinds]
+    if not found:
+        raise KeyError(f"the chief sends no {kind!r} message")
+    return found[0]
 
 
 def qos_of(topic_filter: str) -> int:

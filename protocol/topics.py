@@ -30,10 +30,16 @@ def chief(run: str, leaf: str) -> str:
     return f"{FEDRL}/{check_id(run, 'run id')}/chief/{leaf}"
 
 
+def claim(run: str) -> str:
+    """The topic of the run's claim by its chief (retained)."""
+    return f"{FEDRL}/{check_id(run, 'run id')}/{CLAIM}"
+
+
 def rig(rig_id: str, leaf: str) -> str:
     return f"{QUBE}/{check_id(rig_id, 'rig id')}/{leaf}"
 
 
 HELLO, STATUS, UPDATE = "hello", "status", "update"
+CLAIM = "claim"
 START, AGGREGATE, TRANSFER, ACK, STOP = "start", "aggregate", "transfer", "ack", "stop"
 STATE, ACTION, RESET, TELEMETRY = "state", "action", "reset", "telemetry"

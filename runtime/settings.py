@@ -56,6 +56,7 @@ from pydantic_settings import (
     SettingsError,
 )
 
+from protocol.auth import key_bytes
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 from protocol.tasks import TASKS
 from protocol.topics import check_id
@@ -301,9 +302,10 @@ class Settings(BaseSettings):
             typed = [n for n in names if any(a == n or a.startswith(n + "=") for a in argv)]
             where = f"{(typed or names or [name])[0]} {shown!r} ({given_by})"
         elif var and os.environ.get(var):
-            where = f"{var}={os.environ[var]!r} (environment)"
+            where = f"{var}={os.environ[var]!r} (environment)" if names else f"{var} (environment)"
         elif var and env_file.is_file() and (dotenv_values(env_file).get(var) or ""):
-            where = f"{var}={dotenv_values(env_file)[var]!r} (.env file {env_file})"
+            where = f"{var}={dotenv_values(env_file)[var]!r}" if names else var  # a variable-only one is a secret
+            where += f" (.env file {env_file})"
         else:
             where = f"{names[0] if names else var or name} (default {field.default!r})"
         return f"bad setting {where}: {reason}{more}"
@@ -431,3 +433,23 @@ class RunMqttSettings(MqttSettings):
     @classmethod
     def _run_id(cls, value: str) -> str:
         return check_id(value, "run id")
+
+
+class RunKeySettings(Settings):
+    """The run's key, shared by its chief and workers: the chief tags every message with it, the workers check."""
+
+    run_key: CliSuppress[str | None] = setting(None, "the run's secret key (at least 16 characters; a variable "
+                                               "only): the chief tags its messages with an HMAC under it and the "
+                                               "workers refuse any without a valid tag; unset: workers trust any "
+                                               "publisher on the run's topics")
+
+    @field_validator("run_key")
+    @classmethod
+    def _key(cls, value: str | None) -> str | None:
+        if value:
+            key_bytes(value)
+        return value or None
+
+    def key(self) -> bytes | None:
+        """The key as the HMAC takes it (None: no key)."""
+        return key_bytes(self.run_key) if self.run_key else None

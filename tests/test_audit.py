@@ -177,7 +177,17 @@ def doctor_weights_sum(lines: list[dict]) -> None:
     r["weights"] = {w: 2 * v for w, v in r["weights"].items()}
 
 
+def doctor_fakexfer(lines: list[dict]) -> None:
+    """Issue 19's "fakexfer" run: round 2 closed with no contributors (every submission of episode 2 was late), and a
+    worker applied, as its answer, a transfer the chief never sent (a forger's): ``delivery`` has nobody to check."""
+    lines[:] = [x for x in lines if not (x["type"] == "episode" and x["episode"] == 2)]
+    first(lines, type="round", round=2).update(contributors=[], pis={}, weights={}, digest="")
+    first(lines, type="episode", worker="w2", episode=3)["receipt"] = {"round": 2, "applied": "transfer",
+                                                                      "digest": "f" * 16, "keep": 0.0}
+
+
 DOCTORED = [
+    (doctor_fakexfer, "receipts"),
     (doctor_weight, "eq8-weights"),
     (doctor_weights_sum, "eq8-weights"),
     (doctor_keep, "transfer"),

@@ -237,7 +237,8 @@ def test_an_answer_that_does_not_fit_the_actor_is_refused_without_changing_anyth
     missing = {k: v for k, v in good.items() if k != first}
     for bad, what in ((good | {first: np.zeros((3, 3), np.float32)}, "shape"), (missing, first),
                       (good | {"extra": np.zeros(1, np.float32)}, "extra")):
-        answer = ChiefAggregate(round=1, episode=1, gradient=pack_arrays(bad), weights={"w0": 1.0}, contributors=("w0",))
+        answer = ChiefAggregate(round=1, episode=1, gradient=pack_arrays(bad), weights={"w0": 1.0},
+                                contributors=("w0",))
         assert algo.apply(answer) is None
         assert algo.receipt is not None and algo.receipt.applied == "missed"
         assert algo.refused_answer is not None and what in algo.refused_answer, algo.refused_answer

@@ -84,6 +84,7 @@ def test_answers_are_filed_by_their_round_and_a_wrong_round_is_rejected(amqtt_br
     svc = worker(amqtt_broker)
     svc.start = RunStart(run_id=RUN, env_id="CartPole-v0", policy="sync", seed=1, max_episodes=10, tc=195.0,
                          r_floor=0.0, workers=["w0"], rounds_per_episode=3)
+    svc.submitted = 5  # it has submitted up to round 5 (an answer to a later round is refused: test_chief_trust.py)
     gradient = pack_arrays({"w": np.ones(2, np.float32)})
     answers = [
         ChiefAggregate(round=5, episode=2, step=1, gradient=gradient, weights={"w0": 1.0}, contributors=["w0"]),

@@ -19,6 +19,7 @@ from typing import Any
 import torch
 
 from protocol import topics
+from protocol.auth import refusal
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     ChiefAck,
@@ -83,6 +84,8 @@ class WorkerService:
         self.init_state: dict[str, Any] | None = None
         if cfg.init_model is not None:
             self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id)
+        self.key = cfg.key()  # the run's key: every chief message must carry its HMAC (protocol/auth.py)
+        self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
@@ -104,6 +107,10 @@ class WorkerService:
             msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
+            return
+        refused = refusal(msg, self.key)
+        if refused is not None:  # forged, or untagged in a run with a key
+            self.rejects.reject(topic, *refused)
             return
         if isinstance(msg, ChiefAck) and msg.worker_id != self.cfg.worker_id:
             return  # another worker's acknowledgement
@@ -254,6 +261,8 @@ class WorkerService:
         began = time.monotonic()
         payload = encode(self._stamp(mature))
         round_ = self.shape.number(mature.episode)
+        # A finisher that goes on helping takes the answers to the other rounds of its finishing episode (_catch_up).
+        self.submitted = max(self.submitted, self.shape.rounds_of(mature.episode)[-1])
         deadline = time.monotonic() + self.cfg.ack_timeout
         interval = 2.0
         while self.stop is None and time.monotonic() < deadline:
@@ -291,9 +300,12 @@ class WorkerService:
             else:
                 self.stop = msg
         elif isinstance(msg, RunStart):
-            if start is not None and msg.session == start.session and msg.epoch > self.epoch:
+            if start is not None and msg.session != start.session:
+                self.rejects.reject(topic, "wrong_session", f"a RunStart of session {msg.session!r}, this run's is "
+                                    f"{start.session!r}")
+            elif start is not None and msg.epoch > self.epoch:
                 self.epoch, self.restarted = msg.epoch, True  # the chief restarted: it may have lost our submission
-        elif self._round_agrees(topic, msg):  # filed by the round it answers
+        elif self._answer_fits(topic, msg) and self._round_agrees(topic, msg):  # filed by the round it answers
             if isinstance(msg, ChiefAck):
                 self.acks[msg.round] = msg
             elif msg.round in self.replies or msg.round in self.answered:
@@ -305,6 +317,21 @@ class WorkerService:
     def shape(self) -> RoundShape:
         """How the run numbers its rounds (from its RunStart)."""
         return self.start.shape if self.start is not None else PER_EPISODE
+
+    def _answer_fits(self, topic: str, answer: ChiefAggregate | ChiefTransfer | ChiefAck) -> bool:
+        """Whether an answer comes from the chief of this worker's RunStart (its session) and answers a round this
+        worker has submitted to; one that does not is rejected and counted, and never filed (another chief's answer,
+        or a forged one that would make this worker run ahead)."""
+        session = self.start.session if self.start is not None else ""
+        if answer.session != session:
+            self.rejects.reject(topic, "wrong_session", f"a {answer.kind} for round {answer.round} of session "
+                                f"{answer.session!r}, this run's is {session!r}")
+            return False
+        if answer.round > self.submitted:
+            self.rejects.reject(topic, "not_submitted", f"a {answer.kind} for round {answer.round}, and this worker "
+                                f"has submitted up to round {self.submitted}")
+            return False
+        return True
 
     def _round_agrees(self, topic: str, answer: ChiefAggregate | ChiefTransfer | ChiefAck) -> bool:
         """Whether an answer's round is the round of its episode and step (a transfer or an acknowledgement answers
@@ -327,6 +354,7 @@ class WorkerService:
         payload = encode(self._stamp(submission))
         began = time.monotonic()
         deadline = began + self.cfg.reply_timeout
+        self.submitted = max(self.submitted, round_)
         sent_at, connects = -math.inf, -1
         self.restarted = False
         while round_ not in self.replies and self.stop is None:

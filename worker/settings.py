@@ -11,7 +11,15 @@ from pydantic_settings import CliPositionalArg, CliSuppress
 
 from protocol.rigtime import Clock
 from protocol.topics import check_id
-from runtime.settings import LogLevel, MqttSettings, RunMqttSettings, Settings, TaskName, setting
+from runtime.settings import (
+    LogLevel,
+    MqttSettings,
+    RunKeySettings,
+    RunMqttSettings,
+    Settings,
+    TaskName,
+    setting,
+)
 
 
 class DeviceNoiseSettings(Settings):
@@ -21,7 +29,7 @@ class DeviceNoiseSettings(Settings):
                                   "it off", ge=0, allow_inf_nan=False)
 
 
-class WorkerSettings(RunMqttSettings, DeviceNoiseSettings):
+class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     """A federated RL worker (paper Algorithm 2)."""
 
     worker_id: str = setting("auto", "worker id, unique in the run ('auto' = hostname plus a random suffix)",

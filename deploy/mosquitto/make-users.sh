@@ -72,10 +72,12 @@ write_acl() {
     echo "pattern read qube/%u/action"
     echo "pattern read qube/%u/reset"
     echo
-    echo "# Only the chief publishes the aggregate, transfer, start and stop messages; it never touches a rig."
+    echo "# Only the chief publishes the aggregate, transfer, start and stop messages and claims the run (retained, read"
+    echo "# back to see a second chief); it never touches a rig."
     echo "user chief"
     echo "topic deny qube/#"
     echo "topic write fedrl/$RUN/chief/#"
+    echo "topic readwrite fedrl/$RUN/claim"
     echo "topic read fedrl/$RUN/worker/#"
     for ((i = 0; i < WORKERS; i++)); do
         wid="$WPREFIX$i"

@@ -129,8 +129,8 @@ def run_acl(run_id: str, workers: list[str], rigs: dict[str, str]) -> dict[str, 
     """Who may publish and subscribe where in one run: the chief on its topics, each worker on its own (and its
     rig's action and reset), each rig on its own, and a read-only observer (the dashboard)."""
     run = f"fedrl/{run_id}"
-    publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#"], "observer": []}
-    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#"], "observer": [f"{run}/#", "qube/#"]}
+    publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#", f"{run}/claim"], "observer": []}
+    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#", f"{run}/claim"], "observer": [f"{run}/#", "qube/#"]}
     for w in workers:
         rig = rigs.get(w)
         publish[w] = [f"{run}/worker/{w}/#"] + ([f"qube/{rig}/action", f"qube/{rig}/reset"] if rig else [])

@@ -54,6 +54,8 @@ class MqttFeed:
 
     def on_message(self, topic: str, payload: bytes) -> None:
         self.received += 1
+        if not payload:  # the chief's claim of the run, cleared at its end (chief/claim.py)
+            return
         try:
             msg: Message = decode(payload, topic=topic)
         except DecodeError as err:

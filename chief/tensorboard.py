@@ -296,8 +296,8 @@ def main(argv: list[str] | None = None) -> int:
         return 1  # logged why
     workers = len(board.translator.workers)
     print(f"wrote {board.points} points for {workers} workers into {board.root}; view them with the TensorBoard "
-          f"viewer (not installed with this package): python -m pip install tensorboard, then "
-          f"tensorboard --logdir {board.root}")
+          f"viewer: make tensorboard RUN={board.root.parent} (it installs the viewer extra first), or "
+          f"python -m pip install tensorboard, then tensorboard --logdir {board.root}")
     return 0
 
 

@@ -296,19 +296,17 @@ def print_rig_time(summary: dict) -> None:
 
 
 def print_next_steps(summary: dict, run_dir: Path) -> None:
-    """The footer: how to evaluate a controller, audit the run, view TensorBoard and keep the dashboard up."""
+    """The footer: how to evaluate a controller, audit the run, view TensorBoard, warm-start from this run and keep
+    the dashboard up."""
     py = os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else "python"
     solved = [w["id"] for w in summary["workers"] if w["solved"]]
-    env = "qube-local" if summary["env"] == "qube" else summary["env"]  # a rig's controller on the in-process rig
     print("\nnext steps:")
-    if solved:
-        print(f"  evaluate a controller:  {py} -m worker.evaluate {run_dir}/models/{solved[0]}.pt --env {env}")
+    if solved:  # the model records its task (a rig's controller runs on the in-process rig)
+        print(f"  evaluate a controller:  {py} -m worker.evaluate {run_dir}/models/{solved[0]}.pt")
+        print(f"  start a run from it:    FEDRL_INIT_MODEL={run_dir} make run")
     print(f"  audit the run:          {py} -m chief.audit {run_dir}")
-    print(f"  TensorBoard:            {py} -m pip install tensorboard   (the viewer is not installed), then")
-    board = Path(py).parent / "tensorboard" if py != "python" else "tensorboard"
-    print(f"                          {board} --logdir {run_dir}/tensorboard")
+    print(f"  TensorBoard:            make tensorboard RUN={run_dir}   (installs the viewer first)")
     print("  keep the dashboard up:  FEDRL_DASHBOARD_LINGER=600 make run   (seconds after the run ended)")
-
 
 if __name__ == "__main__":
     sys.exit(main())

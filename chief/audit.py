@@ -14,7 +14,8 @@ as chief/records.py types them):
 - ``mature``: a mature actor was accepted only with PI >= TC over PI_WINDOW episodes, PI the mean of its returns;
   nothing of a worker was counted after it finished (unless its strategy lets finishers go on sharing);
 - ``transfer``: in every round where a worker finished while others were still learning, the best finisher's actor
-  went to each of them, with keep weights = Eq. 10 of each recipient's PI at that round (strategies that share);
+  went to each of them, with keep weights = Eq. 10 of each recipient's PI at that round (strategies that share),
+  except the learners the round records as offline (and only a finishing round's learners can be);
 - ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
   sum to 1;
 - ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
@@ -330,14 +331,19 @@ def mature(run: Run) -> None:
 @check("transfer")
 def transfer(run: Run) -> None:
     """Algorithm 1's transfer branch with Eq. 10: in every round where a worker finished while others were still
-    learning (under a strategy that transfers), the best finisher's actor went to each of them, each keeping
-    w_T = Eq. 10 of its PI at that round; every other round is an aggregate."""
+    learning (under a strategy that transfers), the best finisher's actor went to each of them but those the chief
+    knew were offline (the round's ``offline``: learners of a finishing round only), each keeping w_T = Eq. 10 of
+    its PI at that round; every other round is an aggregate."""
     for r in run.rounds:
         episode = run.place_of(r.round)[0]
         finished = sorted(w for w, e in run.per_round.get(r.round, {}).items() if _mature(e))
         _holds(sorted(r.finished) == finished, f"round {r.round} says {sorted(r.finished)} finished, the counted "
                f"mature actors are {finished}")
-        learners = sorted(w for w in run.workers if run.solved_at.get(w, math.inf) > episode)
+        learning = sorted(w for w in run.workers if run.solved_at.get(w, math.inf) > episode)
+        offline = sorted(r.offline or [])
+        _holds(not offline or (bool(finished) and set(offline) <= set(learning)), f"round {r.round} left {offline} "
+               f"out as offline, but only a finishing round's learners {learning if finished else []} can be")
+        learners = [w for w in learning if w not in offline]
         keeps = {w: run.strategy.keep_weight(run.progress(run.pi_at(w, episode))) for w in learners}
         if finished and learners and all(k is not None for k in keeps.values()):
             _transfer_round(run, r, finished, learners, keeps)

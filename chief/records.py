@@ -81,7 +81,11 @@ class StepRecord(Record):
 
 
 class RoundRecord(Record):
-    """A closed round and the chief's answer to it (chief.rounds.RoundOutcome without its tensors)."""
+    """A closed round and the chief's answer to it (chief.rounds.RoundOutcome without its tensors). ``offline``:
+    in a round where a worker finished, the learners the chief knew were offline and left out of the transfer
+    (absent when none)."""
+
+    OPTIONAL = frozenset({"offline"})
 
     type: Literal["round"] = "round"
     round: int
@@ -101,6 +105,7 @@ class RoundRecord(Record):
     timed_out: list[str] = Field(default_factory=list)
     clipped: dict[str, float] = Field(default_factory=dict)
     t: float = 0.0
+    offline: list[str] | None = None
 
 
 Submitted = EpisodeRecord | StepRecord

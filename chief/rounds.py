@@ -32,7 +32,8 @@ Closing a round yields a RoundOutcome for the service to publish:
 
 - some submissions are mature and the strategy transfers -> the best one's actor goes to every worker still
   learning, each with the strategy's keep weight w_T of its own progress at that round (Eq. 10-11); the finished
-  leave (Algorithm 1: the round's gradients are not shared);
+  leave (Algorithm 1: the round's gradients are not shared). A learner the keeper knows is offline (it timed out,
+  or said it stopped or failed, and has not submitted since) is no recipient: the round records it as ``offline``;
 - otherwise -> the strategy's aggregate of the round's gradients (Eq. 8-9 for ``weighted``; actor and critic for
   per-step strategies), or nothing to share; finishers of a strategy that does not transfer simply leave.
   Before aggregating, a gradient whose norm exceeds NORM_FACTOR times the round's median norm is scaled down to that
@@ -145,6 +146,7 @@ class RoundOutcome:
     finished: list[str] = field(default_factory=list)
     timed_out: list[str] = field(default_factory=list)
     clipped: dict[str, float] = field(default_factory=dict)  # worker -> factor its gradient was scaled by
+    offline: list[str] = field(default_factory=list)  # learners left out of a finishing round's transfer: offline
 
     @property
     def digest(self) -> str:
@@ -159,7 +161,8 @@ class RoundOutcome:
                 "strategy": self.strategy, "contributors": self.contributors, "pis": self.pis,
                 "weights": self.weights, "digest": self.digest, "source": self.source_worker,
                 "source_pi": self.source_pi, "keep_weights": self.keep_weights, "recipient_pis": self.recipient_pis,
-                "finished": self.finished, "timed_out": self.timed_out, "clipped": self.clipped}
+                "finished": self.finished, "timed_out": self.timed_out, "clipped": self.clipped,
+                **({"offline": self.offline} if self.offline else {})}
 
 
 @dataclass
@@ -498,6 +501,8 @@ class RoundKeeper:
         outcome = self._transfer(r, subs, mature) if mature else None
         if outcome is None:
             outcome = self._aggregate(r, subs, finished=sorted(mature))
+            if mature:
+                outcome.offline = self._offline_learners(mature)
         self.answers[r] = outcome
         self.answers.pop(r - ANSWERS_KEPT, None)
         self.pending = {}
@@ -542,7 +547,8 @@ class RoundKeeper:
         """The transfer of the best finisher's actor (Eq. 10-11), or None when nobody is left to receive it or the
         strategy transfers nothing."""
         episode = self.shape.episode_of(r)
-        recipients = [w for w in self.ids_in("active", "lagging", "offline") if w not in mature]
+        offline = self._offline_learners(mature)
+        recipients = [w for w in self.ids_in("active", "lagging", "offline") if w not in mature and w not in offline]
         recipient_pis = {w: self.workers[w].pi_at(episode) for w in recipients}
         keep = {w: self.strategy.keep_weight(self.progress(pi)) for w, pi in recipient_pis.items()}
         if not recipients or any(k is None for k in keep.values()):
@@ -553,8 +559,13 @@ class RoundKeeper:
         outcome = self._outcome(r, "transfer", subs)
         outcome.source_worker, outcome.source_pi, outcome.params = best, mature[best].pi, mature[best].params
         outcome.keep_weights = {w: float(k) for w, k in keep.items() if k is not None}
-        outcome.recipient_pis, outcome.finished = recipient_pis, sorted(mature)
+        outcome.recipient_pis, outcome.finished, outcome.offline = recipient_pis, sorted(mature), offline
         return outcome
+
+    def _offline_learners(self, mature: dict[str, Submission]) -> list[str]:
+        """The workers still learning that the keeper knows are offline: excused (timed out, or said it stopped or
+        failed) and silent since. No transfer is addressed to them."""
+        return [w for w in self.ids_in("active", "lagging", "offline") if w not in mature and self.workers[w].excused]
 
 
 Gradients = dict[str, Arrays]

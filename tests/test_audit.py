@@ -115,6 +115,14 @@ def doctor_recipients(lines: list[dict]) -> None:
     del t["keep_weights"]["w1"]
 
 
+def doctor_offline_recipient(lines: list[dict]) -> None:
+    first(lines, type="round", kind="transfer")["offline"] = ["w1"]  # said offline, yet sent the transfer
+
+
+def doctor_offline_aggregate(lines: list[dict]) -> None:
+    first(lines, type="round", round=3)["offline"] = ["w1"]  # nobody finished: nobody is left out of a transfer
+
+
 def doctor_drop_transfer(lines: list[dict]) -> None:
     t = first(lines, type="round", kind="transfer")
     t.update(kind="aggregate", keep_weights={}, source=None, digest="")
@@ -193,6 +201,8 @@ DOCTORED = [
     (doctor_keep, "transfer"),
     (doctor_recipients, "transfer"),
     (doctor_drop_transfer, "transfer"),
+    (doctor_offline_recipient, "transfer"),
+    (doctor_offline_aggregate, "transfer"),
     (doctor_duplicate, "counted-once"),
     (doctor_spoofed, "counted-once"),
     (doctor_round_gap, "rounds-contiguous"),

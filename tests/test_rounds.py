@@ -82,6 +82,42 @@ def test_a_finished_status_never_drops_the_pending_mature_actor() -> None:
     assert k.workers["w0"].state == "finished" and k.workers["w0"].solved_episode == PI_WINDOW
 
 
+def test_no_transfer_is_addressed_to_an_offline_worker() -> None:
+    """w2 timed out and w3 said it stopped: the transfer of w0's finish goes to w1 only, and the round records both
+    as offline; once w2 submits again it is a recipient again."""
+    k, w = keeper(["w0", "w1", "w2", "w3"]), fakes("w0", "w1", "w2", "w3")
+    for e in range(1, PI_WINDOW):
+        for f in w.values():
+            k.submit(f.sub(e, 200.0 if f.id == "w0" else 100.0), now=float(e))
+    k.submit(w["w1"].sub(PI_WINDOW, 100.0), now=20.0)
+    k.submit(w["w0"].sub(PI_WINDOW, 200.0, mature=True), now=20.0)
+    assert k.note_status("w3", "stopped", now=20.5) == []  # said it stopped: not waited for, no recipient
+    [out] = k.tick(now=30.0)  # w2 is silent: timed out
+    assert out.kind == "transfer" and out.timed_out == ["w2"] and out.offline == ["w2", "w3"]
+    assert out.keep_weights == pytest.approx({"w1": 100 / 195}) and list(out.recipient_pis) == ["w1"]
+    assert out.record()["offline"] == ["w2", "w3"]
+    # Nobody offline: the record carries no ``offline``; a worker that is back receives transfers again.
+    k2, w2 = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+    for e in range(1, PI_WINDOW):
+        for f in w2.values():
+            k2.submit(f.sub(e, 200.0 if f.id == "w0" else 100.0), now=float(e))
+    k2.note_status("w2", "offline", now=9.5)  # a last will, then it submits again: back
+    k2.submit(w2["w2"].sub(PI_WINDOW, 100.0), now=10.0)
+    k2.submit(w2["w1"].sub(PI_WINDOW, 100.0), now=10.0)
+    [out2] = outcomes(k2.submit(w2["w0"].sub(PI_WINDOW, 200.0, mature=True), now=10.0))
+    assert out2.kind == "transfer" and sorted(out2.keep_weights) == ["w1", "w2"] and "offline" not in out2.record()
+
+
+def test_a_finish_with_every_learner_offline_transfers_nothing() -> None:
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    for e in range(1, PI_WINDOW):
+        k.submit(w["w0"].sub(e, 200.0), now=float(e))
+        k.submit(w["w1"].sub(e, 100.0), now=float(e))
+    k.note_status("w1", "error", now=9.5)
+    [out] = outcomes(k.submit(w["w0"].sub(PI_WINDOW, 200.0, mature=True), now=10.0))
+    assert out.kind == "aggregate" and out.finished == ["w0"] and out.offline == ["w1"] and not out.keep_weights
+
+
 def test_a_repeated_mature_actor_is_acknowledged_again_and_counted_once() -> None:
     k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
     m = mature_after(w["w0"], 1, k)

@@ -111,3 +111,34 @@ def test_answers_are_filed_by_their_round_and_a_wrong_round_is_rejected(amqtt_br
         chief.stop()
     assert sorted(svc.replies) == [5] and svc.replies[5] == answers[0] and sorted(svc.acks) == [4]
     assert svc.rejects.as_dict() == {"wrong_round": 3}
+
+
+def test_answers_sent_again_are_ignored_counted_and_logged_once_per_round(caplog: pytest.LogCaptureFixture) -> None:
+    """A chief answers every resent submission of a round it closed, and a broker may redeliver: the worker applies
+    a round's answer once, counts each copy it ignores, logs the first copy of each round with its reason (not one
+    line per copy), and its last word reports the counts."""
+    from protocol.memory import Hub
+
+    svc = WorkerService(WorkerSettings.given(run_id=RUN, worker_id="w0"), connect=Hub().connect)
+    svc.start = RunStart(run_id=RUN, env_id="CartPole-v0", policy="weighted", seed=1, max_episodes=10, tc=195.0,
+                         r_floor=0.0, workers=["w0"])
+    svc.submitted = 2
+    gradient = pack_arrays({"w": np.ones(2, np.float32)})
+    answer = {n: ChiefAggregate(round=n, episode=n, gradient=gradient, weights={"w0": 1.0}, contributors=["w0"])
+              for n in (1, 2)}
+    topic = topics.chief(RUN, topics.AGGREGATE)
+    caplog.set_level("INFO", logger="worker")
+    for n in (1, 1, 1):  # filed, then twice ignored before it was applied
+        svc.inbox.put((topic, answer[n]))
+        svc._receive(timeout=0.1)
+    svc.answered.add(1)
+    svc.replies.pop(1)
+    for n in (1, 1, 2, 2, 2):  # applied: ignored; round 2: filed, then ignored
+        svc.inbox.put((topic, answer[n]))
+        svc._receive(timeout=0.1)
+    assert sorted(svc.replies) == [2] and svc.duplicates == 2 + 2 + 2 and svc.rejects.total == 0
+    lines = [r.getMessage() for r in caplog.records if "sent again" in r.getMessage()]
+    assert len(lines) == 2 and "round 1's aggregate" in lines[0] and "already received" in lines[0]
+    assert "round 2's aggregate" in lines[1] and "[ignored so far: 5]" in lines[1]
+    svc._report_counts()
+    assert "6 repeated answers ignored" in caplog.records[-1].getMessage()

@@ -75,7 +75,8 @@ class WorkerService:
         self.start: RunStart | None = None
         self.restarted = False  # a RunStart of a new epoch arrived: the chief restarted
         self.epoch = 0
-        self.duplicates = 0
+        self.duplicates = 0  # answers sent again and ignored (each round's first copy logged): see _ignore
+        self.ignored: set[int] = set()  # rounds whose repeated answer was logged already
         self.missed_replies = 0
         self.measured = False  # whether this worker's rig time is measured (a rig on a realtime or delayed clock)
         self.idle_s = 0.0  # measured: wall seconds spent waiting for the chief since the last submission
@@ -149,6 +150,7 @@ class WorkerService:
             self._status("error", detail=f"{type(exc).__name__}: {exc}")
             return EXIT_ERROR
         finally:
+            self._report_counts()
             time.sleep(0.2)  # let the last status go out
             self.conn.stop()
 
@@ -309,9 +311,26 @@ class WorkerService:
             if isinstance(msg, ChiefAck):
                 self.acks[msg.round] = msg
             elif msg.round in self.replies or msg.round in self.answered:
-                self.duplicates += 1  # an answer sent again (to a worker that missed it): applied once
+                self._ignore(topic, msg)
             else:
                 self.replies[msg.round] = msg
+
+    def _ignore(self, topic: str, answer: ChiefAggregate | ChiefTransfer) -> None:
+        """An answer sent again (the chief answers a resent submission, a broker redelivers): applied once, the
+        copies counted in ``duplicates`` and logged once per round with the reason."""
+        self.duplicates += 1
+        if answer.round in self.ignored:
+            return
+        self.ignored.add(answer.round)
+        why = "already applied" if answer.round in self.answered else "already received"
+        log.info("ignored round %d's %s sent again on %s (%s); its further copies are only counted [ignored so far: "
+                 "%d]", answer.round, answer.kind, topic, why, self.duplicates)
+
+    def _report_counts(self) -> None:
+        """The worker's last word on what it refused: messages rejected by reason, and answers ignored as sent
+        again."""
+        log.info("worker %s: %d messages rejected %s, %d repeated answers ignored, %d answers missed",
+                 self.cfg.worker_id, self.rejects.total, self.rejects.as_dict(), self.duplicates, self.missed_replies)
 
     @property
     def shape(self) -> RoundShape:

@@ -347,15 +347,18 @@ def test_acl_on_a_live_mosquitto(tmp_path: Path) -> None:
 
         admin, seen = connect("admin")
         admin.subscribe("#", qos=1)
-        readers = {}
+        readers: dict[str, tuple[Any, list[tuple[str, bytes]]]] = {}  # one connection per user (client id = user)
         for user, access, topic, _ in ACL_CASES:
             if access == "read":
-                readers.setdefault(user, connect(user))[0].subscribe(topic, qos=1)
+                if user not in readers:
+                    readers[user] = connect(user)
+                readers[user][0].subscribe(topic, qos=1)
         time.sleep(0.5)
         for user, access, topic, _ in ACL_CASES:
             if access == "write":
-                c, _ = connect(user)
-                c.publish(topic, user.encode(), qos=1).wait_for_publish(5)
+                if user not in readers:
+                    readers[user] = connect(user)
+                readers[user][0].publish(topic, user.encode(), qos=1).wait_for_publish(5)
             else:
                 admin.publish(topic, b"admin", qos=1).wait_for_publish(5)
         if tls:

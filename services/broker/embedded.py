@@ -3,8 +3,9 @@
 Hardened for a shared machine: with a password file only listed users connect (argon2 hashes, amqtt's FileAuthPlugin),
 with an ACL file each user publishes and subscribes only where it may (TopicAccessControlListPlugin), and every
 packet above ``max_packet_size`` closes its connection before its body is read (amqtt has no such limit of its own;
-Mosquitto's ``max_packet_size`` does the same). Sessions are kept for reconnecting clients, but not across a restart
-of this broker (amqtt keeps them in memory): clients then find their session gone and send again what is
+Mosquitto's ``max_packet_size`` does the same), and a topic with a NUL character, or a published topic with a
+wildcard, is refused (services/broker/topic_guard.py). Sessions are kept for reconnecting clients, but not across a
+restart of this broker (amqtt keeps them in memory): clients then find their session gone and send again what is
 unanswered (protocol/mqtt.py, worker/service.py).
 """
 
@@ -36,9 +37,10 @@ class PacketTooLarge(Exception):
 
 def broker_config(host: str, port: int, max_connections: int = 256, password_file: Path | None = None,
                   acl: dict[str, dict[str, list[str]]] | None = None) -> dict[str, Any]:
-    """amqtt config: one TCP listener, no $SYS chatter, sessions expire; anonymous clients unless a password file is
-    given; topic ACLs (``{"publish": {user: [filters]}, "subscribe": {...}}``) when given."""
-    plugins: dict[str, Any] = {}
+    """amqtt config: one TCP listener, no $SYS chatter, sessions expire; topics with NUL and published wildcards
+    refused (services/broker/topic_guard.py); anonymous clients unless a password file is given; topic ACLs
+    (``{"publish": {user: [filters]}, "subscribe": {...}}``) when given."""
+    plugins: dict[str, Any] = {"services.broker.topic_guard.TopicGuardPlugin": {}}
     if password_file is None:
         plugins["amqtt.plugins.authentication.AnonymousAuthPlugin"] = {"allow_anonymous": True}
     else:
@@ -80,7 +82,10 @@ async def serve(host: str, port: int, stop: asyncio.Event, password_file: Path |
     """Run the broker until ``stop`` is set."""
     from amqtt.broker import Broker  # the broker extra is only needed by this process
 
+    from services.broker.topic_guard import install_wildcard_close
+
     install_packet_limit(max_packet_size)
+    install_wildcard_close()
     broker = Broker(broker_config(host, port, password_file=password_file, acl=acl))
     await broker.start()
     log.info("amqtt broker listening on %s:%d", host, port)

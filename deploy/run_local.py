@@ -99,15 +99,8 @@ class Fleet:
 def main(argv: list[str] | None = None) -> int:
     s = load(argv)
     assert s.workers is not None and s.run_id is not None and s.run_dir is not None  # load fills them in
-    if s.init_model is not None:  # before anything starts: a model for another task is one line, exit 2
-        from worker.model import open_init_model  # torch: only for a warm start
-
-        try:
-            init, _ = open_init_model(s.init_model, s.env)
-        except ValueError as err:
-            print(f"python -m deploy.run_local: {err}", file=sys.stderr)
-            return 2
-        print(f"warm start: every worker from {init.file} (networks {init.digest[:12]})")
+    if s.init_model is not None and not warm_start_fits(s):  # before anything starts: one line, exit 2
+        return 2
     run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
@@ -115,29 +108,11 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     worker_ids = [f"w{i}" for i in range(s.workers)]
     rigs = {i: f"rig{i}" for i in range(s.workers)} if s.env == "qube" else {}
-    login: Callable[[str], dict[str, Any]] = lambda user: {}  # noqa: E731  (an external broker: the caller's login)
     try:
-        if s.broker:
-            broker = s.broker
-            address = BrokerAddress.parse(broker)
-            problem = unreachable(address)
-            if problem is not None:  # before anything starts: restarts and resumes are for brokers lost mid-run
-                print(f"cannot reach the MQTT broker at {address}: {problem} (check FEDRL_BROKER / --broker)",
-                      file=sys.stderr)
-                return 1
-            print(f"using the broker at {address}")
-        else:
-            # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
-            with storage_errors(run_dir / "broker"):  # a write names no file: name the folder
-                creds = make_credentials(run_dir / "broker", s.run_id, worker_ids,
-                                         {worker_ids[i]: rig for i, rig in rigs.items()})
-            login = creds.login
-            with (log_dir / "broker.log").open("ab") as broker_log:
-                proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT,
-                                                  process_group=0)  # as Fleet.start: Ctrl-C is the launcher's
-            fleet.add("broker", proc)
-            broker = f"mqtt://127.0.0.1:{port}"
-            print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
+        reached = start_broker(s, fleet, worker_ids, rigs)
+        if reached is None:
+            return 1
+        broker, login = reached
         common: dict[str, Any] = {"broker": broker, "run_id": s.run_id}
         # The run's key (protocol/auth.py): FEDRL_RUN_KEY if set, else a new one; children get it in their
         # environment (to_env), never on a command line.
@@ -160,29 +135,11 @@ def main(argv: list[str] | None = None) -> int:
             url = wait_for_url(dashboard, url_file)
             print(f"dashboard: {url}" if url else f"!! the dashboard did not start; see {log_dir / 'dashboard.log'}",
                   flush=True)
-        chief = s.child(ChiefSettings, **common, **login("chief"), run_key=key, run_dir=run_dir)
-        restarts = 0
-        while True:
-            code = relay(fleet.start("chief", "chief", chief, stream=True), log_dir / "chief.log", fleet)
-            if code in CHIEF_FINAL_CODES or (run_dir / "summary.json").exists() or restarts >= MAX_CHIEF_RESTARTS:
-                break
-            restarts += 1
-            print(f"!! the chief died (exit code {code}); restarting it ({restarts} of {MAX_CHIEF_RESTARTS}): it "
-                  "resumes the run from its saved state", flush=True)
-        wall = time.monotonic() - t0
-        summary_path = run_dir / "summary.json"
-        if not summary_path.exists():
-            hint = (f"; free space or fix the folder's permissions, then the same command with --run-id {s.run_id} "
-                    f"--run-dir {run_dir} resumes from the saved state") if code == EXIT_STORAGE else ""
-            print(f"the chief exited with code {code} and wrote no summary; see {log_dir}{hint}", file=sys.stderr)
-            return code or 1
-        summary = json.loads(summary_path.read_text())
-        print_summary(summary, run_dir, wall)
-        if summary["end_reason"] == INTERRUPTED:
-            print(f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:\n"
-                  f"  {resume_command(argv if argv is not None else sys.argv[1:], s.run_id, run_dir)}", flush=True)
-            return EXIT_INTERRUPTED
-        if s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
+        code = run_chief(fleet, s.child(ChiefSettings, **common, **login("chief"), run_key=key, run_dir=run_dir),
+                         run_dir)
+        code = report(s, argv, code, time.monotonic() - t0)
+        ended = (run_dir / "summary.json").exists() and code != EXIT_INTERRUPTED
+        if ended and s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
             print(f"the dashboard stays up for {s.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
             time.sleep(s.dashboard_linger)
         return code
@@ -192,6 +149,81 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         fleet.stop()
+
+
+def warm_start_fits(s: LocalRunSettings) -> bool:
+    """Whether ``--init-model`` names a model for this task (else one line on stderr)."""
+    from worker.model import open_init_model  # torch: only for a warm start
+
+    assert s.init_model is not None
+    try:
+        init, _ = open_init_model(s.init_model, s.env)
+    except ValueError as err:
+        print(f"python -m deploy.run_local: {err}", file=sys.stderr)
+        return False
+    print(f"warm start: every worker from {init.file} (networks {init.digest[:12]})")
+    return True
+
+
+Login = Callable[[str], dict[str, Any]]
+
+
+def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs: dict[int, str]
+                 ) -> tuple[str, Login] | None:
+    """The broker's URL and the login of each process: FEDRL_BROKER's (None, after one line, when it cannot be
+    reached), or an embedded broker with this run's own users and ACL."""
+    assert s.run_dir is not None and s.run_id is not None
+    if s.broker:
+        address = BrokerAddress.parse(s.broker)
+        problem = unreachable(address)
+        if problem is not None:  # before anything starts: restarts and resumes are for brokers lost mid-run
+            print(f"cannot reach the MQTT broker at {address}: {problem} (check FEDRL_BROKER / --broker)",
+                  file=sys.stderr)
+            return None
+        print(f"using the broker at {address}")
+        return s.broker, lambda user: {}  # an external broker: the caller's login
+    # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
+    with storage_errors(s.run_dir / "broker"):  # a write names no file: name the folder
+        creds = make_credentials(s.run_dir / "broker", s.run_id, worker_ids,
+                                 {worker_ids[i]: rig for i, rig in rigs.items()})
+    with (fleet.log_dir / "broker.log").open("ab") as broker_log:
+        proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT,
+                                          process_group=0)  # as Fleet.start: Ctrl-C is the launcher's
+    fleet.add("broker", proc)
+    broker = f"mqtt://127.0.0.1:{port}"
+    print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
+    return broker, creds.login
+
+
+def run_chief(fleet: Fleet, chief: Settings, run_dir: Path) -> int:
+    """Run the chief to its end, relaying its progress; a chief that died is restarted (it resumes the run)."""
+    restarts = 0
+    while True:
+        code = relay(fleet.start("chief", "chief", chief, stream=True), fleet.log_dir / "chief.log", fleet)
+        if code in CHIEF_FINAL_CODES or (run_dir / "summary.json").exists() or restarts >= MAX_CHIEF_RESTARTS:
+            return code
+        restarts += 1
+        print(f"!! the chief died (exit code {code}); restarting it ({restarts} of {MAX_CHIEF_RESTARTS}): it "
+              "resumes the run from its saved state", flush=True)
+
+
+def report(s: LocalRunSettings, argv: list[str] | None, code: int, wall: float) -> int:
+    """The summary table and next steps (or why there is none, or how to resume); the launcher's exit code."""
+    assert s.run_dir is not None and s.run_id is not None
+    summary_path = s.run_dir / "summary.json"
+    if not summary_path.exists():
+        hint = (f"; free space or fix the folder's permissions, then the same command with --run-id {s.run_id} "
+                f"--run-dir {s.run_dir} resumes from the saved state") if code == EXIT_STORAGE else ""
+        print(f"the chief exited with code {code} and wrote no summary; see {s.run_dir / 'logs'}{hint}",
+              file=sys.stderr)
+        return code or 1
+    summary = json.loads(summary_path.read_text())
+    print_summary(summary, s.run_dir, wall)
+    if summary["end_reason"] == INTERRUPTED:
+        print(f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:\n"
+              f"  {resume_command(argv if argv is not None else sys.argv[1:], s.run_id, s.run_dir)}", flush=True)
+        return EXIT_INTERRUPTED
+    return code
 
 
 #: Seconds the launcher waits for the broker's TCP port before it gives up (the run has not started yet).

@@ -6,3 +6,7 @@
 - ``worker.train_local``: one worker without federation, for experiments and preset tuning.
 - ``worker.service``: the MQTT adapter that runs Algorithm 2 against the chief.
 """
+
+from runtime.extras import require
+
+require("learn", "torch", "gymnasium")  # the worker learns: one clear line where only .[bridge] was installed

@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import sys
 
+from runtime.extras import require
 from runtime.settings import returns_code
 from services.broker.embedded import run
 from services.broker.settings import BrokerSettings
@@ -19,6 +20,7 @@ DESCRIPTION = (
 
 @returns_code
 def main(argv: list[str] | None = None) -> int:
+    require("broker", "amqtt")  # one clear line where the broker extra is not installed
     s = BrokerSettings.load(argv, prog="python -m services.broker", description=DESCRIPTION)
     logging.basicConfig(level=s.log_level, format="%(asctime)s broker %(levelname)s %(message)s")
     # amqtt logs every packet at INFO; keep it quiet unless asked.

@@ -119,10 +119,13 @@ def test_the_worker_model_save(tmp_path: Path, fault: str) -> None:
         "from runtime.storage import StorageError\n"
         "from worker.episode import build_learner_and_env\n"
         "from worker.service import WorkerService\n"
+        "from worker.settings import WorkerSettings\n"
         "_, learner = build_learner_and_env('CartPole-v0', seed=1, device_noise=0.0)\n"
-        "me = SimpleNamespace(cfg=SimpleNamespace(model_dir=Path(sys.argv[1]) / 'models', worker_id='w0'))\n"
+        "cfg = WorkerSettings.given(model_dir=Path(sys.argv[1]) / 'models', worker_id='w0', run_id='r1')\n"
+        "me = SimpleNamespace(cfg=cfg, init_model=None)\n"
+        "algo, start = SimpleNamespace(seed=1, episode=3, total_steps=100), SimpleNamespace(seed=1)\n"
         "try:\n"
-        "    WorkerService._save(me, learner)\n"
+        "    WorkerService._save(me, learner, algo, start)\n"
         "except StorageError as err:\n"
         "    print(err, file=sys.stderr); sys.exit(5)\n")
     (tmp_path / "probe.py").write_text(probe)

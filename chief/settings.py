@@ -5,10 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import field_validator
-
 from chief import strategies
-from runtime.model_file import resolve
+from runtime.model_file import ModelPath
 from runtime.settings import OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
 
 PolicyName = Annotated[str, OneOf(strategies.names)]
@@ -34,12 +32,7 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     idle_timeout: float = setting(120.0, "end the run when every unfinished worker is offline this long", gt=0)
     run_dir: Path = setting(Path("runs/latest"), "folder for summary.json, metrics.jsonl, learning_curve.png and "
                             "the chief's saved state")
-    init_model: Path | None = setting(None, "the model every worker must start from (its --init-model: a model file "
-                                      "or a run folder); unset: the first worker's, or scratch", metavar="PATH")
+    init_model: ModelPath | None = setting(
+        None, "the model every worker must start from (its --init-model: a model file or a run folder); unset: the "
+        "first worker's, or scratch", metavar="PATH")
 
-    @field_validator("init_model")
-    @classmethod
-    def _init_model(cls, value: Path | None) -> Path | None:
-        if value is not None:
-            resolve(value)
-        return value

@@ -23,7 +23,9 @@ import pickle
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
+
+from pydantic import AfterValidator
 
 #: The networks the digest covers (keys of the saved dict).
 NETWORKS = ("actor", "critic")
@@ -195,3 +197,13 @@ class InitModel:
         """Resolve and digest ``path`` (a model file or a run folder); ModelFileError with the reason otherwise."""
         file = resolve(Path(path))
         return cls(str(path), file, network_digest(file))
+
+
+def checked(path: Path) -> Path:
+    """``path`` as given, once it names a model (a ModelFileError, one line at settings time, when it does not)."""
+    resolve(path)
+    return path
+
+
+#: A settings field naming a model file or a run folder (``--init-model``), checked when the settings load.
+ModelPath = Annotated[Path, AfterValidator(checked)]

@@ -11,6 +11,7 @@ from pydantic_settings import CliPositionalArg, CliSuppress
 
 from protocol.rigtime import Clock
 from protocol.topics import check_id
+from runtime.model_file import ModelPath
 from runtime.settings import (
     LogLevel,
     MqttSettings,
@@ -52,17 +53,9 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
                                       "each reset from +-FRACTION of the profile's values (unset: the profile's)",
                                       ge=0, le=0.5, metavar="FRACTION")
-    init_model: Path | None = setting(None, "warm start: begin from this model (a models/<id>.pt, or a run folder: "
-                                      "its first worker to solve); unset: from scratch", metavar="PATH")
-
-    @field_validator("init_model")
-    @classmethod
-    def _init_model(cls, value: Path | None) -> Path | None:
-        if value is not None:
-            from runtime.model_file import resolve
-
-            resolve(value)  # exists, and a run folder names a model
-        return value
+    init_model: ModelPath | None = setting(
+        None, "warm start: begin from this model (a models/<id>.pt, or a run folder: its first worker to solve); "
+        "unset: from scratch", metavar="PATH")
 
     @field_validator("worker_id")
     @classmethod

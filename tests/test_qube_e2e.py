@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +14,7 @@ import pytest
 from protocol.codec import encode
 from protocol.messages import QubeState, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.qube import MAX_RETURN
+from protocol.qube import MAX_RETURN, PERIOD_S
 from worker.qube_env import ACTIONS, QubeLocalEnv, QubeMqttEnv
 
 
@@ -60,19 +62,32 @@ def test_lockstep_episode_over_the_broker_reaches_the_cap(any_broker: str, tmp_p
         rig.wait(10)
 
 
+STOPPED = re.compile(r"(\d+) ticks, (\d+) deadline misses, (\d+) late actions, (\d+) late at the motor, .*"
+                     r"read to motor write (\{.*\}) ms")
+
+
 def test_real_time_episode_meets_the_deadline(any_broker: str, tmp_path: Path) -> None:
+    """The rig's own clock runs the episode: every action that reached the motor was written within 7 ms of its
+    state's read, and a state whose action came late got the safe action and was counted. How many states miss
+    depends on the machine's load (bench/latency.py measures it), so the episode may end early, but only by a fall
+    that the counted misses allow: with every action in time, the stabiliser balances all 700 steps."""
     rig = start_rig(any_broker, "rigR", "realtime", tmp_path)
     conn = MqttConnection(BrokerAddress.parse(any_broker), client_id="qube-rt").start()
     try:
         env = QubeMqttEnv(conn, "rigR", reset_timeout_s=30)
         ret, terminated, _, n = play(env, steps=700)  # about 5 s at 7 ms
-        assert n == 700 and ret == 700.0 and not terminated
     finally:
         conn.stop()
         rig.terminate()
         rig.wait(10)
-    log = (tmp_path / "rigR.log").read_text()
-    assert "deadline misses" in log
+    found = STOPPED.search((tmp_path / "rigR.log").read_text())
+    assert found, "the rig logs its counters when it stops"
+    ticks, misses = int(found[1]), int(found[2])
+    motor_ms = ast.literal_eval(found[5])
+    assert ticks >= n > 0 and ret == float(n - int(terminated))  # +1 a balanced step, 0 the step that fell
+    assert motor_ms["n"] > 0 and motor_ms["max"] <= PERIOD_S * 1e3 + 1e-9  # never a write past the deadline
+    if n < 700 or terminated:
+        assert misses > 0, f"the episode ended at step {n} with every action in time"
 
 
 def test_local_env_is_the_same_task() -> None:

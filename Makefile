@@ -5,6 +5,9 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 # What a run needs (make run); the full set (tests, lint, docs, benchmarks, Docker SDK) goes on top of it.
 RUN_STAMP := $(VENV)/.installed-run
+# Two test processes (pytest-xdist): much of the suite waits on brokers and timeouts. Tests that share the
+# end-to-end runs keep together (xdist_group "e2e"). PYTEST_JOBS= runs them in one process.
+PYTEST_JOBS ?= -n 2 --dist loadgroup
 PIP    := $(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt
 
 .PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build tensorboard
@@ -46,10 +49,10 @@ tensorboard: $(RUN_STAMP)
 
 test: lint
 	NO_MKDOCS_2_WARNING=1 $(BIN)/python -m mkdocs build --strict --quiet
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q $(PYTEST_JOBS)
 
 test-fast: lint
-	$(BIN)/python -m pytest -q -m "not slow and not docker"
+	$(BIN)/python -m pytest -q $(PYTEST_JOBS) -m "not slow and not docker"
 
 lint: $(STAMP)
 	$(BIN)/python -m ruff check .

@@ -24,9 +24,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import docker
-import requests
-from docker.errors import APIError, BuildError, DockerException, NotFound
+try:
+    import docker
+    import requests
+    from docker.errors import APIError, BuildError, DockerException, NotFound
+except ModuleNotFoundError:  # one line naming the extra, not a traceback
+    from runtime.extras import require
+
+    require("deploy", "docker", "requests")
+    raise
 
 from chief.settings import ChiefSettings
 from deploy.settings import DockerSettings

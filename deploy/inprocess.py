@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
-import torch
 
 from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
@@ -54,6 +53,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     task options (qube-local: ``rig_profile``, ``randomize``); ``init_model``: a warm start, every worker from this
     model (a file or a run folder; a ValueError, before anything runs, when it does not fit the task); ``models``:
     save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does."""
+    import torch  # after worker/'s check of the learn extra (one line where it is missing)
+
     torch.set_num_threads(1)
     hub = Hub()
     key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)

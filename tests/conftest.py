@@ -12,6 +12,7 @@ import pytest
 from services.broker import mosquitto
 from services.broker.embedded import start_broker_process, stop_process
 from services.broker.settings import MAX_PACKET_SIZE
+from tests import federations
 
 HOST = "127.0.0.1"
 
@@ -56,3 +57,10 @@ def mosquitto_broker(tmp_path: Path) -> Iterator[str]:
 def any_broker(request: pytest.FixtureRequest) -> str:
     """Each test using it runs once against each broker."""
     return request.getfixturevalue(f"{request.param}_broker")
+
+
+@pytest.fixture(scope="session")
+def runs(tmp_path_factory: pytest.TempPathFactory) -> federations.Runs:
+    """The 4-worker federation of each strategy over the embedded amqtt broker (tests/federations.py), made on first
+    use and shared by every test that compares against it; those tests carry ``pytest.mark.xdist_group("e2e")``."""
+    return federations.Runs(tmp_path_factory.mktemp("e2e"))

@@ -18,6 +18,8 @@ import pytest
 from bench.soak import chief_pids
 from chief.audit import audit
 from chief.checkpoint import FILENAME
+from tests import federations as fed
+from tests.federations import Runs
 
 pytestmark = pytest.mark.slow
 
@@ -34,13 +36,14 @@ def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
     return [(w["id"], w["episodes"], w["steps"]) for w in json.loads((run_dir / "summary.json").read_text())["workers"]]
 
 
-def test_a_killed_chief_resumes_with_the_same_result(tmp_path: Path) -> None:
-    from deploy.inprocess import run_federation
-
+@pytest.mark.xdist_group("e2e")
+def test_a_killed_chief_resumes_with_the_same_result(tmp_path: Path, runs: Runs) -> None:
+    """The same federation as the end-to-end tests' ``weighted`` run (tests/federations.py), with two kills."""
     run_dir = tmp_path / "run"
     launcher = subprocess.Popen(
-        [sys.executable, "-m", "deploy.run_local", "--workers", "4", "--seed", "3", "--policy", "weighted",
-         "--max-episodes", "600", "--run-dir", str(run_dir), "--run-id", RUN],
+        [sys.executable, "-m", "deploy.run_local", "--workers", str(fed.WORKERS), "--seed", str(fed.SEED),
+         "--policy", "weighted", "--env", fed.ENV, "--max-episodes", str(fed.MAX_EPISODES), "--run-dir",
+         str(run_dir), "--run-id", RUN],
         stdout=(tmp_path / "launcher.log").open("wb"), stderr=subprocess.STDOUT)
     try:
         for at_round in (8, 30):  # before the first finisher, and after the first transfers
@@ -68,9 +71,10 @@ def test_a_killed_chief_resumes_with_the_same_result(tmp_path: Path) -> None:
         live = read_board(run_dir)
         rebuild(run_dir)
         assert read_board(run_dir) == live and len(live) == 4
-    uninterrupted = run_federation("CartPole-v0", "weighted", 3, 4, 600, tmp_path / "uninterrupted", plot=False)
-    assert uninterrupted["episodes_to_all_solved"] == summary["episodes_to_all_solved"]
-    assert per_worker(run_dir) == per_worker(tmp_path / "uninterrupted")
+    uninterrupted = runs["weighted"]
+    assert json.loads((uninterrupted / "summary.json").read_text())["episodes_to_all_solved"] == summary[
+        "episodes_to_all_solved"]
+    assert per_worker(run_dir) == per_worker(uninterrupted)
 
 
 def chief_in(run_dir: Path, run_id: str = RUN) -> subprocess.CompletedProcess:

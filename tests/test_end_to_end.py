@@ -9,8 +9,6 @@ from __future__ import annotations
 import json
 import multiprocessing
 import shutil
-import subprocess
-import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,24 +17,9 @@ import pytest
 
 from chief import strategies
 from chief.audit import AuditFailure, audit
+from tests.federations import WORKERS, Runs, federate
 
-pytestmark = pytest.mark.slow
-
-SEED = 3
-WORKERS = 4
-
-
-def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None) -> Path:
-    run_dir = tmp_path / name
-    argv = [sys.executable, "-m", "deploy.run_local", "--workers", str(WORKERS), "--env", "CartPole-v0",
-            "--policy", policy, "--seed", str(SEED), "--max-episodes", "600", "--run-dir", str(run_dir),
-            "--run-id", name]
-    if broker:
-        argv += ["--broker", broker]
-    proc = subprocess.run(argv, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "all workers solved" in proc.stdout
-    return run_dir
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("e2e")]  # one process computes the shared runs
 
 
 def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
@@ -51,15 +34,8 @@ def early_finishers(run_dir: Path) -> dict[str, int]:
     return {w["id"]: w["episodes"] for w in summary["workers"] if w["episodes"] < last}
 
 
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """One 4-worker federation per strategy over the embedded amqtt broker, shared by the tests below."""
-    base = tmp_path_factory.mktemp("e2e")
-    return {policy: federate(base, f"amqtt-{policy}", policy) for policy in strategies.names()}
-
-
 @pytest.mark.parametrize("policy", strategies.names())
-def test_four_workers_learn_and_the_audit_passes(runs: dict[str, Path], policy: str) -> None:
+def test_four_workers_learn_and_the_audit_passes(runs: Runs, policy: str) -> None:
     run_dir = runs[policy]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["policy"] == policy and all(w["solved"] for w in summary["workers"])
@@ -75,7 +51,7 @@ def test_four_workers_learn_and_the_audit_passes(runs: dict[str, Path], policy: 
 
 
 @pytest.mark.parametrize("policy", [p for p in strategies.names() if strategies.get(p).keep_weight(0.5) is not None])
-def test_every_early_finisher_hands_its_actor_to_the_others(runs: dict[str, Path], policy: str) -> None:
+def test_every_early_finisher_hands_its_actor_to_the_others(runs: Runs, policy: str) -> None:
     run_dir = runs[policy]
     early = early_finishers(run_dir)
     assert early, "seed 3 should have workers finishing before the last"
@@ -94,12 +70,12 @@ def per_worker_solved(run_dir: Path) -> dict[str, int]:
     return {w: e for w, e, _ in per_worker(run_dir)}
 
 
-def test_independent_workers_share_nothing(runs: dict[str, Path]) -> None:
+def test_independent_workers_share_nothing(runs: Runs) -> None:
     rounds = [json.loads(x) for x in (runs["independent"] / "metrics.jsonl").read_text().splitlines()]
     assert all(r["kind"] == "aggregate" and r["digest"] == "" for r in rounds if r["type"] == "round")
 
 
-def test_sync_workers_share_every_step(runs: dict[str, Path]) -> None:
+def test_sync_workers_share_every_step(runs: Runs) -> None:
     summary = json.loads((runs["sync"] / "summary.json").read_text())
     lines = [json.loads(x) for x in (runs["sync"] / "metrics.jsonl").read_text().splitlines()]
     rounds = [r for r in lines if r["type"] == "round"]
@@ -108,7 +84,7 @@ def test_sync_workers_share_every_step(runs: dict[str, Path]) -> None:
     assert all(r["digest"] and not r["keep_weights"] for r in rounds if r["contributors"] and not r["finished"])
 
 
-def test_the_audit_fails_on_a_doctored_real_run(runs: dict[str, Path], tmp_path: Path) -> None:
+def test_the_audit_fails_on_a_doctored_real_run(runs: Runs, tmp_path: Path) -> None:
     run_dir = tmp_path / "doctored"
     shutil.copytree(runs["weighted"], run_dir)
     lines = (run_dir / "metrics.jsonl").read_text().splitlines()
@@ -145,22 +121,12 @@ def cpu_load(processes: int = 2) -> Iterator[None]:
             p.join(5)
 
 
-@pytest.mark.parametrize("policy", ["weighted", "plain"])
+@pytest.mark.parametrize("policy", ["weighted"])  # every strategy in process against amqtt: test_inprocess_equivalence
 def test_same_seed_same_result_over_mosquitto_under_cpu_load(
-    runs: dict[str, Path], mosquitto_broker: str, tmp_path: Path, policy: str
+    runs: Runs, mosquitto_broker: str, tmp_path: Path, policy: str
 ) -> None:
     with cpu_load():
         run_dir = federate(tmp_path, f"mosquitto-{policy}", policy, broker=mosquitto_broker)
     assert json.loads((run_dir / "summary.json").read_text())["broker"] == mosquitto_broker
     assert per_worker(run_dir) == per_worker(runs[policy])  # episodes and env steps, worker by worker
     audit(run_dir)
-
-
-@pytest.mark.parametrize("policy", ["weighted"])
-def test_the_in_process_mode_runs_the_same_federation(runs: dict[str, Path], tmp_path: Path, policy: str) -> None:
-    from deploy.inprocess import run_federation
-
-    summary = run_federation("CartPole-v0", policy, SEED, WORKERS, 600, tmp_path / "inprocess", plot=False)
-    assert summary["mode"] == "in-process"
-    assert per_worker(tmp_path / "inprocess") == per_worker(runs[policy])
-    assert audit(tmp_path / "inprocess").transfers == audit(runs[policy]).transfers

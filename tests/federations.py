@@ -1,0 +1,40 @@
+"""The 4-worker CartPole-v0 federations of the end-to-end tests, as ``make run`` starts them (``deploy.run_local``:
+separate processes over a real broker). One run per strategy is shared by every test that needs it (the ``runs``
+fixture in conftest.py); those tests share the xdist group ``e2e``, so that one test process makes the runs."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+SEED = 3
+WORKERS = 4
+ENV = "CartPole-v0"
+MAX_EPISODES = 600
+
+
+def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None) -> Path:
+    """One federation through the launcher, to the end; its run folder (asserted: exit 0, all workers solved)."""
+    run_dir = tmp_path / name
+    argv = [sys.executable, "-m", "deploy.run_local", "--workers", str(WORKERS), "--env", ENV, "--policy", policy,
+            "--seed", str(SEED), "--max-episodes", str(MAX_EPISODES), "--run-dir", str(run_dir), "--run-id", name]
+    if broker:
+        argv += ["--broker", broker]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    assert "all workers solved" in proc.stdout
+    return run_dir
+
+
+class Runs:
+    """Run folders by strategy, each federation made the first time it is asked for."""
+
+    def __init__(self, base: Path) -> None:
+        self.base = base
+        self._made: dict[str, Path] = {}
+
+    def __getitem__(self, policy: str) -> Path:
+        if policy not in self._made:
+            self._made[policy] = federate(self.base, f"amqtt-{policy}", policy)
+        return self._made[policy]

@@ -1,0 +1,65 @@
+"""Ctrl-C keeps the story: a SIGINT to ``make run``'s launcher mid-run ends the run as ``interrupted`` with its
+summary, its learning curve and the command that resumes it; the audit passes on that folder; and the printed
+command resumes the run to the same per-worker result as a run that was never interrupted."""
+
+from __future__ import annotations
+
+import json
+import shlex
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from chief.audit import audit
+from chief.service import EXIT_INTERRUPTED
+
+pytestmark = pytest.mark.slow
+
+ENV, POLICY, SEED, WORKERS, EPISODES = "CartPole-v0", "weighted", 101, 2, 30
+ARGV = ["--workers", str(WORKERS), "--env", ENV, "--policy", POLICY, "--seed", str(SEED), "--max-episodes",
+        str(EPISODES), "--dashboard-port", "off"]
+
+
+def rounds_closed(metrics: Path) -> int:
+    return metrics.read_text().count('"type":"round"') if metrics.exists() else 0
+
+
+def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
+    return [(w["id"], w["episodes"], w["steps"]) for w in json.loads((run_dir / "summary.json").read_text())["workers"]]
+
+
+def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path: Path) -> None:
+    from deploy.inprocess import run_federation
+
+    run_dir = tmp_path / "run"
+    out = tmp_path / "launcher.log"
+    launcher = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *ARGV, "--run-dir", str(run_dir),
+                                 "--run-id", "ctrlc"], stdout=out.open("wb"), stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 300
+        while rounds_closed(run_dir / "metrics.jsonl") < 5:
+            assert time.monotonic() < deadline and launcher.poll() is None, out.read_text()
+            time.sleep(0.05)
+        launcher.send_signal(signal.SIGINT)  # what Ctrl-C in the terminal sends
+        assert launcher.wait(timeout=120) == EXIT_INTERRUPTED, out.read_text()[-3000:]
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    log = out.read_text()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["end_reason"] == "interrupted" and summary["episodes_to_all_solved"] is None
+    assert (run_dir / "learning_curve.png").stat().st_size > 1000
+    audit(run_dir)  # the interrupted run's records hold every invariant
+    [resume] = [line.strip() for line in log.splitlines() if "-m deploy.run_local" in line]
+    assert "--run-id ctrlc" in resume and f"--run-dir {run_dir}" in resume
+
+    resumed = subprocess.run(shlex.split(resume), capture_output=True, text=True, timeout=600)
+    assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
+    audit(run_dir)
+    uninterrupted = run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, tmp_path / "uninterrupted", plot=False,
+                                   tensorboard_files=False)
+    assert per_worker(run_dir) == [(w["id"], w["episodes"], w["steps"]) for w in uninterrupted["workers"]]

@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 
 from chief import strategies
-from chief.records import RoundRecord, read_metrics
+from chief.records import EpisodeRecord, RoundRecord, StepRecord, read_metrics
 from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import (
@@ -267,7 +267,7 @@ def _chief_side(run_dir: Path) -> dict[str, list[float]]:
     for rec in read_metrics(run_dir):
         if isinstance(rec, RoundRecord):
             closed[rec.round] = rec.t
-        else:
+        elif isinstance(rec, (EpisodeRecord, StepRecord)):
             accepted.setdefault(rec.round, []).append(rec.t)
     receive, aggregate = [], []
     for r in sorted(closed):

@@ -24,6 +24,9 @@ as chief/records.py types them):
   matches the answer it recorded for that round (kind, tensor digest, the worker's keep weight), including rounds that
   closed with no contributors: a worker applied nothing the chief did not send;
 - ``summary``: the summary's solve episodes, steps and totals agree with the records;
+- ``played``: each worker's played, counted and refused episodes and env steps in the summary are what the records
+  add up to (chief/played.py), counted + refused = played, the run's played and refused totals their sums, and no
+  life of a worker was counted more than it said it played;
 - ``rig-time``: each rig's balance steps and seconds, reset, idle and rig seconds in the summary are the sums of its
   records (idle modelled from the rounds when not measured, protocol/rigtime.py), rig time = balance + reset, and
   ``last_rig`` is the rig that finished last (QUBE-Servo 2 tasks; nothing to check for the gymnasium tasks).
@@ -44,7 +47,8 @@ from pathlib import Path
 import numpy as np
 
 from chief import federation, strategies
-from chief.records import EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from chief.played import played_totals
+from chief.records import EpisodeRecord, RefusedRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 from chief.rigtime import last_rig, rig_times
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
@@ -90,13 +94,15 @@ def _close(a: float | None, b: float | None) -> bool:
     return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
 
 
-def load(run_dir: Path) -> tuple[RunSummary, list[EpisodeRecord], list[StepRecord], list[RoundRecord]]:
-    """summary, episode records, later-step records and round records of a run folder (OSError/ValueError when
-    unreadable)."""
+def load(run_dir: Path) -> tuple[RunSummary, list[EpisodeRecord], list[StepRecord], list[RoundRecord],
+                                 list[RefusedRecord]]:
+    """summary, episode records, later-step records, round records and refused submissions' records of a run folder
+    (OSError/ValueError when unreadable)."""
     summary = RunSummary.read(run_dir)
     records = read_metrics(run_dir)
     return (summary, [r for r in records if isinstance(r, EpisodeRecord)],
-            [r for r in records if isinstance(r, StepRecord)], [r for r in records if isinstance(r, RoundRecord)])
+            [r for r in records if isinstance(r, StepRecord)], [r for r in records if isinstance(r, RoundRecord)],
+            [r for r in records if isinstance(r, RefusedRecord)])
 
 
 @dataclass
@@ -108,12 +114,13 @@ class Run:
     episodes: list[EpisodeRecord]
     steps: list[StepRecord]
     rounds: list[RoundRecord]
+    refused: list[RefusedRecord] = field(default_factory=list)
     report: AuditReport = field(default_factory=AuditReport)
 
     @classmethod
     def read(cls, run_dir: Path) -> Run:
-        summary, episodes, steps, rounds = load(run_dir)
-        return cls(summary, episodes, steps, rounds,
+        summary, episodes, steps, rounds, refused = load(run_dir)
+        return cls(summary, episodes, steps, rounds, refused,
                    AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)))
 
     # -- rounds: the run's shape (protocol.rounds) maps (episode, step) to a round number and back --------------
@@ -482,6 +489,38 @@ def summary(run: Run) -> None:
     expected = max(run.solved_at.values()) if len(run.solved_at) == len(run.workers) else None
     _holds(run.summary.episodes_to_all_solved == expected, f"episodes_to_all_solved is "
            f"{run.summary.episodes_to_all_solved}, the records give {expected}")
+
+
+@check("played")
+def played(run: Run) -> None:
+    """Algorithm 2's work as it was done: every episode a worker played and its env steps (rig time, on a rig), counted
+    by the chief or refused, are what the records say, and the chief counted no more of a worker's life than it
+    played."""
+    counted: dict[tuple[str, str], int] = defaultdict(int)
+    said: dict[tuple[str, str], int] = defaultdict(int)
+    for e in run.episodes:
+        if e.played is not None:
+            counted[e.worker, e.played.life] += e.steps
+    records: list[EpisodeRecord | RefusedRecord] = [*run.episodes, *run.refused]
+    for rec in records:
+        if rec.played is not None:
+            said[rec.worker, rec.played.life] = max(said[rec.worker, rec.played.life], rec.played.steps)
+    for (w, life), steps in counted.items():
+        _holds(steps <= said[w, life], f"{w} was counted {steps} env steps in its life {life}, more than the "
+               f"{said[w, life]} it played")
+    expected = played_totals(records)
+    for s in run.summary.workers:
+        got, want = s.played, expected.get(s.id)
+        _holds(got == want, f"the summary gives {s.id} played {got.dump() if got else None}, the records "
+               f"{want.dump() if want else None}")
+        if got is not None:
+            _holds(got.counted_steps + got.refused_steps == got.steps and got.counted_episodes + got.refused_episodes
+                   == got.episodes, f"{s.id}'s counted and refused episodes and steps do not add up to its played")
+    totals = [w.played for w in run.summary.workers if w.played is not None]
+    for name, value, total in (("played_steps", run.summary.played_steps, sum(p.steps for p in totals)),
+                               ("refused_steps", run.summary.refused_steps, sum(p.refused_steps for p in totals))):
+        _holds(value == (total if totals else None), f"the summary's {name} is {value}, its workers' sum "
+               f"{total if totals else None}")
 
 
 @check("rig-time")

@@ -15,7 +15,7 @@ from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
 
-from protocol.messages import Receipt
+from protocol.messages import Played, Receipt
 from runtime.storage import atomic_write
 
 METRICS = "metrics.jsonl"
@@ -43,9 +43,10 @@ class EpisodeRecord(Record):
     actor (``kind: mature``, with the ``recent_returns`` its PI is the mean of). ``ppo``: the PPO statistics the
     update carried (None values where not sent; absent for a mature actor). The rig-time fields (protocol/rigtime.py;
     QUBE-Servo 2 tasks only, absent otherwise): the episode's balance steps and seconds, its reset seconds and the
-    worker's measured idle seconds since its last submission (absent when its rig's clock is simulated)."""
+    worker's measured idle seconds since its last submission (absent when its rig's clock is simulated). ``played``:
+    what the worker had played when it sent this (protocol.messages.Played; absent when it did not say)."""
 
-    OPTIONAL = frozenset({"recent_returns", "ppo", "balance_steps", "balance_s", "reset_s", "idle_s"})
+    OPTIONAL = frozenset({"recent_returns", "ppo", "played", "balance_steps", "balance_s", "reset_s", "idle_s"})
 
     type: Literal["episode"] = "episode"
     worker: str
@@ -59,6 +60,7 @@ class EpisodeRecord(Record):
     t: float = 0.0
     recent_returns: list[float] | None = None
     ppo: dict[str, float | None] | None = None
+    played: Played | None = None
     balance_steps: int | None = Field(default=None, ge=0)
     balance_s: float | None = Field(default=None, ge=0)
     reset_s: float | None = Field(default=None, ge=0)
@@ -108,24 +110,42 @@ class RoundRecord(Record):
     offline: list[str] | None = None
 
 
+class RefusedRecord(Record):
+    """A submission the chief refused (``reason``: stale, out_of_window...; chief.rounds.Verdict.refusal) that tells
+    more of what its worker ``played`` than the records held before: its episodes and env steps, not counted. Only
+    such submissions are recorded, so a worker's resends add nothing."""
+
+    type: Literal["refused"] = "refused"
+    worker: str
+    round: int
+    episode: int
+    step: int = 0
+    kind: Literal["update", "mature"]
+    reason: str
+    steps: int = Field(ge=0)
+    played: Played
+    t: float = 0.0
+
+
 Submitted = EpisodeRecord | StepRecord
-MetricsRecord = Annotated[EpisodeRecord | StepRecord | RoundRecord, Field(discriminator="type")]
-_LINE: TypeAdapter[EpisodeRecord | StepRecord | RoundRecord] = TypeAdapter(MetricsRecord)
+AnyRecord = EpisodeRecord | StepRecord | RoundRecord | RefusedRecord
+MetricsRecord = Annotated[AnyRecord, Field(discriminator="type")]
+_LINE: TypeAdapter[AnyRecord] = TypeAdapter(MetricsRecord)
 
 
-def parse_record(data: Any) -> EpisodeRecord | StepRecord | RoundRecord:
+def parse_record(data: Any) -> AnyRecord:
     """A record from its JSON data (a dict, or a model already); pydantic.ValidationError (a ValueError) if bad."""
-    if isinstance(data, (EpisodeRecord, StepRecord, RoundRecord)):
+    if isinstance(data, (EpisodeRecord, StepRecord, RoundRecord, RefusedRecord)):
         return data
     return _LINE.validate_python(data)
 
 
-def line(record: EpisodeRecord | StepRecord | RoundRecord) -> str:
+def line(record: AnyRecord) -> str:
     """The record's line in metrics.jsonl (compact JSON, no newline)."""
     return json.dumps(record.dump(), separators=(",", ":"))
 
 
-def read_metrics(run_dir: Path) -> list[EpisodeRecord | StepRecord | RoundRecord]:
+def read_metrics(run_dir: Path) -> list[AnyRecord]:
     """metrics.jsonl's records in order ([] when there is none yet); ValueError naming the first bad line."""
     path = run_dir / METRICS
     if not path.exists():
@@ -160,11 +180,25 @@ class LastRig(RigTime):
     id: str
 
 
-class WorkerSummary(Record):
-    """One worker's result in summary.json: episodes and env steps until it solved, or so far; its ``rig`` time on a
-    QUBE-Servo 2 task (absent for the gymnasium tasks)."""
+class PlayedTotals(Record):
+    """Everything a worker played (chief/played.py): its ``episodes`` and env ``steps``, the sums over its lives of
+    the last ``played`` counts on record, apart into what the chief counted (its counted episodes' records) and what
+    it refused or never got (``refused_*`` = played - counted)."""
 
-    OPTIONAL = frozenset({"rig"})
+    episodes: int = Field(ge=0)
+    steps: int = Field(ge=0)
+    counted_episodes: int = Field(ge=0)
+    counted_steps: int = Field(ge=0)
+    refused_episodes: int
+    refused_steps: int
+
+
+class WorkerSummary(Record):
+    """One worker's result in summary.json: episodes and env steps until it solved, or so far; everything it
+    ``played``, counted and refused apart (absent when its submissions did not say); its ``rig`` time on a QUBE-Servo
+    2 task (absent for the gymnasium tasks)."""
+
+    OPTIONAL = frozenset({"played", "rig"})
 
     id: str
     index: int
@@ -173,6 +207,7 @@ class WorkerSummary(Record):
     steps: int
     final_pi: float | None = None
     state: WorkerState
+    played: PlayedTotals | None = None
     rig: RigTime | None = None
 
 
@@ -186,12 +221,13 @@ class InitModelRecord(Record):
 
 class RunSummary(Record):
     """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what
-    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given). ``last_rig``: the rig
-    time of the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent
-    from scratch)."""
+    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given). ``total_steps`` are
+    the env steps the chief counted, ``played_steps`` every env step the workers played and ``refused_steps`` those
+    it did not count (absent when no worker's submissions said). ``last_rig``: the rig time of the run's last rig
+    (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from scratch)."""
 
     OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
-                          "last_rig", "init_model"})
+                          "played_steps", "refused_steps", "last_rig", "init_model"})
 
     run_id: str = ""
     env: str
@@ -204,6 +240,8 @@ class RunSummary(Record):
     episodes_to_all_solved: int | None = None
     steps_of_last_worker: int | None = None
     total_steps: int
+    played_steps: int | None = None
+    refused_steps: int | None = None
     rounds: int
     rounds_per_episode: int = 1
     end_reason: str

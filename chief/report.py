@@ -1,5 +1,6 @@
 """The run folder: ``metrics.jsonl`` (one line per accepted worker episode and per round: the records
-``python -m chief.audit`` re-checks), ``summary.json`` and ``learning_curve.png`` (each worker's last-10 average
+``python -m chief.audit`` re-checks; one per refused submission that tells more of what its worker played),
+``summary.json`` and ``learning_curve.png`` (each worker's last-10 average
 return against episodes, TC dotted, like the paper's Fig. 5)."""
 
 from __future__ import annotations
@@ -9,9 +10,13 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any, Protocol, TextIO
 
+from chief.played import PlayedTally
 from chief.records import (
     METRICS,
+    AnyRecord,
     EpisodeRecord,
+    PlayedTotals,
+    RefusedRecord,
     RigTime,
     RoundRecord,
     RunSummary,
@@ -31,7 +36,7 @@ Line = EpisodeRecord | StepRecord | RoundRecord
 
 
 class RecordSink(Protocol):
-    """Something fed every record as it is written (chief/tensorboard.py's Board)."""
+    """Something fed every counted submission's and round's record as it is written (chief/tensorboard.py's Board)."""
 
     def record(self, record: Line) -> None: ...
 
@@ -40,13 +45,15 @@ class RecordSink(Protocol):
 
 class MetricsLog:
     """Appends JSON lines to ``metrics.jsonl`` (each one a chief.records model), keeps each worker's PI curve for
-    the plot and passes every record on to the attached sinks."""
+    the plot and its played counts (chief/played.py), and passes every counted submission's and round's record on to
+    the attached sinks."""
 
     def __init__(self, run_dir: Path, resume_at: int | None = None) -> None:
         """A new file, or (``resume_at``) the existing one cut back to that many bytes, its curves re-read."""
         self.path = run_dir / METRICS
         self.curves: dict[str, list[tuple[int, float]]] = {}
         self._timed: list[EpisodeRecord | StepRecord] = []  # what rig time is summed from (chief/rigtime.py)
+        self._played = PlayedTally()
         self.sinks: list[RecordSink] = []
         with storage_errors(self.path):  # a full, read-only or foreign folder: one line, exit 5
             run_dir.mkdir(parents=True, exist_ok=True)
@@ -72,6 +79,15 @@ class MetricsLog:
             raise ValueError(f"not a submission's record: {typed.type}")
         self._write(typed)
 
+    def refused(self, record: RefusedRecord | Mapping[str, Any]) -> bool:
+        """A refused submission (chief.rounds.Verdict.refusal): written only when it tells more of what its worker
+        played than the records hold; whether it was."""
+        typed = record if isinstance(record, RefusedRecord) else RefusedRecord.model_validate(record)
+        if not self._played.advances(typed.worker, typed.played):
+            return False
+        self._write(typed)
+        return True
+
     def round(self, record: RoundRecord | Mapping[str, Any]) -> None:
         """A closed round (chief.rounds.RoundOutcome.record, with its time ``t``)."""
         self._write(record if isinstance(record, RoundRecord) else RoundRecord.model_validate(
@@ -87,17 +103,25 @@ class MetricsLog:
         """Each rig's time so far ({} for the gymnasium tasks)."""
         return rig_times(self._timed)
 
-    def _note(self, record: Line) -> None:
+    @property
+    def played(self) -> dict[str, PlayedTotals]:
+        """Each worker's played, counted and refused episodes and env steps so far ({} when no worker said)."""
+        return self._played.totals()
+
+    def _note(self, record: AnyRecord) -> None:
+        self._played.add(record)
         if isinstance(record, EpisodeRecord):
             self.curves.setdefault(record.worker, []).append((record.episode, record.pi))
         if isinstance(record, StepRecord) or (isinstance(record, EpisodeRecord) and record.balance_steps is not None):
             self._timed.append(record)
 
-    def _write(self, record: Line) -> None:
+    def _write(self, record: AnyRecord) -> None:
         self._note(record)
         with storage_errors(self.path):
             self._file.write(line(record) + "\n")
             self._file.flush()
+        if isinstance(record, RefusedRecord):
+            return
         for sink in self.sinks:
             sink.record(record)
 
@@ -110,18 +134,19 @@ class MetricsLog:
 
 
 def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,
-              **meta: Any) -> RunSummary:
+              played: Mapping[str, PlayedTotals] | None = None, **meta: Any) -> RunSummary:
     """summary.json: the task, the strategy, each worker's result (episodes and env steps until it solved, or so
-    far; ``rigs``: its rig time, chief/rigtime.py), the last worker's episodes and steps, the last rig's time, and
-    ``meta`` (run id, seed, wall time, broker, reject counts)."""
-    rigs = rigs or {}
+    far; ``played``: everything it played, counted and refused apart, chief/played.py; ``rigs``: its rig time,
+    chief/rigtime.py), the last worker's episodes and steps, the run's totals, the last rig's time, and ``meta``
+    (run id, seed, wall time, broker, reject counts)."""
+    rigs, played = rigs or {}, played or {}
     workers = []
     for index, (w, rec) in enumerate(keeper.workers.items()):
         solved = rec.state == "finished"
         workers.append(WorkerSummary(id=w, index=index, solved=solved,
                                      episodes=rec.solved_episode if solved else rec.last_episode,
                                      steps=rec.steps_at_solve if solved else rec.steps,
-                                     final_pi=rec.pi, state=rec.state, rig=rigs.get(w)))
+                                     final_pi=rec.pi, state=rec.state, played=played.get(w), rig=rigs.get(w)))
     all_solved = all(w.solved for w in workers)
     last = max(workers, key=lambda x: (x.episodes, x.steps))
     return RunSummary(
@@ -129,14 +154,16 @@ def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | No
         max_episodes=keeper.max_episodes, workers=workers,
         episodes_to_all_solved=last.episodes if all_solved else None,
         steps_of_last_worker=last.steps if all_solved else None,
-        total_steps=sum(rec.steps for rec in keeper.workers.values()), rounds=keeper.round - 1,
+        total_steps=sum(rec.steps for rec in keeper.workers.values()),
+        played_steps=sum(p.steps for p in played.values()) if played else None,
+        refused_steps=sum(p.refused_steps for p in played.values()) if played else None, rounds=keeper.round - 1,
         rounds_per_episode=keeper.rounds_per_episode, end_reason=reason, last_rig=last_rig(dict(rigs)), **meta)
 
 
 def run_summary(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,
-                **meta: Any) -> dict[str, Any]:
+                played: Mapping[str, PlayedTotals] | None = None, **meta: Any) -> dict[str, Any]:
     """``summarize`` as the JSON data summary.json holds (what the launchers return)."""
-    return summarize(keeper, reason, rigs, **meta).dump()
+    return summarize(keeper, reason, rigs, played, **meta).dump()
 
 
 def write_summary(run_dir: Path, summary: RunSummary | Mapping[str, Any]) -> Path:

@@ -87,6 +87,8 @@ class Submission:
     ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not usable): they decide
     nothing and are only recorded. ``rig`` is the episode's rig time (protocol/rigtime.py: balance steps and seconds,
     reset seconds, measured idle seconds; None for the gymnasium tasks): recorded and summed, deciding nothing.
+    ``played`` is what the worker has played so far (protocol.messages.Played: life, episodes, env steps), counted
+    or not: recorded, even when the submission is refused, deciding nothing.
     """
 
     worker_id: str
@@ -102,6 +104,7 @@ class Submission:
     critic_gradient: Arrays | None = None
     stats: dict[str, float | None] | None = None
     rig: dict[str, float | int | None] | None = None
+    played: dict[str, Any] | None = None
 
     @property
     def mature(self) -> bool:
@@ -196,9 +199,22 @@ class Verdict:
             line["recent_returns"] = list(sub.recent_returns)
         elif sub.stats is not None:
             line["ppo"] = dict(sub.stats)
+        if sub.step == 0 and sub.played is not None:
+            line["played"] = dict(sub.played)
         if sub.step == 0 and sub.rig is not None:
             line.update({k: v for k, v in sub.rig.items() if v is not None})
         return line
+
+    def refusal(self, t: float) -> dict[str, Any] | None:
+        """A refused submission's line in metrics.jsonl (``type: refused``), so what its worker played is on record
+        though the chief did not count it; None when there is nothing to record (no ``played`` counts, or not a
+        worker of the run)."""
+        sub = self.submission
+        if self.status != "rejected" or sub is None or sub.played is None or self.reason == "unknown_worker":
+            return None
+        return {"type": "refused", "worker": sub.worker_id, "round": self.round, "episode": sub.episode,
+                "step": sub.step, "kind": sub.kind, "reason": self.reason, "steps": sub.steps,
+                "played": dict(sub.played), "t": round(t, 3)}
 
 
 @dataclass

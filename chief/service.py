@@ -349,6 +349,9 @@ class ChiefService:
             self.duplicates += 1  # sent again (a worker's resend, a broker's redelivery): counted once
         else:
             self.rejects.reject(topic, verdict.reason, f"{sub.kind} for episode {sub.episode}: {verdict.detail}")
+            refusal = verdict.refusal(now - self.t0)
+            if refusal is not None:  # what its worker played is on record (written when it tells more)
+                self.metrics.refused(refusal)
         if verdict.ack is not None:
             # Sent once the state is saved (_flush): what the chief confirms is on disk first.
             self._must_save |= verdict.ack.accepted and verdict.status == "accepted"
@@ -436,7 +439,8 @@ class ChiefService:
         keeper = self.keeper
         assert keeper is not None
         assert self.metrics is not None
-        return run_summary(keeper, reason, rigs=self.metrics.rigs, run_id=self.cfg.run_id, seed=self.cfg.seed,
+        return run_summary(keeper, reason, rigs=self.metrics.rigs, played=self.metrics.played,
+                           run_id=self.cfg.run_id, seed=self.cfg.seed,
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                            broker=str(self.broker), rejected_messages=self.rejects.as_dict(),
@@ -456,7 +460,8 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
                       receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
                       step=0 if mature else msg.step, critic_gradient=critic,  # type: ignore[union-attr]
                       stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS},
-                      rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS})
+                      rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS},
+                      played=msg.played.model_dump() if msg.played is not None else None)
 
 
 def answer_of(outcome: RoundOutcome, session: str) -> ChiefAggregate | ChiefTransfer:

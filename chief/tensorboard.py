@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from chief.records import METRICS, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from chief.records import METRICS, AnyRecord, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 
 log = logging.getLogger(__name__)
 
@@ -239,7 +239,7 @@ def open_board(run_dir: Path, rounds_per_episode: int = 1, wall_start: float | N
         for folder in root.glob("*/"):
             if not any(folder.iterdir()):
                 folder.rmdir()  # a worker of an earlier run in this folder
-        records = read_metrics(run_dir)
+        records = [r for r in read_metrics(run_dir) if isinstance(r, (EpisodeRecord, StepRecord, RoundRecord))]
     except (OSError, ValueError) as err:
         log.warning("cannot redraw the TensorBoard event files in %s (%s); the run goes on without them", root, err)
         return None
@@ -265,7 +265,7 @@ def _estimate_wall_start(run_dir: Path, records: list[EpisodeRecord | StepRecord
     return (path.stat().st_mtime if path.exists() else time.time()) - last_t
 
 
-def rounds_per_episode_of(run_dir: Path, records: list[EpisodeRecord | StepRecord | RoundRecord]) -> int:
+def rounds_per_episode_of(run_dir: Path, records: list[AnyRecord]) -> int:
     """K of a finished run: its summary's, else one more than the highest step its records name."""
     try:
         return RunSummary.read(run_dir).rounds_per_episode

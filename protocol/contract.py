@@ -17,7 +17,7 @@ from pydantic import BaseModel
 from pydantic.json_schema import DEFAULT_REF_TEMPLATE
 
 from protocol.codec import MAX_PAYLOAD_BYTES
-from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Receipt
+from protocol.messages import MESSAGE_TYPES, SCHEMA_VERSION, Played, Receipt
 from protocol.routes import PROCESSES, ROUTES
 from protocol.tensors import ALLOWED_DTYPES, MAX_ELEMENTS, MAX_NDIM, TensorBlob
 
@@ -61,8 +61,10 @@ def _constraints(schema: dict[str, Any]) -> str:
     return ", ".join(parts)
 
 
+#: The models messages are made of, besides tensors.
+PARTS: tuple[type[BaseModel], ...] = (Receipt, Played)
 #: Every model a payload is made of: the messages (Chunk last: it is transport), then their parts.
-MODELS: tuple[type[BaseModel], ...] = (*MESSAGE_TYPES.values(), Receipt, TensorBlob)
+MODELS: tuple[type[BaseModel], ...] = (*MESSAGE_TYPES.values(), *PARTS, TensorBlob)
 
 
 def json_schema(model: type[BaseModel], ref_template: str = DEFAULT_REF_TEMPLATE) -> dict[str, Any]:
@@ -152,8 +154,9 @@ def markdown() -> str:
     out += ["", "## Tensors", "", tensor_encoding(), "", *fields_table(TensorBlob), "", "## Messages"]
     for kind, model in MESSAGE_TYPES.items():
         out += ["", f"### {model.__name__}", "", f"`kind` = `{kind!r}`. {doc_of(model)}", "", *fields_table(model)]
-    out += ["", "### Receipt", "", doc_of(Receipt), "", *fields_table(Receipt), ""]
-    return "\n".join(out)
+    for part in PARTS:
+        out += ["", f"### {part.__name__}", "", doc_of(part), "", *fields_table(part)]
+    return "\n".join([*out, ""])
 
 
 def generated_file_main(argv: list[str] | None, prog: str, doc: str, path: Path, render: Callable[[], str]) -> int:

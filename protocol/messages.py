@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from typing import Annotated, Final, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
 from protocol.qube import Phase, RigState
 from protocol.rigtime import SECONDS_LIMIT
@@ -48,6 +48,8 @@ Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
 #: Seconds of rig time on the wire (protocol/rigtime.py): finite, 0..SECONDS_LIMIT.
 RigSeconds = Annotated[float, Field(ge=0.0, le=SECONDS_LIMIT)]
 BalanceSteps = Annotated[int, Field(ge=0, le=10**9)]
+#: The most episodes, and env steps, a worker's ``played`` counts may carry.
+PLAYED_EPISODES_LIMIT, PLAYED_STEPS_LIMIT = 10**9, 10**12
 #: A chief message's authenticator: HMAC-SHA256 (hex) under the run's key (protocol/auth.py); empty without a key.
 Tag = Annotated[str, StringConstraints(max_length=64, pattern=r"^([0-9a-f]{64})?$")]
 
@@ -107,7 +109,30 @@ class Receipt(Strict):
     keep: float | None = Field(default=None, ge=0.0, le=1.0)
 
 
-class WorkerUpdate(Message):
+class Played(Strict):
+    """What a worker has played in this run since it started (``life``: a token drawn at its start, so a restarted
+    worker counts anew): its episodes and env steps, this one included, whether or not the chief counted them. Every
+    submission carries it; the chief records it even for one it refuses (stale, out of window...), so the run folder
+    shows the env steps a worker took (rig time, on a rig) apart from those the federation counted."""
+
+    life: Annotated[str, StringConstraints(min_length=8, max_length=32, pattern=r"^[0-9a-f]+$")]
+    episodes: int = Field(ge=1, le=PLAYED_EPISODES_LIMIT)
+    steps: int = Field(ge=0, le=PLAYED_STEPS_LIMIT)
+
+
+class WorkerSubmission(Message):
+    """What a worker's submissions (WorkerUpdate, MatureParams) share: ``played`` counts at least this episode."""
+
+    @model_validator(mode="after")
+    def _played_covers_the_episode(self) -> WorkerSubmission:
+        played: Played | None = getattr(self, "played", None)
+        steps: int = getattr(self, "steps", 0)
+        if played is not None and played.steps < steps:
+            raise ValueError(f"played.steps {played.steps} is less than this episode's {steps} steps")
+        return self
+
+
+class WorkerUpdate(WorkerSubmission):
     """Algorithm 2, end of an episode: the episode's actor gradient g_theta^n and the Performance Index.
 
     ``recent_returns`` are the returns PI is the mean of (oldest first, this episode's last), so the chief can
@@ -129,6 +154,7 @@ class WorkerUpdate(Message):
     steps: int = Field(ge=0)
     gradient: TensorDict
     receipt: Receipt | None = None
+    played: Played | None = None
     step: int = Field(default=0, ge=0)
     critic_gradient: TensorDict | None = None
     actor_loss: Stat | None = None
@@ -142,11 +168,11 @@ class WorkerUpdate(Message):
     idle_s: RigSeconds | None = None
 
 
-class MatureParams(Message):
+class MatureParams(WorkerSubmission):
     """Algorithm 2, learning finished (PI >= TC over PI_WINDOW episodes): the worker's mature actor theta_n.
 
-    This is the worker's finish. It sends it again until a ChiefAck for this episode arrives. The rig-time fields
-    are those of WorkerUpdate.
+    This is the worker's finish. It sends it again until a ChiefAck for this episode arrives. The ``played`` counts
+    and the rig-time fields are those of WorkerUpdate.
     """
 
     kind: Literal["mature"] = "mature"
@@ -158,6 +184,7 @@ class MatureParams(Message):
     steps: int = Field(default=0, ge=0)
     params: TensorDict
     receipt: Receipt | None = None
+    played: Played | None = None
     balance_steps: BalanceSteps | None = None
     balance_s: RigSeconds | None = None
     reset_s: RigSeconds | None = None

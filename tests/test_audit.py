@@ -21,6 +21,8 @@ from chief.rounds import RoundKeeper, Submission
 from protocol.tasks import PI_WINDOW, performance_index, task
 
 SOLVE_AT = {"w0": 12, "w1": 15, "w2": 21}  # episodes at which each simulated worker hands over its actor
+#: w2 also played an episode of this many env steps whose submission never arrived: played, never counted.
+LOST_STEPS = 17
 
 
 def simulate(run_dir: Path, policy: str = "weighted") -> None:
@@ -32,6 +34,8 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                          actor_spec={"g": (2,)}, critic_spec={"c": (1,)}, shape=shape)
     returns: dict[str, list[float]] = {w: [] for w in SOLVE_AT}
     receipts: dict[str, dict[str, Any] | None] = {w: None for w in SOLVE_AT}
+    played = {w: {"life": f"{index:016x}", "episodes": 0, "steps": 0} for index, w in enumerate(sorted(SOLVE_AT))}
+    played["w2"].update(episodes=1, steps=LOST_STEPS)
     metrics = MetricsLog(run_dir)  # the chief's writer
     episode = 1
     while not keeper.done:
@@ -42,6 +46,7 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                     continue
                 if step == 0:
                     returns[w].append(200.0 if episode > SOLVE_AT[w] - PI_WINDOW else 20.0 + 10 * index + episode)
+                    played[w].update(episodes=played[w]["episodes"] + 1, steps=played[w]["steps"] + int(returns[w][-1]))
                 ret = returns[w][-1]
                 mature = episode == SOLVE_AT[w]
                 tensors = {"g": np.array([episode + step, -index], np.float32)}
@@ -49,7 +54,8 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                 verdict = keeper.submit(Submission(
                     w, episode, performance_index(returns[w]), ret, recent_returns=tuple(returns[w][-PI_WINDOW:]),
                     steps=int(ret), gradient=None if mature else tensors, params=tensors if mature else None,
-                    receipt=receipts[w], step=step, critic_gradient=critic), now=float(episode))
+                    receipt=receipts[w], step=step, critic_gradient=critic, played=dict(played[w])),
+                    now=float(episode))
                 assert verdict.status == "accepted", verdict.detail
                 metrics.episode(verdict.record(float(episode)))
                 for outcome in verdict.outcomes:
@@ -59,7 +65,8 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                                        "keep": outcome.keep_weights.get(r) if outcome.kind == "transfer" else None}
         episode += 1
     metrics.close()
-    write_summary(run_dir, run_summary(keeper, keeper.done_reason or "", run_id="sim", seed=0))
+    write_summary(run_dir, run_summary(keeper, keeper.done_reason or "", played=metrics.played, run_id="sim",
+                                       seed=0))
 
 
 @pytest.fixture(scope="module")
@@ -194,7 +201,15 @@ def doctor_fakexfer(lines: list[dict]) -> None:
                                                                       "digest": "f" * 16, "keep": 0.0}
 
 
+def doctor_played_under(lines: list[dict]) -> None:
+    """w0 said it played 1 env step in every submission, yet the chief counted more."""
+    for x in lines:
+        if x["type"] == "episode" and x["worker"] == "w0":
+            x["played"]["steps"] = 1
+
+
 DOCTORED = [
+    (doctor_played_under, "played"),
     (doctor_fakexfer, "receipts"),
     (doctor_weight, "eq8-weights"),
     (doctor_weights_sum, "eq8-weights"),
@@ -223,7 +238,7 @@ def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     ``rig-time`` by a doctored rig's record in tests/test_rigtime.py), and its docstring says which equation,
     algorithm or figure of the paper it protects."""
     assert {invariant for _, invariant in DOCTORED} | {"summary", "rig-time"} == {c.invariant for c in CHECKS}
-    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 11
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 12
     for c in CHECKS:
         assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
 
@@ -256,6 +271,28 @@ def test_a_doctored_summary_fails(honest: Path, tmp_path: Path, field: str, valu
     (run_dir / "summary.json").write_text(json.dumps(summary))
     with pytest.raises(AuditFailure, match="summary: the summary says w1 solved at episode 14"):
         audit(run_dir)
+
+
+def test_played_steps_are_counted_and_refused_apart(honest: Path, tmp_path: Path) -> None:
+    """summary.json gives each worker everything it played, what the chief counted and the rest apart (w2's lost
+    episode), the run's totals too; a doctored count fails the ``played`` invariant."""
+    summary = json.loads((honest / "summary.json").read_text())
+    played = {w["id"]: w["played"] for w in summary["workers"]}
+    counted = {w: sum(x["steps"] for x in records(honest) if x["type"] == "episode" and x["worker"] == w)
+               for w in SOLVE_AT}
+    assert played["w2"] == {"episodes": 22, "steps": counted["w2"] + LOST_STEPS, "counted_episodes": 21,
+                            "counted_steps": counted["w2"], "refused_episodes": 1, "refused_steps": LOST_STEPS}
+    assert played["w0"]["refused_steps"] == 0 and played["w0"]["steps"] == counted["w0"]
+    assert summary["played_steps"] == summary["total_steps"] + LOST_STEPS and summary["refused_steps"] == LOST_STEPS
+    run_dir = tmp_path / "doctored"
+    shutil.copytree(honest, run_dir)
+    for doctored in ({"workers": 2, "refused_steps": 0}, {"workers": 0, "counted_steps": 1}, {"refused_steps": 0}):
+        data = json.loads((honest / "summary.json").read_text())
+        row = data["workers"][doctored.pop("workers")]["played"] if "workers" in doctored else data
+        row.update(doctored)
+        (run_dir / "summary.json").write_text(json.dumps(data))
+        with pytest.raises(AuditFailure, match=r"^played: "):
+            audit(run_dir)
 
 
 def test_the_command_exits_non_zero_naming_the_invariant(honest: Path, tmp_path: Path) -> None:

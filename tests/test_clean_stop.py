@@ -1,6 +1,7 @@
 """A clean stop publishes no last will (issue 19, item 5): every queued packet and a DISCONNECT reach the broker
 before the network loop ends, for the connections of a worker, the chief and the bridge, on both brokers, and for a
-real ``python -m rpi_bridge`` (on a simulated SPI peer) and ``python -m services.qube_sim`` stopped by SIGTERM."""
+real ``python -m rpi_bridge`` (on a simulated SPI peer), ``python -m services.qube_sim``, ``python -m worker`` and
+``python -m chief`` stopped by SIGTERM."""
 
 from __future__ import annotations
 
@@ -43,10 +44,10 @@ class SpiDev:
 class Watcher:
     """A subscriber that keeps what arrives on one topic."""
 
-    def __init__(self, url: str, topic: str) -> None:
+    def __init__(self, url: str, topic: str, client_id: str = "watcher") -> None:
         self.got: list[bytes] = []
         self.event = threading.Event()
-        self.conn = MqttConnection(BrokerAddress.parse(url), client_id="watcher").start()
+        self.conn = MqttConnection(BrokerAddress.parse(url), client_id=client_id).start()
         self.conn.subscribe(topic, self._on, qos=1)
         time.sleep(0.3)  # the SUBACK
 
@@ -119,3 +120,45 @@ def test_sigterm_stops_the_bridge_without_a_will(any_broker: str, tmp_path: Path
             proc.wait()
         log.close()
         watcher.conn.stop()
+
+
+def test_sigterm_stops_a_worker_and_the_chief_without_a_will(any_broker: str, tmp_path: Path) -> None:
+    """A real ``python -m worker`` and ``python -m chief`` mid-run, each stopped by SIGTERM: the worker says
+    ``stopped`` and its status topic never shows its last will; the chief (which has no will) ends the run resumably
+    and its last messages (the RunStop, then the cleared claim) still reach the broker before it disconnects."""
+    run, run_dir = "sigterm", tmp_path / "run"
+    common = ["--broker", any_broker, "--run-id", run, "--env", "CartPole-v0"]
+    status = Watcher(any_broker, topics.worker(run, "w0", topics.STATUS), "watch-status")
+    chief_said = Watcher(any_broker, topics.chief(run, "#"), "watch-chief")
+    logs = {name: (tmp_path / f"{name}.log").open("wb") for name in ("chief", "worker")}
+    chief = subprocess.Popen([sys.executable, "-m", "chief", *common, "--workers", "1", "--max-episodes", "2000",
+                              "--run-dir", str(run_dir)], cwd=ROOT, stdout=logs["chief"], stderr=subprocess.STDOUT)
+    worker = subprocess.Popen([sys.executable, "-m", "worker", *common, "--worker-id", "w0"], cwd=ROOT,
+                              stdout=logs["worker"], stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(decode(p).state == "training" for p in status.got):  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline and worker.poll() is None, (tmp_path / "worker.log").read_text()
+            time.sleep(0.1)
+        time.sleep(1.0)  # a few rounds
+        worker.send_signal(signal.SIGTERM)
+        assert worker.wait(15) == 130, (tmp_path / "worker.log").read_text()
+        chief.send_signal(signal.SIGTERM)
+        assert chief.wait(15) == 130, (tmp_path / "chief.log").read_text()
+        time.sleep(1.5)  # a will would be published at once (both brokers), a late one within the keep-alive
+        details = status.details()
+        assert details[-1] == "interrupted" and "connection lost" not in details, details
+        stops = [m for m in map(decode, chief_said.got) if m.kind == "run_stop"]  # type: ignore[attr-defined]
+        assert [s.reason for s in stops] == ["interrupted"], stops  # type: ignore[attr-defined]
+        claim = Watcher(any_broker, topics.claim(run), "watch-claim")
+        claim.conn.stop()
+        assert claim.got == [], claim.got  # the claim was cleared: no retained claim is left
+    finally:
+        for proc in (worker, chief):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for log in logs.values():
+            log.close()
+        status.conn.stop()
+        chief_said.conn.stop()

@@ -12,10 +12,10 @@ import pytest
 import yaml
 from paho.mqtt.client import topic_matches_sub
 
-from protocol import asyncapi
-from protocol.messages import MESSAGE_TYPES, Receipt
+from protocol import asyncapi, contract
+from protocol.messages import MESSAGE_TYPES, Played
 from protocol.routes import DASHBOARD, PROCESSES, ROUTES, Route, qos_of, route_of
-from protocol.tensors import ALLOWED_DTYPES, TensorBlob
+from protocol.tensors import ALLOWED_DTYPES
 
 #: The top-level fields an AsyncAPI 3.0 document may have.
 TOP_LEVEL = {"asyncapi", "id", "info", "servers", "defaultContentType", "channels", "operations", "components"}
@@ -105,7 +105,8 @@ def test_every_route_is_a_channel_with_its_publisher_subscribers_and_qos(doc: di
 
 def test_every_message_model_appears_with_its_fields(doc: dict[str, Any]) -> None:
     schemas = doc["components"]["schemas"]
-    for model in (*MESSAGE_TYPES.values(), Receipt, TensorBlob):
+    assert Played in contract.MODELS
+    for model in contract.MODELS:
         assert set(schemas[model.__name__]["properties"]) == set(model.model_fields), model.__name__
     assert set(doc["components"]["messages"]) == {m.__name__ for m in MESSAGE_TYPES.values()}
     for kind, model in MESSAGE_TYPES.items():

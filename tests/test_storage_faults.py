@@ -5,11 +5,13 @@ stays as it was and no temporary file is left. Each case runs in a private mount
 
 from __future__ import annotations
 
+import json
 import os
 import shutil
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 
 import pytest
@@ -148,3 +150,58 @@ def test_the_launcher_never_dies_with_a_traceback(tmp_path: Path, fault: str) ->
     assert "Traceback" not in done.stderr, done.stderr
     last = done.stderr.strip().splitlines()[-1]
     assert last.startswith("python -m deploy.run_local: cannot write ") and "/run" in last, last
+
+
+def test_the_chief_resumes_once_the_folder_is_writable_again(amqtt_broker: str, tmp_path: Path) -> None:
+    """Issue 19, item 4: a chief whose run folder became unwritable mid-run (0555, the chief without root's
+    file-permission bypass) stops with one line and exit 5, its saved state intact and no temporary left; once the
+    folder is writable again the same command resumes the run from that state, and the waiting workers finish it with
+    the result of an uninterrupted run."""
+    from chief import checkpoint
+    from chief.audit import audit
+    from deploy.inprocess import run_federation
+    from protocol.tasks import task
+    from tests.test_chief_resume import per_worker, rounds_closed
+
+    episodes, run_id, run_dir = 20, "storage-resume", tmp_path / "run"
+    common = ["--broker", amqtt_broker, "--run-id", run_id, "--env", "CartPole-v0"]
+    chief = [*UNPRIVILEGED, sys.executable, "-m", "chief", *common, "--workers", "2", "--policy", "weighted",
+             "--seed", "1", "--max-episodes", str(episodes), "--run-dir", str(run_dir)]
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    workers = [subprocess.Popen([sys.executable, "-m", "worker", *common, "--worker-id", f"w{i}"], cwd=ROOT,
+                                stdout=(logs / f"w{i}.log").open("wb"), stderr=subprocess.STDOUT) for i in range(2)]
+    try:
+        first = subprocess.Popen(chief, cwd=ROOT, stdout=(logs / "chief.log").open("wb"), stderr=subprocess.PIPE,
+                                 text=True)
+        deadline = time.monotonic() + 60
+        while rounds_closed(run_dir / "metrics.jsonl") < 4:
+            assert time.monotonic() < deadline and first.poll() is None, (logs / "chief.log").read_text()
+            time.sleep(0.01)
+        run_dir.chmod(0o555)
+        _, err = first.communicate(timeout=60)
+        assert first.returncode == EXIT_STORAGE, err
+        last = err.strip().splitlines()[-1]
+        assert last.startswith("chief: cannot write ") and str(run_dir) in last and last.endswith("(EACCES)"), err
+        assert "Traceback" not in err, err
+        saved = checkpoint.load(run_dir, task("CartPole-v0"))
+        assert saved is not None and saved[0].resumable and 4 <= saved[0].round < episodes
+        leftovers = [p.name for p in run_dir.iterdir() if p.is_file() and (p.suffix == ".tmp" or not p.stat().st_size)]
+        assert leftovers == [] and not (run_dir / "summary.json").exists()
+
+        run_dir.chmod(0o755)  # space freed, permissions fixed: the same command again
+        again = subprocess.run(chief, cwd=ROOT, capture_output=True, text=True, timeout=120)
+        assert again.returncode == 0, again.stdout[-3000:] + again.stderr[-3000:]
+        assert f"resuming run {run_id}" in again.stdout + again.stderr
+        assert [w.wait(timeout=60) for w in workers] == [0, 0]
+    finally:
+        if run_dir.exists():
+            run_dir.chmod(0o755)
+        for w in workers:
+            if w.poll() is None:
+                w.kill()
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["restarts"] == 1
+    audit(run_dir)
+    run_federation("CartPole-v0", "weighted", 1, 2, episodes, tmp_path / "uninterrupted", plot=False)
+    assert per_worker(run_dir) == per_worker(tmp_path / "uninterrupted")

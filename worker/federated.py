@@ -24,12 +24,22 @@ from __future__ import annotations
 
 import logging
 import math
+import secrets
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 
-from protocol.messages import STAT_BOUNDS, ChiefAck, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
+from protocol.messages import (
+    STAT_BOUNDS,
+    ChiefAck,
+    ChiefAggregate,
+    ChiefTransfer,
+    MatureParams,
+    Played,
+    Receipt,
+    WorkerUpdate,
+)
 from protocol.rigtime import SECONDS_LIMIT, EpisodeTime
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
@@ -41,10 +51,11 @@ log = logging.getLogger("worker")
 
 
 class Algorithm2:
-    """One worker's side of every round, from ``first_episode`` on."""
+    """One worker's side of every round, from ``first_episode`` on. ``life`` names this worker's life in the run
+    (protocol.messages.Played; drawn at random when not given)."""
 
     def __init__(self, worker_id: str, env: gym.Env, learner: PPOLearner, tc: float, seed: int,
-                 first_episode: int = 1, shape: RoundShape = PER_EPISODE) -> None:
+                 first_episode: int = 1, shape: RoundShape = PER_EPISODE, life: str | None = None) -> None:
         if shape.per_episode not in (1, learner.config.update_epochs):
             raise ValueError(f"the chief runs {shape.per_episode} rounds per episode, but this worker's PPO takes "
                              f"{learner.config.update_epochs} steps per episode")
@@ -59,6 +70,7 @@ class Algorithm2:
         self.step = 0  # the mini-batch step of the open submission
         self.returns: list[float] = []
         self.total_steps = 0
+        self.life = life or secrets.token_hex(8)
         self.receipt: Receipt | None = None  # what was done with the last round's answer
         self.actor_spec = learner.actor_spec()
         self._played = False
@@ -72,6 +84,11 @@ class Algorithm2:
     @property
     def pi(self) -> float | None:
         return performance_index(self.returns) if self.returns else None
+
+    @property
+    def played(self) -> Played:
+        """Every episode and env step played so far, counted by the chief or not (sent with each submission)."""
+        return Played(life=self.life, episodes=max(1, len(self.returns)), steps=self.total_steps)
 
     @property
     def finished(self) -> bool:
@@ -107,7 +124,7 @@ class Algorithm2:
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,
                                 params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt,
-                                **self._rig)
+                                played=self.played, **self._rig)
         return self._first_update()
 
     def accepted(self, ack: ChiefAck) -> None:
@@ -140,7 +157,7 @@ class Algorithm2:
         ret, steps = self._last
         return WorkerUpdate(worker_id=self.worker_id, episode=self.episode, step=self.step, episode_return=ret,
                             pi=self.pi, recent_returns=self.returns[-PI_WINDOW:], steps=steps,
-                            gradient=pack_arrays(actor), receipt=self.receipt,
+                            gradient=pack_arrays(actor), receipt=self.receipt, played=self.played,
                             critic_gradient=pack_arrays(critic) if critic is not None else None,
                             **_loss_fields(stats), **(self._rig if self.step == 0 else {}))
 

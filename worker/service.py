@@ -12,6 +12,7 @@ import math
 import os
 import queue
 import socket
+import threading
 import time
 import uuid
 from typing import Any
@@ -49,6 +50,8 @@ from worker.settings import WorkerSettings
 log = logging.getLogger("worker")
 
 EXIT_OK, EXIT_ERROR, EXIT_NOT_STARTED, EXIT_ABORTED = 0, 1, 3, 4
+#: The exit code of a worker stopped by SIGINT or SIGTERM before it solved (it said ``stopped`` and disconnected).
+EXIT_INTERRUPTED = 130
 
 
 def auto_worker_id() -> str:
@@ -72,6 +75,7 @@ class WorkerService:
         self.acks: dict[int, ChiefAck] = {}  # by the round of the MatureParams they answer
         self.answered: set[int] = set()  # rounds whose answer was applied (a repeated answer is not applied again)
         self.stop: RunStop | None = None
+        self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler)
         self.start: RunStart | None = None
         self.restarted = False  # a RunStart of a new epoch arrived: the chief restarted
         self.epoch = 0
@@ -90,6 +94,16 @@ class WorkerService:
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
+
+    def interrupt(self) -> None:
+        """Stop at the next wait (SIGINT, SIGTERM): say ``stopped`` and disconnect cleanly, so no last will is
+        published. Safe from a signal handler."""
+        self._interrupt.set()
+
+    @property
+    def halted(self) -> bool:
+        """Whether to stop: the chief's RunStop came, or the worker was interrupted."""
+        return self.stop is not None or self._interrupt.is_set()
 
     def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
         return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
@@ -138,6 +152,9 @@ class WorkerService:
         self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
         try:
             start = self._join()
+            if start is None and self._interrupt.is_set():
+                self._status("stopped", detail="interrupted before the run started")
+                return EXIT_INTERRUPTED
             if start is None:
                 log.error("no RunStart naming %s within %.0f s", cfg.worker_id, cfg.start_timeout)
                 return EXIT_NOT_STARTED
@@ -167,7 +184,7 @@ class WorkerService:
         self.actor_spec = probe.actor_spec()
         deadline = time.monotonic() + cfg.start_timeout
         next_hello = 0.0
-        while time.monotonic() < deadline:
+        while time.monotonic() < deadline and not self._interrupt.is_set():
             if time.monotonic() >= next_hello:
                 self._send(topics.HELLO, encode(hello))
                 next_hello = time.monotonic() + 1.0
@@ -201,7 +218,7 @@ class WorkerService:
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
                           shape=start.shape)
         try:
-            while algo.next_episode <= start.max_episodes and self.stop is None:
+            while algo.next_episode <= start.max_episodes and not self.halted:
                 submission: WorkerUpdate | MatureParams | None = algo.play()
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner, algo, start)
@@ -218,7 +235,7 @@ class WorkerService:
                             self._catch_up(algo)
                         continue
                     if ack is None:
-                        if self.stop is not None:
+                        if self.halted:
                             break
                         raise TimeoutError(f"the chief did not acknowledge the mature actor of episode "
                                            f"{submission.episode} within {cfg.ack_timeout:.0f} s")
@@ -232,7 +249,10 @@ class WorkerService:
                         self.rejects.reject(topics.chief(cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
             if not algo.finished:
                 self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
-                             detail=self.stop.reason if self.stop else "episode limit")
+                             detail=self.stop.reason if self.stop else "interrupted" if self.halted else
+                             "episode limit")
+            if self.stop is None and self.halted and not algo.finished:
+                return EXIT_INTERRUPTED
             if self.stop is not None and self.stop.aborted and not algo.finished:
                 log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
                 return EXIT_ABORTED
@@ -245,13 +265,13 @@ class WorkerService:
         episode's rounds (published to every worker) and apply them, as the others did, before it plays on."""
         rounds = algo.skipped_rounds
         deadline = time.monotonic() + self.cfg.reply_timeout
-        while self.stop is None and time.monotonic() < deadline and any(r not in self.replies for r in rounds):
+        while not self.halted and time.monotonic() < deadline and any(r not in self.replies for r in rounds):
             self._receive(timeout=0.5)
         applied = algo.catch_up({r: m for r in rounds if isinstance(m := self.replies.get(r), ChiefAggregate)})
         for r in rounds:
             if self.replies.pop(r, None) is not None:
                 self.answered.add(r)
-        if len(applied) < len(rounds) and self.stop is None:
+        if len(applied) < len(rounds) and not self.halted:
             missing = [r for r in rounds if r not in applied]
             log.warning("applied the answers of rounds %s of the finishing episode, not %s (%s): this worker's "
                         "networks now differ from the others'", applied, missing,
@@ -267,10 +287,10 @@ class WorkerService:
         self.submitted = max(self.submitted, self.shape.rounds_of(mature.episode)[-1])
         deadline = time.monotonic() + self.cfg.ack_timeout
         interval = 2.0
-        while self.stop is None and time.monotonic() < deadline:
+        while not self.halted and time.monotonic() < deadline:
             self._send(topics.UPDATE, payload)
             resend_at = min(deadline, time.monotonic() + interval)
-            while self.stop is None and round_ not in self.acks and time.monotonic() < resend_at:
+            while not self.halted and round_ not in self.acks and time.monotonic() < resend_at:
                 self._receive(timeout=min(0.5, max(0.0, resend_at - time.monotonic())))
             if round_ in self.acks:
                 self.idle_s += time.monotonic() - began
@@ -376,7 +396,7 @@ class WorkerService:
         self.submitted = max(self.submitted, round_)
         sent_at, connects = -math.inf, -1
         self.restarted = False
-        while round_ not in self.replies and self.stop is None:
+        while round_ not in self.replies and not self.halted:
             now = time.monotonic()
             if now >= deadline:
                 self.missed_replies += 1

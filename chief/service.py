@@ -164,6 +164,7 @@ class ChiefService:
                 workers = self._gather_workers()
                 if self._interrupt.is_set():
                     log.warning("interrupted before the run started: nothing to save")
+                    self.claim.clear()  # nothing to resume: the next chief of this run id may start
                     return EXIT_INTERRUPTED
                 if not workers:
                     log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)

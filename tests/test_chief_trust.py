@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from chief.claim import RunClaim
-from chief.service import EXIT_CLAIMED, ChiefService, Outputs
+from chief.service import EXIT_CLAIMED, EXIT_INTERRUPTED, ChiefService, Outputs
 from chief.settings import ChiefSettings
 from protocol import topics
 from protocol.auth import signed
@@ -71,6 +71,30 @@ def test_a_run_has_one_chief_its_resumed_self_takes_it_back_and_the_claim_ends_w
             later.stop()
     finally:
         first.stop()
+
+
+def test_a_chief_interrupted_before_any_worker_came_leaves_the_run_free(any_broker: str, tmp_path: Path) -> None:
+    """Nothing to resume, so no claim left behind: the next chief of the run id starts (it was refused with 6)."""
+    run = f"early-{time.monotonic_ns()}"
+
+    def chief(name: str) -> ChiefService:
+        return ChiefService(ChiefSettings.given(broker=any_broker, run_id=run, workers=2, env=ENV, seed=SEED,
+                                                start_timeout=60, run_dir=tmp_path / name),
+                            outputs=Outputs(state=False, tensorboard=False, plot=False, progress=False))
+
+    first = chief("first")
+    codes: list[int] = []
+    thread = threading.Thread(target=lambda: codes.append(first.run()), daemon=True)
+    thread.start()
+    time.sleep(1.0)  # it has claimed the run and waits for workers
+    first.interrupt()
+    thread.join(timeout=30)
+    assert codes == [EXIT_INTERRUPTED]
+    conn = connection(any_broker, "later")
+    try:
+        assert RunClaim(conn, claim(run, "ffff", time.time()), None, RejectCounter(LOG)).take() is None
+    finally:
+        conn.stop()
 
 
 def test_a_second_chief_for_a_live_run_exits_6_with_one_line(any_broker: str, tmp_path: Path) -> None:

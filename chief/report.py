@@ -82,10 +82,10 @@ class MetricsLog:
         if sink is not None:
             self.sinks.append(sink)
 
-    @property
-    def rigs(self) -> dict[str, RigTime]:
-        """Each rig's time so far ({} for the gymnasium tasks)."""
-        return rig_times(self._timed)
+    def rigs(self, staleness: int = 0) -> dict[str, RigTime]:
+        """Each rig's time so far ({} for the gymnasium tasks), its workers leaving up to ``staleness`` rounds
+        unanswered."""
+        return rig_times(self._timed, staleness)
 
     def _note(self, record: Line) -> None:
         if isinstance(record, EpisodeRecord):
@@ -130,7 +130,8 @@ def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | No
         episodes_to_all_solved=last.episodes if all_solved else None,
         steps_of_last_worker=last.steps if all_solved else None,
         total_steps=sum(rec.steps for rec in keeper.workers.values()), rounds=keeper.round - 1,
-        rounds_per_episode=keeper.rounds_per_episode, end_reason=reason, last_rig=last_rig(dict(rigs)), **meta)
+        rounds_per_episode=keeper.rounds_per_episode, max_staleness=keeper.max_staleness, end_reason=reason,
+        last_rig=last_rig(dict(rigs)), **meta)
 
 
 def run_summary(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,

@@ -134,7 +134,7 @@ class WorkerUpdate(Message):
     steps: int = Field(ge=0)
     gradient: TensorDict
     receipt: Receipt | None = None
-    earlier_receipts: list[Receipt] = Field(default_factory=list, max_length=STALENESS_LIMIT)
+    earlier_receipts: tuple[Receipt, ...] = Field(default=(), max_length=STALENESS_LIMIT)
     step: int = Field(default=0, ge=0)
     critic_gradient: TensorDict | None = None
     actor_loss: Stat | None = None
@@ -164,7 +164,7 @@ class MatureParams(Message):
     steps: int = Field(default=0, ge=0)
     params: TensorDict
     receipt: Receipt | None = None
-    earlier_receipts: list[Receipt] = Field(default_factory=list, max_length=STALENESS_LIMIT)
+    earlier_receipts: tuple[Receipt, ...] = Field(default=(), max_length=STALENESS_LIMIT)
     balance_steps: BalanceSteps | None = None
     balance_s: RigSeconds | None = None
     reset_s: RigSeconds | None = None

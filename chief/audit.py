@@ -474,8 +474,8 @@ def receipts(run: Run) -> None:
 
 @check("staleness")
 def staleness(run: Run) -> None:
-    """Bounded staleness (summary.json ``max_staleness`` S; 0: every answer before the next submission): each worker
-    applied the chief's answers in round order and each once; the submission for round R that reports an answer
+    """Algorithm 2 under a bounded staleness (summary.json ``max_staleness`` S; 0: every answer before the next
+    submission): each worker applied the chief's answers in round order and each once; the submission for round R that reports an answer
     (its receipts, oldest first) reports one of a round in R - S - 1 .. R - 1, so the worker was never more than S
     of its rounds behind; and the receipt's episode, the first the worker played with the answer applied, is that
     submission's episode (receipts from workers that did not record it have none)."""

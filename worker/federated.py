@@ -75,8 +75,8 @@ class Algorithm2:
         self.returns: list[float] = []
         self.total_steps = 0
         self.receipt: Receipt | None = None  # what was done with the last answer applied
-        self.earlier: list[Receipt] = []  # the answers applied before it since the last submission (staleness)
-        self._sent = True  # a submission went out since the last receipt: the next one starts a new list
+        self._noted: list[Receipt] = []  # the answers applied since the last submission, oldest first
+        self._sent: tuple[int, list[Receipt]] = (0, [])  # the round of the last submission and the receipts it carried
         self.max_staleness = max_staleness
         self.owed: list[int] = []  # rounds submitted whose answer is not applied yet, oldest first (per-episode)
         self.actor_spec = learner.actor_spec()
@@ -227,19 +227,18 @@ class Algorithm2:
 
     def _note(self, receipt: Receipt, episode: int) -> Receipt:
         """Keep an answer's receipt, first used in ``episode``, for the next submission."""
-        receipt = receipt.model_copy(update={"episode": episode})
-        if self._sent:
-            self.earlier = []
-        elif self.receipt is not None:
-            self.earlier.append(self.receipt)
-        self.receipt, self._sent = receipt, False
-        return receipt
+        self.receipt = receipt.model_copy(update={"episode": episode})
+        self._noted.append(self.receipt)
+        return self.receipt
 
     def _receipts(self) -> dict[str, Any]:
-        """The receipts a submission carries: every answer applied since the last one (the same again when a
-        refused mature actor's episode is submitted as an update)."""
-        self._sent = True
-        return {"receipt": self.receipt, "earlier_receipts": tuple(self.earlier)}
+        """The receipts a submission carries: every answer applied since the last submission, the last as
+        ``receipt`` (none when nothing was applied); a refused mature actor's episode, submitted again as an
+        update, carries the same."""
+        if self._sent[0] != self.round:
+            self._sent, self._noted = (self.round, self._noted), []
+        sent = self._sent[1]
+        return {"receipt": sent[-1] if sent else None, "earlier_receipts": tuple(sent[:-1])}
 
     @property
     def skipped_rounds(self) -> range:

@@ -458,7 +458,7 @@ def receipts(run: Run) -> None:
     this worker's w_T), also for a round that closed with no contributors (whose answer ``delivery`` cannot check):
     an answer the chief never sent (a forged or another chief's) shows here."""
     closed = {r.round: r for r in run.rounds}
-    for e, receipt in ((e, rc) for e in run.submissions for rc in e.receipts):
+    for e, receipt in ((sub, rc) for sub in run.submissions for rc in sub.receipts):
         if receipt.applied == "missed":
             continue
         r = closed.get(receipt.round)
@@ -475,10 +475,10 @@ def receipts(run: Run) -> None:
 @check("staleness")
 def staleness(run: Run) -> None:
     """Algorithm 2 under a bounded staleness (summary.json ``max_staleness`` S; 0: every answer before the next
-    submission): each worker applied the chief's answers in round order and each once; the submission for round R that reports an answer
-    (its receipts, oldest first) reports one of a round in R - S - 1 .. R - 1, so the worker was never more than S
-    of its rounds behind; and the receipt's episode, the first the worker played with the answer applied, is that
-    submission's episode (receipts from workers that did not record it have none)."""
+    submission): each worker applied the chief's answers in round order and each once; the submission for round R
+    that reports an answer (its receipts, oldest first) reports one of a round in R - S - 1 .. R - 1, so the worker
+    was never more than S of its rounds behind; and the receipt's episode, the first the worker played with the
+    answer applied, is that submission's episode (receipts from workers that did not record it have none)."""
     stale = run.summary.max_staleness
     for w in run.workers:
         last = 0

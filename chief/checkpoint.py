@@ -60,7 +60,8 @@ def _submission(s: Submission) -> dict[str, Any]:
 
 def _unsubmission(d: dict[str, Any]) -> Submission:
     return Submission(**{**d, "recent_returns": tuple(d["recent_returns"]),
-                         "earlier_receipts": tuple(d.get("earlier_receipts", ())), **{k: _unarrays(d[k]) for k in TENSORS}})
+                         "earlier_receipts": tuple(d.get("earlier_receipts", ())),
+                         **{k: _unarrays(d[k]) for k in TENSORS}})
 
 
 def _outcome(o: RoundOutcome) -> dict[str, Any]:
@@ -81,7 +82,8 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
         actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.shape.per_episode,
-        max_staleness=k.max_staleness, round=k.round, workers=workers, pending=[_submission(s) for s in k.pending.values()],
+        max_staleness=k.max_staleness, round=k.round, workers=workers,
+        pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
         done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted)

@@ -437,7 +437,8 @@ class ChiefService:
         keeper = self.keeper
         assert keeper is not None
         assert self.metrics is not None
-        return run_summary(keeper, reason, rigs=self.metrics.rigs(keeper.max_staleness), run_id=self.cfg.run_id, seed=self.cfg.seed,
+        return run_summary(keeper, reason, rigs=self.metrics.rigs(keeper.max_staleness), run_id=self.cfg.run_id,
+                           seed=self.cfg.seed,
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                            broker=str(self.broker), rejected_messages=self.rejects.as_dict(),

@@ -5,9 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
-from chief import strategies
 from pydantic import model_validator
 
+from chief import strategies
 from protocol.rounds import STALENESS_LIMIT
 from runtime.model_file import ModelPath
 from runtime.settings import OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting

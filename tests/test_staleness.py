@@ -100,10 +100,10 @@ def test_staleness_with_sync_is_one_line_and_exit_2(capsys: pytest.CaptureFixtur
 def test_the_idle_model_waits_only_for_the_round_s_back() -> None:
     rounds = [{"fast": 1.0, "slow": 3.0}] * 3
     assert model_idle(rounds) == {"fast": 6.0, "slow": 0.0}  # S = 0: 2 s per round
-    # S = 1: the fast rig waits only for the answer to its round before the last: closes at 3, 6, 9
-    # (the slow rig sets them); ready at 1, 2 (gate 0), then 3 < gate 3 -> waits 0; total 3 at the end.
-    idle = model_idle(rounds, staleness=1)
-    assert idle["slow"] == 0.0 and idle["fast"] < 6.0
+    # S = 1: the fast rig waits only for the answer to its round before the last. The slow rig closes the rounds
+    # at 3, 6, 9; the fast one is ready at 1 (no gate yet), at 2 (waits for round 1's close at 3: 1 s), at 4
+    # (waits for round 2's at 6: 2 s).
+    assert model_idle(rounds, staleness=1) == {"fast": 3.0, "slow": 0.0}
 
 
 # -- the audit -------------------------------------------------------------------------------------------------

@@ -226,7 +226,7 @@ class WorkerService:
                     log.error("the chief refused the mature actor of episode %d (%s); learning on",
                               submission.episode, ack.reason)
                     submission = algo.refused(submission)
-                if algo.max_staleness:  # bounded staleness: submit, and play on unless more than S rounds are owed
+                if algo.max_staleness and submission is not None:  # submit; play on unless more than S rounds owed
                     self._post(submission, algo.round)
                     self._settle(algo, algo.max_staleness)
                     continue

@@ -18,8 +18,12 @@ as chief/records.py types them):
   except the learners the round records as offline (and only a finishing round's learners can be);
 - ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
   sum to 1;
-- ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
-  answer (same tensor digest, same keep weight);
+- ``delivery``: each worker that took part in a round confirms that it applied the round's answer (same tensor
+  digest, same keep weight) with its next submission, or under a bounded staleness S (summary.json
+  ``max_staleness``) with one of its next S + 1, by the one for the round S + 1 later if it made that one;
+- ``staleness``: each worker applied the chief's answers in round order, each once, each to a round before the
+  submission that reports it and at most S + 1 rounds before it, and each receipt's episode (the first the worker
+  played with the answer applied) is that submission's episode;
 - ``receipts``: every receipt of an applied answer, in any counted submission, names a round the chief closed and
   matches the answer it recorded for that round (kind, tensor digest, the worker's keep weight), including rounds that
   closed with no contributors: a worker applied nothing the chief did not send;
@@ -50,6 +54,7 @@ from chief import federation, strategies
 from chief.played import played_totals
 from chief.records import EpisodeRecord, RefusedRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 from chief.rigtime import last_rig, rig_times
+from protocol.messages import Receipt
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
 from runtime.settings import program, returns_code
@@ -77,11 +82,13 @@ class AuditReport:
     transfers: int = 0
     transfer_deliveries: int = 0
     receipts: int = 0
+    staleness: int = 0
     uncounted: list[tuple[str, int]] = field(default_factory=list)
 
     def __str__(self) -> str:
         text = (f"{self.rounds} rounds, {self.submissions} counted submissions, {self.transfers} transfers "
-                f"({self.transfer_deliveries} recipients), {self.receipts} receipts confirmed")
+                f"({self.transfer_deliveries} recipients), {self.receipts} receipts confirmed"
+                + (f" (max staleness {self.staleness})" if self.staleness else ""))
         if self.uncounted:
             text += (f"; {len(self.uncounted)} submissions left in a round the run never closed (an aborted run, "
                      "or a finished helper's after the last finish)")
@@ -405,23 +412,26 @@ def eq8_weights(run: Run) -> None:
 def delivery(run: Run) -> None:
     """Algorithm 2 applies each answer (Eq. 9's g_bar, or Eq. 11's blend with w_T): each worker that took part in a
     round (and did not finish in it) confirms with its next counted submission that it applied the round's answer
-    (same tensor digest, same keep weight); a finisher that goes on helping confirms, when it rejoins, the answers
-    of its finishing episode it caught up with."""
+    (same tensor digest, same keep weight); under a bounded staleness S, with one of its submissions for the next
+    S + 1 rounds, at the latest with the one for round + S + 1 when it made it. A finisher that goes on helping
+    confirms, when it rejoins, the answers of its finishing episode it caught up with."""
+    stale = run.summary.max_staleness
     for r in run.rounds:
         for w in sorted(set(r.contributors) - set(r.finished)):
-            nxt = run.by_round.get((w, r.round + 1))
-            if nxt is not None:
-                _receipt(r, w, nxt)
-                run.report.receipts += 1
+            later = [run.by_round[(w, m)] for m in range(r.round + 1, r.round + stale + 2) if (w, m) in run.by_round]
+            found = next((rc for e in later for rc in e.receipts if rc.round == r.round), None)
+            if found is None and (w, r.round + stale + 1) not in run.by_round:
+                continue  # it has not (yet) had to apply it: it went on alone, finished or stopped
+            _receipt(r, w, found)
+            run.report.receipts += 1
     if run.strategy.finishers_help:
         _rejoined(run)
 
 
-def _receipt(r: RoundRecord, w: str, nxt: Submitted) -> None:
-    """``w``'s next submission confirms round ``r``'s answer."""
-    n, receipt = r.round, nxt.receipt
-    _holds(receipt is not None and receipt.round == n, f"{w}'s submission for round {n + 1} carries no receipt of "
-           f"round {n} ({receipt and receipt.model_dump()})")
+def _receipt(r: RoundRecord, w: str, receipt: Receipt | None) -> None:
+    """``receipt``, the one of ``w``'s submissions after round ``r`` that reports on it, confirms its answer."""
+    n = r.round
+    _holds(receipt is not None, f"{w}'s submissions after round {n} carry no receipt of round {n}")
     assert receipt is not None
     _holds(receipt.applied != "missed", f"round {n}'s {r.kind} never reached {w}")
     _holds(receipt.applied == r.kind and receipt.digest == r.digest, f"{w} applied {receipt.applied} "
@@ -455,9 +465,8 @@ def receipts(run: Run) -> None:
     this worker's w_T), also for a round that closed with no contributors (whose answer ``delivery`` cannot check):
     an answer the chief never sent (a forged or another chief's) shows here."""
     closed = {r.round: r for r in run.rounds}
-    for e in run.submissions:
-        receipt = e.receipt
-        if receipt is None or receipt.applied == "missed":
+    for e, receipt in ((sub, rc) for sub in run.submissions for rc in sub.receipts):
+        if receipt.applied == "missed":
             continue
         r = closed.get(receipt.round)
         _holds(r is not None, f"{e.worker} applied a {receipt.applied} as the answer to round {receipt.round}, which "
@@ -468,6 +477,30 @@ def receipts(run: Run) -> None:
         if r.kind == "transfer":
             _holds(_close(receipt.keep, r.keep_weights.get(e.worker)), f"{e.worker} kept {receipt.keep} of its actor "
                    f"in round {r.round}, the chief recorded {r.keep_weights.get(e.worker)}")
+
+
+@check("staleness")
+def staleness(run: Run) -> None:
+    """Algorithm 2 under a bounded staleness (summary.json ``max_staleness`` S; 0: every answer before the next
+    submission): each worker applied the chief's answers in round order and each once; the submission for round R
+    that reports an answer (its receipts, oldest first) reports one of a round in R - S - 1 .. R - 1, so the worker
+    was never more than S of its rounds behind; and the receipt's episode, the first the worker played with the
+    answer applied, is that submission's episode (receipts from workers that did not record it have none)."""
+    stale = run.summary.max_staleness
+    for w in run.workers:
+        last = 0
+        for (x, n), e in sorted(run.by_round.items(), key=lambda kv: kv[0][1]):
+            if x != w:
+                continue
+            for rc in e.receipts:
+                _holds(rc.round > last, f"{w} applied round {rc.round}'s answer after round {last}'s (reported in "
+                       f"round {n}): answers out of order, or one applied twice")
+                _holds(n - stale - 1 <= rc.round < n, f"{w}'s submission for round {n} reports round {rc.round}'s "
+                       f"answer, outside rounds {max(1, n - stale - 1)}..{n - 1} (max_staleness {stale})")
+                _holds(rc.episode is None or rc.episode == e.episode, f"{w} applied round {rc.round}'s answer "
+                       f"before episode {rc.episode}, but reported it with episode {e.episode}")
+                last = rc.round
+    run.report.staleness = stale
 
 
 @check("summary")
@@ -527,7 +560,7 @@ def played(run: Run) -> None:
 def rig_time(run: Run) -> None:
     """The headline figure of a rig learning by Algorithm 2 (chief/rigtime.py): the summary's rig time is what the
     records add up to."""
-    expected = rig_times(sorted(run.submissions, key=lambda e: e.round))
+    expected = rig_times(sorted(run.submissions, key=lambda e: e.round), run.summary.max_staleness)
     for s in run.summary.workers:
         got, want = s.rig, expected.get(s.id)
         _holds((got is None) == (want is None), f"the summary gives {s.id} {'no ' if got is None else ''}rig time, "

@@ -54,11 +54,14 @@ TENSORS = ("gradient", "params", "critic_gradient")
 
 def _submission(s: Submission) -> dict[str, Any]:
     fields = {k: v for k, v in vars(s).items() if k not in TENSORS}
-    return {**fields, "recent_returns": list(s.recent_returns), **{k: _arrays(getattr(s, k)) for k in TENSORS}}
+    return {**fields, "recent_returns": list(s.recent_returns), "earlier_receipts": list(s.earlier_receipts),
+            **{k: _arrays(getattr(s, k)) for k in TENSORS}}
 
 
 def _unsubmission(d: dict[str, Any]) -> Submission:
-    return Submission(**{**d, "recent_returns": tuple(d["recent_returns"]), **{k: _unarrays(d[k]) for k in TENSORS}})
+    return Submission(**{**d, "recent_returns": tuple(d["recent_returns"]),
+                         "earlier_receipts": tuple(d.get("earlier_receipts", ())),
+                         **{k: _unarrays(d[k]) for k in TENSORS}})
 
 
 def _outcome(o: RoundOutcome) -> dict[str, Any]:
@@ -79,7 +82,8 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
         actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.shape.per_episode,
-        round=k.round, workers=workers, pending=[_submission(s) for s in k.pending.values()],
+        max_staleness=k.max_staleness, round=k.round, workers=workers,
+        pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
         done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted)
@@ -109,7 +113,7 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
         raise ValueError(f"the saved run learns {state.env_id!r}, not {task.env_id!r}")
     k = RoundKeeper([w.worker_id for w in state.workers], state.policy, task, state.max_episodes,
                     state.round_timeout, actor_spec=_unspec(state.actor_spec), critic_spec=_unspec(state.critic_spec),
-                    shape=RoundShape(per_episode=state.rounds_per_episode))
+                    shape=RoundShape(per_episode=state.rounds_per_episode), max_staleness=state.max_staleness)
     k.workers.update((w.worker_id, restore_worker(w)) for w in state.workers)
     k.round = state.round
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state.pending}

@@ -46,7 +46,8 @@ class EpisodeRecord(Record):
     worker's measured idle seconds since its last submission (absent when its rig's clock is simulated). ``played``:
     what the worker had played when it sent this (protocol.messages.Played; absent when it did not say)."""
 
-    OPTIONAL = frozenset({"recent_returns", "ppo", "played", "balance_steps", "balance_s", "reset_s", "idle_s"})
+    OPTIONAL = frozenset({"recent_returns", "ppo", "played", "balance_steps", "balance_s", "reset_s", "idle_s",
+                          "earlier_receipts"})
 
     type: Literal["episode"] = "episode"
     worker: str
@@ -58,6 +59,7 @@ class EpisodeRecord(Record):
     kind: Literal["update", "mature"]
     receipt: Receipt | None = None
     t: float = 0.0
+    earlier_receipts: list[Receipt] | None = None
     recent_returns: list[float] | None = None
     ppo: dict[str, float | None] | None = None
     played: Played | None = None
@@ -66,11 +68,20 @@ class EpisodeRecord(Record):
     reset_s: float | None = Field(default=None, ge=0)
     idle_s: float | None = Field(default=None, ge=0)
 
+    @property
+    def receipts(self) -> list[Receipt]:
+        """Every answer the worker applied since its previous submission, oldest first (see protocol.messages)."""
+        return _receipts(self.earlier_receipts, self.receipt)
+
+
+def _receipts(earlier: list[Receipt] | None, last: Receipt | None) -> list[Receipt]:
+    return [*(earlier or []), *([last] if last is not None else [])]
+
 
 class StepRecord(Record):
     """A counted later mini-batch step (``step`` >= 1) of a per-step strategy's episode."""
 
-    OPTIONAL = frozenset({"ppo"})
+    OPTIONAL = frozenset({"ppo", "earlier_receipts"})
 
     type: Literal["step"] = "step"
     worker: str
@@ -79,7 +90,13 @@ class StepRecord(Record):
     step: int
     receipt: Receipt | None = None
     t: float = 0.0
+    earlier_receipts: list[Receipt] | None = None
     ppo: dict[str, float | None] | None = None
+
+    @property
+    def receipts(self) -> list[Receipt]:
+        """Every answer the worker applied since its previous submission, oldest first."""
+        return _receipts(self.earlier_receipts, self.receipt)
 
 
 class RoundRecord(Record):
@@ -244,6 +261,7 @@ class RunSummary(Record):
     refused_steps: int | None = None
     rounds: int
     rounds_per_episode: int = 1
+    max_staleness: int = 0
     end_reason: str
     mode: str | None = None
     wall_s: float | None = None
@@ -302,6 +320,7 @@ class KeeperState(Record):
     actor_spec: dict[str, list[int]] | None
     critic_spec: dict[str, list[int]] | None
     rounds_per_episode: int
+    max_staleness: int = 0
     round: int
     workers: list[SavedWorker]
     pending: list[dict[str, Any]]

@@ -98,10 +98,10 @@ class MetricsLog:
         if sink is not None:
             self.sinks.append(sink)
 
-    @property
-    def rigs(self) -> dict[str, RigTime]:
-        """Each rig's time so far ({} for the gymnasium tasks)."""
-        return rig_times(self._timed)
+    def rigs(self, staleness: int = 0) -> dict[str, RigTime]:
+        """Each rig's time so far ({} for the gymnasium tasks), its workers leaving up to ``staleness`` rounds
+        unanswered."""
+        return rig_times(self._timed, staleness)
 
     @property
     def played(self) -> dict[str, PlayedTotals]:
@@ -157,7 +157,8 @@ def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | No
         total_steps=sum(rec.steps for rec in keeper.workers.values()),
         played_steps=sum(p.steps for p in played.values()) if played else None,
         refused_steps=sum(p.refused_steps for p in played.values()) if played else None, rounds=keeper.round - 1,
-        rounds_per_episode=keeper.rounds_per_episode, end_reason=reason, last_rig=last_rig(dict(rigs)), **meta)
+        rounds_per_episode=keeper.rounds_per_episode, max_staleness=keeper.max_staleness, end_reason=reason,
+        last_rig=last_rig(dict(rigs)), **meta)
 
 
 def run_summary(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,

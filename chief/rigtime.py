@@ -15,9 +15,9 @@ from chief.records import EpisodeRecord, LastRig, RigTime, RoundRecord, StepReco
 from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
 
 
-def rig_times(records: Iterable[EpisodeRecord | StepRecord | RoundRecord]) -> dict[str, RigTime]:
-    """Each rig's time (by worker id, in order of first appearance) from metrics.jsonl's records; {} when no record
-    carries rig time."""
+def rig_times(records: Iterable[EpisodeRecord | StepRecord | RoundRecord], staleness: int = 0) -> dict[str, RigTime]:
+    """Each rig's time (by worker id, in order of first appearance) from metrics.jsonl's records of a run whose
+    workers could leave ``staleness`` rounds unanswered; {} when no record carries rig time."""
     totals: dict[str, RigTotals] = {}
     measured: set[str] = set()
     rounds: dict[int, dict[str, float]] = {}  # round -> contributor -> rig seconds spent for it
@@ -32,7 +32,7 @@ def rig_times(records: Iterable[EpisodeRecord | StepRecord | RoundRecord]) -> di
             rounds.setdefault(rec.round, {})[rec.worker] = 0.0
     if not totals:
         return {}
-    model = IdleModel()
+    model = IdleModel(staleness=staleness)
     for number in sorted(rounds):
         model.close({w: s for w, s in rounds[number].items() if w in totals})
     out = {}

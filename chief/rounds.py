@@ -9,6 +9,12 @@ has K rounds per episode: round (e, s) carries step s of episode e, and the work
 computing the next step. Rounds are numbered 1, 2, ... over (episode, step) by the run's ``RoundShape``
 (protocol/rounds.py); with one round per episode the round is the episode.
 
+**Bounded staleness** (``max_staleness`` S, per-episode strategies only): a worker may play on while up to S of its
+own rounds are unanswered (worker/federated.py decides when it waits). The keeper decides nothing differently: a
+submission for a round ahead of the open one is filed for its round (the window is ``AHEAD_WINDOW`` > S), and the
+round still closes when every waited-on worker's submission for it is in. S travels to the workers in RunStart, is
+saved with the keeper and written to summary.json, where the audit finds it.
+
 ``submit`` decides whether a worker's submission counts:
 
 - it must come from a worker of the run, for a round in the open round's window (the open round up to
@@ -55,7 +61,7 @@ from typing import Any, Literal
 import numpy as np
 
 from chief import federation, strategies
-from protocol.rounds import PER_EPISODE, RoundShape
+from protocol.rounds import PER_EPISODE, STALENESS_LIMIT, RoundShape
 from protocol.tasks import PI_WINDOW, TaskSpec, performance_index
 from protocol.tensors import NORM_LIMIT, answer_digest, digest, l2_norm
 
@@ -64,8 +70,10 @@ log = logging.getLogger(__name__)
 WorkerState = Literal["active", "lagging", "offline", "finished"]
 Arrays = dict[str, np.ndarray]
 
-#: How many episodes ahead of the open round a submission may be (a worker that went on without an answer).
+#: How many episodes ahead of the open round a submission may be (a worker that went on without an answer, or one
+#: playing on under a bounded staleness: at most STALENESS_LIMIT ahead).
 AHEAD_WINDOW = 10
+assert AHEAD_WINDOW > STALENESS_LIMIT
 #: Reported returns may exceed the task's bounds by this share of (ceiling - floor): device noise can push an action
 #: slightly past its nominal range (MountainCarContinuous's action cost), but not a return of 1e9.
 RETURN_MARGIN = 0.1
@@ -82,7 +90,8 @@ class Submission:
     """What a worker sent for one round: a gradient (still learning) or, at step 0, its mature actor (finished).
 
     ``recent_returns`` are the returns its PI is the mean of, oldest first, ending with this episode's.
-    ``receipt`` is what it did with the answer to the round before (see protocol.messages.Receipt).
+    ``receipt`` is what it did with the last answer it applied (see protocol.messages.Receipt), ``earlier_receipts``
+    the answers it applied before that one since its last submission (only under a bounded staleness).
     ``step`` is the mini-batch step of a per-step strategy (0 otherwise); ``critic_gradient`` its critic's gradient.
     ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not usable): they decide
     nothing and are only recorded. ``rig`` is the episode's rig time (protocol/rigtime.py: balance steps and seconds,
@@ -105,6 +114,7 @@ class Submission:
     stats: dict[str, float | None] | None = None
     rig: dict[str, float | int | None] | None = None
     played: dict[str, Any] | None = None
+    earlier_receipts: tuple[dict[str, Any], ...] = ()
 
     @property
     def mature(self) -> bool:
@@ -195,6 +205,8 @@ class Verdict:
             line = {"type": "episode", "worker": sub.worker_id, "round": self.round, "episode": sub.episode,
                     "return": sub.episode_return, "pi": sub.pi, "steps": sub.steps, "kind": sub.kind,
                     "receipt": sub.receipt, "t": round(t, 3)}
+        if sub.earlier_receipts:
+            line["earlier_receipts"] = list(sub.earlier_receipts)
         if sub.mature:
             line["recent_returns"] = list(sub.recent_returns)
         elif sub.stats is not None:
@@ -253,12 +265,16 @@ class RoundKeeper:
         actor_spec: dict[str, tuple[int, ...]] | None = None,
         critic_spec: dict[str, tuple[int, ...]] | None = None,
         shape: RoundShape = PER_EPISODE,
+        max_staleness: int = 0,
     ) -> None:
         if not workers:
             raise ValueError("a federation needs at least one worker")
         self.strategy = strategies.get(policy)
         if self.strategy.rounds(shape.per_episode) != shape:
             raise ValueError(f"policy {policy!r} has other rounds than {shape.per_episode} per episode")
+        if not 0 <= max_staleness <= STALENESS_LIMIT or (max_staleness and not self.strategy.allows_staleness):
+            raise ValueError(f"policy {policy!r} cannot run with a staleness of {max_staleness} "
+                             f"(0..{STALENESS_LIMIT}, and 0 for a per-step strategy)")
         federation.progress(task.tc, task.tc, task.r_floor)  # validates tc > r_floor
         self.policy = policy
         self.task = task
@@ -267,6 +283,7 @@ class RoundKeeper:
         self.actor_spec = actor_spec
         self.critic_spec = critic_spec
         self.shape = shape
+        self.max_staleness = max_staleness  # S: a worker plays on with up to S of its rounds unanswered (RunStart)
         self.workers = {w: WorkerRecord(w) for w in sorted(workers)}
         self.round = 1
         self.pending: dict[str, Submission] = {}

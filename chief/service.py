@@ -173,7 +173,7 @@ class ChiefService:
                 shape = strategies.get(cfg.policy).rounds(self.roster.update_steps)  # ValueError if it cannot run
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
-                                          shape=shape)
+                                          shape=shape, max_staleness=cfg.max_staleness)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
             if self.outputs.tensorboard:
@@ -264,7 +264,8 @@ class ChiefService:
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
-                       finishers_help=self.keeper.strategy.finishers_help)
+                       finishers_help=self.keeper.strategy.finishers_help,
+                       max_staleness=self.keeper.max_staleness)
         self._send(msg)
 
     def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
@@ -440,7 +441,7 @@ class ChiefService:
         keeper = self.keeper
         assert keeper is not None
         assert self.metrics is not None
-        return run_summary(keeper, reason, rigs=self.metrics.rigs, played=self.metrics.played,
+        return run_summary(keeper, reason, rigs=self.metrics.rigs(keeper.max_staleness), played=self.metrics.played,
                            run_id=self.cfg.run_id, seed=self.cfg.seed,
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
@@ -459,6 +460,7 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
     return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return, recent_returns=tuple(msg.recent_returns),
                       steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
                       receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
+                      earlier_receipts=tuple(r.model_dump() for r in msg.earlier_receipts),
                       step=0 if mature else msg.step, critic_gradient=critic,  # type: ignore[union-attr]
                       stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS},
                       rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS},

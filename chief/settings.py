@@ -5,7 +5,10 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated
 
+from pydantic import model_validator
+
 from chief import strategies
+from protocol.rounds import STALENESS_LIMIT
 from runtime.model_file import ModelPath
 from runtime.settings import OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
 
@@ -21,6 +24,16 @@ class FederationSettings(Settings):
     max_episodes: int = setting(2000, "M, the most rounds a run may take", ge=1)
     round_timeout: float = setting(30.0, "seconds a round waits for a silent worker after the first submission",
                                    gt=0)
+    max_staleness: int = setting(0, "S, bounded staleness: a worker plays its next episode while up to S of its own "
+                                 "rounds are unanswered (0: it waits for every answer; per-episode strategies only)",
+                                 ge=0, le=STALENESS_LIMIT)
+
+    @model_validator(mode="after")
+    def _staleness_fits(self) -> FederationSettings:
+        if self.max_staleness and not strategies.get(self.policy).allows_staleness:
+            raise ValueError(f"--max-staleness {self.max_staleness}: policy {self.policy!r} shares every PPO step, "
+                             "whose answer each worker must apply before its next step; use 0")
+        return self
 
 
 class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):

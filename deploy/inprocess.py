@@ -46,13 +46,14 @@ START_TIMEOUT = 600.0
 def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
                    tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
-                   init_model: Path | None = None, models: bool = True) -> dict[str, Any]:
+                   init_model: Path | None = None, models: bool = True, max_staleness: int = 0) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
     write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
     ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
     task options (qube-local: ``rig_profile``, ``randomize``); ``init_model``: a warm start, every worker from this
     model (a file or a run folder; a ValueError, before anything runs, when it does not fit the task); ``models``:
-    save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does."""
+    save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does; ``max_staleness``: the run's
+    bounded staleness S (ChiefSettings.max_staleness)."""
     import torch  # after worker/'s check of the learn extra (one line where it is missing)
 
     torch.set_num_threads(1)
@@ -62,7 +63,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     chief = ChiefService(
         ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
-                            idle_timeout=math.inf, run_dir=run_dir, init_model=init_model, run_key=key),
+                            idle_timeout=math.inf, run_dir=run_dir, init_model=init_model, run_key=key,
+                            max_staleness=max_staleness),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
     worker_conns: dict[str, list[_Timed]] = {}
@@ -187,7 +189,8 @@ def main(argv: list[str] | None = None) -> int:
     s = InprocessSettings.load(argv, prog="python -m deploy.inprocess", description=__doc__.splitlines()[0])
     try:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
-                                 device_noise=s.device_noise, progress=True, init_model=s.init_model)
+                                 device_noise=s.device_noise, progress=True, init_model=s.init_model,
+                                 max_staleness=s.max_staleness)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

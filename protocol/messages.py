@@ -17,7 +17,7 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_vali
 
 from protocol.qube import Phase, RigState
 from protocol.rigtime import SECONDS_LIMIT
-from protocol.rounds import MAX_PER_EPISODE, RoundShape
+from protocol.rounds import MAX_PER_EPISODE, STALENESS_LIMIT, RoundShape
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import TensorDict
 
@@ -100,13 +100,18 @@ class Receipt(Strict):
     """What a worker did with the chief's answer to round ``round``: applied an aggregate or a transfer (with the
     answer's tensor digest and, for a transfer, the keep weight it used), or ``missed`` it (no answer in time).
 
-    Every submission carries the receipt of the round before it, so the chief's records show what reached whom.
+    Every submission carries the receipt of the last answer the worker applied before it, so the chief's records
+    show what reached whom, and when: ``episode`` is the first episode the worker played (or, under a per-step
+    strategy, the episode of the first step it computed) with the answer applied (None from older workers). Under a
+    bounded staleness (RunStart.max_staleness) a worker may apply several answers between two submissions: the
+    earlier ones travel in the submission's ``earlier_receipts``.
     """
 
     round: int = Field(ge=1)
     applied: Literal["aggregate", "transfer", "missed"]
     digest: str = Field(default="", max_length=64)
     keep: float | None = Field(default=None, ge=0.0, le=1.0)
+    episode: int | None = Field(default=None, ge=1)
 
 
 class Played(Strict):
@@ -155,6 +160,7 @@ class WorkerUpdate(WorkerSubmission):
     gradient: TensorDict
     receipt: Receipt | None = None
     played: Played | None = None
+    earlier_receipts: tuple[Receipt, ...] = Field(default=(), max_length=STALENESS_LIMIT)
     step: int = Field(default=0, ge=0)
     critic_gradient: TensorDict | None = None
     actor_loss: Stat | None = None
@@ -185,6 +191,7 @@ class MatureParams(WorkerSubmission):
     params: TensorDict
     receipt: Receipt | None = None
     played: Played | None = None
+    earlier_receipts: tuple[Receipt, ...] = Field(default=(), max_length=STALENESS_LIMIT)
     balance_steps: BalanceSteps | None = None
     balance_s: RigSeconds | None = None
     reset_s: RigSeconds | None = None
@@ -250,6 +257,8 @@ class RunStart(Message):
     worker waiting for an answer sends its submission again when it sees a new one. ``rounds_per_episode`` is K of the
     run's round shape (``shape``): 1 for the paper's strategies, the PPO steps per episode for a per-step strategy.
     ``finishers_help``: a worker whose mature actor was acknowledged goes on playing and sharing until the RunStop.
+    ``max_staleness`` (S, per-episode strategies only): a worker may play its next episode while up to S of its own
+    rounds are still unanswered; it applies their answers in round order as they arrive (0: it waits for each).
     """
 
     kind: Literal["run_start"] = "run_start"
@@ -266,6 +275,7 @@ class RunStart(Message):
     epoch: int = Field(default=0, ge=0)
     rounds_per_episode: int = Field(default=1, ge=1, le=MAX_PER_EPISODE)
     finishers_help: bool = False
+    max_staleness: int = Field(default=0, ge=0, le=STALENESS_LIMIT)
     tag: Tag = ""
 
     @property

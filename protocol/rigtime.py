@@ -2,7 +2,8 @@
 
 Per episode a rig spends ``balance_s`` under the policy (``balance_steps`` control periods) and ``reset_s`` swinging
 the pendulum up again; its **rig time** is their sum. Between episodes it may also stand **idle**, waiting for the
-federation's answer to its submission: a round closes only when its slowest contributor has submitted.
+federation's answer to its submission: a round closes only when its slowest contributor has submitted (under a
+bounded staleness S a worker waits only for the answer to its round S rounds back).
 
 How the seconds are obtained depends on the rig's clock (docs/explanation/qube.md):
 
@@ -86,14 +87,19 @@ class RigTotals:
 class IdleModel:
     """Idle seconds of rigs whose clock stands still while they wait (lockstep), modelled round by round.
 
-    Each rig has its own clock, ``free``: when it got the answer to its last round. In a round, a contributor plays
+    Each rig has its own clock, ``free``: when it may play its next episode. In a round, a contributor plays
     (resets and balances) for its episode's rig time, so it is ready at ``free + rig_s``; the round closes when its
-    slowest contributor is ready, ``close = max(ready)``; each contributor waits ``close - ready`` and is free again
-    at ``close``. A rig that sits a round out (finished, timed out) neither waits nor moves.
+    slowest contributor is ready, ``close = max(ready)``. With ``staleness`` S = 0 each contributor waits for that
+    close (``close - ready``) and is free again at ``close``. Under a bounded staleness S it waits only for the
+    answer to its own round S contributions back (``gate``: that round's close, 0 when it has none yet): it is free
+    at ``max(ready, gate)`` and waits the difference. A rig that sits a round out (finished, timed out) neither
+    waits nor moves.
     """
 
     free: dict[str, float] = field(default_factory=dict)
     idle: dict[str, float] = field(default_factory=dict)
+    staleness: int = 0
+    closes: dict[str, list[float]] = field(default_factory=dict)  # each rig's last S + 1 rounds' close times
 
     def close(self, contributions: Mapping[str, float]) -> float:
         """Close one round whose contributors spent ``contributions`` (worker -> rig seconds, 0 for a later step of
@@ -103,14 +109,19 @@ class IdleModel:
         ready = {w: self.free.get(w, 0.0) + s for w, s in contributions.items()}
         close = max(ready.values())
         for w, at in ready.items():
-            self.idle[w] = self.idle.get(w, 0.0) + (close - at)
-            self.free[w] = close
+            closes = self.closes.setdefault(w, [])
+            closes.append(close)
+            gate = closes[-1 - self.staleness] if len(closes) > self.staleness else 0.0
+            del closes[:-1 - self.staleness]
+            self.idle[w] = self.idle.get(w, 0.0) + max(0.0, gate - at)
+            self.free[w] = max(at, gate)
         return close
 
 
-def model_idle(rounds: Iterable[Mapping[str, float]]) -> dict[str, float]:
-    """Each worker's idle seconds over ``rounds`` (in order; each: contributor -> that round's rig seconds)."""
-    model = IdleModel()
+def model_idle(rounds: Iterable[Mapping[str, float]], staleness: int = 0) -> dict[str, float]:
+    """Each worker's idle seconds over ``rounds`` (in order; each: contributor -> that round's rig seconds), whose
+    workers may leave ``staleness`` of their rounds unanswered."""
+    model = IdleModel(staleness=staleness)
     for contributions in rounds:
         model.close(contributions)
     return model.idle

@@ -22,6 +22,10 @@ from pydantic import BaseModel, ConfigDict, Field
 
 #: The most rounds an episode may have (PPO's mini-batch steps per episode, K).
 MAX_PER_EPISODE: Final = 1000
+#: The largest bounded staleness a run may allow (RunStart.max_staleness): how many of its own rounds a worker may
+#: leave unanswered while it plays on. The chief keeps submissions up to chief.rounds.AHEAD_WINDOW episodes ahead of
+#: its open round, more than this.
+STALENESS_LIMIT: Final = 5
 
 
 class RoundId(NamedTuple):

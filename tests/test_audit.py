@@ -164,6 +164,12 @@ def doctor_receipt(lines: list[dict]) -> None:
     first(lines, type="episode", worker="w2", episode=13)["receipt"]["digest"] = "0" * 16
 
 
+def doctor_applied_twice(lines: list[dict]) -> None:
+    """w2 reports round 12's answer twice in one submission: applied twice (Algorithm 2 applies each once)."""
+    e = first(lines, type="episode", worker="w2", episode=13)
+    e["earlier_receipts"] = [dict(e["receipt"])]
+
+
 def doctor_missed(lines: list[dict]) -> None:
     first(lines, type="episode", worker="w2", episode=8)["receipt"] = {"round": 7, "applied": "missed"}
 
@@ -226,6 +232,7 @@ DOCTORED = [
     (doctor_immature, "mature"),
     (doctor_receipt, "delivery"),
     (doctor_missed, "delivery"),
+    (doctor_applied_twice, "staleness"),
     (doctor_transfer_keep_receipt, "delivery"),
     (doctor_misfiled, "rounds-contiguous"),
     (doctor_round_place, "rounds-contiguous"),
@@ -238,7 +245,7 @@ def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     ``rig-time`` by a doctored rig's record in tests/test_rigtime.py), and its docstring says which equation,
     algorithm or figure of the paper it protects."""
     assert {invariant for _, invariant in DOCTORED} | {"summary", "rig-time"} == {c.invariant for c in CHECKS}
-    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 12
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 13
     for c in CHECKS:
         assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
 

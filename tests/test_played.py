@@ -26,8 +26,9 @@ def played(worker: str, episodes: int) -> Played:
 
 
 def test_a_stale_workers_episodes_are_played_not_counted(amqtt_broker: str, tmp_path: Path) -> None:
-    """w1 stalls after episode 1; round 2 times out without it and w0 goes on alone. w1 then sends episodes 2-4:
-    stale, refused (each answered again), yet its env steps are on record: it played 5 episodes, 2 were counted."""
+    """w1 stalls after episode 1; round 2 times out without it and w0 goes on alone. w1 then sends episodes 2-9,
+    applying each closed round's answer as it comes back (as a real worker does): stale, refused, yet its env steps
+    are on record: it played 10 episodes, 2 were counted."""
     run_dir = tmp_path / "run"
     chief = start_chief(amqtt_broker, run_dir, workers=2, round_timeout=1.0)
     fake = ScriptedWorkers(amqtt_broker)
@@ -44,14 +45,14 @@ def test_a_stale_workers_episodes_are_played_not_counted(amqtt_broker: str, tmp_
             answer = fake.expect(ChiefAggregate, timeout=10)
             assert answer.episode == e
         late = first
-        for e in range(2, 5):  # w1 wakes up: its episodes are for closed rounds
+        for e in range(2, 10):  # w1 wakes up: its episodes are for closed rounds
             mine = update("w1", e, 200.0, [1.0, 1.0], after=late)
             fake.send("w1", mine.model_copy(update={"played": played("w1", e)}))
             late = fake.expect(ChiefAggregate, timeout=10)
             assert late.episode == e  # the round's answer, again
         HISTORY["w1"] = [200.0] * 9
         finish = mature("w1", 10, 200.0, [1.0, 1.0], after=late)
-        fake.send("w1", finish.model_copy(update={"played": played("w1", 5)}))
+        fake.send("w1", finish.model_copy(update={"played": played("w1", 10)}))
         assert fake.expect(ChiefAck, timeout=10).accepted  # w1 is back: round 10 waits for w0 again
         finish = mature("w0", 10, 200.0, [1.0, 1.0], after=answer)
         fake.send("w0", finish.model_copy(update={"played": played("w0", 10)}))
@@ -62,15 +63,15 @@ def test_a_stale_workers_episodes_are_played_not_counted(amqtt_broker: str, tmp_
             chief.kill()
     summary = json.loads((run_dir / "summary.json").read_text())
     rows = {w["id"]: w for w in summary["workers"]}
-    assert rows["w1"]["played"] == {"episodes": 5, "steps": 50, "counted_episodes": 2, "counted_steps": 20,
-                                    "refused_episodes": 3, "refused_steps": 30}
+    assert rows["w1"]["played"] == {"episodes": 10, "steps": 100, "counted_episodes": 2, "counted_steps": 20,
+                                    "refused_episodes": 8, "refused_steps": 80}
     assert rows["w1"]["played"]["steps"] > rows["w1"]["played"]["counted_steps"] == rows["w1"]["steps"]
     assert rows["w0"]["played"]["refused_steps"] == 0 and rows["w0"]["played"]["steps"] == 100
-    assert (summary["total_steps"], summary["played_steps"], summary["refused_steps"]) == (120, 150, 30)
-    assert summary["rejected_messages"] == {"stale": 3}
+    assert (summary["total_steps"], summary["played_steps"], summary["refused_steps"]) == (120, 200, 80)
+    assert summary["rejected_messages"] == {"stale": 8}
     lines = [json.loads(x) for x in (run_dir / "metrics.jsonl").read_text().splitlines()]
     refused = [x for x in lines if x["type"] == "refused"]
-    assert [(x["worker"], x["episode"], x["reason"]) for x in refused] == [("w1", e, "stale") for e in (2, 3, 4)]
+    assert [(x["worker"], x["episode"], x["reason"]) for x in refused] == [("w1", e, "stale") for e in range(2, 10)]
     audit(run_dir)
 
 

@@ -18,6 +18,18 @@ optimizers apply.
     submission = algo.play()                 # the episode, then its first submission
     while submission is not None:
         submission = algo.apply(answer_to(submission))   # the next step's submission, or None after the last
+
+Under a bounded staleness S (``max_staleness``, per-episode strategies only) the worker need not wait: ``owed`` are
+its rounds whose answer it has not applied yet, oldest first; ``take`` applies, in round order, the answers that have
+come; it plays on while ``waits`` is false (at most S rounds owed), and ``give_up`` marks the oldest owed answer
+missed after a reply timeout. With S = 0 this is the loop above. Every receipt says which round's answer was applied
+and the first episode played with it (``Receipt.episode``); the answers applied between two submissions all travel
+in the next one, the last as ``receipt``, the others as ``earlier_receipts``.
+
+    submission = algo.play()
+    while True:
+        send(submission); algo.take(answers_so_far())
+        if not algo.waits: break             # else: wait for the oldest owed answer, take it, check again
 """
 
 from __future__ import annotations
@@ -25,6 +37,7 @@ from __future__ import annotations
 import logging
 import math
 import secrets
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
@@ -55,10 +68,13 @@ class Algorithm2:
     (protocol.messages.Played; drawn at random when not given)."""
 
     def __init__(self, worker_id: str, env: gym.Env, learner: PPOLearner, tc: float, seed: int,
-                 first_episode: int = 1, shape: RoundShape = PER_EPISODE, life: str | None = None) -> None:
+                 first_episode: int = 1, shape: RoundShape = PER_EPISODE, life: str | None = None,
+                 max_staleness: int = 0) -> None:
         if shape.per_episode not in (1, learner.config.update_epochs):
             raise ValueError(f"the chief runs {shape.per_episode} rounds per episode, but this worker's PPO takes "
                              f"{learner.config.update_epochs} steps per episode")
+        if max_staleness and shape.per_step:
+            raise ValueError(f"a staleness of {max_staleness} needs one round per episode, not {shape.per_episode}")
         self.worker_id = worker_id
         self.env = env
         self.learner = learner
@@ -71,7 +87,11 @@ class Algorithm2:
         self.returns: list[float] = []
         self.total_steps = 0
         self.life = life or secrets.token_hex(8)
-        self.receipt: Receipt | None = None  # what was done with the last round's answer
+        self.receipt: Receipt | None = None  # what was done with the last answer applied
+        self._noted: list[Receipt] = []  # the answers applied since the last submission, oldest first
+        self._sent: tuple[int, list[Receipt]] = (0, [])  # the round of the last submission and the receipts it carried
+        self.max_staleness = max_staleness
+        self.owed: list[int] = []  # rounds submitted whose answer is not applied yet, oldest first (per-episode)
         self.actor_spec = learner.actor_spec()
         self._played = False
         self._batch: Batch | None = None
@@ -123,7 +143,7 @@ class Algorithm2:
         if not self._finished and solved(self.returns, self.tc):
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,
-                                params=pack_arrays(self.learner.actor_parameters()), receipt=self.receipt,
+                                params=pack_arrays(self.learner.actor_parameters()), **self._receipts(),
                                 played=self.played, **self._rig)
         return self._first_update()
 
@@ -144,6 +164,8 @@ class Algorithm2:
             self._batch = self.learner.prepare()
             return self._step_update()
         stats = self.learner.update()
+        if self.round not in self.owed:
+            self.owed.append(self.round)
         return self._update(self.learner.actor_gradient(), None, stats)
 
     def _step_update(self) -> WorkerUpdate:
@@ -157,7 +179,7 @@ class Algorithm2:
         ret, steps = self._last
         return WorkerUpdate(worker_id=self.worker_id, episode=self.episode, step=self.step, episode_return=ret,
                             pi=self.pi, recent_returns=self.returns[-PI_WINDOW:], steps=steps,
-                            gradient=pack_arrays(actor), receipt=self.receipt, played=self.played,
+                            gradient=pack_arrays(actor), **self._receipts(), played=self.played,
                             critic_gradient=pack_arrays(critic) if critic is not None else None,
                             **_loss_fields(stats), **(self._rig if self.step == 0 else {}))
 
@@ -168,8 +190,42 @@ class Algorithm2:
         An answer whose tensors do not fit this worker's networks is not applied: ``refused`` then says why (the
         receipt says ``missed``), and under a per-step strategy the worker takes its own step, as without answer.
         """
-        round_ = self.round
-        self.receipt = Receipt(round=round_, applied="missed")
+        more = self.step + 1 < self.shape.per_episode
+        receipt = self._answer(self.round, reply, self.episode if more else self.episode + 1)
+        if receipt.applied == "missed" and self.per_step and self._own is not None:
+            self.learner.apply_step(self._own.critic, self._own.actor)  # no usable answer: our own step
+        if more:
+            self.step += 1
+            return self._step_update()
+        self._batch = self._own = None
+        return None
+
+    @property
+    def waits(self) -> bool:
+        """Whether this worker must wait for an answer before it plays on: more than ``max_staleness`` of its rounds
+        are unanswered."""
+        return len(self.owed) > self.max_staleness
+
+    def take(self, answers: Mapping[int, ChiefAggregate | ChiefTransfer]) -> list[int]:
+        """Apply, in round order, the answers that have come to the rounds this worker owes (``owed``), up to the
+        first whose answer has not come; returns the rounds applied (an answer that does not fit is noted as
+        ``missed``, with ``refused_answer`` saying why, and counts as taken)."""
+        taken: list[int] = []
+        while self.owed and self.owed[0] in answers:
+            round_ = self.owed[0]
+            self._answer(round_, answers[round_], self.episode + 1)
+            taken.append(round_)
+        return taken
+
+    def give_up(self) -> int:
+        """No answer to the oldest owed round came in time: note it as missed and play on; returns that round."""
+        round_ = self.owed[0]
+        self._answer(round_, None, self.episode + 1)
+        return round_
+
+    def _answer(self, round_: int, reply: ChiefAggregate | ChiefTransfer | None, episode: int) -> Receipt:
+        """Apply round ``round_``'s answer (None: none came) and note its receipt, first used in ``episode``."""
+        receipt = Receipt(round=round_, applied="missed")
         self.refused_answer = None
         try:
             if reply is not None and isinstance(reply, ChiefTransfer):
@@ -178,18 +234,29 @@ class Algorithm2:
                     check_spec(reply.params, self.actor_spec, "transfer")
                     self.learner.blend_actor(unpack_arrays(reply.params), keep)  # Eq. 11
                     log.info("%s blended in %s's mature actor (keep %.3f)", self.worker_id, reply.source_worker, keep)
-                self.receipt = Receipt(round=round_, applied="transfer", digest=digest(reply.params), keep=keep)
+                receipt = Receipt(round=round_, applied="transfer", digest=digest(reply.params), keep=keep)
             elif reply is not None:
-                self._apply_aggregate(reply, round_)
+                receipt = self._apply_aggregate(reply, round_)
         except ValueError as err:
             self.refused_answer = str(err)
-        if self.receipt.applied == "missed" and self.per_step and self._own is not None:
-            self.learner.apply_step(self._own.critic, self._own.actor)  # no usable answer: our own step
-        if self.step + 1 < self.shape.per_episode:
-            self.step += 1
-            return self._step_update()
-        self._batch = self._own = None
-        return None
+        if round_ in self.owed:
+            self.owed.remove(round_)
+        return self._note(receipt, episode)
+
+    def _note(self, receipt: Receipt, episode: int) -> Receipt:
+        """Keep an answer's receipt, first used in ``episode``, for the next submission."""
+        self.receipt = receipt.model_copy(update={"episode": episode})
+        self._noted.append(self.receipt)
+        return self.receipt
+
+    def _receipts(self) -> dict[str, Any]:
+        """The receipts a submission carries: every answer applied since the last submission, the last as
+        ``receipt`` (none when nothing was applied); a refused mature actor's episode, submitted again as an
+        update, carries the same."""
+        if self._sent[0] != self.round:
+            self._sent, self._noted = (self.round, self._noted), []
+        sent = self._sent[1]
+        return {"receipt": sent[-1] if sent else None, "earlier_receipts": tuple(sent[:-1])}
 
     @property
     def skipped_rounds(self) -> range:
@@ -202,21 +269,24 @@ class Algorithm2:
         worker applied, so that this helper's networks and optimizers are again the others'. Stops at the first
         missing or unusable answer; returns the rounds applied. The receipt then names the last of them."""
         applied: list[int] = []
+        last: Receipt | None = None
         for round_ in self.skipped_rounds:
             reply = answers.get(round_)
             if not isinstance(reply, ChiefAggregate):
                 break
             try:
-                self._apply_aggregate(reply, round_)
+                last = self._apply_aggregate(reply, round_)
             except ValueError as err:
                 self.refused_answer = str(err)
                 break
             applied.append(round_)
+        if last is not None:
+            self._note(last, self.episode + 1)
         return applied
 
-    def _apply_aggregate(self, reply: ChiefAggregate, round_: int) -> None:
-        """Apply round ``round_``'s aggregate and confirm it in the receipt (a ValueError, nothing applied, when it
-        does not fit this worker's networks)."""
+    def _apply_aggregate(self, reply: ChiefAggregate, round_: int) -> Receipt:
+        """Apply round ``round_``'s aggregate; its receipt (a ValueError, nothing applied, when it does not fit this
+        worker's networks)."""
         if not self.per_step:
             if reply.gradient is not None:
                 check_spec(reply.gradient, self.actor_spec, "aggregate")
@@ -228,8 +298,7 @@ class Algorithm2:
             check_spec(reply.critic_gradient, self.learner.critic_spec(), "aggregate critic")
             self.learner.apply_step(unpack_arrays(reply.critic_gradient),  # the same mean step as every other worker
                                     unpack_arrays(reply.gradient))
-        self.receipt = Receipt(round=round_, applied="aggregate",
-                               digest=answer_digest(reply.gradient, reply.critic_gradient))
+        return Receipt(round=round_, applied="aggregate", digest=answer_digest(reply.gradient, reply.critic_gradient))
 
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)

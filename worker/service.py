@@ -91,6 +91,7 @@ class WorkerService:
             self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id)
         self.key = cfg.key()  # the run's key: every chief message must carry its HMAC (protocol/auth.py)
         self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
+        self.outbox: dict[int, tuple[bytes, float]] = {}  # staleness: owed rounds' payloads and when first sent
         will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
@@ -216,7 +217,7 @@ class WorkerService:
         self._status("training", episode=start.first_episode - 1)
         self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
-                          shape=start.shape)
+                          shape=start.shape, max_staleness=start.max_staleness)
         try:
             while algo.next_episode <= start.max_episodes and not self.halted:
                 submission: WorkerUpdate | MatureParams | None = algo.play()
@@ -242,11 +243,17 @@ class WorkerService:
                     log.error("the chief refused the mature actor of episode %d (%s); learning on",
                               submission.episode, ack.reason)
                     submission = algo.refused(submission)
+                if algo.max_staleness and submission is not None:  # submit; play on unless more than S rounds owed
+                    self._post(submission, algo.round)
+                    self._settle(algo, algo.max_staleness)
+                    continue
                 while submission is not None:  # one round, or K of them under a per-step strategy
                     reply = self._exchange(submission, algo.round)
                     submission = algo.apply(reply)
                     if algo.refused_answer is not None and reply is not None:
                         self.rejects.reject(topics.chief(cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
+            if algo.owed and not algo.finished:
+                self._settle(algo, 0)  # the last answers, as a worker without staleness waits for its last
             if not algo.finished:
                 self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
                              detail=self.stop.reason if self.stop else "interrupted" if self.halted else
@@ -420,6 +427,58 @@ class WorkerService:
         if reply is not None:
             self.answered.add(round_)
         return reply
+
+    def _post(self, submission: WorkerUpdate, round_: int) -> None:
+        """Bounded staleness: send one round's submission and keep it for resending until its answer is applied."""
+        payload = encode(self._stamp(submission))
+        self.submitted = max(self.submitted, round_)
+        self.outbox[round_] = (payload, time.monotonic())
+        self._send(topics.UPDATE, payload)
+
+    def _settle(self, algo: Algorithm2, allowed: int) -> None:
+        """Bounded staleness: apply the answers that came, in round order, and wait (resending what is owed, as
+        ``_exchange`` does) while more than ``allowed`` rounds are owed. The oldest owed answer is given up as
+        missed ``reply_timeout`` s after its submission went out. The wait counts as idle time."""
+        began = time.monotonic()
+        sent_at, connects = began, self.conn.connects
+        self.restarted = False
+        while True:
+            self._take(algo)
+            if len(algo.owed) <= allowed or self.stop is not None:
+                break
+            now = time.monotonic()
+            oldest = algo.owed[0]
+            if now - self.outbox[oldest][1] >= self.cfg.reply_timeout:
+                self.missed_replies += 1
+                log.warning("no answer from the chief for round %d within %.0f s; going on without it (missed %d)",
+                            oldest, self.cfg.reply_timeout, self.missed_replies)
+                algo.give_up()
+                continue
+            if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
+                log.info("sending rounds %s again (%s)", algo.owed, "reconnected" if self.conn.connects != connects
+                         else "the chief restarted" if self.restarted else "no answer yet")
+                for r in algo.owed:
+                    self._send(topics.UPDATE, self.outbox[r][0])
+                sent_at, connects, self.restarted = now, self.conn.connects, False
+            self._receive(timeout=0.5)
+        self.idle_s += time.monotonic() - began
+        for r in [r for r in self.outbox if r not in algo.owed]:
+            del self.outbox[r]
+
+    def _take(self, algo: Algorithm2) -> None:
+        """Apply the filed answers to the rounds ``algo`` owes, oldest first; drop those to rounds it no longer owes
+        (given up: counted as stale)."""
+        while algo.owed and algo.owed[0] in self.replies:
+            round_ = algo.owed[0]
+            reply = self.replies.pop(round_)
+            algo.take({round_: reply})
+            self.answered.add(round_)
+            if algo.refused_answer is not None:
+                self.rejects.reject(topics.chief(self.cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
+        for old in [r for r in self.replies if r not in algo.owed]:
+            self.rejects.reject(topics.chief(self.cfg.run_id, self.replies[old].kind), "stale",
+                                f"round {old}'s answer came after this worker had given it up")
+            del self.replies[old]
 
     def _save(self, learner: Any, algo: Algorithm2, start: RunStart) -> None:
         """Save the mature model with its provenance (worker/model.py) as <model_dir>/<id>.pt."""

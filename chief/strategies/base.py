@@ -59,6 +59,12 @@ class Strategy:
     #: finished; its own solve episode stays the one it finished at.
     finishers_help: bool = False
 
+    @property
+    def allows_staleness(self) -> bool:
+        """Whether workers may play on with rounds unanswered (RunStart.max_staleness > 0): only with one round per
+        episode. A per-step strategy's workers must apply each step's mean before computing the next step."""
+        return self.rounds is one_per_episode
+
 
 def one_per_step(update_steps: int) -> RoundShape:
     """K rounds per episode, one per PPO mini-batch step (a round shares that step's actor and critic gradients)."""

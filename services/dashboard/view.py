@@ -286,6 +286,7 @@ class RunView:
         if self.start is None:
             self.started_at = now
         self.start, self.env_id = msg, msg.env_id
+        self.idle_model.staleness = msg.max_staleness  # rigs may play on with up to S rounds unanswered
         for wid in msg.workers:
             w = self._worker(wid)
             if w.status == "waiting":

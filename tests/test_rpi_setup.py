@@ -15,9 +15,10 @@ import pytest
 
 SCRIPT = Path(__file__).resolve().parents[1] / "deploy" / "rpi" / "setup-host.sh"
 
-pytestmark = pytest.mark.skipif(
+pytestmark = [pytest.mark.skipif(
     os.geteuid() != 0 or shutil.which("useradd") is None or shutil.which("runuser") is None,
-    reason="needs root, useradd and runuser")
+    reason="needs root, useradd and runuser"),
+    pytest.mark.xdist_group("rpi-setup")]  # the machine's spi group: one test at a time may create and remove it
 
 
 def _group_exists(name: str) -> bool:

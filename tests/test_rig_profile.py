@@ -10,6 +10,7 @@ import subprocess
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -19,6 +20,7 @@ from services.qube_sim.dynamics import QubeDynamics, QubeParams
 from services.qube_sim.profile import BUILTIN, IDEAL, LAB, ProfileError, RigProfile, load_profile
 from services.qube_sim.spi_peer import SimulatedQube
 from worker.envs import make_env
+from worker.qube_env import RESET_ATTEMPTS, QubeLocalEnv, ResetFailed
 
 
 def test_show_profile_round_trips_through_a_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -209,3 +211,34 @@ def test_a_sim_rig_over_mqtt_redraws_its_physics_at_each_reset_request() -> None
     assert first == [LAB.episode_params(3, k, 0.2) for k in (1, 2)]
     plain = build_sim_service(SimRigSettings(rig_profile="lab", seed=3))
     assert plain.core.device.params == LAB.rig_params(3)  # type: ignore[attr-defined]
+
+
+class _UndampableSecondDraw:
+    """The lab profile, randomised, except that episode 2's first draw has a pendulum damped 400 times: a plant the
+    reset controller cannot swing up."""
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(LAB, name)
+
+    def episode_params(self, seed: int, episode: int, randomize: float | None = None, draw: int = 0) -> Any:
+        p = LAB.episode_params(seed, episode, 0.05, draw=draw)
+        assert p is not None
+        return replace(p, Dp=p.Dp * 400) if (episode, draw) == (2, 0) else p
+
+
+def test_a_randomised_plant_that_cannot_be_swung_up_is_drawn_again() -> None:
+    env = QubeLocalEnv(seed=3, profile=_UndampableSecondDraw(), randomize=0.05)
+    env.reset()
+    assert (env.redrawn, env.failed_resets) == (0, 0)
+    env.reset()  # five failed swing-ups of the bad draw, then a fresh draw that resets
+    assert (env.redrawn, env.failed_resets) == (1, RESET_ATTEMPTS)
+    assert LAB.episode_params(3, 2, 0.05, draw=1) != LAB.episode_params(3, 2, 0.05)  # deterministic, and another
+
+
+def test_a_fixed_plant_that_cannot_be_swung_up_fails_after_its_attempts() -> None:
+    env = QubeLocalEnv(seed=3, profile=LAB)
+    env.reset()
+    env.device.set_params(replace(env.device.params, Dp=env.device.params.Dp * 400))
+    with pytest.raises(ResetFailed):
+        env.reset()
+    assert env.redrawn == 0 and env.failed_resets == RESET_ATTEMPTS

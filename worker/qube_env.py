@@ -35,6 +35,10 @@ from rpi_bridge.control import ControlConfig, ControlCore, Sensed
 log = logging.getLogger("worker.qube")
 
 ACTIONS = (-60, 0, 60)  # SPI motor counts: turn left, stop, turn right
+#: Swing-ups tried (the pendulum let settle 3 s between them) before a reset counts as failed.
+RESET_ATTEMPTS = 5
+#: A domain-randomised simulated plant that cannot be swung up is replaced by a fresh draw this many times at most.
+MAX_REDRAWS = 3
 
 
 def observation(alpha: float, alpha_dot: float, theta: float, theta_dot: float) -> np.ndarray:
@@ -89,7 +93,7 @@ class QubeMqttEnv(_QubeTask):
     """One rig reached through the broker (topics qube/<rig>/...)."""
 
     def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 10.0,
-                 reset_attempts: int = 5, settle_s: float = 3.0, qube_clock: str = "realtime") -> None:
+                 reset_attempts: int = RESET_ATTEMPTS, settle_s: float = 3.0, qube_clock: str = "realtime") -> None:
         """``step_timeout_s``: a state that does not come within this many seconds of wall time ends the episode
         (a dead rig or link; a live rig reports a fault or goes offline long before). It must be long enough for a
         lockstep rig on a loaded machine, whose episodes would otherwise depend on wall time. ``qube_clock``: the
@@ -244,6 +248,7 @@ class QubeLocalEnv(_QubeTask):
         self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S), clock=self.clock)
         self.reset_ticks = reset_ticks
         self.failed_resets = 0
+        self.redrawn = 0  # randomised plants replaced because they could not be swung up
         self._requests = itertools.count(1)
         self._episodes = itertools.count(1)
 
@@ -261,16 +266,30 @@ class QubeLocalEnv(_QubeTask):
         return obs, info
 
     def _swing_up(self) -> tuple[np.ndarray, dict]:
-        if self.profile is not None:  # domain randomisation: this episode's physics
-            params = self.profile.episode_params(self.seed, next(self._episodes), self.randomize)
-            if params is not None:
+        """Under domain randomisation a drawn plant that the reset controller cannot swing up (RESET_ATTEMPTS
+        failures) is no rig to learn on: it is replaced by a fresh draw (counted in ``redrawn``), at most
+        MAX_REDRAWS times. A rig of fixed physics, as a real one, fails after its attempts."""
+        episode = next(self._episodes)
+        for draw in range(MAX_REDRAWS + 1):
+            params = None if self.profile is None else self.profile.episode_params(self.seed, episode,
+                                                                                  self.randomize, draw=draw)
+            if params is not None:  # domain randomisation: this episode's physics
                 self.device.set_params(params)
-        for attempt in range(1, 6):  # as over MQTT: a failed swing-up is retried after the pendulum settles
+            try:
+                return self._attempts()
+            except ResetFailed:
+                if params is None or draw == MAX_REDRAWS:
+                    raise
+                self.redrawn += 1
+        raise AssertionError("unreachable")
+
+    def _attempts(self) -> tuple[np.ndarray, dict]:
+        for attempt in range(1, RESET_ATTEMPTS + 1):  # as over MQTT: retried after the pendulum settles
             try:
                 return self._reset_once()
             except ResetFailed:
                 self.failed_resets += 1
-                if attempt == 5:
+                if attempt == RESET_ATTEMPTS:
                     raise
                 for _ in range(round(3.0 / PERIOD_S)):
                     self._sense()

@@ -132,14 +132,16 @@ class RigProfile(BaseModel):
                               for name in NONIDEAL.values()})
         return p
 
-    def episode_params(self, seed: int, episode: int, randomize: float | None = None) -> QubeParams | None:
+    def episode_params(self, seed: int, episode: int, randomize: float | None = None,
+                       draw: int = 0) -> QubeParams | None:
         """Domain randomisation: the plant of rig ``seed`` for its ``episode``-th reset, every randomisable parameter
         drawn uniformly from +-``randomize`` (default: the profile's) of the profile's value and those in ``ranges``
-        from their range. None when the profile randomises nothing. Deterministic in (seed, episode)."""
+        from their range. None when the profile randomises nothing. Deterministic in (seed, episode, draw); ``draw``
+        > 0 is a replacement for a plant that could not be swung up."""
         fraction = self.randomize if randomize is None else randomize
         if fraction <= 0 and not self.ranges:
             return None
-        rng = random.Random(f"randomize-{seed}-{episode}")
+        rng = random.Random(f"randomize-{seed}-{episode}" + (f"-{draw}" if draw else ""))
         base = self.params()
         changes: dict[str, float] = {}
         for name in RANDOMIZABLE:

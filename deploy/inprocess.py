@@ -7,7 +7,7 @@ wait for every worker, as a sweep must be reproducible). It writes the same run 
 "in-process"``, metrics.jsonl, learning_curve.png, models/<id>.pt), which ``python -m chief.audit`` checks like any
 other, without the chief's saved state (there is nothing to resume), plus timing.json for bench.runs: each worker's
 own CPU seconds per episode and the chief's per round. For a given seed it gives the same per-worker episodes and
-round records as a federation over MQTT (tests/test_inprocess_equivalence.py).
+round records as a federation over MQTT (tests/e2e/test_inprocess_equivalence.py).
 """
 
 from __future__ import annotations

@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import ast
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.paths import ROOT
+
 PACKAGES = ("protocol", "runtime", "chief", "worker", "rpi_bridge", "services", "deploy", "bench", "tests")
 MAX_LINES = 80
 

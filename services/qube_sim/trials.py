@@ -1,5 +1,5 @@
 """Reset trials: the bridge's control core (calibration, self-test, safety checks, swing-up) driving a simulated
-rig from varied starts, as the bridge would drive a real one. Used by tests/test_qube_reset.py and
+rig from varied starts, as the bridge would drive a real one. Used by tests/rpi_bridge/test_qube_reset.py and
 ``python -m bench.reset``.
 
 A trial: a fresh core calibrates and self-tests the rig hanging at rest, then the rig is put into a start state

@@ -6,7 +6,6 @@ import ast
 import re
 import subprocess
 import sys
-from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -32,8 +31,7 @@ from protocol.messages import (
 from protocol.mqtt import BrokerAddress
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tensors import TensorBlob, check_spec, digest, pack_arrays, unpack_arrays
-
-ROOT = Path(__file__).resolve().parent.parent
+from tests.paths import ROOT
 
 
 def grad(seed: int = 0) -> dict[str, np.ndarray]:

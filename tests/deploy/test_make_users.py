@@ -8,7 +8,9 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "deploy" / "mosquitto" / "make-users.sh"
+from tests.paths import ROOT
+
+SCRIPT = ROOT / "deploy" / "mosquitto" / "make-users.sh"
 
 
 @pytest.mark.parametrize("flag", ["--worker-prefix", "--rig-prefix"])

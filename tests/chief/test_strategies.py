@@ -16,8 +16,7 @@ from chief.rounds import RoundKeeper
 from chief.strategies import median, trimmed
 from protocol.rounds import RoundShape
 from protocol.tasks import task
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.paths import ROOT
 
 
 def grads(*values: float) -> dict[str, dict[str, np.ndarray]]:

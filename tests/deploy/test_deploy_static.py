@@ -20,8 +20,8 @@ from deploy.settings import DockerSettings
 from runtime.settings import env_name
 from services.broker.embedded import free_port, stop_process
 from tests.conftest import HOST, mosquitto_available
+from tests.paths import ROOT
 
-ROOT = Path(__file__).resolve().parent.parent
 COMPOSE = ROOT / "docker-compose.yml"
 HOSTNET = ROOT / "deploy" / "dev" / "compose.hostnet.yml"
 DOCKERFILE = ROOT / "deploy" / "Dockerfile"

@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from services.broker.embedded import free_port
+from tests.paths import ROOT
 
 pytestmark = pytest.mark.docker
 
-ROOT = Path(__file__).resolve().parent.parent
 LOCAL_BASE, LOCAL_MOSQUITTO = "fedrl/python:3.11-slim", "fedrl/mosquitto:2"
 SEED, MAX_EPISODES = "3", "600"
 

@@ -1,5 +1,5 @@
 """The live dashboard: the pure RunView, the feed's decoding and rejects, the hub's fan-out, and the HTTP/SSE server
-against a real broker (no browser; tests/test_dashboard_browser.py drives Chromium)."""
+against a real broker (no browser; tests/services/test_dashboard_browser.py drives Chromium)."""
 
 from __future__ import annotations
 
@@ -433,7 +433,7 @@ def test_command_line_errors_are_one_line(tmp_path: Path) -> None:
 def test_compose_and_dockerfile_run_the_dashboard() -> None:
     import re
 
-    from tests.test_deploy_static import ROOT, ancestry, compose, dockerfile_stages
+    from tests.deploy.test_deploy_static import ROOT, ancestry, compose, dockerfile_stages
 
     services = compose()["services"]
     dash, chief = services["dashboard"], services["chief"]

@@ -20,7 +20,7 @@ from paho.mqtt.enums import CallbackAPIVersion
 from protocol.mqtt import BrokerAddress, MqttConnection
 from services.broker.embedded import free_port, stop_process
 from tests.conftest import HOST, mosquitto_available
-from tests.test_deploy_static import MOSQUITTO, make_users, wait_for_listener
+from tests.deploy.test_deploy_static import MOSQUITTO, make_users, wait_for_listener
 
 R = "r1"
 

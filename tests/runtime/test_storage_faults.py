@@ -17,9 +17,8 @@ from pathlib import Path
 import pytest
 
 from runtime.storage import EXIT_STORAGE, StorageError, atomic_write
-from tests.test_files_checked import UNPRIVILEGED
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.paths import ROOT
+from tests.runtime.test_files_checked import UNPRIVILEGED
 
 pytestmark = pytest.mark.skipif(os.geteuid() != 0 or shutil.which("unshare") is None,
                                 reason="needs root and unshare (a tmpfs in a private mount namespace)")
@@ -161,7 +160,7 @@ def test_the_chief_resumes_once_the_folder_is_writable_again(amqtt_broker: str, 
     from chief.audit import audit
     from deploy.inprocess import run_federation
     from protocol.tasks import task
-    from tests.test_chief_resume import per_worker, rounds_closed
+    from tests.chief.test_chief_resume import per_worker, rounds_closed
 
     episodes, run_id, run_dir = 20, "storage-resume", tmp_path / "run"
     common = ["--broker", amqtt_broker, "--run-id", run_id, "--env", "CartPole-v0"]

@@ -242,7 +242,7 @@ DOCTORED = [
 
 def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     """Each registered check is failed by some doctored run folder below (``summary`` by a doctored summary.json,
-    ``rig-time`` by a doctored rig's record in tests/test_rigtime.py), and its docstring says which equation,
+    ``rig-time`` by a doctored rig's record in tests/chief/test_rigtime.py), and its docstring says which equation,
     algorithm or figure of the paper it protects."""
     assert {invariant for _, invariant in DOCTORED} | {"summary", "rig-time"} == {c.invariant for c in CHECKS}
     assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 13

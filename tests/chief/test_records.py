@@ -23,7 +23,7 @@ from chief.records import (
 )
 from chief.rounds import RoundKeeper, WorkerRecord
 from protocol.tasks import task
-from tests.test_audit import simulate
+from tests.chief.test_audit import simulate
 
 SERVICE = ServiceState(run_id="r", session="0" * 16, epoch=1, duplicates=2, hosts={"w0": "h"}, update_steps=3,
                        rejects={"stale": 1}, metrics_bytes=10, elapsed_s=1.5)

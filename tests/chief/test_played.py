@@ -15,9 +15,9 @@ from chief.played import played_totals
 from chief.records import parse_record
 from protocol.messages import ChiefAck, ChiefAggregate, Played, WorkerUpdate
 from protocol.tensors import pack_arrays
-from tests.test_chief_service import HISTORY, ScriptedWorkers, mature, start_chief, update
+from tests.chief.test_chief_service import HISTORY, ScriptedWorkers, mature, start_chief, update
 
-STEPS = 10  # the scripted workers' env steps per episode (tests/test_chief_service.py)
+STEPS = 10  # the scripted workers' env steps per episode (tests/chief/test_chief_service.py)
 
 
 def played(worker: str, episodes: int) -> Played:

@@ -47,7 +47,7 @@ def test_lqr_survives_small_pulses_and_falls_to_a_large_one() -> None:
 
 
 def test_evaluate_rigs_reports_each_rig_as_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    from tests.test_evaluate import save_fresh
+    from tests.worker.test_evaluate import save_fresh
 
     model = save_fresh("qube-local", tmp_path / "q.pt")
     out = tmp_path / "robust.json"

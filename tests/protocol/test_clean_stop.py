@@ -20,8 +20,8 @@ from protocol.codec import decode, encode
 from protocol.messages import QubeStatus, WorkerStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.routes import CHIEF, qos_of, received_by
+from tests.paths import ROOT
 
-ROOT = Path(__file__).resolve().parents[1]
 RUN = "stoprun"
 
 #: A spidev module answering with the simulated rig: ``python -m rpi_bridge`` runs unchanged on it.

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import pytest
 
-SCRIPT = Path(__file__).resolve().parents[1] / "deploy" / "rpi" / "setup-host.sh"
+from tests.paths import ROOT
+
+SCRIPT = ROOT / "deploy" / "rpi" / "setup-host.sh"
 
 pytestmark = [pytest.mark.skipif(
     os.geteuid() != 0 or shutil.which("useradd") is None or shutil.which("runuser") is None,

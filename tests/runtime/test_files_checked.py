@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_clean_stop import FAKE_SPIDEV, ROOT
+from tests.protocol.test_clean_stop import FAKE_SPIDEV, ROOT
 
 #: As root, which reads anything, the process runs without the capabilities that bypass file permissions.
 UNPRIVILEGED = (["setpriv", "--bounding-set", "-dac_override,-dac_read_search", "--"]

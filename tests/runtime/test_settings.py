@@ -19,9 +19,8 @@ from rpi_bridge.settings import BridgeSettings
 from runtime.settings import ENV_FILE_VAR, Settings, to_env
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings
+from tests.paths import ROOT
 from worker.settings import WorkerSettings
-
-ROOT = Path(__file__).resolve().parent.parent
 
 
 @pytest.fixture

@@ -12,9 +12,9 @@ from pathlib import Path
 import pytest
 
 from deploy.reference import PROCESSES
+from tests.paths import ROOT
 
 tomllib = pytest.importorskip("tomllib", reason="reading pyproject.toml needs Python 3.11")
-ROOT = Path(__file__).resolve().parent.parent
 SCRIPTS: dict[str, str] = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
 
 

@@ -18,6 +18,7 @@ from rpi_bridge.reset import ResetConfig
 from rpi_bridge.runner import BridgeRunner, InjectedTiming
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.spi_peer import SimulatedQube
+from tests.paths import ROOT
 
 PERIOD = qube.PERIOD_S
 
@@ -372,14 +373,13 @@ def test_voltage_caps_follow_the_manual() -> None:
 
 
 def test_each_phase_has_its_own_led_colour_documented_in_the_rpi_readme() -> None:
-    from pathlib import Path
 
     from rpi_bridge.control import LEDS
 
     colours = list(LEDS.values())
     assert len(set(colours)) == len(colours)
     assert set(LEDS) == {"calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault", "off"}
-    readme = (Path(__file__).parents[1] / "deploy" / "rpi" / "README.md").read_text()
+    readme = (ROOT / "deploy" / "rpi" / "README.md").read_text()
     for phase, (r, g, b) in LEDS.items():
         assert f"| `{phase}` | {r}, {g}, {b} |" in readme, phase
     core, device, clock = lockstep_core()

@@ -19,10 +19,12 @@ as chief/records.py types them):
 - ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
   sum to 1;
 - ``delivery``: each worker that took part in a round confirms with its next submission that it applied the round's
-  answer (same tensor digest, same keep weight);
+  answer (same tensor digest, same keep weight), or says it was started again with new networks (receipt
+  ``restarted``: it had no resumable state, worker/resume.py);
 - ``receipts``: every receipt of an applied answer, in any counted submission, names a round the chief closed and
   matches the answer it recorded for that round (kind, tensor digest, the worker's keep weight), including rounds that
-  closed with no contributors: a worker applied nothing the chief did not send;
+  closed with no contributors: a worker applied nothing the chief did not send; a ``restarted`` receipt is only on
+  the first submission of new networks (an update for step 0 of the round after the receipt's, PI its one return);
 - ``summary``: the summary's solve episodes, steps and totals agree with the records;
 - ``rig-time``: each rig's balance steps and seconds, reset, idle and rig seconds in the summary are the sums of its
   records (idle modelled from the rounds when not measured, protocol/rigtime.py), rig time = balance + reset, and
@@ -46,6 +48,7 @@ import numpy as np
 from chief import federation, strategies
 from chief.records import EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 from chief.rigtime import last_rig, rig_times
+from protocol.messages import Receipt
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
 from runtime.settings import program, returns_code
@@ -404,24 +407,26 @@ def delivery(run: Run) -> None:
         for w in sorted(set(r.contributors) - set(r.finished)):
             nxt = run.by_round.get((w, r.round + 1))
             if nxt is not None:
-                _receipt(r, w, nxt)
-                run.report.receipts += 1
+                run.report.receipts += _receipt(r, w, nxt)
     if run.strategy.finishers_help:
         _rejoined(run)
 
 
-def _receipt(r: RoundRecord, w: str, nxt: Submitted) -> None:
-    """``w``'s next submission confirms round ``r``'s answer."""
+def _receipt(r: RoundRecord, w: str, nxt: Submitted) -> int:
+    """``w``'s next submission confirms round ``r``'s answer (1), or says it restarted with new networks (0)."""
     n, receipt = r.round, nxt.receipt
     _holds(receipt is not None and receipt.round == n, f"{w}'s submission for round {n + 1} carries no receipt of "
            f"round {n} ({receipt and receipt.model_dump()})")
     assert receipt is not None
+    if receipt.applied == "restarted":
+        return 0  # new networks, which applied no earlier answer: ``receipts`` checks that they are
     _holds(receipt.applied != "missed", f"round {n}'s {r.kind} never reached {w}")
     _holds(receipt.applied == r.kind and receipt.digest == r.digest, f"{w} applied {receipt.applied} "
            f"{receipt.digest!r} as round {n}'s answer, the chief sent {r.kind} {r.digest!r}")
     if r.kind == "transfer":
         _holds(_close(receipt.keep, r.keep_weights.get(w)), f"{w} kept {receipt.keep} of its actor in round {n}, "
                f"the chief said {r.keep_weights.get(w)}")
+    return 1
 
 
 def _rejoined(run: Run) -> None:
@@ -450,7 +455,9 @@ def receipts(run: Run) -> None:
     closed = {r.round: r for r in run.rounds}
     for e in run.submissions:
         receipt = e.receipt
-        if receipt is None or receipt.applied == "missed":
+        if receipt is not None and receipt.applied == "restarted":
+            _restarted(run, e, receipt)
+        if receipt is None or receipt.applied in ("missed", "restarted"):
             continue
         r = closed.get(receipt.round)
         _holds(r is not None, f"{e.worker} applied a {receipt.applied} as the answer to round {receipt.round}, which "
@@ -461,6 +468,17 @@ def receipts(run: Run) -> None:
         if r.kind == "transfer":
             _holds(_close(receipt.keep, r.keep_weights.get(e.worker)), f"{e.worker} kept {receipt.keep} of its actor "
                    f"in round {r.round}, the chief recorded {r.keep_weights.get(e.worker)}")
+
+
+def _restarted(run: Run, e: Submitted, receipt: Receipt) -> None:
+    """A ``restarted`` receipt is a worker's first submission with new networks: an update for step 0 of the round
+    right after the receipt's, with no answer digest or keep weight, and a PI window of this one episode's return."""
+    where = f"{e.worker}'s submission for episode {e.episode} says it restarted after round {receipt.round}"
+    _holds(isinstance(e, EpisodeRecord) and e.kind == "update" and run.round_of(e.episode, 0) == receipt.round + 1,
+           f"{where}, but it is not an update for the next round")
+    assert isinstance(e, EpisodeRecord)
+    _holds(receipt.digest == "" and receipt.keep is None, f"{where}, and names an answer {receipt.model_dump()}")
+    _holds(e.pi == e.return_, f"{where}, but its PI {e.pi} is not its one return {e.return_}: it has earlier ones")
 
 
 @check("summary")

@@ -8,6 +8,9 @@ it runs K PPO updates and submits the episode's actor gradient with its PI (Work
 answer: the aggregate gradient through its actor's optimizer, or a mature actor blended in with its keep weight
 (Eq. 11). Each submission carries a receipt of what it did with the previous round's answer.
 
+``state()`` is everything a worker goes on from; ``restore`` takes it up in a new process (worker/resume.py). A worker
+that starts at a later episode without one (new networks) says so in its first receipt (``restarted``).
+
 Once the chief has accepted the mature actor (``accepted``), the worker has finished: it submits no mature actor
 again, and goes on sharing only when the strategy lets finishers help.
 
@@ -28,12 +31,14 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
 
 from protocol.messages import STAT_BOUNDS, ChiefAck, ChiefAggregate, ChiefTransfer, MatureParams, Receipt, WorkerUpdate
 from protocol.rigtime import SECONDS_LIMIT, EpisodeTime
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
+from worker.envs import rng_states, set_rng_states
 from worker.episode import run_episode
 from worker.ppo import Batch, PPOLearner, StepGradients
 
@@ -59,7 +64,9 @@ class Algorithm2:
         self.step = 0  # the mini-batch step of the open submission
         self.returns: list[float] = []
         self.total_steps = 0
-        self.receipt: Receipt | None = None  # what was done with the last round's answer
+        # What was done with the last round's answer; a worker that starts at a later episode holds none before it.
+        self.receipt: Receipt | None = (Receipt(round=shape.number(first_episode) - 1, applied="restarted")
+                                        if first_episode > 1 else None)
         self.actor_spec = learner.actor_spec()
         self._played = False
         self._batch: Batch | None = None
@@ -214,6 +221,35 @@ class Algorithm2:
         self.receipt = Receipt(round=round_, applied="aggregate",
                                digest=answer_digest(reply.gradient, reply.critic_gradient))
 
+    def state(self) -> dict[str, Any]:
+        """Everything this worker's side of the run goes on from, as tensors and plain data (a worker's resumable
+        state, worker/resume.py): the episode and step bookkeeping, the PI window, the receipt of the last answer,
+        the learner (networks, optimizers, observation statistics, sampling RNG, trajectory memory), an open per-step
+        episode's batch and own step, and the env's RNGs."""
+        own = self._own
+        return {"first_episode": self.first_episode, "episode": self.episode, "step": self.step,
+                "played": self._played, "returns": list(self.returns), "total_steps": self.total_steps,
+                "receipt": self.receipt.model_dump() if self.receipt is not None else None, "last": list(self._last),
+                "rig": dict(self._rig), "finished": self._finished, "learner": self.learner.state_dict(),
+                "memory": self.learner.memory_state(), "env_rngs": rng_states(self.env),
+                "batch": None if self._batch is None else vars(self._batch).copy(),
+                "own": None if own is None else {**vars(own), "critic": _torch(own.critic), "actor": _torch(own.actor)}}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Go on from ``state()`` output taken from a worker of the same task and networks (a ValueError, raised by
+        the learner or the env, when they do not fit)."""
+        self.learner.load_state_dict(state["learner"])
+        self.learner.load_memory(state["memory"])
+        set_rng_states(self.env, state["env_rngs"])
+        self.first_episode, self.episode, self.step = state["first_episode"], state["episode"], state["step"]
+        self._played, self.returns, self.total_steps = state["played"], list(state["returns"]), state["total_steps"]
+        self.receipt = None if state["receipt"] is None else Receipt.model_validate(state["receipt"])
+        self._last, self._rig, self._finished = (state["last"][0], state["last"][1]), state["rig"], state["finished"]
+        self._batch = None if state["batch"] is None else Batch(**state["batch"])
+        own = state["own"]
+        self._own = None if own is None else StepGradients(**{**own, "critic": _numpy(own["critic"]),
+                                                              "actor": _numpy(own["actor"])})
+
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)
         if close is not None:
@@ -238,6 +274,14 @@ def _seconds(value: float) -> float:
 def _shared(grads: dict[str, np.ndarray] | None, spec: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
     """A network's step gradients as sent: float32 arrays, zeros where the step had none."""
     return {k: grads[k].astype(np.float32) if grads else np.zeros(shape, np.float32) for k, shape in spec.items()}
+
+
+def _torch(arrays: dict[str, np.ndarray] | None) -> dict[str, torch.Tensor] | None:
+    return None if arrays is None else {k: torch.from_numpy(np.array(v)) for k, v in arrays.items()}
+
+
+def _numpy(tensors: dict[str, torch.Tensor] | None) -> dict[str, np.ndarray] | None:
+    return None if tensors is None else {k: v.numpy().copy() for k, v in tensors.items()}
 
 
 def _loss_fields(stats: Any) -> dict[str, float | None]:

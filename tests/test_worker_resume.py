@@ -107,3 +107,35 @@ def test_a_worker_joining_later_without_a_state_says_it_restarted() -> None:
     sub = algo.play()
     assert sub.receipt is not None and sub.receipt.model_dump() == {"round": 4, "applied": "restarted", "digest": "",
                                                                    "keep": None}
+
+
+def test_a_worker_whose_state_does_not_fit_refuses_to_start(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The whole worker: a state saved in another chief session is one clear line and exit 7, and it stays on disk."""
+    import threading
+    import time
+
+    from protocol import topics
+    from protocol.codec import encode
+    from protocol.memory import Hub
+    from worker.service import EXIT_UNFIT_STATE, WorkerService
+    from worker.settings import WorkerSettings
+
+    algo = algorithm()
+    path = resume.state_file(tmp_path, "r1", "w0")
+    resume.save(path, identity(algo), START, 0, algo.state(), None, set())
+    hub = Hub()
+    svc = WorkerService(WorkerSettings.given(run_id="r1", worker_id="w0", state_dir=tmp_path), connect=hub.connect)
+    chief = hub.connect("chief").start()
+    codes: list[int] = []
+    worker = threading.Thread(target=lambda: codes.append(svc.run()))
+    worker.start()
+    try:
+        deadline = time.monotonic() + 60
+        while worker.is_alive() and time.monotonic() < deadline:
+            chief.publish(topics.chief("r1", topics.START), encode(START.model_copy(update={"session": "s2"})))
+            worker.join(timeout=0.2)
+    finally:
+        chief.stop()
+    assert codes == [EXIT_UNFIT_STATE] and path.exists()
+    [line] = [r.getMessage() for r in caplog.records if "refusing to start" in r.getMessage()]
+    assert "session 's1'" in line and "session 's2'" in line

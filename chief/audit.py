@@ -20,13 +20,15 @@ as chief/records.py types them):
   sum to 1;
 - ``delivery``: each worker that took part in a round confirms that it applied the round's answer (same tensor
   digest, same keep weight) with its next submission, or under a bounded staleness S (summary.json
-  ``max_staleness``) with one of its next S + 1, by the one for the round S + 1 later if it made that one;
+  ``max_staleness``) with one of its next S + 1, by the one for the round S + 1 later if it made that one, or says
+  it was started again with new networks (receipt ``restarted``: it had no resumable state, worker/resume.py);
 - ``staleness``: each worker applied the chief's answers in round order, each once, each to a round before the
   submission that reports it and at most S + 1 rounds before it, and each receipt's episode (the first the worker
   played with the answer applied) is that submission's episode;
 - ``receipts``: every receipt of an applied answer, in any counted submission, names a round the chief closed and
   matches the answer it recorded for that round (kind, tensor digest, the worker's keep weight), including rounds that
-  closed with no contributors: a worker applied nothing the chief did not send;
+  closed with no contributors: a worker applied nothing the chief did not send; a ``restarted`` receipt is only on
+  the first submission of new networks (an update for step 0 of the round after the receipt's, PI its one return);
 - ``summary``: the summary's solve episodes, steps and totals agree with the records;
 - ``played``: each worker's played, counted and refused episodes and env steps in the summary are what the records
   add up to (chief/played.py), counted + refused = played, the run's played and refused totals their sums, and no
@@ -422,23 +424,26 @@ def delivery(run: Run) -> None:
             found = next((rc for e in later for rc in e.receipts if rc.round == r.round), None)
             if found is None and (w, r.round + stale + 1) not in run.by_round:
                 continue  # it has not (yet) had to apply it: it went on alone, finished or stopped
-            _receipt(r, w, found)
-            run.report.receipts += 1
+            run.report.receipts += _receipt(r, w, found)
     if run.strategy.finishers_help:
         _rejoined(run)
 
 
-def _receipt(r: RoundRecord, w: str, receipt: Receipt | None) -> None:
-    """``receipt``, the one of ``w``'s submissions after round ``r`` that reports on it, confirms its answer."""
+def _receipt(r: RoundRecord, w: str, receipt: Receipt | None) -> int:
+    """``receipt``, the one of ``w``'s submissions after round ``r`` that reports on it, confirms its answer (1), or
+    says the worker restarted with new networks (0)."""
     n = r.round
     _holds(receipt is not None, f"{w}'s submissions after round {n} carry no receipt of round {n}")
     assert receipt is not None
+    if receipt.applied == "restarted":
+        return 0  # new networks, which applied no earlier answer: ``receipts`` checks that they are
     _holds(receipt.applied != "missed", f"round {n}'s {r.kind} never reached {w}")
     _holds(receipt.applied == r.kind and receipt.digest == r.digest, f"{w} applied {receipt.applied} "
            f"{receipt.digest!r} as round {n}'s answer, the chief sent {r.kind} {r.digest!r}")
     if r.kind == "transfer":
         _holds(_close(receipt.keep, r.keep_weights.get(w)), f"{w} kept {receipt.keep} of its actor in round {n}, "
                f"the chief said {r.keep_weights.get(w)}")
+    return 1
 
 
 def _rejoined(run: Run) -> None:
@@ -466,7 +471,9 @@ def receipts(run: Run) -> None:
     an answer the chief never sent (a forged or another chief's) shows here."""
     closed = {r.round: r for r in run.rounds}
     for e, receipt in ((sub, rc) for sub in run.submissions for rc in sub.receipts):
-        if receipt.applied == "missed":
+        if receipt.applied == "restarted":
+            _restarted(run, e, receipt)
+        if receipt.applied in ("missed", "restarted"):
             continue
         r = closed.get(receipt.round)
         _holds(r is not None, f"{e.worker} applied a {receipt.applied} as the answer to round {receipt.round}, which "
@@ -501,6 +508,17 @@ def staleness(run: Run) -> None:
                        f"before episode {rc.episode}, but reported it with episode {e.episode}")
                 last = rc.round
     run.report.staleness = stale
+
+
+def _restarted(run: Run, e: Submitted, receipt: Receipt) -> None:
+    """A ``restarted`` receipt is a worker's first submission with new networks: an update for step 0 of the round
+    right after the receipt's, with no answer digest or keep weight, and a PI window of this one episode's return."""
+    where = f"{e.worker}'s submission for episode {e.episode} says it restarted after round {receipt.round}"
+    _holds(isinstance(e, EpisodeRecord) and e.kind == "update" and run.round_of(e.episode, 0) == receipt.round + 1,
+           f"{where}, but it is not an update for the next round")
+    assert isinstance(e, EpisodeRecord)
+    _holds(receipt.digest == "" and receipt.keep is None, f"{where}, and names an answer {receipt.model_dump()}")
+    _holds(e.pi == e.return_, f"{where}, but its PI {e.pi} is not its one return {e.return_}: it has earlier ones")
 
 
 @check("summary")

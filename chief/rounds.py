@@ -61,6 +61,7 @@ from typing import Any, Literal
 import numpy as np
 
 from chief import federation, strategies
+from protocol.messages import INTERRUPTED
 from protocol.rounds import PER_EPISODE, STALENESS_LIMIT, RoundShape
 from protocol.tasks import PI_WINDOW, TaskSpec, performance_index
 from protocol.tensors import NORM_LIMIT, answer_digest, digest, l2_norm
@@ -79,8 +80,6 @@ assert AHEAD_WINDOW > STALENESS_LIMIT
 RETURN_MARGIN = 0.1
 #: A gradient above this many times the round's median norm is scaled down to it.
 NORM_FACTOR = 10.0
-#: The end reason of an interrupted run (summary.json's ``end_reason``).
-INTERRUPTED = "interrupted"
 #: Closed rounds whose answers are kept for workers that missed them.
 ANSWERS_KEPT = 32
 

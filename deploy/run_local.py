@@ -7,8 +7,9 @@ a chief that died: it resumes from its saved state), prints a summary table at t
 metrics.jsonl, learning_curve.png, the workers' mature models and every process's log in the run folder.
 
 Ctrl-C reaches only the launcher (each child runs in its own process group): it passes the interrupt on to the chief,
-which ends the run resumably (summary.json with end reason ``interrupted``, the curve, its saved state), and prints
-the command that resumes the run. A second Ctrl-C stops every process at once.
+which ends the run resumably (summary.json with end reason ``interrupted``, the curve, its saved state; each worker
+saves its own in ``workers/``, worker/resume.py), and prints the command that resumes the run. A second Ctrl-C stops
+every process at once.
 """
 
 from __future__ import annotations
@@ -28,10 +29,10 @@ from pathlib import Path
 from typing import IO, Any
 
 from chief.claim import EXIT_CLAIMED
-from chief.rounds import INTERRUPTED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy.settings import LocalRunSettings
+from protocol.messages import INTERRUPTED
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
 from runtime.cli import exits_on_storage_faults
@@ -129,7 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         for i, wid in enumerate(worker_ids):
             fleet.start(f"worker-{wid}", "worker", s.child(
                 WorkerSettings, **common, **login(wid), worker_id=wid, model_dir=run_dir / "models",
-                rig_id=rigs.get(i), reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key))
+                state_dir=run_dir / "workers", rig_id=rigs.get(i), reply_timeout=max(120.0, 4 * s.round_timeout),
+                run_key=key))
         print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
         if s.dashboard_port is not None:
             url = wait_for_url(dashboard, url_file)

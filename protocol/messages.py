@@ -98,7 +98,9 @@ class WorkerStatus(Message):
 
 class Receipt(Strict):
     """What a worker did with the chief's answer to round ``round``: applied an aggregate or a transfer (with the
-    answer's tensor digest and, for a transfer, the keep weight it used), or ``missed`` it (no answer in time).
+    answer's tensor digest and, for a transfer, the keep weight it used), ``missed`` it (no answer in time), or
+    ``restarted``: the worker joined the run after round ``round`` with new networks (it was started again without
+    a resumable state, worker/resume.py), so it holds none of the answers before.
 
     Every submission carries the receipt of the last answer the worker applied before it, so the chief's records
     show what reached whom, and when: ``episode`` is the first episode the worker played (or, under a per-step
@@ -108,7 +110,7 @@ class Receipt(Strict):
     """
 
     round: int = Field(ge=1)
-    applied: Literal["aggregate", "transfer", "missed"]
+    applied: Literal["aggregate", "transfer", "missed", "restarted"]
     digest: str = Field(default="", max_length=64)
     keep: float | None = Field(default=None, ge=0.0, le=1.0)
     episode: int | None = Field(default=None, ge=1)
@@ -284,9 +286,14 @@ class RunStart(Message):
         return RoundShape(per_episode=self.rounds_per_episode)
 
 
+#: RunStop.reason (and summary.json's ``end_reason``) of a run the operator interrupted (Ctrl-C, SIGTERM): it is
+#: resumable, so a worker saves its resumable state before it exits (worker/resume.py).
+INTERRUPTED: Final = "interrupted"
+
+
 class RunStop(Message):
     """The run is over; workers stop. ``episodes``: the episode of the last closed round. ``aborted``: it ended early
-    (e.g. every worker offline), not by its rule."""
+    (e.g. every worker offline), not by its rule; ``reason`` INTERRUPTED: it ended early and resumably."""
 
     kind: Literal["run_stop"] = "run_stop"
     run_id: Ident

@@ -46,6 +46,7 @@ under the same stop rule; ``python -m bench.sb3_ref`` repeats it): CartPole 92-1
 
 from __future__ import annotations
 
+import random
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -129,6 +130,40 @@ class DeviceNoiseWrapper(gym.Wrapper):
         else:  # an instance attribute shadows AcrobotEnv.AVAIL_TORQUE for this device only
             base.AVAIL_TORQUE = [t + self.last_noise for t in self._base_torques]
         return self.env.step(action)
+
+
+def rng_states(env: gym.Env) -> list[dict[str, Any]]:
+    """The state of every RNG that decides what ``env`` does next (for a worker's resumable state, worker/resume.py):
+    per layer of its wrapper chain, outermost first, each numpy Generator or ``random.Random`` it holds (the device
+    noise's stream, the task's ``np_random``). Other state of an env (a rig's physics) is not in it."""
+    return [{name: value.bit_generator.state if isinstance(value, np.random.Generator) else value.getstate()
+             for name, value in vars(layer).items() if isinstance(value, (np.random.Generator, random.Random))}
+            for layer in _layers(env)]
+
+
+def set_rng_states(env: gym.Env, states: list[dict[str, Any]]) -> None:
+    """Restore ``rng_states`` output into an env built like the one it was taken from (a ValueError if it is not)."""
+    layers = _layers(env)
+    if len(states) != len(layers):
+        raise ValueError(f"RNG states of {len(states)} env layers for an env of {len(layers)}")
+    for layer, state in zip(layers, states, strict=True):
+        for name, value in state.items():
+            if isinstance(value, dict):  # a numpy Generator's bit generator state (made if the env had none yet)
+                rng = np.random.Generator(getattr(np.random, value["bit_generator"])())
+                rng.bit_generator.state = value
+                setattr(layer, name, rng)
+            else:
+                rng_py = random.Random()
+                rng_py.setstate(value)
+                setattr(layer, name, rng_py)
+
+
+def _layers(env: gym.Env) -> list[Any]:
+    """``env`` and every env it wraps, outermost first."""
+    layers: list[Any] = [env]
+    while isinstance(layers[-1], gym.Wrapper):
+        layers.append(layers[-1].env)
+    return layers
 
 
 # ----------------------------------------------------------------------------------------------------

@@ -8,6 +8,9 @@ it runs K PPO updates and submits the episode's actor gradient with its PI (Work
 answer: the aggregate gradient through its actor's optimizer, or a mature actor blended in with its keep weight
 (Eq. 11). Each submission carries a receipt of what it did with the previous round's answer.
 
+``state()`` is everything a worker goes on from; ``restore`` takes it up in a new process (worker/resume.py). A worker
+that starts at a later episode without one (new networks) says so in its first receipt (``restarted``).
+
 Once the chief has accepted the mature actor (``accepted``), the worker has finished: it submits no mature actor
 again, and goes on sharing only when the strategy lets finishers help.
 
@@ -42,6 +45,7 @@ from typing import Any
 
 import gymnasium as gym
 import numpy as np
+import torch
 
 from protocol.messages import (
     STAT_BOUNDS,
@@ -57,6 +61,7 @@ from protocol.rigtime import SECONDS_LIMIT, EpisodeTime
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
+from worker.envs import rng_states, set_rng_states
 from worker.episode import run_episode
 from worker.ppo import Batch, PPOLearner, StepGradients
 
@@ -92,6 +97,9 @@ class Algorithm2:
         self._sent: tuple[int, list[Receipt]] = (0, [])  # the round of the last submission and the receipts it carried
         self.max_staleness = max_staleness
         self.owed: list[int] = []  # rounds submitted whose answer is not applied yet, oldest first (per-episode)
+        if first_episode > 1:  # a worker that starts at a later episode holds no answer before it, and says so
+            self.receipt = Receipt(round=shape.number(first_episode) - 1, applied="restarted")
+            self._noted.append(self.receipt)
         self.actor_spec = learner.actor_spec()
         self._played = False
         self._batch: Batch | None = None
@@ -300,6 +308,41 @@ class Algorithm2:
                                     unpack_arrays(reply.gradient))
         return Receipt(round=round_, applied="aggregate", digest=answer_digest(reply.gradient, reply.critic_gradient))
 
+    def state(self) -> dict[str, Any]:
+        """Everything this worker's side of the run goes on from, as tensors and plain data (a worker's resumable
+        state, worker/resume.py): the episode and step bookkeeping, the PI window, the receipts of the answers
+        applied (and, under a staleness, the rounds still owed), this worker's life (its played counts go on), the
+        learner (networks, optimizers, observation statistics, sampling RNG, trajectory memory), an open per-step
+        episode's batch and own step, and the env's RNGs."""
+        own = self._own
+        return {"first_episode": self.first_episode, "episode": self.episode, "step": self.step,
+                "played": self._played, "returns": list(self.returns), "total_steps": self.total_steps,
+                "receipt": self.receipt.model_dump() if self.receipt is not None else None, "last": list(self._last),
+                "life": self.life, "noted": [r.model_dump() for r in self._noted], "owed": list(self.owed),
+                "sent": [self._sent[0], [r.model_dump() for r in self._sent[1]]],
+                "rig": dict(self._rig), "finished": self._finished, "learner": self.learner.state_dict(),
+                "memory": self.learner.memory_state(), "env_rngs": rng_states(self.env),
+                "batch": None if self._batch is None else vars(self._batch).copy(),
+                "own": None if own is None else {**vars(own), "critic": _torch(own.critic), "actor": _torch(own.actor)}}
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Go on from ``state()`` output taken from a worker of the same task and networks (a ValueError, raised by
+        the learner or the env, when they do not fit)."""
+        self.learner.load_state_dict(state["learner"])
+        self.learner.load_memory(state["memory"])
+        set_rng_states(self.env, state["env_rngs"])
+        self.first_episode, self.episode, self.step = state["first_episode"], state["episode"], state["step"]
+        self._played, self.returns, self.total_steps = state["played"], list(state["returns"]), state["total_steps"]
+        self.receipt = None if state["receipt"] is None else Receipt.model_validate(state["receipt"])
+        self.life, self.owed = state["life"], list(state["owed"])
+        self._noted = [Receipt.model_validate(r) for r in state["noted"]]
+        self._sent = (state["sent"][0], [Receipt.model_validate(r) for r in state["sent"][1]])
+        self._last, self._rig, self._finished = (state["last"][0], state["last"][1]), state["rig"], state["finished"]
+        self._batch = None if state["batch"] is None else Batch(**state["batch"])
+        own = state["own"]
+        self._own = None if own is None else StepGradients(**{**own, "critic": _numpy(own["critic"]),
+                                                              "actor": _numpy(own["actor"])})
+
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)
         if close is not None:
@@ -324,6 +367,14 @@ def _seconds(value: float) -> float:
 def _shared(grads: dict[str, np.ndarray] | None, spec: dict[str, tuple[int, ...]]) -> dict[str, np.ndarray]:
     """A network's step gradients as sent: float32 arrays, zeros where the step had none."""
     return {k: grads[k].astype(np.float32) if grads else np.zeros(shape, np.float32) for k, shape in spec.items()}
+
+
+def _torch(arrays: dict[str, np.ndarray] | None) -> dict[str, torch.Tensor] | None:
+    return None if arrays is None else {k: torch.from_numpy(np.array(v)) for k, v in arrays.items()}
+
+
+def _numpy(tensors: dict[str, torch.Tensor] | None) -> dict[str, np.ndarray] | None:
+    return None if tensors is None else {k: v.numpy().copy() for k, v in tensors.items()}
 
 
 def _loss_fields(stats: Any) -> dict[str, float | None]:

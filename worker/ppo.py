@@ -620,6 +620,28 @@ class PPOLearner:
         self.config = config
         self.memory = deque(self.memory, maxlen=config.memory_size)
 
+    def memory_state(self) -> dict[str, torch.Tensor]:
+        """The trajectory memory (which spans episodes) as tensors, oldest first, for a worker's resumable state
+        (worker/resume.py); ``load_memory`` restores it exactly."""
+        if not self.memory:
+            return {}
+        obs, actions, rewards, next_obs, terminated, truncated = zip(*self.memory, strict=True)
+        return {"obs": torch.from_numpy(np.stack(obs)), "next_obs": torch.from_numpy(np.stack(next_obs)),
+                "actions": torch.as_tensor(np.asarray(actions, dtype=np.int64) if self.actor.discrete
+                                           else np.stack(actions)),
+                "rewards": torch.tensor(rewards, dtype=torch.float64), "terminated": torch.tensor(terminated),
+                "truncated": torch.tensor(truncated)}
+
+    def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
+        """Replace the trajectory memory with ``memory_state()`` output."""
+        self.memory.clear()
+        for i in range(len(state["rewards"]) if state else 0):
+            action = state["actions"][i]
+            self.memory.append((state["obs"][i].numpy().copy(), int(action) if self.actor.discrete
+                                else action.numpy().copy(), float(state["rewards"][i]),
+                                state["next_obs"][i].numpy().copy(), bool(state["terminated"][i]),
+                                bool(state["truncated"][i])))
+
     def warm_start(self, state: Mapping[str, Any]) -> None:
         """Start from another learner's ``state_dict()`` (a warm start, ``--init-model``): its actor and critic, its
         observation statistics and its optimizers' Adam moments, so that fine-tuning goes on where the model's training

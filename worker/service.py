@@ -1,8 +1,9 @@
 """The worker's MQTT adapter around Algorithm 2: announce, learn episode by episode, share the actor gradient and
 PI, apply the chief's answer (mean gradient through the optimizer, or the Eq. 11 blend), hand over the mature
 actor when PI >= TC and wait until the chief confirms it holds it. Every submission carries a receipt of what the
-worker did with the previous round's answer. The learning itself is worker/ppo.py; the environments are
-worker/envs.py."""
+worker did with the previous round's answer. On the RunStop of an interrupted run it saves its resumable state, and
+takes it up when the resumed run names it again (worker/resume.py). The learning itself is worker/ppo.py; the
+environments are worker/envs.py."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ import socket
 import threading
 import time
 import uuid
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -23,6 +25,7 @@ from protocol import topics
 from protocol.auth import refusal
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
+    INTERRUPTED,
     ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
@@ -42,7 +45,7 @@ from protocol.tensors import NORM_LIMIT, l2_norm
 from protocol.transport import Connect, Transport
 from runtime.model_file import InitModel
 from runtime.storage import StorageError, atomic_write, storage_errors
-from worker import model
+from worker import model, resume
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
 from worker.settings import WorkerSettings
@@ -52,6 +55,8 @@ log = logging.getLogger("worker")
 EXIT_OK, EXIT_ERROR, EXIT_NOT_STARTED, EXIT_ABORTED = 0, 1, 3, 4
 #: The exit code of a worker stopped by SIGINT or SIGTERM before it solved (it said ``stopped`` and disconnected).
 EXIT_INTERRUPTED = 130
+#: The exit code of a worker whose resumable state does not fit the run that resumes (worker/resume.py).
+EXIT_UNFIT_STATE = 7
 
 
 def auto_worker_id() -> str:
@@ -160,6 +165,10 @@ class WorkerService:
                 log.error("no RunStart naming %s within %.0f s", cfg.worker_id, cfg.start_timeout)
                 return EXIT_NOT_STARTED
             return self._learn(start)
+        except resume.UnfitState as exc:
+            log.error("refusing to start: %s (remove it to start this worker afresh, its learning lost)", exc)
+            self._status("error", detail=str(exc)[:2000])
+            return EXIT_UNFIT_STATE
         except StorageError as exc:  # main prints it as one line: exit 5
             self._status("error", detail=str(exc))
             raise
@@ -212,15 +221,17 @@ class WorkerService:
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
             model.warm_start(learner, self.init_state, cfg.env, self.init_model.file)
             log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])
-        log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id, index,
-                 seed, cfg.env, start.policy, start.first_episode)
-        self._status("training", episode=start.first_episode - 1)
         self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
                           shape=start.shape, max_staleness=start.max_staleness)
         try:
-            while algo.next_episode <= start.max_episodes and not self.halted:
-                submission: WorkerUpdate | MatureParams | None = algo.play()
+            pending = self._take_up(algo, start)  # a submission the chief has not answered yet, sent first
+            log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id,
+                     index, seed, cfg.env, start.policy, algo.next_episode if pending is None else algo.episode)
+            self._status("training", episode=algo.next_episode - 1)
+            while pending is not None or (algo.next_episode <= start.max_episodes and not self.halted):
+                submission: WorkerUpdate | MatureParams | None = pending if pending is not None else algo.play()
+                pending = None
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner, algo, start)
                     ack = self._hand_over(submission)
@@ -237,6 +248,7 @@ class WorkerService:
                         continue
                     if ack is None:
                         if self.halted:
+                            pending = submission  # not acknowledged: the state keeps it
                             break
                         raise TimeoutError(f"the chief did not acknowledge the mature actor of episode "
                                            f"{submission.episode} within {cfg.ack_timeout:.0f} s")
@@ -247,25 +259,85 @@ class WorkerService:
                     self._post(submission, algo.round)
                     self._settle(algo, algo.max_staleness)
                     continue
-                while submission is not None:  # one round, or K of them under a per-step strategy
-                    reply = self._exchange(submission, algo.round)
-                    submission = algo.apply(reply)
-                    if algo.refused_answer is not None and reply is not None:
-                        self.rejects.reject(topics.chief(cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
-            if algo.owed and not algo.finished:
+                pending = self._rounds(algo, submission)
+                if pending is not None:
+                    break
+            if algo.owed and not algo.finished and pending is None:
                 self._settle(algo, 0)  # the last answers, as a worker without staleness waits for its last
-            if not algo.finished:
-                self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
-                             detail=self.stop.reason if self.stop else "interrupted" if self.halted else
-                             "episode limit")
-            if self.stop is None and self.halted and not algo.finished:
-                return EXIT_INTERRUPTED
-            if self.stop is not None and self.stop.aborted and not algo.finished:
-                log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
-                return EXIT_ABORTED
-            return EXIT_OK
+            self._keep(algo, start, pending)
+            return self._ended(algo)
         finally:
             algo.close()
+
+    def _ended(self, algo: Algorithm2) -> int:
+        """Say how this worker stopped; its exit code."""
+        if not algo.finished:
+            self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
+                         detail=self.stop.reason if self.stop else "interrupted" if self.halted else "episode limit")
+        if self.stop is None and self.halted and not algo.finished:
+            return EXIT_INTERRUPTED
+        if self.stop is not None and self.stop.aborted and not algo.finished:
+            if self.stop.reason != INTERRUPTED:  # an interrupted run said so in _keep
+                log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
+            return EXIT_ABORTED
+        return EXIT_OK
+
+    def _rounds(self, algo: Algorithm2, submission: WorkerUpdate | None) -> WorkerUpdate | None:
+        """Exchange an episode's submissions for the chief's answers (one round, or K under a per-step strategy) and
+        apply them; the submission left unanswered when the run stopped (not applied: the state keeps it), else None."""
+        while submission is not None:
+            reply = self._exchange(submission, algo.round)
+            if reply is None and self.halted:
+                return submission
+            submission = algo.apply(reply)
+            if algo.refused_answer is not None and reply is not None:
+                self.rejects.reject(topics.chief(self.cfg.run_id, reply.kind), "wrong_shape", algo.refused_answer)
+        return None
+
+    # -- resumable state (worker/resume.py) ------------------------------------------------------------------
+
+    def _state_file(self) -> Path | None:
+        folder = self.cfg.states()
+        return None if folder is None else resume.state_file(folder, self.cfg.run_id, self.cfg.worker_id)
+
+    def _identity(self, algo: Algorithm2) -> resume.Identity:
+        return resume.Identity(self.cfg.run_id, self.cfg.worker_id, self.cfg.env, algo.actor_spec,
+                               algo.learner.critic_spec())
+
+    def _take_up(self, algo: Algorithm2, start: RunStart) -> WorkerUpdate | MatureParams | None:
+        """Go on from this worker's saved state when there is one (UnfitState when it does not fit this run); the
+        submission it left unanswered. Without one, a worker joining a run at a later episode says its learning
+        before was lost (its first receipt says ``restarted``)."""
+        path = self._state_file()
+        if path is None or not path.exists():
+            if start.first_episode > 1:
+                log.warning("no resumable state of %s in run %s (%s): it starts at episode %d with new networks, "
+                            "its learning before is lost", self.cfg.worker_id, self.cfg.run_id,
+                            path or "no --state-dir", start.first_episode)
+            return None
+        resumed = resume.load(path, self._identity(algo), start)
+        try:
+            algo.restore(resumed.algorithm)
+        except (ValueError, KeyError, RuntimeError) as exc:  # networks or env of another shape, a damaged state
+            raise resume.UnfitState(f"{path} does not fit this worker ({type(exc).__name__}: {exc})") from exc
+        self.answered |= resumed.answered
+        resume.discard(path)
+        log.warning("resumed from %s at episode %d, PI %s, %s", path, algo.episode,
+                    "-" if algo.pi is None else f"{algo.pi:.1f}",
+                    f"sending round {algo.round} again" if resumed.pending is not None else "its last answer applied")
+        return resumed.pending
+
+    def _keep(self, algo: Algorithm2, start: RunStart, pending: WorkerUpdate | MatureParams | None) -> None:
+        """On the RunStop of an interrupted run, save the resumable state (with the unanswered submission)."""
+        if self.stop is None or self.stop.reason != INTERRUPTED:
+            return
+        path = self._state_file()
+        if path is None:
+            log.warning("the run was interrupted and %s keeps no state (no --state-dir or --model-dir): the resumed "
+                        "run starts it with new networks", self.cfg.worker_id)
+            return
+        resume.save(path, self._identity(algo), start, self.epoch, algo.state(), pending, self.answered)
+        log.info("the run was interrupted: saved this worker's state at episode %d to %s", algo.episode, path)
 
     def _catch_up(self, algo: Algorithm2) -> None:
         """A finisher that goes on helping under a per-step strategy: wait for the answers of its finishing
@@ -444,7 +516,7 @@ class WorkerService:
         self.restarted = False
         while True:
             self._take(algo)
-            if len(algo.owed) <= allowed or self.stop is not None:
+            if len(algo.owed) <= allowed or self.halted:
                 break
             now = time.monotonic()
             oldest = algo.owed[0]

@@ -48,6 +48,9 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
                                      "once after a reconnect or a chief restart)", gt=0)
     start_timeout: float = setting(600.0, "seconds to wait for the chief to start the run", gt=0)
     model_dir: Path | None = setting(None, "save the mature model here as <id>.pt (unset: not saved)")
+    state_dir: Path | None = setting(None, "when the chief interrupts the run, save this worker's resumable state "
+                                     "here as <run>.<id>.state.pt, and take it up when the run resumes (unset: "
+                                     "--model-dir; neither: not saved, a resumed run starts this worker afresh)")
     rig_profile: str | None = setting(None, "--env qube-local: the simulated rig's profile, a built-in (ideal, lab) "
                                       "or a JSON file (default ideal; a qube_sim rig has its own)", metavar="NAME|FILE")
     randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
@@ -70,6 +73,10 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
 
             load_profile(value)
         return value
+
+    def states(self) -> Path | None:
+        """The folder of this worker's resumable state (``state_dir``, else ``model_dir``); None: none is kept."""
+        return self.state_dir if self.state_dir is not None else self.model_dir
 
     def env_options(self) -> dict[str, Any]:
         """Options for the task's factory: the rig's clock of qube, the rig profile and randomisation of qube-local."""

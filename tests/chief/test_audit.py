@@ -25,9 +25,10 @@ SOLVE_AT = {"w0": 12, "w1": 15, "w2": 21}  # episodes at which each simulated wo
 LOST_STEPS = 17
 
 
-def simulate(run_dir: Path, policy: str = "weighted") -> None:
+def simulate(run_dir: Path, policy: str = "weighted", restart: tuple[str, int] | None = None) -> None:
     """Drive the real RoundKeeper with three honest workers and write the run folder the chief would write (three
-    rounds per episode under a per-step strategy)."""
+    rounds per episode under a per-step strategy). ``restart``: that worker is started again at that episode with
+    new networks and no resumable state (worker/resume.py), as worker/federated.py's Algorithm2 then reports it."""
     shape = strategies.get(policy).rounds(3)
     per_step = shape.per_episode
     keeper = RoundKeeper(sorted(SOLVE_AT), policy, task("CartPole-v0"), max_episodes=100, round_timeout=30.0,
@@ -44,6 +45,8 @@ def simulate(run_dir: Path, policy: str = "weighted") -> None:
                 rec = keeper.workers[w]
                 if keeper.done or (rec.state == "finished" and not rec.helping) or (step and episode == SOLVE_AT[w]):
                     continue
+                if (w, episode, step) == (*(restart or ("", 0)), 0):
+                    returns[w], receipts[w] = [], {"round": keeper.shape.number(episode) - 1, "applied": "restarted"}
                 if step == 0:
                     returns[w].append(200.0 if episode > SOLVE_AT[w] - PI_WINDOW else 20.0 + 10 * index + episode)
                     played[w].update(episodes=played[w]["episodes"] + 1, steps=played[w]["steps"] + int(returns[w][-1]))
@@ -214,8 +217,29 @@ def doctor_played_under(lines: list[dict]) -> None:
             x["played"]["steps"] = 1
 
 
+def test_a_worker_started_again_with_new_networks_passes(tmp_path: Path) -> None:
+    """A worker started again without its resumable state says so in its first receipt (``restarted``): ``delivery``
+    accepts exactly that in place of the previous round's answer."""
+    simulate(tmp_path / "run", restart=("w2", 6))
+    report = audit(tmp_path / "run")
+    assert first(records(tmp_path / "run"), type="episode", worker="w2", episode=6)["receipt"]["applied"] == "restarted"
+    assert report.receipts == 12 + 15 + 21 - 3 - 1
+
+
+def doctor_restarted(lines: list[dict]) -> None:
+    """A worker that says it restarted with new networks, yet its PI averages earlier returns."""
+    first(lines, type="episode", worker="w2", episode=8)["receipt"] = {"round": 7, "applied": "restarted"}
+
+
+def doctor_restarted_round(lines: list[dict]) -> None:
+    """A restart receipt that names another round than the one before."""
+    first(lines, type="episode", worker="w2", episode=8)["receipt"] = {"round": 5, "applied": "restarted"}
+
+
 DOCTORED = [
     (doctor_played_under, "played"),
+    (doctor_restarted, "receipts"),
+    (doctor_restarted_round, "delivery"),
     (doctor_fakexfer, "receipts"),
     (doctor_weight, "eq8-weights"),
     (doctor_weights_sum, "eq8-weights"),

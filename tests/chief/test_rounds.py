@@ -461,7 +461,7 @@ def test_an_interrupted_run_keeps_its_open_round_and_resumes_through_the_saved_s
     a keeper restored from it goes on where it stopped (an aborted run stays over)."""
     from chief import checkpoint
     from chief.records import ServiceState
-    from chief.rounds import INTERRUPTED
+    from protocol.messages import INTERRUPTED
 
     k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
     k.submit(w["w0"].sub(1, 20.0), 0.0)

@@ -3,6 +3,7 @@ last rig carries the figures the table reports."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
@@ -33,3 +34,27 @@ def test_a_lab_federation_reports_its_last_rig(tmp_path: Path) -> None:
     assert summary["last_rig"]["rig_s"] > 0 and summary["run_dir"] == str(tmp_path / "scratch")
     again = sim2real.federate(tmp_path / "scratch", 101, 2, {"rig_profile": "lab"})  # reused, not run again
     assert again["wall_s"] == summary["wall_s"]
+
+
+def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_path: Path) -> None:
+    runs = [run("scratch", 101, 200, 34_000, 30.0), run("scratch", 102, None, None, None),
+            run("randomised", 101, 12, 29_000, 3.5), run("randomised", 102, 14, 30_500, 4.5)]
+    result = {"config": {"rigs": 3, "policy": "plain", "seeds": [101, 102], "pretrain_seed": 1, "date": "2026-12-02",
+                         "cores": 2, "load_average": [3.0, 3.0, 3.0]}, "wall_s": 600.0, "table": sim2real.table(runs),
+              "pretrains": {"randomised": {"finished": True, "episodes": 147, "rig_min": 20.0},
+                            "ideal": {"finished": False}},
+              "zero_shot": {"randomised": {"rigs": 10, "balanced_to_end": 9}},
+              "disturbed_trials": [{"rigs": 1, "balanced_to_end": 1}, {"rigs": 1, "balanced_to_end": 0}]}
+    text = sim2real.report(result, "sim2real.json")
+    assert "| from scratch | 1/2 | not reached (1 of 2 runs unfinished) |" in text  # the unfinished run is worse
+    assert "| warm start: randomised pretrain (`lab`, +-20%) | 2/2 | 13 [12.5 to 13.5] |" in text
+    assert "episodes **missed**" in text and "balance_steps **missed**" in text  # 13 > 12 and 29,750 <= 30,000 met
+    assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 trials" in text
+    assert "`ideal` pretrain: did not finish: no model; no zero-shot test." in text
+    json_path = tmp_path / "sim2real.json"
+    json_path.write_text(json.dumps(result))
+    page = tmp_path / "page.md"
+    page.write_text(f"before\n{sim2real.BEGIN}\nold table\n{sim2real.END}\nafter\n")
+    sim2real.write_report(json_path, [page])
+    table = sim2real.report(result, str(json_path))
+    assert page.read_text() == f"before\n{sim2real.BEGIN}\n{table}\n{sim2real.END}\nafter\n"

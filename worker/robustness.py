@@ -77,7 +77,7 @@ def pulse_schedule(seed: int, d: Disturbances, horizon_s: float) -> list[tuple[f
 
 
 def run_rig(act: Callable[[np.ndarray], int], profile: RigProfile, rig: int, seed: int, d: Disturbances,
-            max_steps: int = int(MAX_RETURN)) -> RigResult:
+            max_steps: int = MAX_RETURN) -> RigResult:
     """One disturbed episode on rig ``seed`` of ``profile`` under the controller ``act(obs) -> action index``."""
     env = QubeLocalEnv(seed=seed, profile=profile)
     torque = stall_torque(env.device.params)

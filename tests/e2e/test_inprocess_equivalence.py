@@ -58,10 +58,13 @@ def over_mqtt(url: str, policy: str, run_dir: Path) -> None:
 
 
 def records(run_dir: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """The submissions' records per worker and round, and the round records in order; without their times."""
+    """The submissions' records per worker and round, and the round records in order; without their times and
+    the workers' life tokens."""
     lines = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
     for line in lines:
         line.pop("t")
+        if isinstance(line.get("played"), dict):
+            line["played"].pop("life")  # a random token per worker process (protocol.messages.Played)
     subs = sorted((r for r in lines if r["type"] != "round"), key=lambda r: (r["worker"], r["round"]))
     return subs, [r for r in lines if r["type"] == "round"]
 

@@ -32,6 +32,8 @@ from tests.tb_events import Scalars, read_board, read_event_file
 from worker.federated import _loss_fields
 from worker.ppo import UpdateStats
 
+pytestmark = pytest.mark.xdist_group("test_tensorboard")  # its module fixture is made once, in one test process
+
 needs_writer = pytest.mark.skipif(importlib.util.find_spec("tensorboardX") is None,
                                   reason="the tb extra (pip install .[tb]) writes the event files")
 

@@ -17,6 +17,8 @@ from worker.episode import run_episode
 from worker.evaluate import evaluate, main
 from worker.ppo import PPOLearner
 
+pytestmark = pytest.mark.xdist_group("test_evaluate")  # its module fixture is made once, in one test process
+
 
 def save_fresh(env_id: str, path: Path, seed: int = 1) -> Path:
     env = make_env(env_id, seed)

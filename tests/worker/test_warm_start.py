@@ -21,6 +21,8 @@ from runtime.model_file import InitModel, ModelFileError, network_digest, proven
 from worker.__main__ import main as worker_main
 from worker.evaluate import main as evaluate_main
 
+pytestmark = pytest.mark.xdist_group("test_warm_start")  # its module fixture is made once, in one test process
+
 #: CartPole-v0's random policy scores about 22; a solved one 200.
 GOOD_RETURN = 150.0
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import subprocess
 import sys
+import threading
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 SEED = 3
@@ -38,3 +40,15 @@ class Runs:
         if policy not in self._made:
             self._made[policy] = federate(self.base, f"amqtt-{policy}", policy)
         return self._made[policy]
+
+
+def run_in_threads(services: Sequence[Callable[[], int]], timeout: float) -> None:
+    """Run each service (a chief's or a worker's ``run``) in a thread of this process; assert each returned 0."""
+    codes: dict[int, int] = {}
+    threads = [threading.Thread(target=lambda i=i, run=run: codes.__setitem__(i, run()), daemon=True)
+               for i, run in enumerate(services)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=timeout)
+    assert codes == dict.fromkeys(range(len(services)), 0)

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -24,6 +23,7 @@ from protocol.messages import ChiefAggregate
 from protocol.rigtime import model_idle
 from protocol.tasks import PI_WINDOW, performance_index, task, worker_seed
 from protocol.tensors import answer_digest, pack_arrays
+from tests.federations import run_in_threads
 from worker import service as worker_service
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
@@ -240,14 +240,7 @@ def over_mqtt(url: str, run_dir: Path, staleness: int) -> None:
                          outputs=Outputs(tensorboard=False, plot=False, progress=False))
     services = [chief] + [WorkerService(WorkerSettings.given(broker=url, run_id=run_id, worker_id=f"w{i}", env=ENV))
                           for i in range(2)]
-    codes: dict[int, int] = {}
-    threads = [threading.Thread(target=lambda i=i, s=s: codes.__setitem__(i, s.run()), daemon=True)
-               for i, s in enumerate(services)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=300)
-    assert codes == {0: 0, 1: 0, 2: 0}
+    run_in_threads([s.run for s in services], timeout=300)
 
 
 def played_on(run_dir: Path, worker: str) -> list[int]:

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import subprocess
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -19,6 +18,7 @@ from chief.audit import audit
 from chief.service import ChiefService, Outputs
 from chief.settings import ChiefSettings
 from services.broker.embedded import start_broker_process, stop_process
+from tests.federations import run_in_threads
 from worker.service import WorkerService
 from worker.settings import WorkerSettings
 
@@ -47,14 +47,7 @@ def over_mqtt(url: str, policy: str, run_dir: Path) -> None:
                          outputs=Outputs(tensorboard=False, plot=False, progress=False))
     services = [chief] + [WorkerService(WorkerSettings.given(broker=url, run_id=run_id, worker_id=f"w{i}", env=ENV))
                           for i in range(WORKERS)]
-    codes: dict[int, int] = {}
-    threads = [threading.Thread(target=lambda i=i, s=s: codes.__setitem__(i, s.run()), daemon=True)
-               for i, s in enumerate(services)]
-    for thread in threads:
-        thread.start()
-    for thread in threads:
-        thread.join(timeout=900)
-    assert codes == dict.fromkeys(range(len(services)), 0)
+    run_in_threads([s.run for s in services], timeout=900)
 
 
 def records(run_dir: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:

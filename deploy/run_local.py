@@ -281,10 +281,16 @@ def _relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> None:
                     print(f"!! {name} exited with code {code}; see {fleet.log_dir / (name + '.log')}", flush=True)
 
 
+def this_python() -> str:
+    """This interpreter as a user would type it here: relative under the current folder (``.venv/bin/python``),
+    else its absolute path (never a bare ``python``, which may be another interpreter without the packages)."""
+    return os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else sys.executable
+
+
 def resume_command(argv: list[str], run_id: str, run_dir: Path) -> str:
     """This launcher's command line with ``--run-id`` and ``--run-dir`` naming the run (its other settings as they
     were given: the same shell's FEDRL_* variables and .env file apply again)."""
-    py = os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else "python"
+    py = this_python()
     kept: list[str] = []
     skip = False
     for arg in argv:
@@ -332,7 +338,7 @@ def print_rig_time(summary: dict) -> None:
 def print_next_steps(summary: dict, run_dir: Path) -> None:
     """The footer: how to evaluate a controller, audit the run, view TensorBoard, warm-start from this run and keep
     the dashboard up."""
-    py = os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else "python"
+    py = this_python()
     solved = [w["id"] for w in summary["workers"] if w["solved"]]
     print("\nnext steps:")
     if solved:  # the model records its task (a rig's controller runs on the in-process rig)

@@ -192,6 +192,9 @@ class ChiefService:
     def _resume(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
         """Carry on a run from its saved state: the records are cut back to what the state had seen."""
         self.keeper = keeper
+        if keeper.max_staleness != self.cfg.max_staleness:
+            log.warning("run %s keeps its saved --max-staleness %d (given %d): a run's staleness does not change",
+                        self.cfg.run_id, keeper.max_staleness, self.cfg.max_staleness)
         if keeper.interrupted:  # its summary told how it stopped; the run goes on and will write another
             log.warning("run %s was interrupted (%s): taking it up again", self.cfg.run_id,
                         self.cfg.run_dir / SUMMARY)

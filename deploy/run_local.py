@@ -276,7 +276,7 @@ def _relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> None:
             sys.stdout.flush()
             for name, proc in fleet.procs.items():
                 code = proc.poll()
-                if code not in (None, 0) and name not in reported:
+                if code not in (None, 0, EXIT_INTERRUPTED) and name not in reported:  # 130: stopped with the run
                     reported.add(name)
                     print(f"!! {name} exited with code {code}; see {fleet.log_dir / (name + '.log')}", flush=True)
 

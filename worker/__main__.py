@@ -13,9 +13,9 @@ DESCRIPTION = (
     "A federated RL worker: Actor-Critic PPO on its own environment, sharing its actor gradient and Performance "
     "Index with the chief after every episode and applying what the chief sends back. Exits when it has solved the "
     "task (after the chief acknowledged its mature actor) or when the run ends: exit code 0 then, 1 on an error, 2 "
-    "on a bad setting, 3 when no run started, 4 when the run was aborted or interrupted before this worker solved "
-    "(interrupted: its resumable state saved, --state-dir), 7 when its saved state does not fit the resumed run, "
-    "130 when it was stopped by Ctrl-C or SIGTERM before it solved."
+    "on a bad setting, 3 when no run started, 4 when the run was aborted before this worker solved, 7 when its "
+    "saved state does not fit the resumed run, 130 when it was stopped before it solved by Ctrl-C, SIGTERM or the "
+    "chief's interrupted run (then its resumable state is saved, --state-dir)."
 )
 
 

@@ -274,11 +274,11 @@ class WorkerService:
         if not algo.finished:
             self._status("stopped", episode=algo.next_episode - 1, pi=algo.pi,
                          detail=self.stop.reason if self.stop else "interrupted" if self.halted else "episode limit")
-        if self.stop is None and self.halted and not algo.finished:
+        interrupted = self.halted if self.stop is None else self.stop.reason == INTERRUPTED
+        if interrupted and not algo.finished:  # Ctrl-C or SIGTERM here, or the chief's (_keep saved the state)
             return EXIT_INTERRUPTED
         if self.stop is not None and self.stop.aborted and not algo.finished:
-            if self.stop.reason != INTERRUPTED:  # an interrupted run said so in _keep
-                log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
+            log.error("the run was aborted (%s) before this worker solved", self.stop.reason)
             return EXIT_ABORTED
         return EXIT_OK
 

@@ -5,6 +5,8 @@ command resumes the run to the same per-worker result as a run that was never in
 from __future__ import annotations
 
 import json
+import os
+import re
 import shlex
 import signal
 import subprocess
@@ -28,6 +30,19 @@ def rounds_closed(metrics: Path) -> int:
     return metrics.read_text().count('"type":"round"') if metrics.exists() else 0
 
 
+def worker_pids(log: str) -> list[int]:
+    """The workers' pids, from the chief's 'worker w0 joined from <host> (pid N)' lines."""
+    return [int(pid) for pid in re.findall(r"worker \S+ joined from \S+ \(pid (\d+)\)", log)]
+
+
+def signal_all(pids: list[int], sig: signal.Signals) -> None:
+    for pid in pids:
+        try:
+            os.kill(pid, sig)
+        except ProcessLookupError:
+            pass
+
+
 def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
     return [(w["id"], w["episodes"], w["steps"]) for w in json.loads((run_dir / "summary.json").read_text())["workers"]]
 
@@ -39,14 +54,25 @@ def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path
     out = tmp_path / "launcher.log"
     launcher = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *ARGV, "--run-dir", str(run_dir),
                                  "--run-id", "ctrlc"], stdout=out.open("wb"), stderr=subprocess.STDOUT)
+    paused: list[int] = []
     try:
         deadline = time.monotonic() + 300
         while rounds_closed(run_dir / "metrics.jsonl") < 5:
             assert time.monotonic() < deadline and launcher.poll() is None, out.read_text()
             time.sleep(0.05)
+        # The workers pause, so that the run is still open when the Ctrl-C lands however loaded the machine is
+        # (a starved test once sent it after the run had ended); they go on once the launcher has taken it.
+        paused = worker_pids(out.read_text())
+        assert len(paused) == WORKERS, out.read_text()
+        signal_all(paused, signal.SIGSTOP)
         launcher.send_signal(signal.SIGINT)  # what Ctrl-C in the terminal sends
+        while "interrupted: the chief saves the run" not in out.read_text():
+            assert time.monotonic() < deadline and launcher.poll() is None, out.read_text()[-3000:]
+            time.sleep(0.05)
+        signal_all(paused, signal.SIGCONT)
         assert launcher.wait(timeout=120) == EXIT_INTERRUPTED, out.read_text()[-3000:]
     finally:
+        signal_all(paused, signal.SIGCONT)
         if launcher.poll() is None:
             launcher.kill()
     log = out.read_text()

@@ -61,7 +61,8 @@ def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path
             assert time.monotonic() < deadline and launcher.poll() is None, out.read_text()
             time.sleep(0.05)
         # The workers pause, so that the run is still open when the Ctrl-C lands however loaded the machine is
-        # (a starved test once sent it after the run had ended); they go on once the launcher has taken it.
+        # (once, in a make test at load 7, the run reached its cap before the Ctrl-C took effect); they go on once
+        # the launcher has taken it.
         paused = worker_pids(out.read_text())
         assert len(paused) == WORKERS, out.read_text()
         signal_all(paused, signal.SIGSTOP)

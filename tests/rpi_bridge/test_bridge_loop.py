@@ -13,28 +13,14 @@ from protocol import qube
 from protocol.codec import decode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
 from rpi_bridge.control import ControlConfig, ControlCore
-from rpi_bridge.frame import RAD_PER_COUNT, build_reply, parse_command
+from rpi_bridge.frame import RAD_PER_COUNT, build_reply
 from rpi_bridge.reset import ResetConfig
 from rpi_bridge.runner import BridgeRunner, InjectedTiming
 from services.qube_sim.clock import VirtualClock
-from services.qube_sim.spi_peer import SimulatedQube
 from tests.paths import ROOT
+from tests.rpi_bridge.recording import RecordingQube
 
 PERIOD = qube.PERIOD_S
-
-
-class RecordingQube(SimulatedQube):
-    """A simulated rig that also keeps every motor command it was sent (the real peer, plus a log)."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.commands: list[int] = []
-
-    def transfer(self, frame: bytes) -> bytes:
-        cmd = parse_command(frame)
-        if cmd.enabled:
-            self.commands.append(cmd.motor)
-        return super().transfer(frame)
 
 
 class RecordingCore(ControlCore):

@@ -12,32 +12,17 @@ import pytest
 from protocol import qube
 from rpi_bridge.calibration import Calibration, CalibrationStore, decide, is_still
 from rpi_bridge.control import LEDS, ControlConfig, ControlCore
-from rpi_bridge.frame import parse_command
 from rpi_bridge.selftest import SelfTest, SelfTestConfig, judge
 from services.qube_sim.clock import VirtualClock
-from services.qube_sim.spi_peer import SimulatedQube
+from tests.rpi_bridge.recording import RecordingQube
 
 PERIOD = qube.PERIOD_S
 
 
-class WatchedQube(SimulatedQube):
-    """A simulated rig that keeps the motor commands (enabled ones) it was sent."""
-
-    def __init__(self, *args: object, **kwargs: object) -> None:
-        super().__init__(*args, **kwargs)  # type: ignore[arg-type]
-        self.commands: list[int] = []
-
-    def transfer(self, frame: bytes) -> bytes:
-        cmd = parse_command(frame)
-        if cmd.enabled:
-            self.commands.append(cmd.motor)
-        return super().transfer(frame)
-
-
 def make_core(store: CalibrationStore | None = None, recalibrate: bool = False, **device_options: object,
-              ) -> tuple[ControlCore, WatchedQube, VirtualClock]:
+              ) -> tuple[ControlCore, RecordingQube, VirtualClock]:
     clock = VirtualClock()
-    device = WatchedQube(seed=1, period_s=0, clock=clock, **device_options)
+    device = RecordingQube(seed=1, period_s=0, clock=clock, **device_options)
     return ControlCore(device, ControlConfig(), clock=clock, store=store, recalibrate=recalibrate), device, clock
 
 
@@ -173,7 +158,7 @@ def test_calibration_is_kept_across_a_restart(tmp_path: Path) -> None:
     core, _, clock = make_core(store)
     until_started(core, clock)
     arm = math.radians(30)
-    restarted_device = WatchedQube(seed=1, period_s=0, clock=clock)
+    restarted_device = RecordingQube(seed=1, period_s=0, clock=clock)
     restarted_device.reset_state(theta=arm)
     restarted = ControlCore(restarted_device, ControlConfig(), clock=clock, store=store)
     until_started(restarted, clock)

@@ -81,7 +81,9 @@ def last_rig(summary: dict[str, Any]) -> dict[str, Any]:
             "balance_steps": rig.get("balance_steps") if solved else None,
             "rig_min": round(rig["rig_s"] / 60, 3) if solved and rig else None,
             "idle_min": round(rig["idle_s"] / 60, 3) if rig else None,
-            "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"]}
+            "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"],
+            "end_reason": summary.get("end_reason"),
+            "unsolved": {w["id"]: w["state"] for w in summary.get("workers", []) if not w["solved"]}}
 
 
 def zero_shot(model: Path, rigs: int, disturbed: bool) -> dict[str, Any]:
@@ -184,6 +186,11 @@ def report(result: dict[str, Any], source: str) -> str:
         zero = (f"zero-shot: balanced to the end on {shot['balanced_to_end']} of {shot['rigs']} held-out `lab` rigs"
                 if shot else "no zero-shot test")
         lines.append(f"- `{name}` pretrain: {made}; {zero}.")
+    for r in result.get("runs", []):
+        if not r["finished"]:
+            rigs = ", ".join(f"{w} {state}" for w, state in (r.get("unsolved") or {}).items())
+            lines.append(f"- Unfinished: {LABELS.get(r['setting'], r['setting'])}, seed {r['seed']}: "
+                         f"{r.get('end_reason') or 'no end reason recorded'}" + (f" ({rigs})" if rigs else "") + ".")
     trials = result["disturbed_trials"]
     if trials:
         lines.append(f"- Fine-tuned controllers (randomised warm start) under the disturbances: "

@@ -39,8 +39,10 @@ def test_a_lab_federation_reports_its_last_rig(tmp_path: Path) -> None:
 def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_path: Path) -> None:
     runs = [run("scratch", 101, 200, 34_000, 30.0), run("scratch", 102, None, None, None),
             run("randomised", 101, 12, 29_000, 3.5), run("randomised", 102, 14, 30_500, 4.5)]
+    runs[1] |= {"end_reason": "aborted: every unfinished worker offline", "unsolved": {"w0": "failed"}}
     result = {"config": {"rigs": 3, "policy": "plain", "seeds": [101, 102], "pretrain_seed": 1, "date": "2026-12-02",
                          "cores": 2, "load_average": [3.0, 3.0, 3.0]}, "wall_s": 600.0, "table": sim2real.table(runs),
+              "runs": runs,
               "pretrains": {"randomised": {"finished": True, "episodes": 147, "rig_min": 20.0},
                             "ideal": {"finished": False}},
               "zero_shot": {"randomised": {"rigs": 10, "balanced_to_end": 9}},
@@ -51,6 +53,7 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     assert "episodes **missed**" in text and "balance_steps **missed**" in text  # 13 > 12 and 29,750 <= 30,000 met
     assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 trials" in text
     assert "`ideal` pretrain: did not finish: no model; no zero-shot test." in text
+    assert "- Unfinished: from scratch, seed 102: aborted: every unfinished worker offline (w0 failed)." in text
     json_path = tmp_path / "sim2real.json"
     json_path.write_text(json.dumps(result))
     page = tmp_path / "page.md"

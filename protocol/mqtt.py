@@ -256,7 +256,7 @@ class MqttConnection:
         """Unsubscribe everything, then wait until nothing is left to send and the broker has answered every
         UNSUBSCRIBE and QoS 1 PUBLISH. paho closes the socket as soon as it has written the DISCONNECT; closing
         with an answer still unread (an UNSUBACK on its way) sends a TCP reset, and a broker drops what it had not
-        read yet on a reset, the DISCONNECT included, so it published the last will (issue 19)."""
+        read yet on a reset, the DISCONNECT included, so it published the last will."""
         acked: set[int] = set()
 
         def on_unsubscribe(client: paho.Client, userdata: object, mid: int, *rest: object) -> None:

@@ -1,4 +1,4 @@
-"""Writing files without losing the last good copy, and storage faults as one clear line (issue 19, item 4).
+"""Writing files without losing the last good copy, and storage faults as one clear line.
 
 A full disk (ENOSPC, EDQUOT), a read-only file system (EROFS) or a folder the process may not write (EACCES, EPERM)
 is not a bug to show as a traceback: :class:`StorageError` names the path and the errno, and every process turns it

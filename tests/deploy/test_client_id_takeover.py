@@ -1,4 +1,4 @@
-"""Client-id takeover under the production Mosquitto config (issue 19, item 6): an authenticated user who connects
+"""Client-id takeover under the production Mosquitto config: an authenticated user who connects
 with another client's id does not disconnect it (``use_username_as_clientid``), and our own connections still
 publish and receive."""
 

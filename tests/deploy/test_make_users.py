@@ -1,5 +1,5 @@
-"""make-users.sh refuses prefixes that would put MQTT wildcards, levels or spaces into user names and the ACL
-(issue 19, item 6): one line, exit code 2, nothing written."""
+"""make-users.sh refuses prefixes that would put MQTT wildcards, levels or spaces into user names and the ACL:
+one line, exit code 2, nothing written."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A clean stop publishes no last will (issue 19, item 5): every queued packet and a DISCONNECT reach the broker
+"""A clean stop publishes no last will: every queued packet and a DISCONNECT reach the broker
 before the network loop ends, for the connections of a worker, the chief and the bridge, on both brokers, and for a
 real ``python -m rpi_bridge`` (on a simulated SPI peer), ``python -m services.qube_sim``, ``python -m worker`` and
 ``python -m chief`` stopped by SIGTERM."""

@@ -1,4 +1,4 @@
-"""Files a process reads are checked before use (issue 19, item 5): a missing or unreadable CA file or env file is
+"""Files a process reads are checked before use: a missing or unreadable CA file or env file is
 one line naming the path and the reason, and exit code 2, in the bridge and the simulated rig (no traceback from
 inside paho's tls_set)."""
 

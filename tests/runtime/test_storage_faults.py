@@ -1,4 +1,4 @@
-"""Storage faults are clear errors (issue 19, item 4): on a full disk (a 64 KiB tmpfs), a read-only one (the tmpfs
+"""Storage faults are clear errors: on a full disk (a 64 KiB tmpfs), a read-only one (the tmpfs
 remounted read-only) and a folder the process may not write, the chief's state, its run-folder files, the worker's
 model and the launcher give one line naming the path and the errno, and exit code 5; the chief's last good state
 stays as it was and no temporary file is left. Each case runs in a private mount namespace (root and unshare)."""

@@ -1,4 +1,4 @@
-"""Hostile topics on both brokers (issue 19, item 6): a PUBLISH whose topic holds a NUL character or an MQTT wildcard
+"""Hostile topics on both brokers: a PUBLISH whose topic holds a NUL character or an MQTT wildcard
 reaches no subscriber, and a SUBSCRIBE filter with a NUL is refused. The packets are written over a raw socket,
 since a client library may refuse them before they leave."""
 

@@ -43,6 +43,13 @@ def signal_all(pids: list[int], sig: signal.Signals) -> None:
             pass
 
 
+def ctrl_c_as_in_a_terminal() -> None:
+    """In the launcher's process before it starts Python: SIGINT as a terminal's foreground job has it. A job that a
+    non-interactive shell put in the background (``make test &`` in a script) inherits SIGINT ignored, and Python then
+    installs no KeyboardInterrupt handler."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
     return [(w["id"], w["episodes"], w["steps"]) for w in json.loads((run_dir / "summary.json").read_text())["workers"]]
 
@@ -53,22 +60,23 @@ def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path
     run_dir = tmp_path / "run"
     out = tmp_path / "launcher.log"
     launcher = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *ARGV, "--run-dir", str(run_dir),
-                                 "--run-id", "ctrlc"], stdout=out.open("wb"), stderr=subprocess.STDOUT)
+                                 "--run-id", "ctrlc"], stdout=out.open("wb"), stderr=subprocess.STDOUT,
+                                preexec_fn=ctrl_c_as_in_a_terminal)
     paused: list[int] = []
     try:
         deadline = time.monotonic() + 300
         while rounds_closed(run_dir / "metrics.jsonl") < 5:
             assert time.monotonic() < deadline and launcher.poll() is None, out.read_text()
             time.sleep(0.05)
-        # The workers pause, so that the run is still open when the Ctrl-C lands however loaded the machine is
-        # (once, in a make test at load 7, the run reached its cap before the Ctrl-C took effect); they go on once
-        # the launcher has taken it.
+        # The workers pause, so that the run is still open when the Ctrl-C lands however loaded the machine is;
+        # they go on once the launcher has taken it.
         paused = worker_pids(out.read_text())
         assert len(paused) == WORKERS, out.read_text()
         signal_all(paused, signal.SIGSTOP)
         launcher.send_signal(signal.SIGINT)  # what Ctrl-C in the terminal sends
+        taken = time.monotonic() + 60
         while "interrupted: the chief saves the run" not in out.read_text():
-            assert time.monotonic() < deadline and launcher.poll() is None, out.read_text()[-3000:]
+            assert time.monotonic() < taken and launcher.poll() is None, out.read_text()[-3000:]
             time.sleep(0.05)
         signal_all(paused, signal.SIGCONT)
         assert launcher.wait(timeout=120) == EXIT_INTERRUPTED, out.read_text()[-3000:]

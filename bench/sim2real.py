@@ -69,6 +69,7 @@ def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str,
 
     run_dir.mkdir(parents=True, exist_ok=True)
     summary = run_federation(TASK, POLICY, seed, RIGS, max_episodes, run_dir, plot=False, tensorboard_files=False,
+                             tolerate_failures=True,
                              env_options=env_options, init_model=init_model)
     return {**summary, "run_dir": str(run_dir)}
 

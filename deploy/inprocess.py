@@ -35,25 +35,32 @@ from protocol.messages import RunStop
 from protocol.transport import Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
-from worker.service import WorkerService
+from worker.service import EXIT_ERROR, WorkerService
 from worker.settings import WorkerSettings
 
 RUN_ID = "inprocess"
 #: Seconds the chief waits for every worker's hello (building N learners at once can take a while on a busy machine).
 START_TIMEOUT = 600.0
+#: Seconds the chief waits once every unfinished worker has failed or stopped before it ends the run as aborted. In
+#: process nothing restarts a worker, and no learner is left whose result the wait could change (round timeouts are
+#: off: a worker is offline only when it said so), so this only bounds the wait; over MQTT it is idle_timeout, 120 s.
+IDLE_TIMEOUT = 2.0
 
 
 def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
                    tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
-                   init_model: Path | None = None, models: bool = True, max_staleness: int = 0) -> dict[str, Any]:
+                   init_model: Path | None = None, models: bool = True, max_staleness: int = 0,
+                   tolerate_failures: bool = False) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
     write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
     ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
     task options (qube-local: ``rig_profile``, ``randomize``); ``init_model``: a warm start, every worker from this
     model (a file or a run folder; a ValueError, before anything runs, when it does not fit the task); ``models``:
     save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does; ``max_staleness``: the run's
-    bounded staleness S (ChiefSettings.max_staleness)."""
+    bounded staleness S (ChiefSettings.max_staleness). A worker that fails (its rig could not reset, say) leaves the
+    federation, and the run ends as aborted once no learner is left (IDLE_TIMEOUT); ``tolerate_failures``: return
+    that run's summary, which says which workers did not solve (else a RuntimeError after the run, as for a bug)."""
     import torch  # after worker/'s check of the learn extra (one line where it is missing)
 
     torch.set_num_threads(1)
@@ -63,7 +70,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     chief = ChiefService(
         ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
-                            idle_timeout=math.inf, run_dir=run_dir, init_model=init_model, run_key=key,
+                            idle_timeout=IDLE_TIMEOUT, run_dir=run_dir, init_model=init_model, run_key=key,
                             max_staleness=max_staleness),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
@@ -86,7 +93,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     for thread in [c for c in codes.values() if isinstance(c, threading.Thread)]:
         thread.join()
     failed = {w: c for w, c in codes.items() if c not in (EXIT_OK, EXIT_ABORTED)}
-    if failed:
+    if failed and not (tolerate_failures and all(c == EXIT_ERROR for c in failed.values())):
         raise RuntimeError(f"in-process workers failed: {failed}")
     summary = {**json.loads((run_dir / "summary.json").read_text()), "run_id": run_dir.name, "mode": "in-process"}
     summary.pop("broker", None)

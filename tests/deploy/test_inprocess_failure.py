@@ -1,0 +1,63 @@
+"""A worker that fails in process (its env raises, as a rig that cannot reset does) leaves the federation: the
+others learn on to their result, and the run then ends as aborted with its summary, instead of waiting forever for
+a worker nothing will restart."""
+
+from __future__ import annotations
+
+import threading
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import pytest
+
+import worker.episode
+from chief.audit import audit
+from deploy.inprocess import run_federation
+from protocol.tasks import worker_seed
+
+ENV, POLICY, SEED, WORKERS, EPISODES = "CartPole-v0", "plain", 5, 3, 300
+BROKEN = 1  # worker w1's env fails at the reset of its episode FAIL_AT
+FAIL_AT = 4
+
+
+class FailingReset(gym.Wrapper):
+    """An env whose reset raises from its ``fail_at``-th call on (a rig that can no longer swing up)."""
+
+    def __init__(self, env: gym.Env, fail_at: int) -> None:
+        super().__init__(env)
+        self.resets, self.fail_at = 0, fail_at
+
+    def reset(self, **kwargs: Any) -> Any:
+        self.resets += 1
+        if self.resets >= self.fail_at:
+            raise RuntimeError("the rig could not reset")
+        return self.env.reset(**kwargs)
+
+
+@pytest.fixture
+def broken_worker(monkeypatch: pytest.MonkeyPatch) -> None:
+    real = worker.episode.make_env
+    lock = threading.Lock()
+
+    def make_env(env_id: str, seed: int, *args: Any, **kwargs: Any) -> gym.Env:
+        env = real(env_id, seed, *args, **kwargs)
+        with lock:
+            return FailingReset(env, FAIL_AT) if seed == worker_seed(SEED, BROKEN) else env
+
+    monkeypatch.setattr(worker.episode, "make_env", make_env)
+
+
+@pytest.mark.slow
+def test_a_failed_worker_ends_the_run_as_aborted_once_the_others_are_done(broken_worker: None, tmp_path: Path
+                                                                          ) -> None:
+    run_dir = tmp_path / "run"
+    with pytest.raises(RuntimeError, match="in-process workers failed"):  # by default a failure is raised
+        run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, tmp_path / "strict", plot=False, tensorboard_files=False)
+    summary = run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, run_dir, plot=False, tensorboard_files=False,
+                             tolerate_failures=True)
+    by_id = {w["id"]: w for w in summary["workers"]}
+    assert not by_id["w1"]["solved"] and by_id["w1"]["episodes"] == FAIL_AT - 1 and by_id["w1"]["state"] == "offline"
+    assert by_id["w0"]["solved"] and by_id["w2"]["solved"]  # the others learned on to their end
+    assert summary["end_reason"].startswith("aborted") and summary["episodes_to_all_solved"] is None
+    audit(run_dir)

@@ -13,7 +13,9 @@ code as over MQTT, lockstep clock, rig time from the simulated clock). Compared,
 
 Each pretrain runs once, on a tuning seed (PRETRAIN_SEED). Reported for the last rig (chief.records.LastRig): episodes,
 balance steps, rig minutes (balance + reset), idle minutes and wall minutes, as median [IQR] with unfinished runs
-counted as worse (bench.stats.spread_censored), against the targets of the rig-time issue. Results:
+counted as worse (bench.stats.spread_censored), against the targets of the rig-time issue. A rig whose swing-up
+reset fails five times in a row stops its worker, as a real rig's would (worker/qube_env.py); its run then ends
+unfinished, and the report names it with its end reason. Results:
 ``<out>/sim2real.json``; run folders under ``<runs-dir>``. ``--quick`` is a smoke-sized variant (one seed, small caps)
 that checks the pipeline, not the figures.
 """

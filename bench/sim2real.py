@@ -173,7 +173,8 @@ def report(result: dict[str, Any], source: str) -> str:
              f"{cfg['seeds'][-1]} ({len(cfg['seeds'])} runs per setting), median [IQR], unfinished runs counted as "
              f"worse; pretrains on tuning seed {cfg['pretrain_seed']}; generated from `{source}` ({cfg['date']}, "
              f"{cfg['cores']} cores, load average {cfg['load_average'][0]:.1f} at the start, "
-             f"{result['wall_s'] / 60:.0f} min).", "",
+             f"{result['wall_s'] / 60:.0f} min for the runs this invocation made: it reuses finished runs' folders).",
+             "",
              "| setting | finished | episodes | balance steps | rig minutes (balance + reset) | idle minutes | "
              "wall minutes | targets |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for setting, row in result["table"].items():

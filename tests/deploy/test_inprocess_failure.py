@@ -52,8 +52,6 @@ def broken_worker(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_a_failed_worker_ends_the_run_as_aborted_once_the_others_are_done(broken_worker: None, tmp_path: Path
                                                                           ) -> None:
     run_dir = tmp_path / "run"
-    with pytest.raises(RuntimeError, match="in-process workers failed"):  # by default a failure is raised
-        run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, tmp_path / "strict", plot=False, tensorboard_files=False)
     summary = run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, run_dir, plot=False, tensorboard_files=False,
                              tolerate_failures=True)
     by_id = {w["id"]: w for w in summary["workers"]}

@@ -342,6 +342,19 @@ def dashboard(amqtt_broker: str) -> Iterator[DashboardService]:
         service.stop()
 
 
+def send_until(send: Callable[[str, Any], None], sse: SseReader, topic: str, payload: Any,
+               seen: Callable[[str, Any], bool]) -> tuple[str, Any]:
+    """Send until the page shows it (once, in a make test at load 3, the page never showed the update; a resent
+    submission replaces its point)."""
+    for _ in range(10):
+        send(topic, payload)
+        try:
+            return sse.until(seen, timeout=3)
+        except AssertionError:
+            continue
+    raise AssertionError(f"the page never showed what was sent on {topic}")
+
+
 def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, amqtt_broker: str) -> None:
     host, port = dashboard.server.server_address[:2]
     assert host == "127.0.0.1" and port not in (0, 1883)
@@ -388,17 +401,6 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
                 break
             except AssertionError:
                 continue
-        def send_until(topic: str, payload: Any, seen: Callable[[str, Any], bool]) -> tuple[str, Any]:
-            """Send until the page shows it (once, in a make test at load 3, the page never showed the update; a resent
-            submission replaces its point)."""
-            for _ in range(10):
-                send(topic, payload)
-                try:
-                    return sse.until(seen, timeout=3)
-                except AssertionError:
-                    continue
-            raise AssertionError(f"the page never showed what was sent on {topic}")
-
         send(topics.chief(RUN, topics.START), start(["w0", "w1"]))
         send(topics.worker(RUN, "w0", topics.UPDATE), b"\x00garbage")  # must not stop anything
         send(topics.chief("someone-else", topics.START), start(["x"], run_id="someone-else"))
@@ -407,9 +409,9 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
         def has_point(name: str, data: Any) -> bool:
             return name == "delta" and any(e["type"] == "point" and e["worker"] == "w0" for e in data)
 
-        _, delta = send_until(topics.worker(RUN, "w0", topics.UPDATE), update("w0", 1, 12.0), has_point)
+        _, delta = send_until(send, sse, topics.worker(RUN, "w0", topics.UPDATE), update("w0", 1, 12.0), has_point)
         assert {"type": "point", "worker": "w0", "point": [1, 12.0, 12.0]} in delta
-        send_until("qube/rigS/status", QubeStatus(rig_id="rigS", state="ready"),
+        send_until(send, sse, "qube/rigS/status", QubeStatus(rig_id="rigS", state="ready"),
                    lambda n, d: n == "delta" and any(e["type"] == "rig" and e["phase"] == "ready" for e in d))
         _, stats = sse.until(lambda n, d: n == "stats" and d["rejected"].get("malformed") == 1)
         assert stats["connected"] and stats["pages"] == 1

@@ -130,3 +130,10 @@ def test_same_seed_same_result_over_mosquitto_under_cpu_load(
     assert json.loads((run_dir / "summary.json").read_text())["broker"] == mosquitto_broker
     assert per_worker(run_dir) == per_worker(runs[policy])  # episodes and env steps, worker by worker
     audit(run_dir)
+
+
+def test_the_shared_runs_stay_in_one_test_process(request: pytest.FixtureRequest) -> None:
+    """Under ``make test`` (pytest-xdist, --dist loadgroup) the group marks hold: the e2e tests run in one process,
+    so each federation is made once (pytest 9.2 made xdist 3.8 ignore the marks, and the runs were made twice)."""
+    if request.config.getoption("dist", "no") == "loadgroup":
+        assert request.node.nodeid.endswith("@e2e")

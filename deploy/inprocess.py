@@ -42,8 +42,8 @@ RUN_ID = "inprocess"
 #: Seconds the chief waits for every worker's hello (building N learners at once can take a while on a busy machine).
 START_TIMEOUT = 600.0
 #: Seconds the chief waits once every unfinished worker has failed or stopped before it ends the run as aborted. In
-#: process nothing restarts a worker, and no learner is left whose result the wait could change (round timeouts are
-#: off: a worker is offline only when it said so), so this only bounds the wait; over MQTT it is idle_timeout, 120 s.
+#: process nothing restarts a worker (and with round timeouts off a worker is offline only when it said so), so every
+#: learner's result is already fixed and this only bounds the wait; over MQTT it is idle_timeout, 120 s.
 IDLE_TIMEOUT = 2.0
 
 

@@ -4,7 +4,6 @@ a worker nothing will restart."""
 
 from __future__ import annotations
 
-import threading
 from pathlib import Path
 from typing import Any
 
@@ -38,12 +37,10 @@ class FailingReset(gym.Wrapper):
 @pytest.fixture
 def broken_worker(monkeypatch: pytest.MonkeyPatch) -> None:
     real = worker.episode.make_env
-    lock = threading.Lock()
 
     def make_env(env_id: str, seed: int, *args: Any, **kwargs: Any) -> gym.Env:
         env = real(env_id, seed, *args, **kwargs)
-        with lock:
-            return FailingReset(env, FAIL_AT) if seed == worker_seed(SEED, BROKEN) else env
+        return FailingReset(env, FAIL_AT) if seed == worker_seed(SEED, BROKEN) else env
 
     monkeypatch.setattr(worker.episode, "make_env", make_env)
 

@@ -343,13 +343,13 @@ def dashboard(amqtt_broker: str) -> Iterator[DashboardService]:
 
 
 def send_until(send: Callable[[str, Any], None], sse: SseReader, topic: str, payload: Any,
-               seen: Callable[[str, Any], bool]) -> tuple[str, Any]:
-    """Send until the page shows it (once, in a make test at load 3, the page never showed the update; a resent
-    submission replaces its point)."""
-    for _ in range(10):
+               seen: Callable[[str, Any], bool], tries: int = 10, timeout: float = 3.0) -> tuple[str, Any]:
+    """Send until the page shows it: ``tries`` times, each waiting up to ``timeout`` s for an event ``seen`` accepts
+    (once, in a make test at load 3, the page never showed an update; a resent submission replaces its point)."""
+    for _ in range(tries):
         send(topic, payload)
         try:
-            return sse.until(seen, timeout=3)
+            return sse.until(seen, timeout=timeout)
         except AssertionError:
             continue
     raise AssertionError(f"the page never showed what was sent on {topic}")
@@ -387,20 +387,10 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
         # The dashboard subscribes without waiting for the broker's SUBACKs (and amqtt may handle them in any
         # order): repeat a rig status and a message on a topic that does not carry its kind (refused as
         # wrong_topic) until both have been seen.
-        for _ in range(100):
-            send("qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"))
-            try:
-                sse.until(lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), timeout=0.3)
-                break
-            except AssertionError:
-                continue
-        for _ in range(30):
-            send(f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0))
-            try:
-                sse.until(lambda n, d: n == "stats" and d["rejected"].get("wrong_topic"), timeout=1.5)
-                break
-            except AssertionError:
-                continue
+        send_until(send, sse, "qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"),
+                   lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), tries=100, timeout=0.3)
+        send_until(send, sse, f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0),
+                   lambda n, d: n == "stats" and d["rejected"].get("wrong_topic"), tries=30, timeout=1.5)
         send(topics.chief(RUN, topics.START), start(["w0", "w1"]))
         send(topics.worker(RUN, "w0", topics.UPDATE), b"\x00garbage")  # must not stop anything
         send(topics.chief("someone-else", topics.START), start(["x"], run_id="someone-else"))

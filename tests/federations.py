@@ -4,10 +4,12 @@ fixture in conftest.py); those tests share the xdist group ``e2e``, so that one 
 
 from __future__ import annotations
 
+import multiprocessing
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 SEED = 3
@@ -52,3 +54,24 @@ def run_in_threads(services: Sequence[Callable[[], int]], timeout: float) -> Non
     for thread in threads:
         thread.join(timeout=timeout)
     assert codes == dict.fromkeys(range(len(services)), 0)
+
+
+def _spin(stop: multiprocessing.synchronize.Event) -> None:  # type: ignore[name-defined]
+    x = 0
+    while not stop.is_set():
+        x += 1
+
+
+@contextmanager
+def cpu_load(processes: int = 2) -> Iterator[None]:
+    """Busy processes competing with the federation for both cores."""
+    stop = multiprocessing.Event()
+    procs = [multiprocessing.Process(target=_spin, args=(stop,), daemon=True) for _ in range(processes)]
+    for p in procs:
+        p.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        for p in procs:
+            p.join(5)

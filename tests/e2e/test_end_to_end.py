@@ -7,17 +7,14 @@ under extra CPU load: timing does not decide the result."""
 from __future__ import annotations
 
 import json
-import multiprocessing
 import shutil
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
 
 from chief import strategies
 from chief.audit import AuditFailure, audit
-from tests.federations import WORKERS, Runs, federate
+from tests.federations import WORKERS, Runs, cpu_load, federate
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("e2e")]  # one process computes the shared runs
 
@@ -98,27 +95,6 @@ def test_the_audit_fails_on_a_doctored_real_run(runs: Runs, tmp_path: Path) -> N
     (run_dir / "metrics.jsonl").write_text("\n".join(lines) + "\n")
     with pytest.raises(AuditFailure, match=r"^transfer: "):
         audit(run_dir)
-
-
-def _spin(stop: multiprocessing.synchronize.Event) -> None:  # type: ignore[name-defined]
-    x = 0
-    while not stop.is_set():
-        x += 1
-
-
-@contextmanager
-def cpu_load(processes: int = 2) -> Iterator[None]:
-    """Busy processes competing with the federation for both cores."""
-    stop = multiprocessing.Event()
-    procs = [multiprocessing.Process(target=_spin, args=(stop,), daemon=True) for _ in range(processes)]
-    for p in procs:
-        p.start()
-    try:
-        yield
-    finally:
-        stop.set()
-        for p in procs:
-            p.join(5)
 
 
 @pytest.mark.parametrize("policy", ["weighted"])  # every strategy in process against amqtt: test_inprocess_equivalence

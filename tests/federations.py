@@ -5,6 +5,7 @@ fixture in conftest.py); those tests share the xdist group ``e2e``, so that one 
 from __future__ import annotations
 
 import multiprocessing
+import multiprocessing.synchronize
 import subprocess
 import sys
 import threading
@@ -56,7 +57,7 @@ def run_in_threads(services: Sequence[Callable[[], int]], timeout: float) -> Non
     assert codes == dict.fromkeys(range(len(services)), 0)
 
 
-def _spin(stop: multiprocessing.synchronize.Event) -> None:  # type: ignore[name-defined]
+def _spin(stop: multiprocessing.synchronize.Event) -> None:
     x = 0
     while not stop.is_set():
         x += 1

@@ -237,11 +237,12 @@ class InitModelRecord(Record):
 
 
 class RunSummary(Record):
-    """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what
-    the launcher adds (``mode``, wall time, broker, reject counts...; left out when not given). ``total_steps`` are
-    the env steps the chief counted, ``played_steps`` every env step the workers played and ``refused_steps`` those
-    it did not count (absent when no worker's submissions said). ``last_rig``: the rig time of the run's last rig
-    (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from scratch)."""
+    """summary.json: the task, the strategy, each worker's result, the last worker's episodes and steps, and what the
+    launcher adds (``mode``, wall time, broker, reject counts...; left out when not given); ``algo`` is the run's
+    learner. ``total_steps`` are the env steps the chief counted, ``played_steps`` every env step the workers played and
+    ``refused_steps`` those it did not count (absent when no worker's submissions said). ``last_rig``: the rig time of
+    the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from
+    scratch)."""
 
     OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
                           "played_steps", "refused_steps", "last_rig", "init_model"})
@@ -249,6 +250,7 @@ class RunSummary(Record):
     run_id: str = ""
     env: str
     policy: str
+    algo: str = "ppo"  # the learner every worker ran (protocol/learners.py)
     seed: int | None = None
     tc: float
     r_floor: float
@@ -347,6 +349,7 @@ class ServiceState(Record):
     init_model: InitModelRecord | None = None  # the run's model, once decided (None: from scratch or not yet)
     init_model_known: bool = False
     claimed_since: float = 0.0  # when this session first claimed the run (chief/claim.py); 0: a state from before
+    algo: str = "ppo"  # the run's learner (protocol/learners.py); a state from before learners had names ran PPO
 
 
 class ChiefState(Record):

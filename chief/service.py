@@ -84,8 +84,8 @@ class ChiefService:
         # The run's model, when the chief is told it (a ValueError, exit 2, for an unreadable one); else the first
         # worker's decides (chief/roster.py).
         model = InitModel.open(cfg.init_model) if cfg.init_model is not None else None
-        self.roster = Roster(cfg.env, init_model=model.digest if model else None, init_model_known=model is not None,
-                             init_model_path=model.given if model else "")
+        self.roster = Roster(cfg.env, algo=cfg.algo, init_model=model.digest if model else None,
+                             init_model_known=model is not None, init_model_path=model.given if model else "")
         self.keeper: RoundKeeper | None = None
         self.session = secrets.token_hex(8)
         self.key = cfg.key()  # every message this chief sends carries its HMAC under the run's key (protocol/auth.py)
@@ -201,7 +201,11 @@ class ChiefService:
             keeper.resume()
             (self.cfg.run_dir / SUMMARY).unlink(missing_ok=True)
         self.session, self.epoch, self.duplicates = service["session"], service["epoch"] + 1, service["duplicates"]
-        self.roster = Roster(self.cfg.env, started=True, actor_spec=keeper.actor_spec,
+        algo = service.get("algo", "ppo")
+        if algo != self.cfg.algo:
+            log.warning("run %s keeps its saved learner %s (given %s): a run's learner does not change",
+                        self.cfg.run_id, algo, self.cfg.algo)
+        self.roster = Roster(self.cfg.env, algo=algo, started=True, actor_spec=keeper.actor_spec,
                              critic_spec=keeper.critic_spec, update_steps=service["update_steps"],
                              hosts=service["hosts"], init_model_known=service["init_model_known"])
         if service["init_model"] is not None:
@@ -225,7 +229,8 @@ class ChiefService:
             "hosts": self.roster.hosts, "update_steps": self.roster.update_steps,
             "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
             "elapsed_s": time.monotonic() - self.t0, "init_model": self._init_model(),
-            "init_model_known": self.roster.init_model_known, "claimed_since": self.claim.claim.since})
+            "init_model_known": self.roster.init_model_known, "claimed_since": self.claim.claim.since,
+            "algo": self.roster.algo})
 
     def _init_model(self) -> dict[str, str] | None:
         """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""
@@ -253,7 +258,8 @@ class ChiefService:
         new = hello.worker_id not in self.roster.hosts
         refused = self.roster.offer(hello.worker_id, hello.env_id, dict(hello.actor_spec), hello.host,
                                     critic_spec=dict(hello.critic_spec), update_steps=hello.update_steps,
-                                    init_model=hello.init_model, init_model_path=hello.init_model_path)
+                                    init_model=hello.init_model, init_model_path=hello.init_model_path,
+                                    algo=hello.algo)
         if refused is not None:
             self.rejects.reject(topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO), *refused)
             return False
@@ -264,6 +270,7 @@ class ChiefService:
     def _announce(self) -> None:
         assert self.keeper is not None
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
+                       algo=self.roster.algo,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
@@ -449,7 +456,8 @@ class ChiefService:
                            wall_s=round(time.monotonic() - self.t0, 2),
                            finished_at=dt.datetime.now(dt.timezone.utc).isoformat(timespec="seconds"),
                            broker=str(self.broker), rejected_messages=self.rejects.as_dict(),
-                           duplicates=self.duplicates, restarts=self.epoch, init_model=self._init_model())
+                           duplicates=self.duplicates, restarts=self.epoch, init_model=self._init_model(),
+                           algo=self.roster.algo)
 
 
 # -- translation between the wire and the round state machine --------------------------------------------------

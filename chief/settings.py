@@ -8,9 +8,10 @@ from typing import Annotated
 from pydantic import model_validator
 
 from chief import strategies
+from protocol import learners
 from protocol.rounds import STALENESS_LIMIT
 from runtime.model_file import ModelPath
-from runtime.settings import OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
+from runtime.settings import LearnerName, OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
 
 PolicyName = Annotated[str, OneOf(strategies.names)]
 
@@ -19,6 +20,7 @@ class FederationSettings(Settings):
     """What a run is: the task, the federation strategy, the seed and the limits of its rounds."""
 
     env: TaskName = setting("CartPole-v0", "task every worker learns")
+    algo: LearnerName = setting(learners.DEFAULT, "learner every worker runs (python -m worker.learners lists them)")
     policy: PolicyName = setting(strategies.DEFAULT, "federation strategy (python -m chief.strategies describes them)")
     seed: int = setting(1, "base seed; worker i uses seed*1000 + i")
     max_episodes: int = setting(2000, "M, the most rounds a run may take", ge=1)

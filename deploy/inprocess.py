@@ -51,11 +51,12 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
                    tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
                    init_model: Path | None = None, models: bool = True, max_staleness: int = 0,
-                   tolerate_failures: bool = False) -> dict[str, Any]:
+                   tolerate_failures: bool = False, algo: str = "ppo") -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
     write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
     ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
-    task options (qube-local: ``rig_profile``, ``randomize``); ``init_model``: a warm start, every worker from this
+    task options (qube-local: ``rig_profile``, ``randomize``); ``algo``: the workers' learner (protocol/learners.py);
+    ``init_model``: a warm start, every worker from this
     model (a file or a run folder; a ValueError, before anything runs, when it does not fit the task); ``models``:
     save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does; ``max_staleness``: the run's
     bounded staleness S (ChiefSettings.max_staleness). A worker that fails (its rig could not reset, say) leaves the
@@ -68,7 +69,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)
     chief_conn: list[_Timed] = []
     chief = ChiefService(
-        ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, policy=policy, seed=seed,
+        ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, algo=algo, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
                             idle_timeout=IDLE_TIMEOUT, run_dir=run_dir, init_model=init_model, run_key=key,
                             max_staleness=max_staleness),
@@ -79,7 +80,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     for i in range(workers):
         wid = f"w{i}"
         worker_conns[wid] = []
-        cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, device_noise=device_noise,
+        cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, algo=algo, device_noise=device_noise,
                                    reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
                                    resend_interval=math.inf, init_model=init_model, run_key=key,
                                    model_dir=run_dir / "models" if models else None, **(env_options or {}))
@@ -197,7 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
                                  device_noise=s.device_noise, progress=True, init_model=s.init_model,
-                                 max_staleness=s.max_staleness)
+                                 max_staleness=s.max_staleness, algo=s.algo)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

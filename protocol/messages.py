@@ -28,6 +28,8 @@ Ident = Annotated[str, StringConstraints(min_length=1, max_length=64, pattern=r"
 #: A federation strategy's name. Which names exist is the chief's registry (chief/strategies/), not the wire's:
 #: workers only apply what the chief sends, whatever the strategy.
 PolicyName = Annotated[str, StringConstraints(min_length=1, max_length=32, pattern=r"^[a-z][a-z0-9_-]*$")]
+#: A learner's name (protocol/learners.py); a name the chief does not run is its roster's to refuse, not the codec's.
+LearnerId = Annotated[str, StringConstraints(min_length=1, max_length=32, pattern=r"^[a-z][a-z0-9_-]*$")]
 #: PI is the mean of at most this many recent returns (protocol.tasks.PI_WINDOW).
 RecentReturns = Annotated[tuple[float, ...], Field(min_length=1, max_length=PI_WINDOW)]
 
@@ -77,7 +79,8 @@ class WorkerHello(Message):
     env_id: str
     actor_spec: dict[str, tuple[int, ...]]
     critic_spec: dict[str, tuple[int, ...]] = Field(default_factory=dict)
-    update_steps: int = Field(default=0, ge=0, le=1000)  # K, the PPO mini-batch steps per episode
+    update_steps: int = Field(default=0, ge=0, le=1000)  # K, the learner's mini-batch steps per episode
+    algo: LearnerId = "ppo"  # the worker's learner (protocol/learners.py)
     host: str = ""
     pid: int = 0
     #: The network digest (runtime/model_file.py) of the model this worker was warm-started from; None from scratch.
@@ -269,6 +272,7 @@ class RunStart(Message):
     policy: PolicyName
     seed: int
     max_episodes: int = Field(ge=1)
+    algo: LearnerId = "ppo"  # the learner every worker runs
     tc: float
     r_floor: float
     workers: tuple[Ident, ...]

@@ -56,6 +56,7 @@ from pydantic_settings import (
     SettingsError,
 )
 
+from protocol import learners
 from protocol.auth import key_bytes
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 from protocol.tasks import TASKS
@@ -112,6 +113,7 @@ def _words(value: Any) -> Any:
 
 #: A task of protocol/tasks.py.
 TaskName = Annotated[str, OneOf(lambda: sorted(TASKS))]
+LearnerName = Annotated[str, OneOf(learners.names)]
 #: A list given as ``a,b,c`` (or spaces) in a variable and as separate words on the command line.
 Words = Annotated[list[str], NoDecode, BeforeValidator(_words)]
 Counts = Annotated[list[PositiveInt], NoDecode, BeforeValidator(_words), Field(min_length=1)]

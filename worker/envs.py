@@ -48,7 +48,7 @@ from __future__ import annotations
 
 import random
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, SupportsFloat
 
@@ -183,6 +183,8 @@ class EnvSpec:
     task: TaskSpec  # the task's facts (protocol.tasks.TASKS)
     gym_id: str | None  # gymnasium id, or None when ``factory`` builds the env
     config: PPOConfig = field(default_factory=PPOConfig)  # PPO preset; use ``ppo_config()`` for a copy
+    #: Presets of the other learners (worker/learners.py), by learner name; a learner without one takes its defaults.
+    presets: Mapping[str, Any] = field(default_factory=dict)
     noise_target: str = "action"  # how DeviceNoise acts, see DeviceNoiseWrapper
     factory: EnvFactory | None = None  # custom builder ``factory(spec, seed, device_noise, **extra)``
 
@@ -209,6 +211,16 @@ class EnvSpec:
     def ppo_config(self, **overrides: Any) -> PPOConfig:
         """A fresh copy of the preset, with ``overrides`` applied."""
         return replace(self.config, **overrides)
+
+    def learner_config(self, algo: str, **overrides: Any) -> Any:
+        """A fresh copy of learner ``algo``'s preset for this task (its defaults when the task has none), with
+        ``overrides`` applied."""
+        if algo == "ppo":
+            return self.ppo_config(**overrides)
+        from worker import learners
+
+        preset = self.presets.get(algo)
+        return replace(preset, **overrides) if preset is not None else learners.get(algo).config_class(**overrides)
 
 
 def _task(env_id: str, **kwargs: Any) -> EnvSpec:

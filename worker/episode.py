@@ -10,8 +10,10 @@ from typing import Any
 
 import gymnasium as gym
 
+from protocol import learners as names
+from worker import learners
 from worker.envs import DeviceNoise, env_spec, make_env
-from worker.ppo import PPOLearner
+from worker.learners import Learner
 
 
 def build_learner_and_env(
@@ -23,9 +25,12 @@ def build_learner_and_env(
     conn: Any = None,
     spec_only: bool = False,
     env_options: dict[str, Any] | None = None,
-) -> tuple[gym.Env, PPOLearner]:
-    """The env of this device and a PPO learner with the env's preset, both seeded by ``seed``
-    (``init_seed``: the networks' initial weights, shared by the workers of a run).
+    algo: str = names.DEFAULT,
+    overrides: dict[str, Any] | None = None,
+) -> tuple[gym.Env, Learner]:
+    """The env of this device and a learner ``algo`` (worker/learners.py) with the env's preset for it (and
+    ``overrides`` of its fields), both seeded by ``seed`` (``init_seed``: the networks' initial weights, shared by the
+    workers of a run).
 
     ``rig_id`` and ``conn`` (an open MqttConnection) are for envs that drive a rig over MQTT; ``spec_only`` builds
     a throwaway pair just to learn the actor's shape; ``env_options`` go to the factory of such envs too (e.g. the
@@ -35,11 +40,13 @@ def build_learner_and_env(
     noise = DeviceNoise(scale=device_noise)
     extra = {"rig_id": rig_id, "conn": conn, "probe": spec_only, **(env_options or {})} if spec.factory else {}
     env = make_env(env_id, seed, noise, **extra)
-    learner = PPOLearner(env.observation_space, env.action_space, spec.ppo_config(), seed=seed, init_seed=init_seed)
+    config = spec.learner_config(algo, **(overrides or {}))
+    learner = learners.get(algo).build(env.observation_space, env.action_space, config, seed=seed,
+                                       init_seed=init_seed)
     return env, learner
 
 
-def run_episode(env: gym.Env, learner: PPOLearner, seed: int | None = None) -> tuple[float, int]:
+def run_episode(env: gym.Env, learner: Learner, seed: int | None = None) -> tuple[float, int]:
     """Act until the episode ends, storing every transition in the learner's trajectory memory.
 
     Returns the episode's return and its number of steps.

@@ -41,9 +41,9 @@ from protocol.mqtt import MqttConnection
 from runtime.cli import setup_logging
 from runtime.model_file import ModelFileError, provenance
 from runtime.settings import returns_code
-from worker import model
+from worker import learners, model
 from worker.envs import DeviceNoise, env_spec, make_env
-from worker.ppo import PPOConfig, PPOLearner
+from worker.learners import Learner
 from worker.settings import EvaluateSettings
 
 
@@ -91,13 +91,16 @@ class Robustness:
 # -- the model -------------------------------------------------------------------------------------------------
 
 
-def load_learner(path: Path, env_id: str, observation_space: gym.Space, action_space: gym.Space) -> PPOLearner:
-    """A learner with the saved networks, checked against the env's spaces; EvalError with the reason otherwise."""
+def load_learner(path: Path, env_id: str, observation_space: gym.Space, action_space: gym.Space,
+                 algo: str | None = None) -> Learner:
+    """A learner of the kind the model records (worker/learners.py) with its saved networks, checked against the env's
+    spaces (and against ``algo`` when given); EvalError with the reason otherwise."""
     try:
         state = model.load_state(path)
-        config = PPOConfig.from_dict(state["config"])
-        learner = PPOLearner(observation_space, action_space, config, seed=0)
-        model.check_fits(state, learner, env_id, path)
+        made_by = learners.recorded(state)
+        kind = learners.get(algo or made_by)
+        learner = kind.build(observation_space, action_space, kind.config_class.from_dict(state["config"]), seed=0)
+        model.check_fits(state, learner, env_id, path, kind.name)
     except (TypeError, ValueError) as exc:
         raise EvalError(str(exc) if isinstance(exc, ModelFileError) else f"{path}: {exc}") from None
     try:
@@ -129,7 +132,7 @@ def task_of(path: Path, given: str | None, rig_id: str | None = None) -> str:
 # -- episodes ----------------------------------------------------------------------------------------------------
 
 
-def play(env: gym.Env, learner: PPOLearner, seed: int, frames: list[np.ndarray] | None = None) -> tuple[float, int]:
+def play(env: gym.Env, learner: Learner, seed: int, frames: list[np.ndarray] | None = None) -> tuple[float, int]:
     """One greedy episode; returns (return, steps). ``frames`` collects ``env.render()`` images when given."""
     obs, _ = env.reset(seed=seed)
     if frames is not None:
@@ -158,7 +161,7 @@ def write_gif(frames: list[np.ndarray], path: Path, fps: float) -> Path:
 
 
 def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, seed: int = 0,
-               disturbances: Any = None) -> Robustness:
+               disturbances: Any = None, algo: str | None = None) -> Robustness:
     """The robustness test of ``--rigs`` (see the module docstring and worker/robustness.py)."""
     from services.qube_sim.profile import ProfileError, load_profile
     from worker import robustness as rb
@@ -170,7 +173,7 @@ def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, see
     except ProfileError as err:
         raise EvalError(str(err)) from None
     probe = make_env(env_id, seed, probe=True)
-    learner = load_learner(model, env_id, probe.observation_space, probe.action_space)
+    learner = load_learner(model, env_id, probe.observation_space, probe.action_space, algo)
     d = disturbances or rb.Disturbances()
     print(f"robustness of {model} on {rigs} {profile.name} rigs (seeds {seed}-{seed + rigs - 1}): pulses of "
           f"{d.pulse_ms:g} ms, extra encoder noise {d.sensor_noise_counts:g} counts", flush=True)
@@ -189,7 +192,7 @@ def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, see
 
 def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device_noise: float = 1.0,
              video_dir: Path | None = None, video_episodes: int = 1, rig_id: str | None = None,
-             conn: Any = None, rig_profile: str | None = None) -> Evaluation:
+             conn: Any = None, rig_profile: str | None = None, algo: str | None = None) -> Evaluation:
     """Run ``model`` greedily for ``episodes`` episodes of ``env_id``; see the module docstring."""
     spec = env_spec(env_id)
     if video_dir is not None:
@@ -203,7 +206,7 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
     returns: list[float] = []
     steps: list[int] = []
     try:
-        learner = load_learner(model, env_id, environment.observation_space, environment.action_space)
+        learner = load_learner(model, env_id, environment.observation_space, environment.action_space, algo)
         where = f" (rig {rig_id})" if rig_id else ""
         noise = f", device noise {device_noise:g}" if spec.factory is None else ""
         print(f"evaluating {model} on {env_id}{where}: {episodes} greedy episodes, seeds {seed}-{seed + episodes - 1}"
@@ -281,10 +284,10 @@ def main(argv: list[str] | None = None) -> int:
 
             result: Evaluation | Robustness = robustness(
                 s.model, env, s.rig_profile, s.rigs, s.eval_seed,
-                Disturbances(pulse_ms=s.pulse_ms, sensor_noise_counts=s.sensor_noise))
+                Disturbances(pulse_ms=s.pulse_ms, sensor_noise_counts=s.sensor_noise), s.algo)
         else:
             result = evaluate(s.model, env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
-                              s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile)
+                              s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile, s.algo)
     except EvalError as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2

@@ -3,19 +3,20 @@ apply the chief's answer. worker/service.py carries it over a connection (MQTT, 
 deploy/inprocess.py runs a whole federation in one process).
 
 Per episode (paper Algorithm 2): act until the episode ends, storing transitions; PI = mean of the last PI_WINDOW
-returns. If PI >= TC over PI_WINDOW episodes, the worker's submission is its mature actor (MatureParams). Otherwise
-it runs K PPO updates and submits the episode's actor gradient with its PI (WorkerUpdate), then applies the chief's
-answer: the aggregate gradient through its actor's optimizer, or a mature actor blended in with its keep weight
-(Eq. 11). Each submission carries a receipt of what it did with the previous round's answer.
+returns. If PI >= TC over PI_WINDOW episodes, the worker's submission is its mature actor (MatureParams). Otherwise it
+runs its learner's update (worker/learners.py: K PPO steps, or SAC's gradient steps) and submits the episode's actor
+gradient with its PI (WorkerUpdate), then applies the chief's answer: the aggregate gradient through its actor's
+optimizer, or a mature actor blended in with its keep weight (Eq. 11). Each submission carries a receipt of what it did
+with the previous round's answer.
 
 ``state()`` is everything a worker goes on from; ``restore`` takes it up in a new process (worker/resume.py). A worker
 that starts at a later episode without one (new networks) says so in its first receipt (``restarted``).
 
 Once the chief has accepted the mature actor (``accepted``), the worker has finished: it submits no mature actor
 again, and goes on sharing only when the strategy lets finishers help.
-
-Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protocol/rounds.py) the K PPO steps are K
-rounds: each step's actor and critic gradients are submitted, and the chief's mean of them is what the worker's
+ Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protocol/rounds.py) the learner's K mini-batch
+steps are K rounds: each step's actor and critic gradients are submitted, and the chief's mean of them is what the
+worker's
 optimizers apply.
 
     submission = algo.play()                 # the episode, then its first submission
@@ -61,9 +62,11 @@ from protocol.rigtime import SECONDS_LIMIT, EpisodeTime
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
+from worker import learners
 from worker.envs import rng_states, set_rng_states
 from worker.episode import run_episode
-from worker.ppo import Batch, PPOLearner, StepGradients
+from worker.learners import Learner
+from worker.ppo import StepGradients
 
 log = logging.getLogger("worker")
 
@@ -72,11 +75,11 @@ class Algorithm2:
     """One worker's side of every round, from ``first_episode`` on. ``life`` names this worker's life in the run
     (protocol.messages.Played; drawn at random when not given)."""
 
-    def __init__(self, worker_id: str, env: gym.Env, learner: PPOLearner, tc: float, seed: int,
+    def __init__(self, worker_id: str, env: gym.Env, learner: Learner, tc: float, seed: int,
                  first_episode: int = 1, shape: RoundShape = PER_EPISODE, life: str | None = None,
                  max_staleness: int = 0) -> None:
         if shape.per_episode not in (1, learner.config.update_epochs):
-            raise ValueError(f"the chief runs {shape.per_episode} rounds per episode, but this worker's PPO takes "
+            raise ValueError(f"the chief runs {shape.per_episode} rounds per episode, but this worker's learner takes "
                              f"{learner.config.update_epochs} steps per episode")
         if max_staleness and shape.per_step:
             raise ValueError(f"a staleness of {max_staleness} needs one round per episode, not {shape.per_episode}")
@@ -102,7 +105,7 @@ class Algorithm2:
             self._noted.append(self.receipt)
         self.actor_spec = learner.actor_spec()
         self._played = False
-        self._batch: Batch | None = None
+        self._batch: Any = None  # the learner's prepare() of an open per-step episode
         self._own: StepGradients | None = None  # this step's own gradients (applied if no answer comes)
         self._last = (0.0, 0)  # the episode's return and env steps
         self._rig: dict[str, Any] = {}  # the episode's rig time as the wire takes it (rigs only)
@@ -139,7 +142,7 @@ class Algorithm2:
 
     def play(self) -> WorkerUpdate | MatureParams:
         """Play the next episode; return its first submission: the mature actor once PI >= TC, else the gradient
-        of this episode's K PPO updates (of its first mini-batch step, under a per-step strategy)."""
+        of this episode's learner update (of its first mini-batch step, under a per-step strategy)."""
         if self._played:
             self.episode += 1
         self._played, self.step = True, 0
@@ -338,7 +341,8 @@ class Algorithm2:
         self._noted = [Receipt.model_validate(r) for r in state["noted"]]
         self._sent = (state["sent"][0], [Receipt.model_validate(r) for r in state["sent"][1]])
         self._last, self._rig, self._finished = (state["last"][0], state["last"][1]), state["rig"], state["finished"]
-        self._batch = None if state["batch"] is None else Batch(**state["batch"])
+        batch = learners.get(learners.recorded(state["learner"])).batch_class
+        self._batch = None if state["batch"] is None else batch(**state["batch"])
         own = state["own"]
         self._own = None if own is None else StepGradients(**{**own, "critic": _numpy(own["critic"]),
                                                               "actor": _numpy(own["actor"])})
@@ -378,7 +382,7 @@ def _numpy(tensors: dict[str, torch.Tensor] | None) -> dict[str, np.ndarray] | N
 
 
 def _loss_fields(stats: Any) -> dict[str, float | None]:
-    """The PPO statistics of the learner's update (or step) as the wire takes them: None where absent, not finite or
+    """The statistics of the learner's update (or step) as the wire takes them: None where absent, not finite or
     outside the wire's bounds (protocol.messages.STAT_BOUNDS). approx_kl is >= 0 in exact arithmetic; float32
     rounding can leave it at about -1e-8, which is sent as 0."""
     out: dict[str, float | None] = {}

@@ -1,14 +1,16 @@
 """A worker's model file: the provenance it records, and a warm start from one (``--init-model PATH``).
 
-The file (worker/ppo.py ``state_dict`` saved with ``torch.save``) holds the actor, the critic, the observation
-statistics, the optimizers' state, the sampling RNG's state and the learner's configuration (``config``), and, since
+The file (the learner's ``state_dict`` saved with ``torch.save``) names its learner (``algo``, worker/learners.py; a
+file without one is PPO's) and holds the actor, the critic, the optimizers' state, the sampling RNG's state and the
+learner's configuration (``config``), and, since
 models record where they come from, a ``provenance`` dict: the task, the rig profile and randomisation where the task
 has them, the worker's seed, its episodes and env steps, the code version and the model it was warm-started from.
 
 A warm start checks the model against the task first (its recorded task, the observation and action spaces through
 the networks' shapes, and the architecture), so that a model made for another task or shape is one line, exit 2
-(``ModelFileError``). It then takes what ``PPOLearner.warm_start`` takes: networks, observation statistics and Adam
-moments, never the RNG (runtime/model_file.py reads the file's digest without torch, for the chief).
+(``ModelFileError``); so is a model of another learner. It then takes what the learner's ``warm_start`` takes:
+networks, observation statistics and Adam moments, never the RNG (runtime/model_file.py reads the file's digest
+without torch, for the chief).
 """
 
 from __future__ import annotations
@@ -21,10 +23,11 @@ from pathlib import Path
 from typing import Any
 
 from runtime.model_file import InitModel, ModelFileError
-from worker.ppo import PPOConfig, PPOLearner
+from worker import learners
+from worker.learners import Learner
 
 #: Configuration fields that shape the networks or their inputs: a warm start needs them equal.
-ARCHITECTURE = ("hidden_sizes", "activation", "obs_scale", "normalize_obs")
+ARCHITECTURE = ("hidden_sizes", "activation", "obs_scale", "normalize_obs")  # those the learner's config has
 #: Tasks whose models fit each other (one QUBE-Servo 2, over MQTT or simulated in process).
 FAMILIES = ({"qube", "qube-local"},)
 
@@ -83,7 +86,7 @@ def load_state(path: Path) -> dict[str, Any]:
     except Exception as exc:  # torch raises many types for a file that is not a checkpoint
         first = (str(exc).splitlines() or [""])[0][:200]
         raise ModelFileError(f"{path} is not a saved model ({type(exc).__name__}: {first})") from None
-    if not isinstance(state, dict) or not {"config", "actor", "critic", "obs_norm"} <= set(state):
+    if not isinstance(state, dict) or not {"config", "actor", "critic"} <= set(state):
         raise ModelFileError(f"{path} is not a model saved by a fedrl worker (no actor/critic/config in it)")
     return state
 
@@ -95,14 +98,18 @@ def recorded_task(state: dict[str, Any]) -> str | None:
     return task if isinstance(task, str) else None
 
 
-def check_fits(state: dict[str, Any], learner: PPOLearner, env_id: str, path: Path) -> None:
-    """A ModelFileError naming the first difference when the model was made for another task, or its networks do
-    not have ``learner``'s shapes (the observation and action spaces) or architecture."""
+def check_fits(state: dict[str, Any], learner: Learner, env_id: str, path: Path, algo: str = "ppo") -> None:
+    """A ModelFileError naming the first difference when the model was made for another task or by another learner
+    than ``algo``, or its networks do not have ``learner``'s shapes (the observation and action spaces) or
+    architecture."""
     task = recorded_task(state)
     if task is not None and not same_task(task, env_id):
         raise ModelFileError(f"{path} was made for {task}, not {env_id}")
+    made_by = learners.recorded(state)
+    if made_by != algo:
+        raise ModelFileError(f"{path} was made by learner {made_by}, not {algo} (give --algo {made_by})")
     try:
-        config = PPOConfig.from_dict(state["config"])
+        config = learners.get(algo).config_class.from_dict(state["config"])
     except (TypeError, ValueError) as exc:
         raise ModelFileError(f"{path}: {exc}") from None
     for net in ("actor", "critic"):
@@ -113,15 +120,15 @@ def check_fits(state: dict[str, Any], learner: PPOLearner, env_id: str, path: Pa
             if expected.get(name) != saved.get(name):
                 raise ModelFileError(f"{path} does not fit {env_id}: {net} {name} is {saved.get(name)} in the model "
                                      f"but {expected.get(name)} for {env_id} (was it made for another task?)")
-    for key in ARCHITECTURE:
+    for key in (k for k in ARCHITECTURE if hasattr(config, k)):
         if getattr(config, key) != getattr(learner.config, key):
             raise ModelFileError(f"{path} does not fit {env_id}'s learner: its {key} is {getattr(config, key)!r}, "
                                  f"{env_id}'s is {getattr(learner.config, key)!r}")
 
 
-def warm_start(learner: PPOLearner, state: dict[str, Any], env_id: str, path: Path) -> None:
-    """Check the model against the task (``check_fits``), then start ``learner`` from it."""
-    check_fits(state, learner, env_id, path)
+def warm_start(learner: Learner, state: dict[str, Any], env_id: str, path: Path, algo: str = "ppo") -> None:
+    """Check the model against the task and learner (``check_fits``), then start ``learner`` from it."""
+    check_fits(state, learner, env_id, path, algo)
     try:
         learner.warm_start(state)
     except (KeyError, RuntimeError, ValueError) as exc:
@@ -129,13 +136,14 @@ def warm_start(learner: PPOLearner, state: dict[str, Any], env_id: str, path: Pa
         raise ModelFileError(f"{path} could not be loaded for {env_id}: {first}") from None
 
 
-def open_init_model(path: Path, env_id: str, rig_id: str | None = None) -> tuple[InitModel, dict[str, Any]]:
-    """``--init-model PATH`` for task ``env_id``: the model (resolved, digested) and its saved dict, checked against
-    the task's spaces and learner; ModelFileError (one line, exit 2) otherwise."""
+def open_init_model(path: Path, env_id: str, rig_id: str | None = None,
+                    algo: str = "ppo") -> tuple[InitModel, dict[str, Any]]:
+    """``--init-model PATH`` for task ``env_id`` and learner ``algo``: the model (resolved, digested) and its saved
+    dict, checked against the task's spaces and the learner; ModelFileError (one line, exit 2) otherwise."""
     from worker.episode import build_learner_and_env
 
     init = InitModel.open(path)
     state = load_state(init.file)
-    _, probe = build_learner_and_env(env_id, seed=0, device_noise=0.0, rig_id=rig_id, spec_only=True)
-    check_fits(state, probe, env_id, init.file)
+    _, probe = build_learner_and_env(env_id, seed=0, device_noise=0.0, rig_id=rig_id, spec_only=True, algo=algo)
+    check_fits(state, probe, env_id, init.file, algo)
     return init, state

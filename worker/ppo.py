@@ -593,8 +593,10 @@ class PPOLearner:
     # -- persistence ----------------------------------------------------------------------------------------
 
     def state_dict(self) -> dict[str, Any]:
-        """Networks, optimizers, observation statistics, RNG state and config (the memory is not included)."""
+        """The learner's name (worker/learners.py), networks, optimizers, observation statistics, RNG state and config
+        (the memory is not included)."""
         return {
+            "algo": "ppo",
             "config": asdict(self.config),
             "actor": self.actor.state_dict(),
             "critic": self.critic.state_dict(),

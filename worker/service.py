@@ -93,7 +93,7 @@ class WorkerService:
         self.init_model: InitModel | None = None
         self.init_state: dict[str, Any] | None = None
         if cfg.init_model is not None:
-            self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id)
+            self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id, cfg.algo)
         self.key = cfg.key()  # the run's key: every chief message must carry its HMAC (protocol/auth.py)
         self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
         self.outbox: dict[int, tuple[bytes, float]] = {}  # staleness: owed rounds' payloads and when first sent
@@ -185,9 +185,9 @@ class WorkerService:
         """Say hello every second until the chief's RunStart names this worker."""
         cfg = self.cfg
         _, probe = build_learner_and_env(cfg.env, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
-                                         spec_only=True)
+                                         spec_only=True, algo=cfg.algo)
         hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env, actor_spec=probe.actor_spec(),
-                            critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs,
+                            critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs, algo=cfg.algo,
                             host=socket.gethostname(), pid=os.getpid(),
                             init_model=self.init_model.digest if self.init_model else None,
                             init_model_path=self.init_model.given[:1000] if self.init_model else "")
@@ -205,6 +205,9 @@ class WorkerService:
             if isinstance(msg, RunStart) and cfg.worker_id in msg.workers:
                 if msg.env_id != cfg.env:
                     raise ValueError(f"the chief runs {msg.env_id!r} but this worker was started for {cfg.env!r}")
+                if msg.algo != cfg.algo:
+                    raise ValueError(f"the chief runs learner {msg.algo!r} but this worker was started with "
+                                     f"{cfg.algo!r}")
                 self.start, self.epoch = msg, msg.epoch
                 return msg
             reason = "not_in_run" if isinstance(msg, RunStart) else "before_start"
@@ -217,9 +220,9 @@ class WorkerService:
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
-                                             env_options=cfg.env_options())
+                                             env_options=cfg.env_options(), algo=cfg.algo)
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
-            model.warm_start(learner, self.init_state, cfg.env, self.init_model.file)
+            model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo)
             log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])
         self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,

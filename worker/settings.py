@@ -9,10 +9,12 @@ from typing import Any
 from pydantic import field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
 
+from protocol import learners
 from protocol.rigtime import Clock
 from protocol.topics import check_id
 from runtime.model_file import ModelPath
 from runtime.settings import (
+    LearnerName,
     LogLevel,
     MqttSettings,
     RunKeySettings,
@@ -36,6 +38,8 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     worker_id: str = setting("auto", "worker id, unique in the run ('auto' = hostname plus a random suffix)",
                              aliases=["--id"])
     env: TaskName = setting("CartPole-v0", "task to learn; must match the chief's")
+    algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them); must match the "
+                                "chief's")
     rig_id: str | None = setting(None, "QUBE-Servo 2 rig to drive when --env qube")
     qube_clock: Clock = setting("realtime", "--env qube: the clock of the rig (a real rig runs in realtime; a "
                                 "services.qube_sim rig in its --clock): under realtime and delayed the rig time is "
@@ -92,6 +96,8 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
 
     model: CliPositionalArg[Path] = setting(help="a models/<worker>.pt saved by a worker", env=False)
     env: TaskName | None = setting(None, "task to run it on (unset: the task the model records)")
+    algo: LearnerName | None = setting(None, "the learner the model must have been made by (unset: the one it "
+                                       "records)")
     eval_episodes: int = setting(10, "number of episodes", aliases=["--episodes"], ge=1)
     eval_seed: int = setting(0, "episode i is seeded with seed + i", aliases=["--seed"])
     eval_json: Path | None = setting(None, "also write the results to this JSON file", aliases=["--json"])
@@ -125,31 +131,30 @@ class TrainLocalSettings(DeviceNoiseSettings):
     """One worker, no federation: Algorithm 2 without the chief, for experiments and tuning."""
 
     env: TaskName = setting("CartPole-v0", "task to learn")
+    algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them)")
     seed: int = setting(1, "seed of the networks, the sampling and the env")
     max_episodes: int = setting(2000, "the most episodes (the paper's M)", aliases=["--episodes"], ge=1)
-    overrides: CliSuppress[list[str]] = setting([], "override a PPOConfig field of the task's preset",
-                                                aliases=["--set"], env=False, metavar="KEY=VALUE")
+    overrides: CliSuppress[list[str]] = setting([], "override a field of the learner's preset for the task "
+                                                "(PPOConfig, SACConfig)", aliases=["--set"], env=False,
+                                                metavar="KEY=VALUE")
     print_every: int = setting(10, "print every N episodes", aliases=["--every"], ge=1)
 
-    @field_validator("overrides")
-    @classmethod
-    def _overrides_parse(cls, value: list[str]) -> list[str]:
-        for text in value:
-            parse_override(text)
-        return value
+    @model_validator(mode="after")
+    def _overrides_parse(self) -> TrainLocalSettings:
+        for text in self.overrides:
+            parse_override(text, self.algo)
+        return self
 
-    def ppo_overrides(self) -> dict[str, Any]:
-        return dict(parse_override(text) for text in self.overrides)
+    def learner_overrides(self) -> dict[str, Any]:
+        return dict(parse_override(text, self.algo) for text in self.overrides)
 
 
-def parse_override(text: str) -> tuple[str, Any]:
-    """``KEY=VALUE`` of a PPOConfig field; the value as a Python literal where it is one."""
-    from dataclasses import fields
-
-    from worker.ppo import PPOConfig  # torch: only where overrides are given
+def parse_override(text: str, algo: str = learners.DEFAULT) -> tuple[str, Any]:
+    """``KEY=VALUE`` of a field of learner ``algo``'s configuration; the value as a Python literal where it is one."""
+    from worker.learners import get  # torch: only where overrides are given
 
     key, sep, raw = text.partition("=")
-    names = {f.name for f in fields(PPOConfig)}
+    names = set(get(algo).config_fields())
     if not sep or key not in names:
         raise ValueError(f"expected KEY=VALUE with KEY one of {sorted(names)}, got {text!r}")
     lowered = raw.strip().lower()

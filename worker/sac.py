@@ -1,0 +1,720 @@
+"""Soft Actor-Critic as a second learner of the worker, beside PPO (worker/ppo.py), with the same public interface.
+
+One module covers both kinds of action space:
+
+- Box actions: SAC with a tanh-squashed Gaussian policy, twin Q critics, target critics by Polyak averaging and an
+  automatically tuned entropy temperature alpha (Haarnoja et al. 2018, "Soft Actor-Critic Algorithms and
+  Applications", arXiv:1812.05905);
+- Discrete actions: discrete SAC (Christodoulou 2019, arXiv:1910.07207): a categorical policy, Q networks with one
+  output per action, and every expectation over the policy computed exactly as a sum over the actions.
+
+Read it top to bottom: the configuration, the networks (an actor and ONE critic module holding both Q networks), the
+pure math (soft state value, soft Q target, the critic loss J_Q, the actor loss J_pi, the temperature loss J(alpha),
+the Polyak update) and the learner, which owns the replay buffer, the target critic, log alpha and three Adam
+optimizers, and the hooks the federation needs, exactly those of ``PPOLearner``:
+
+- ``update()``: after an episode of n env steps, round(utd_ratio * n) gradient steps (none before
+  ``learning_starts`` transitions are in the replay); also records the episode's actor gradient, the mean of its
+  applied actor mini-batch gradients (``actor_gradient()``),
+- ``prepare()``, ``minibatch_gradients()``, ``apply_step()``: one gradient step at a time, for strategies that share
+  every step's gradients; they take a FIXED K = ``update_epochs`` steps per episode (the federation's schedule),
+- ``apply_gradient(g_bar)``: one actor-optimizer step with the chief's weighted mean gradient (paper Eq. 9),
+- ``blend_actor(theta_bar, w_T)``: the soft transfer of a mature actor, paper Eq. 11.
+
+What travels: the actor (its per-episode gradient, and its parameters in a transfer); under a per-step strategy also
+the gradients of both Q networks (``critic`` = q1 and q2). What never leaves the device: the target critics, the
+temperature (log alpha and its optimizer; its step is always local, after the shared critic and actor steps) and the
+replay buffer.
+
+Randomness (network init, action sampling, replay mini-batch draws, the policy samples inside the losses) comes from
+the learner's own seed, so a run is reproducible given the seed and the environment, and the learner never touches
+the global RNGs.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from collections.abc import Iterable, Mapping
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from torch import nn
+
+from worker.ppo import _GLOBAL_RNG, ACTIVATIONS, StepGradients, UpdateStats, _tensors, mlp
+
+#: Bounds of the Gaussian's log standard deviation (before the tanh squashing), as is usual for SAC.
+LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
+
+
+# ----------------------------------------------------------------------------------------------------
+# Configuration
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SACConfig:
+    """Hyper-parameters; the defaults are Haarnoja et al.'s (2018) where they give one: two hidden layers of 256 ReLU
+    units, Adam 3e-4 for every network and for alpha, gamma 0.99, tau 0.005, batch 256, one gradient step per env step,
+    target entropy -dim(A).
+
+    Names shared with ``PPOConfig`` mean the same (hidden_sizes, activation, actor_lr, critic_lr, batch_size,
+    update_epochs, gamma, max_grad_norm, obs_scale, reward_scale). ``update_epochs`` is K, the fixed number of
+    gradient steps per episode under a per-step federation strategy only; ``update()`` alone takes
+    round(utd_ratio * new transitions) steps.
+
+    Target entropy: ``target_entropy`` when given; else -dim(A) for Box actions and ``target_entropy_ratio`` * log|A|
+    for Discrete ones (log|A| is the entropy of the uniform policy; Christodoulou uses the ratio 0.98).
+    """
+
+    hidden_sizes: tuple[int, ...] = (256, 256)
+    activation: str = "relu"  # one of worker.ppo.ACTIVATIONS
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4  # both Q networks (one optimizer)
+    alpha_lr: float = 3e-4  # the temperature, optimised as log alpha
+    gamma: float = 0.99
+    tau: float = 0.005  # Polyak averaging of the target critics
+    replay_size: int = 100_000  # FIFO replay buffer, across episodes
+    batch_size: int = 256
+    learning_starts: int = 1000  # transitions in the replay before update() takes its first gradient step
+    utd_ratio: float = 1.0  # update-to-data ratio: gradient steps per new env step in update()
+    update_epochs: int = 10  # K: gradient steps per episode under a per-step federation strategy
+    init_alpha: float = 1.0
+    target_entropy: float | None = None  # None: -dim(A) (Box) or target_entropy_ratio * log|A| (Discrete)
+    target_entropy_ratio: float = 0.98  # Discrete only, and only when target_entropy is None
+    max_grad_norm: float | None = None  # clip each network's gradient norm; None disables
+    # Fixed per-dimension input scale, the same on every worker (see PPOConfig.obs_scale).
+    obs_scale: tuple[float, ...] | None = None
+    reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
+
+    def __post_init__(self) -> None:
+        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
+        if self.obs_scale is not None:
+            self.obs_scale = tuple(float(x) for x in self.obs_scale)
+        problems = []
+        if self.obs_scale is not None and not all(x > 0 and x < float("inf") for x in self.obs_scale):
+            problems.append("obs_scale entries must be finite and > 0")
+        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
+            problems.append("hidden_sizes must be non-empty positive integers")
+        if self.activation not in ACTIVATIONS:
+            problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
+        for name in ("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
+            if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
+                problems.append(f"{name} must be finite and > 0")
+        for name in ("replay_size", "batch_size", "update_epochs"):
+            if getattr(self, name) < 1:
+                problems.append(f"{name} must be >= 1")
+        if self.learning_starts < 0:
+            problems.append("learning_starts must be >= 0")
+        if not (self.utd_ratio > 0 and math.isfinite(self.utd_ratio)):
+            problems.append("utd_ratio must be finite and > 0")
+        if not 0.0 <= self.gamma <= 1.0:
+            problems.append("gamma must be in [0, 1]")
+        if not 0.0 < self.tau <= 1.0:
+            problems.append("tau must be in (0, 1]")
+        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
+            problems.append("target_entropy must be finite or None")
+        if not 0.0 <= self.target_entropy_ratio <= 1.0:
+            problems.append("target_entropy_ratio must be in [0, 1]")
+        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
+            problems.append("max_grad_norm must be > 0 or None")
+        if problems:
+            raise ValueError("invalid SACConfig: " + "; ".join(problems))
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> SACConfig:
+        """Build from ``asdict(config)``; unknown keys are an error."""
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown SACConfig keys: {sorted(unknown)}")
+        return cls(**dict(values))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Networks
+# ----------------------------------------------------------------------------------------------------
+
+
+def _action_kind(action_space: spaces.Space) -> tuple[bool, tuple[int, ...], int]:
+    """(discrete, action shape, actor output units per head) of a supported action space."""
+    if isinstance(action_space, spaces.Discrete):
+        return True, (), int(action_space.n)
+    if isinstance(action_space, spaces.Box):
+        if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
+            raise ValueError(f"SAC needs finite Box bounds to squash actions into, got {action_space!r}")
+        return False, tuple(action_space.shape), int(np.prod(action_space.shape))
+    raise ValueError(f"unsupported action space {action_space!r}: use Discrete or Box")
+
+
+class SACActor(nn.Module):
+    """pi_theta(a|s): Categorical over logits (Discrete), or a tanh-squashed diagonal Gaussian (Box) whose mean and
+    state-dependent log standard deviation are the two halves of the MLP's output. Box actions are in [-1, 1]; the
+    learner scales them to the action space's bounds."""
+
+    def __init__(self, obs_dim: int, action_space: spaces.Space, config: SACConfig) -> None:
+        super().__init__()
+        self.discrete, self.action_shape, self.action_dim = _action_kind(action_space)
+        out_dim = self.action_dim if self.discrete else 2 * self.action_dim
+        self.net = mlp(obs_dim, config.hidden_sizes, out_dim, config.activation, ortho=False, out_gain=1.0)
+
+    def forward(self, obs: torch.Tensor) -> torch.Tensor:
+        """Logits (Discrete, shape (batch, |A|)) or mean and log std concatenated (Box, (batch, 2 dim(A)))."""
+        return self.net(obs)
+
+    def log_probs(self, obs: torch.Tensor) -> torch.Tensor:
+        """Discrete: log pi(a|s) of every action, shape (batch, |A|)."""
+        return torch.log_softmax(self(obs), dim=-1)
+
+    def gaussian(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Box: the pre-squash Gaussian's mean and standard deviation."""
+        mean, log_std = self(obs).chunk(2, dim=-1)
+        return mean, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX).exp()
+
+    def rsample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        """Box: a reparameterised sample a = tanh(mean + std * eps) in [-1, 1] and its log-density log pi(a|s),
+        with the tanh change of variables: log N(u) - sum log(1 - tanh(u)^2)."""
+        mean, std = self.gaussian(obs)
+        u = mean + std * torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        log_normal = torch.distributions.Normal(mean, std).log_prob(u).sum(-1)
+        # log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)), stable for large |u|
+        log_det = (2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))).sum(-1)
+        return torch.tanh(u), log_normal - log_det
+
+    def sample(self, obs: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+        """Draw actions with ``generator``: action indices (Discrete) or squashed actions in [-1, 1] (Box)."""
+        if self.discrete:
+            return torch.multinomial(torch.softmax(self(obs), dim=-1), 1, generator=generator).squeeze(-1)
+        return self.rsample(obs, generator)[0]
+
+    def greedy(self, obs: torch.Tensor) -> torch.Tensor:
+        """The deterministic action: arg-max logit, or tanh of the Gaussian mean."""
+        if self.discrete:
+            return self(obs).argmax(dim=-1)
+        return torch.tanh(self.gaussian(obs)[0])
+
+
+class QNetwork(nn.Module):
+    """Q_phi(s, a): an MLP of (s, a) with one output (Box), or of s with one output per action (Discrete)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, discrete: bool, config: SACConfig) -> None:
+        super().__init__()
+        self.discrete = discrete
+        in_dim, out_dim = (obs_dim, action_dim) if discrete else (obs_dim + action_dim, 1)
+        self.net = mlp(in_dim, config.hidden_sizes, out_dim, config.activation, ortho=False, out_gain=1.0)
+
+    def forward(self, obs: torch.Tensor, actions: torch.Tensor | None = None) -> torch.Tensor:
+        """Discrete: Q of every action, (batch, |A|), or of ``actions`` (indices), (batch,). Box: Q(s, a), (batch,)."""
+        if self.discrete:
+            q = self.net(obs)
+            return q if actions is None else q.gather(1, actions.long().unsqueeze(-1)).squeeze(-1)
+        if actions is None:
+            raise ValueError("a Box Q network needs the actions")
+        return self.net(torch.cat([obs, actions], dim=-1)).squeeze(-1)
+
+
+class TwinQ(nn.Module):
+    """The critic: the two Q networks ``q1`` and ``q2`` in one module (one optimizer, one parameter namespace)."""
+
+    def __init__(self, obs_dim: int, action_dim: int, discrete: bool, config: SACConfig) -> None:
+        super().__init__()
+        self.q1 = QNetwork(obs_dim, action_dim, discrete, config)
+        self.q2 = QNetwork(obs_dim, action_dim, discrete, config)
+
+    def forward(self, obs: torch.Tensor, actions: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.q1(obs, actions), self.q2(obs, actions)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The math as pure functions
+# ----------------------------------------------------------------------------------------------------
+
+
+def soft_state_value(
+    q1: torch.Tensor, q2: torch.Tensor, log_pi: torch.Tensor, alpha: float | torch.Tensor,
+    probs: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """The soft state value V(s) = E_{a~pi}[min(Q1, Q2)(s, a) - alpha log pi(a|s)], per state.
+
+    Box (``probs`` None): a one-sample estimate, all inputs of shape (batch,) at a sampled a ~ pi(.|s).
+    Discrete (``probs`` = pi(.|s), shape (batch, |A|) like q1, q2 and log_pi): the exact sum over the actions."""
+    inner = torch.min(q1, q2) - alpha * log_pi
+    return inner if probs is None else (probs * inner).sum(-1)
+
+
+def soft_q_target(
+    rewards: torch.Tensor, next_value: torch.Tensor, terminated: torch.Tensor, gamma: float
+) -> torch.Tensor:
+    """The soft Q target y = r + gamma (1 - terminated) V_target(s'), with V_target from ``soft_state_value`` over
+    the target critics. Only a termination cuts the bootstrap: after a truncation (time limit) s' still has a value."""
+    return rewards + gamma * (1.0 - terminated.to(rewards.dtype)) * next_value
+
+
+def critic_loss(q1: torch.Tensor, q2: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """J_Q of both Q networks: mean 0.5 (Q1(s, a) - y)^2 + mean 0.5 (Q2(s, a) - y)^2 (``target`` y is a constant)."""
+    target = target.detach()
+    return 0.5 * (q1 - target).square().mean() + 0.5 * (q2 - target).square().mean()
+
+
+def actor_loss(
+    q1: torch.Tensor, q2: torch.Tensor, log_pi: torch.Tensor, alpha: float | torch.Tensor,
+    probs: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """J_pi = E_s[E_{a~pi}[alpha log pi(a|s) - min(Q1, Q2)(s, a)]] = -mean soft_state_value (same argument shapes).
+
+    Box: a reparameterised sample, the gradient flows through the actions into Q. Discrete: the exact expectation;
+    pass the Q values detached, the gradient flows through ``probs`` and ``log_pi``."""
+    return -soft_state_value(q1, q2, log_pi, alpha, probs).mean()
+
+
+def temperature_loss(log_alpha: torch.Tensor, log_pi: torch.Tensor, target_entropy: float) -> torch.Tensor:
+    """J(alpha) = E[-alpha (log pi(a|s) + H_target)], optimised over log alpha (the usual parameterisation: same sign
+    of gradient, alpha stays positive). ``log_pi``: per-sample log pi(a|s) (Box) or -entropy of pi(.|s) (Discrete,
+    the exact expectation), a constant here. alpha grows while the policy's entropy is below the target."""
+    return -(log_alpha * (log_pi.detach() + target_entropy)).mean()
+
+
+@torch.no_grad()
+def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor], tau: float) -> None:
+    """In place, pairwise: target = (1 - tau) target + tau source (the target critics' slow average)."""
+    for t, s in zip(target, source, strict=True):
+        t.mul_(1.0 - tau).add_(s, alpha=tau)
+
+
+# ----------------------------------------------------------------------------------------------------
+# The learner
+# ----------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SACBatch:
+    """What ``prepare()`` fixes for the K per-step rounds of an episode: ``n``, the number of transitions in the
+    replay then (each step draws its mini-batch from those), and ``steps`` = K. Plain ints, so ``vars(batch)`` can be
+    saved with torch.save and rebuilt with ``SACBatch(**d)``."""
+
+    n: int
+    steps: int
+
+
+@dataclass
+class SACUpdateStats(UpdateStats):
+    """Means over the gradient steps of one ``update()`` (zeros when it took none). actor_loss is J_pi, critic_loss
+    J_Q, entropy the policy's mean entropy estimate; approx_kl and clip_fraction are PPO's and always 0.0 here."""
+
+    alpha: float = 0.0  # the temperature after the update
+    gradient_steps: int = 0
+
+
+class SACLearner:
+    """One worker's SAC: acting, the replay buffer, the per-episode update, federation hooks (as ``PPOLearner``).
+
+    ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the global RNGs
+    are left alone), so the same seed and the same transitions give the same parameters. ``init_seed``, when given,
+    seeds only the network init (federated workers share it, as for PPO). The target critic starts as a copy of the
+    critic.
+    """
+
+    def __init__(
+        self,
+        obs_space: spaces.Space,
+        action_space: spaces.Space,
+        config: SACConfig | None = None,
+        seed: int = 0,
+        init_seed: int | None = None,
+    ) -> None:
+        if not isinstance(obs_space, spaces.Box):
+            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
+        self.config = cfg = config if config is not None else SACConfig()
+        self.obs_space, self.action_space = obs_space, action_space
+        self.obs_shape = tuple(obs_space.shape)
+        obs_dim = int(np.prod(self.obs_shape))
+        with _GLOBAL_RNG, torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
+            torch.manual_seed(seed if init_seed is None else init_seed)
+            self.actor = SACActor(obs_dim, action_space, cfg)
+            self.critic = TwinQ(obs_dim, self.actor.action_dim, self.actor.discrete, cfg)
+        self.target_critic = copy.deepcopy(self.critic)
+        self.target_critic.requires_grad_(False)
+        if cfg.obs_scale is not None:
+            if len(cfg.obs_scale) != obs_dim:
+                raise ValueError(f"obs_scale has {len(cfg.obs_scale)} entries for observations of shape "
+                                 f"{self.obs_shape}")
+            self._obs_scale = torch.tensor(cfg.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
+        if not self.actor.discrete:
+            assert isinstance(action_space, spaces.Box)
+            low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
+            self._action_center, self._action_half = (high + low) / 2.0, (high - low) / 2.0
+        self.log_alpha = torch.tensor(math.log(cfg.init_alpha), dtype=torch.float32, requires_grad=True)
+        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.generator = torch.Generator().manual_seed(seed + 1_000_003)
+        self._alloc_replay(cfg.replay_size)
+        self._episode_gradient: dict[str, np.ndarray] | None = None
+        # the latest mini-batch's mean log pi estimate, for the temperature step of apply_step
+        self._alpha_term: torch.Tensor | None = None
+
+    @property
+    def target_entropy(self) -> float:
+        """H_target: the configured value, or -dim(A) (Box) / target_entropy_ratio * log|A| (Discrete)."""
+        if self.config.target_entropy is not None:
+            return float(self.config.target_entropy)
+        if self.actor.discrete:
+            return self.config.target_entropy_ratio * math.log(self.actor.action_dim)
+        return -float(self.actor.action_dim)
+
+    @property
+    def alpha(self) -> float:
+        return float(self.log_alpha.detach().exp())
+
+    # -- the replay buffer (a ring: logical index 0 is the oldest transition) -------------------------------
+
+    def _alloc_replay(self, capacity: int) -> None:
+        obs_dim = int(np.prod(self.obs_shape))
+        self._capacity, self._pos, self._size, self._pending = capacity, 0, 0, 0
+        self._obs = np.zeros((capacity, obs_dim), dtype=np.float32)
+        self._next_obs = np.zeros((capacity, obs_dim), dtype=np.float32)
+        self._actions = (np.zeros(capacity, dtype=np.int64) if self.actor.discrete
+                         else np.zeros((capacity, self.actor.action_dim), dtype=np.float32))
+        self._rewards = np.zeros(capacity, dtype=np.float64)
+        self._terminated = np.zeros(capacity, dtype=bool)
+        self._truncated = np.zeros(capacity, dtype=bool)
+
+    def _order(self) -> np.ndarray:
+        """Physical positions of the stored transitions, oldest first."""
+        start = self._pos if self._size == self._capacity else 0
+        return (start + np.arange(self._size)) % self._capacity
+
+    @property
+    def memory_size(self) -> int:
+        """Transitions in the replay."""
+        return self._size
+
+    # -- acting --------------------------------------------------------------------------------------------
+
+    def _obs_tensor(self, obs: Any) -> torch.Tensor:
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
+        if self.config.obs_scale is not None:
+            x = x * self._obs_scale
+        return x.flatten(1)
+
+    def _to_env(self, action: torch.Tensor) -> Any:
+        if self.actor.discrete:
+            return np.int64(action.item())
+        scaled = self._action_center + self._action_half * action.double().numpy().reshape(self.actor.action_shape)
+        return scaled.astype(np.float32)
+
+    @torch.no_grad()
+    def act(self, obs: Any) -> Any:
+        """Sample a_t ~ pi_theta(.|s_t): a numpy int64 (Discrete) or a float32 array within the Box bounds."""
+        return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator)[0])
+
+    @torch.no_grad()
+    def act_greedy(self, obs: Any) -> Any:
+        """The deterministic action (arg-max, or tanh of the Gaussian mean scaled to the bounds), for evaluation."""
+        return self._to_env(self.actor.greedy(self._obs_tensor(obs))[0])
+
+    def remember(
+        self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool, truncated: bool
+    ) -> None:
+        """Store <s_t, a_t, r_{t+1}, s_{t+1}> and the episode flags in the FIFO replay (the oldest drops out when it
+        is full). Box actions come in env units and are stored rescaled to [-1, 1] (clipped), the actor's range."""
+        i = self._pos
+        self._obs[i] = np.asarray(obs, dtype=np.float32).reshape(-1)
+        self._next_obs[i] = np.asarray(next_obs, dtype=np.float32).reshape(-1)
+        if self.actor.discrete:
+            self._actions[i] = int(action)
+        else:
+            a = np.asarray(action, dtype=np.float64).reshape(-1)
+            self._actions[i] = np.clip((a - self._action_center.reshape(-1)) / self._action_half.reshape(-1),
+                                       -1.0, 1.0)
+        self._rewards[i] = float(reward)
+        self._terminated[i], self._truncated[i] = bool(terminated), bool(truncated)
+        self._pos = (i + 1) % self._capacity
+        self._size = min(self._size + 1, self._capacity)
+        self._pending += 1
+
+    # -- the update after an episode --------------------------------------------------------------------------
+
+    def update(self) -> SACUpdateStats:
+        """round(utd_ratio * n) gradient steps for the n transitions remembered since the last update (at least one;
+        none while the replay holds fewer than ``learning_starts``), each: a twin soft Q critic step, an actor step,
+        a temperature step and the Polyak update of the target critics. Also records the episode's actor gradient
+        (see ``actor_gradient``)."""
+        cfg = self.config
+        new = self._pending
+        batch = self.prepare()
+        steps = 0 if batch.n < cfg.learning_starts else max(1, round(cfg.utd_ratio * new))
+        grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
+        totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy"), 0.0)
+        actor_steps, skipped = 0, 0
+        for _ in range(steps):
+            step = self.minibatch_gradients(batch)
+            self.apply_step(step.critic, step.actor)
+            skipped += (step.critic is None) + (step.actor is None)
+            if step.actor is not None:
+                actor_steps += 1
+                for name, g in step.actor.items():
+                    grad_sum[name] += torch.from_numpy(g)
+            for key in totals:
+                totals[key] += getattr(step, key)
+        # As PPO: the mean of the episode's applied (clipped) actor mini-batch gradients; zeros after no step.
+        self._episode_gradient = {
+            name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True) for name, g in grad_sum.items()
+        }
+        means = {key: value / max(steps, 1) for key, value in totals.items()}
+        return SACUpdateStats(**means, approx_kl=0.0, clip_fraction=0.0, memory_size=batch.n, skipped_steps=skipped,
+                              alpha=self.alpha, gradient_steps=steps)
+
+    def prepare(self) -> SACBatch:
+        """The K = ``update_epochs`` steps of this episode draw from the replay as it is now: its size. The new
+        transitions count as used (``update()`` takes its number of steps from them before calling this)."""
+        if self._size == 0:
+            raise ValueError("update() needs transitions in the replay: call remember() first")
+        self._pending = 0
+        return SACBatch(n=self._size, steps=self.config.update_epochs)
+
+    def _sample(self, n: int) -> tuple[torch.Tensor, ...]:
+        """A mini-batch of ``batch_size`` transitions drawn uniformly, with replacement, from the replay's oldest ``n``
+        (the replay as ``prepare`` saw it; fewer if the FIFO dropped some since)."""
+        logical = torch.randint(0, n, (self.config.batch_size,), generator=self.generator).numpy()
+        order = self._order()
+        idx = order[np.minimum(logical, len(order) - 1)]
+        obs = self._obs_tensor(self._obs[idx])
+        next_obs = self._obs_tensor(self._next_obs[idx])
+        actions = torch.from_numpy(self._actions[idx].copy())
+        rewards = torch.from_numpy(self._rewards[idx] * self.config.reward_scale).float()
+        terminated = torch.from_numpy(self._terminated[idx].copy())
+        return obs, actions, rewards, next_obs, terminated
+
+    def minibatch_gradients(self, batch: SACBatch) -> StepGradients:
+        """One random mini-batch from the replay: the critic's gradient of J_Q (both Q networks, against the soft Q
+        target of the target critics) and the actor's of J_pi (with the critic's current parameters), each after
+        optional norm clipping; None where the loss or a gradient is not finite. Nothing is applied: ``apply_step``
+        does that (with these, or with a federation's mean of them). approx_kl and clip_fraction are 0.0 (PPO's)."""
+        cfg = self.config
+        if batch.n < 1:
+            raise ValueError("minibatch_gradients() needs transitions in the replay")
+        obs, actions, rewards, next_obs, terminated = self._sample(batch.n)
+        alpha = self.log_alpha.detach().exp()
+        discrete = self.actor.discrete
+        with torch.no_grad():
+            if discrete:
+                next_log_pi = self.actor.log_probs(next_obs)
+                nq1, nq2 = self.target_critic(next_obs)
+                next_v = soft_state_value(nq1, nq2, next_log_pi, alpha, next_log_pi.exp())
+            else:
+                next_a, next_log_pi = self.actor.rsample(next_obs, self.generator)
+                nq1, nq2 = self.target_critic(next_obs, next_a)
+                next_v = soft_state_value(nq1, nq2, next_log_pi, alpha)
+            target = soft_q_target(rewards, next_v, terminated, cfg.gamma)
+        q1, q2 = self.critic(obs, actions)
+        c_loss = critic_loss(q1, q2, target)
+        critic_grad = self._gradients(c_loss, self.critic)
+
+        if discrete:
+            log_pi = self.actor.log_probs(obs)
+            probs = log_pi.exp()
+            with torch.no_grad():
+                aq1, aq2 = self.critic(obs)
+            a_loss = actor_loss(aq1, aq2, log_pi, alpha, probs)
+            log_pi_per_state = (probs * log_pi).sum(-1).detach()  # -entropy, exact
+        else:
+            new_a, log_pi = self.actor.rsample(obs, self.generator)
+            aq1, aq2 = self.critic(obs, new_a)
+            a_loss = actor_loss(aq1, aq2, log_pi, alpha)
+            log_pi_per_state = log_pi.detach()  # one-sample estimate of -entropy
+        actor_grad = self._gradients(a_loss, self.actor)
+        self._alpha_term = log_pi_per_state.mean()
+        return StepGradients(critic=critic_grad, actor=actor_grad, actor_loss=a_loss.item(),
+                             critic_loss=c_loss.item(), entropy=-self._alpha_term.item(), approx_kl=0.0,
+                             clip_fraction=0.0)
+
+    def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
+        """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is
+        accumulated in any .grad), norm-clipped when configured; None when the loss or a gradient is not finite."""
+        if not torch.isfinite(loss):
+            return None
+        named = list(net.named_parameters())
+        raw = torch.autograd.grad(loss, [p for _, p in named], allow_unused=True)
+        grads = [torch.zeros_like(p) if g is None else g.detach() for (_, p), g in zip(named, raw, strict=True)]
+        if self.config.max_grad_norm is not None:
+            total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            coef = torch.clamp(self.config.max_grad_norm / (total + 1e-6), max=1.0)
+            grads = [g * coef for g in grads]
+        out = {name: g.numpy().astype(np.float32, copy=True) for (name, _), g in zip(named, grads, strict=True)}
+        if not all(bool(np.isfinite(g).all()) for g in out.values()):
+            return None
+        return out
+
+    @staticmethod
+    def _step(net: nn.Module, optimizer: torch.optim.Optimizer, grads: Mapping[str, np.ndarray]) -> None:
+        optimizer.zero_grad()
+        for name, g in _tensors(grads, net).items():
+            net.get_parameter(name).grad = g
+        optimizer.step()
+        optimizer.zero_grad()
+
+    def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
+        """One critic-optimizer step and one actor-optimizer step with the given gradients (None: that network is not
+        stepped), then the local steps: the temperature (J(alpha), from the latest ``minibatch_gradients``' log pi
+        estimate) and the Polyak update of the target critics."""
+        if critic is not None:
+            self._step(self.critic, self.critic_optimizer, critic)
+        if actor is not None:
+            self._step(self.actor, self.actor_optimizer, actor)
+        if self._alpha_term is not None and torch.isfinite(self._alpha_term):
+            self.alpha_optimizer.zero_grad()
+            temperature_loss(self.log_alpha, self._alpha_term, self.target_entropy).backward()
+            self.alpha_optimizer.step()
+            self.alpha_optimizer.zero_grad()
+        polyak_update(self.target_critic.parameters(), self.critic.parameters(), self.config.tau)
+
+    # -- federation hooks ---------------------------------------------------------------------------------
+
+    def actor_spec(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of the actor's parameters (``actor.named_parameters()`` order)."""
+        return {name: tuple(p.shape) for name, p in self.actor.named_parameters()}
+
+    def critic_spec(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of the critic's parameters (both Q networks: ``q1.*`` then ``q2.*``)."""
+        return {name: tuple(p.shape) for name, p in self.critic.named_parameters()}
+
+    def actor_parameters(self) -> dict[str, np.ndarray]:
+        """A float32 copy of theta."""
+        return {name: p.detach().numpy().astype(np.float32, copy=True) for name, p in self.actor.named_parameters()}
+
+    def actor_gradient(self) -> dict[str, np.ndarray]:
+        """g_theta^n of the last ``update()``: the mean of its applied actor mini-batch gradients (float32); zeros of
+        the actor's shapes when that update took no gradient step (before ``learning_starts``, or all skipped)."""
+        if self._episode_gradient is None:
+            raise RuntimeError("no actor gradient yet: call update() first")
+        return {name: g.copy() for name, g in self._episode_gradient.items()}
+
+    def apply_gradient(self, grad: Mapping[str, np.ndarray]) -> None:
+        """Algorithm 2, "update pi_theta with the received g_bar": one actor-optimizer (Adam) step with ``grad``
+        (nothing else: no temperature step, no target update)."""
+        self._step(self.actor, self.actor_optimizer, grad)
+
+    @torch.no_grad()
+    def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None:
+        """Eq. 11 in place: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1].
+
+        Only the actor is blended (critics, targets and alpha stay the worker's own). A ValueError for a weight
+        outside [0, 1], before anything changed."""
+        w = float(keep_weight)
+        if not (math.isfinite(w) and 0.0 <= w <= 1.0):
+            raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
+        theta_bar = _tensors(params, self.actor)
+        for name, p in self.actor.named_parameters():
+            p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
+
+    # -- persistence ----------------------------------------------------------------------------------------
+
+    def state_dict(self) -> dict[str, Any]:
+        """Networks (with the target critic), log alpha, optimizers, RNG state and config; not the replay
+        (``memory_state``)."""
+        return {
+            "algo": "sac",
+            "config": asdict(self.config),
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "target_critic": self.target_critic.state_dict(),
+            "log_alpha": self.log_alpha.detach().clone(),
+            "actor_optimizer": self.actor_optimizer.state_dict(),
+            "critic_optimizer": self.critic_optimizer.state_dict(),
+            "alpha_optimizer": self.alpha_optimizer.state_dict(),
+            "generator": self.generator.get_state(),
+            "alpha_term": None if self._alpha_term is None else self._alpha_term.clone(),
+        }
+
+    def load_state_dict(self, state: Mapping[str, Any]) -> None:
+        """Restore ``state_dict()`` output; the network architecture must match this learner's (ValueError)."""
+        if state.get("algo") != "sac":
+            raise ValueError(f"not a SAC checkpoint (algo {state.get('algo')!r})")
+        config = SACConfig.from_dict(state["config"])
+        arch = ("hidden_sizes", "activation")
+        if any(getattr(config, a) != getattr(self.config, a) for a in arch):
+            raise ValueError(f"checkpoint architecture {[getattr(config, a) for a in arch]} does not match "
+                             f"{[getattr(self.config, a) for a in arch]}")
+        self._load_networks(state)
+        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
+        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
+        self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
+        self.generator.set_state(state["generator"])
+        term = state.get("alpha_term")
+        self._alpha_term = None if term is None else term.clone()
+        replay_changed = config.replay_size != self.config.replay_size
+        self.config = config
+        if replay_changed:
+            self.load_memory(self.memory_state())
+
+    def _load_networks(self, state: Mapping[str, Any]) -> None:
+        self.actor.load_state_dict(state["actor"])
+        self.critic.load_state_dict(state["critic"])
+        self.target_critic.load_state_dict(state["target_critic"])
+        with torch.no_grad():
+            self.log_alpha.copy_(state["log_alpha"])
+
+    def memory_state(self) -> dict[str, torch.Tensor]:
+        """The replay as tensors, oldest first, with ``pending`` (transitions not yet used by an update), for a
+        worker's resumable state (worker/resume.py); ``load_memory`` restores it exactly."""
+        if self._size == 0:
+            return {}
+        order = self._order()
+        return {"obs": torch.from_numpy(self._obs[order].reshape(-1, *self.obs_shape)),
+                "next_obs": torch.from_numpy(self._next_obs[order].reshape(-1, *self.obs_shape)),
+                "actions": torch.from_numpy(self._actions[order]), "rewards": torch.from_numpy(self._rewards[order]),
+                "terminated": torch.from_numpy(self._terminated[order]),
+                "truncated": torch.from_numpy(self._truncated[order]),
+                "pending": torch.tensor(self._pending, dtype=torch.int64)}
+
+    def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
+        """Replace the replay with ``memory_state()`` output (the newest ``replay_size`` of it)."""
+        self._alloc_replay(self.config.replay_size)
+        n = len(state["rewards"]) if state else 0
+        if n == 0:
+            return
+        keep = slice(max(0, n - self._capacity), n)
+        m = keep.stop - keep.start
+        self._obs[:m] = state["obs"][keep].numpy().reshape(m, -1)
+        self._next_obs[:m] = state["next_obs"][keep].numpy().reshape(m, -1)
+        self._actions[:m] = state["actions"][keep].numpy()
+        self._rewards[:m] = state["rewards"][keep].numpy()
+        self._terminated[:m] = state["terminated"][keep].numpy()
+        self._truncated[:m] = state["truncated"][keep].numpy()
+        self._size, self._pos = m, m % self._capacity
+        self._pending = min(int(state["pending"]), m)
+
+    def warm_start(self, state: Mapping[str, Any]) -> None:
+        """Start from another learner's ``state_dict()``: its actor, critic, target critic and log alpha, and its
+        optimizers' Adam moments with this learner's learning rates. Not taken: its configuration (the caller checked
+        the architecture is the same) and its sampling RNG (each worker keeps its own seed's)."""
+        self._load_networks(state)
+        for name, optimizer, lr in (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
+                                    ("critic_optimizer", self.critic_optimizer, self.config.critic_lr),
+                                    ("alpha_optimizer", self.alpha_optimizer, self.config.alpha_lr)):
+            if name in state:
+                optimizer.load_state_dict(state[name])
+                for group in optimizer.param_groups:
+                    group["lr"] = lr
+
+    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
+        """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
+        state = self.state_dict()
+        if provenance is not None:
+            state["provenance"] = dict(provenance)
+        torch.save(state, Path(path))
+
+    def load(self, path: str | Path) -> None:
+        self.load_state_dict(torch.load(Path(path), weights_only=True))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Presets (measured with bench/sac_probe.py; see each comment)
+# ----------------------------------------------------------------------------------------------------
+
+SAC_PRESETS: dict[str, SACConfig] = {}

@@ -1,13 +1,13 @@
 """``python -m bench.latency``: state-to-action latency through the bridge loop and a worker, per broker.
 
-For each broker (the embedded amqtt, and Mosquitto with ``set_tcp_nodelay true`` where installed) it starts the
-broker and a simulated rig in real time (``python -m services.qube_sim --clock realtime``: the bridge's own control
-loop, 7 ms period and deadline) as separate processes, and answers the rig's states from this process the way a
-worker does: observation -> PPO actor forward pass -> action. The answers follow a balancing rule so that episodes
-last; the actor's sampled action is computed (and timed) but not sent. After ``--ticks`` answered states it reads
-the rig's own telemetry: p50/p99/max of state-publish -> action-arrival, of state-read -> motor-write (the
-deadline held at the motor: an action whose write would start after the read + 7 ms is not written), deadline
-misses, late actions and actions dropped at the motor. ``--stress N`` runs N busy processes meanwhile (a loaded
+For each broker (the embedded amqtt, and Mosquitto with ``set_tcp_nodelay true`` where installed) it starts the broker
+and a simulated rig in real time (``python -m services.qube_sim --clock realtime``: the bridge's own control loop, 7 ms
+period and deadline) as separate processes, and answers the rig's states from this process the way a worker does:
+observation -> the learner's actor forward pass (``--algo``: each learner in turn) -> action. The answers follow a
+balancing rule so that episodes last; the actor's sampled action is computed (and timed) but not sent. After ``--ticks``
+answered states it reads the rig's own telemetry: p50/p99/max of state-publish -> action-arrival, of state-read ->
+motor-write (the deadline held at the motor: an action whose write would start after the read + 7 ms is not written),
+deadline misses, late actions and actions dropped at the motor. ``--stress N`` runs N busy processes meanwhile (a loaded
 machine). Writes ``bench/results/latency.json``.
 """
 
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from protocol import learners as names
 from protocol import topics
 from protocol.codec import decode
 from protocol.messages import QubeTelemetry
@@ -33,10 +34,17 @@ from protocol.mqtt import BrokerAddress, MqttConnection
 from rpi_bridge.runner import percentiles
 from services.broker import mosquitto
 from services.broker.embedded import start_broker_process, stop_process
-from worker.ppo import PPOLearner
+from worker import learners
 from worker.qube_env import QubeMqttEnv
 
 RESULTS = Path("bench/results")
+
+
+def learners_config(algo: str) -> object:
+    """The QUBE's preset of learner ``algo`` (worker/envs.py)."""
+    from worker.envs import env_spec
+
+    return env_spec("qube").learner_config(algo)
 
 
 def balance_action(obs: np.ndarray) -> int:
@@ -45,7 +53,7 @@ def balance_action(obs: np.ndarray) -> int:
     return 2 if u > 20 else (0 if u < -20 else 1)
 
 
-def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0) -> dict:
+def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0, algo: str = names.DEFAULT) -> dict:
     if broker_name == "mosquitto":
         broker, port = mosquitto.start(workdir, max_packet_size=None)
     else:
@@ -60,7 +68,8 @@ def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0) -> dic
     conn.subscribe(topics.rig(rig_id, topics.TELEMETRY), lambda t, p: telemetry.put(decode(p, QubeTelemetry)), qos=0)
     try:
         env = QubeMqttEnv(conn, rig_id, reset_timeout_s=60)
-        learner = PPOLearner(env.observation_space, env.action_space, seed=0)
+        learner = learners.get(algo).build(env.observation_space, env.action_space,
+                                           learners_config(algo), seed=0)
         compute: list[float] = []
         answered, episodes, t0 = 0, 0, time.monotonic()
         while answered < ticks:
@@ -93,6 +102,7 @@ def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0) -> dic
     answered_ticks = last.latency_ms["n"] + last.deadline_misses
     return {
         "broker": broker_name,
+        "algo": algo,
         "stress_processes": stress,
         "ticks_answered": answered,
         "episodes": episodes,
@@ -116,6 +126,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--brokers", nargs="+", default=["amqtt", "mosquitto"], choices=("amqtt", "mosquitto"))
     parser.add_argument("--stress", type=int, nargs="+", default=[0],
                         help="busy processes running during a measurement; one measurement per value (default 0)")
+    parser.add_argument("--algo", nargs="+", default=names.names(), choices=names.names(),
+                        help="learners whose actor answers; one measurement each (default: all)")
     parser.add_argument("--out", type=Path, default=RESULTS / "latency.json")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -128,10 +140,11 @@ def main(argv: list[str] | None = None) -> int:
             print("mosquitto not installed; skipping it", file=sys.stderr)
             continue
         for stress in args.stress:
-            with tempfile.TemporaryDirectory() as workdir:  # the Mosquitto config lives only as long as the run
-                result = measure(name, args.ticks, Path(workdir), stress)
-            print(json.dumps(result), flush=True)
-            results.append(result)
+            for algo in args.algo:
+                with tempfile.TemporaryDirectory() as workdir:  # the Mosquitto config lives only as long as the run
+                    result = measure(name, args.ticks, Path(workdir), stress, algo)
+                print(json.dumps(result), flush=True)
+                results.append(result)
     report = {"command": " ".join(["python -m bench.latency", *(argv if argv is not None else sys.argv[1:])]),
               "period_ms": 7.0, "deadline_ms": 7.0, "ticks_per_broker": args.ticks, "machine": platform.platform(),
               "cpus": __import__("os").cpu_count(), "results": results}

@@ -56,8 +56,10 @@ import gymnasium as gym
 import numpy as np
 
 from protocol.tasks import TASKS, TaskSpec
+from worker import learners
 from worker.ppo import PPOConfig
 from worker.qube_env import make_qube_env, make_qube_local_env
+from worker.sac import SACConfig
 
 # ----------------------------------------------------------------------------------------------------
 # Per-device variation
@@ -217,8 +219,6 @@ class EnvSpec:
         ``overrides`` applied."""
         if algo == "ppo":
             return self.ppo_config(**overrides)
-        from worker import learners
-
         preset = self.presets.get(algo)
         return replace(preset, **overrides) if preset is not None else learners.get(algo).config_class(**overrides)
 
@@ -308,6 +308,11 @@ register_env(_task("MountainCarContinuous-v0", config=PPOConfig(
 # below PI 100 for 250 episodes after two transfers. A fixed scale, the same everywhere, keeps Eq. 11 meaningful;
 # with it, actor lr 1e-3 collapsed on seed 1001 and 3e-4 solved alone at episodes 109 (seed 1000, lr 1e-3),
 # 755 (1001) and 294 (1002).
-QUBE_CONFIG = PPOConfig(obs_scale=(8.0, 0.3, 1.0, 0.1), actor_lr=3e-4)
-register_env(EnvSpec(task=TASKS["qube"], gym_id=None, config=QUBE_CONFIG, factory=make_qube_env))
-register_env(EnvSpec(task=TASKS["qube-local"], gym_id=None, config=QUBE_CONFIG, factory=make_qube_local_env))
+QUBE_OBS_SCALE = (8.0, 0.3, 1.0, 0.1)
+QUBE_CONFIG = PPOConfig(obs_scale=QUBE_OBS_SCALE, actor_lr=3e-4)
+# SAC on the QUBE: the same fixed input scale (for the same reason); its other values are SAC's defaults, untuned.
+QUBE_PRESETS = {"sac": SACConfig(obs_scale=QUBE_OBS_SCALE)}
+register_env(EnvSpec(task=TASKS["qube"], gym_id=None, config=QUBE_CONFIG, presets=QUBE_PRESETS,
+                     factory=make_qube_env))
+register_env(EnvSpec(task=TASKS["qube-local"], gym_id=None, config=QUBE_CONFIG, presets=QUBE_PRESETS,
+                     factory=make_qube_local_env))

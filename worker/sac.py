@@ -712,9 +712,3 @@ class SACLearner:
     def load(self, path: str | Path) -> None:
         self.load_state_dict(torch.load(Path(path), weights_only=True))
 
-
-# ----------------------------------------------------------------------------------------------------
-# Presets (measured with bench/sac_probe.py; see each comment)
-# ----------------------------------------------------------------------------------------------------
-
-SAC_PRESETS: dict[str, SACConfig] = {}

@@ -94,3 +94,24 @@ def test_overrides_are_the_chosen_learners_fields() -> None:
         parse_override("tau=0.01", "ppo")
     s = TrainLocalSettings.given(algo="sac", overrides=["utd_ratio=0.5"])
     assert s.learner_overrides() == {"utd_ratio": 0.5}
+
+
+@pytest.mark.parametrize("policy", ["weighted", "sync"])
+def test_a_sac_federation_shares_and_audits(policy: str, tmp_path: Path) -> None:
+    """SAC workers federate under a per-episode and the per-step strategy: every round an aggregate of both workers
+    (K = update_epochs rounds per episode under sync), the summary names the learner and the audit passes."""
+    import json
+
+    from chief.audit import audit
+    from deploy.inprocess import run_federation
+
+    summary = run_federation("CartPole-v0", policy, 1, 2, 3, tmp_path, plot=False, tensorboard_files=False,
+                             algo="sac", models=False)
+    assert summary["algo"] == "sac"
+    per_episode = 10 if policy == "sync" else 1
+    assert summary["rounds"] == 3 * per_episode
+    rounds = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()
+              if json.loads(line)["type"] == "round"]
+    assert len(rounds) == 3 * per_episode
+    assert all(r["kind"] == "aggregate" and r["contributors"] == ["w0", "w1"] for r in rounds)
+    audit(tmp_path)

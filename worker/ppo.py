@@ -20,7 +20,7 @@ import itertools
 import math
 import threading
 from collections import deque
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 from typing import Any
@@ -652,19 +652,30 @@ class PPOLearner:
         self.actor.load_state_dict(state["actor"])
         self.critic.load_state_dict(state["critic"])
         self.obs_norm.load_state_dict(state["obs_norm"])
-        for name, optimizer, lr in (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
-                                    ("critic_optimizer", self.critic_optimizer, self.config.critic_lr)):
-            if name in state:
-                optimizer.load_state_dict(state[name])
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
+        take_optimizers(state, (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
+                                ("critic_optimizer", self.critic_optimizer, self.config.critic_lr)))
 
     def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
         """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
-        state = self.state_dict()
-        if provenance is not None:
-            state["provenance"] = dict(provenance)
-        torch.save(state, Path(path))
+        save_model(self.state_dict(), path, provenance)
 
     def load(self, path: str | Path) -> None:
         self.load_state_dict(torch.load(Path(path), weights_only=True))
+
+
+def take_optimizers(state: Mapping[str, Any],
+                    optimizers: Iterable[tuple[str, torch.optim.Optimizer, float]]) -> None:
+    """A warm start's optimizers: each (key, optimizer, lr) takes the Adam moments of ``state[key]`` when the model
+    has them, and keeps this learner's learning rate ``lr``."""
+    for name, optimizer, lr in optimizers:
+        if name in state:
+            optimizer.load_state_dict(state[name])
+            for group in optimizer.param_groups:
+                group["lr"] = lr
+
+
+def save_model(state: dict[str, Any], path: str | Path, provenance: Mapping[str, Any] | None) -> None:
+    """A learner's ``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
+    if provenance is not None:
+        state["provenance"] = dict(provenance)
+    torch.save(state, Path(path))

@@ -45,7 +45,7 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
-from worker.ppo import _GLOBAL_RNG, ACTIVATIONS, StepGradients, UpdateStats, _tensors, mlp
+from worker.ppo import _GLOBAL_RNG, ACTIVATIONS, StepGradients, UpdateStats, _tensors, mlp, save_model, take_optimizers
 
 #: Bounds of the Gaussian's log standard deviation (before the tanh squashing), as is usual for SAC.
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -694,20 +694,13 @@ class SACLearner:
         optimizers' Adam moments with this learner's learning rates. Not taken: its configuration (the caller checked
         the architecture is the same) and its sampling RNG (each worker keeps its own seed's)."""
         self._load_networks(state)
-        for name, optimizer, lr in (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
-                                    ("critic_optimizer", self.critic_optimizer, self.config.critic_lr),
-                                    ("alpha_optimizer", self.alpha_optimizer, self.config.alpha_lr)):
-            if name in state:
-                optimizer.load_state_dict(state[name])
-                for group in optimizer.param_groups:
-                    group["lr"] = lr
+        take_optimizers(state, (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
+                                ("critic_optimizer", self.critic_optimizer, self.config.critic_lr),
+                                ("alpha_optimizer", self.alpha_optimizer, self.config.alpha_lr)))
 
     def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
         """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
-        state = self.state_dict()
-        if provenance is not None:
-            state["provenance"] = dict(provenance)
-        torch.save(state, Path(path))
+        save_model(self.state_dict(), path, provenance)
 
     def load(self, path: str | Path) -> None:
         self.load_state_dict(torch.load(Path(path), weights_only=True))

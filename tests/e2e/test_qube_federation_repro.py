@@ -16,7 +16,7 @@ from chief.audit import audit
 from chief.records import EpisodeRecord, RoundRecord, RunSummary, read_metrics
 from tests.federations import cpu_load
 
-pytestmark = pytest.mark.slow  # no shared runs: it may run beside the e2e group (lockstep rigs ignore the load)
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("e2e")]  # one federation at a time with the others
 
 SEED = 3
 WORKERS = 3

@@ -42,6 +42,23 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "le
 # ----------------------------------------------------------------------------------------------------
 
 
+def network_fields(hidden_sizes: tuple[int, ...], activation: str, obs_scale: tuple[float, ...] | None
+                   ) -> tuple[tuple[int, ...], tuple[float, ...] | None, list[str]]:
+    """A learner configuration's network fields normalised (hidden sizes as ints, the input scale as floats), and
+    what is wrong with them (each learner's config lists these first among its problems)."""
+    hidden = tuple(int(h) for h in hidden_sizes)
+    scale = None if obs_scale is None else tuple(float(x) for x in obs_scale)
+    problems = []
+    if scale is not None and not all(x > 0 and x < float("inf") for x in scale):
+        problems.append("obs_scale entries must be finite and > 0")
+    if not hidden or min(hidden) < 1:
+        problems.append("hidden_sizes must be non-empty positive integers")
+    if activation not in ACTIVATIONS:
+        problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
+    return hidden, scale, problems
+
+
+
 @dataclass
 class PPOConfig:
     """Hyper-parameters; the defaults are the paper's (Section V-A) where it gives one.
@@ -81,16 +98,8 @@ class PPOConfig:
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
 
     def __post_init__(self) -> None:
-        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
-        if self.obs_scale is not None:
-            self.obs_scale = tuple(float(x) for x in self.obs_scale)
-        problems = []
-        if self.obs_scale is not None and not all(x > 0 and x < float("inf") for x in self.obs_scale):
-            problems.append("obs_scale entries must be finite and > 0")
-        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
-            problems.append("hidden_sizes must be non-empty positive integers")
-        if self.activation not in ACTIVATIONS:
-            problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
+        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
+                                                                     self.obs_scale)
         if self.value_loss not in VALUE_LOSSES:
             problems.append(f"value_loss must be one of {VALUE_LOSSES}")
         for name in ("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"):

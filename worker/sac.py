@@ -45,7 +45,16 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
-from worker.ppo import _GLOBAL_RNG, ACTIVATIONS, StepGradients, UpdateStats, _tensors, mlp, save_model, take_optimizers
+from worker.ppo import (
+    _GLOBAL_RNG,
+    StepGradients,
+    UpdateStats,
+    _tensors,
+    mlp,
+    network_fields,
+    save_model,
+    take_optimizers,
+)
 
 #: Bounds of the Gaussian's log standard deviation (before the tanh squashing), as is usual for SAC.
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -92,16 +101,8 @@ class SACConfig:
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
 
     def __post_init__(self) -> None:
-        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
-        if self.obs_scale is not None:
-            self.obs_scale = tuple(float(x) for x in self.obs_scale)
-        problems = []
-        if self.obs_scale is not None and not all(x > 0 and x < float("inf") for x in self.obs_scale):
-            problems.append("obs_scale entries must be finite and > 0")
-        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
-            problems.append("hidden_sizes must be non-empty positive integers")
-        if self.activation not in ACTIVATIONS:
-            problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
+        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
+                                                                     self.obs_scale)
         for name in ("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
             if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
                 problems.append(f"{name} must be finite and > 0")

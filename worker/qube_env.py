@@ -31,12 +31,15 @@ from protocol.qube import BALANCE_BAND, MAX_RETURN, PERIOD_S
 from protocol.rigtime import MEASURED_CLOCKS, EpisodeTime, ticks_to_s
 from protocol.routes import qos_of
 from rpi_bridge.control import ControlConfig, ControlCore, Sensed
+from rpi_bridge.runner import InjectedTiming
 
 log = logging.getLogger("worker.qube")
 
 ACTIONS = (-60, 0, 60)  # SPI motor counts: turn left, stop, turn right
 #: Swing-ups tried (the pendulum let settle 3 s between them) before a reset counts as failed.
 RESET_ATTEMPTS = 5
+#: The clocks of ``qube-local`` (simulated time; protocol/rigtime.py): the rig time is never measured there.
+LOCAL_CLOCKS = ("lockstep", "delayed")
 #: A domain-randomised simulated plant that cannot be swung up is replaced by a fresh draw this many times at most.
 MAX_REDRAWS = 3
 
@@ -229,10 +232,12 @@ class QubeLocalEnv(_QubeTask):
     """The same task, rig and bridge code in process: ControlCore over a SimulatedQube on a virtual clock."""
 
     def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000, profile: Any = None,
-                 randomize: float | None = None) -> None:
+                 randomize: float | None = None, timing: InjectedTiming | None = None) -> None:
         """``profile`` (a services.qube_sim.profile.RigProfile) gives the rig's physics and non-ideal effects, spread
         by ``seed``; without one, the nominal plant spread by ``variation``. ``randomize`` (or the profile's) draws
-        the physics again at every reset."""
+        the physics again at every reset. ``timing``: the real loop's timing (the ``delayed`` clock): each action
+        reaches the motor a random delay after its state's read, or is lost to the safe action; None: at the read
+        (``lockstep``)."""
         super().__init__()
         from services.qube_sim.clock import VirtualClock
         from services.qube_sim.dynamics import QubeParams
@@ -247,6 +252,7 @@ class QubeLocalEnv(_QubeTask):
         self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock, **options)
         self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S), clock=self.clock)
         self.reset_ticks = reset_ticks
+        self.timing = timing
         self.failed_resets = 0
         self.redrawn = 0  # randomised plants replaced because they could not be swung up
         self._requests = itertools.count(1)
@@ -315,8 +321,16 @@ class QubeLocalEnv(_QubeTask):
         raise ResetFailed("simulated rig did not reset in time")
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
-        self.core.act(ACTIONS[int(action)])
-        s = self._sense()
+        command: int | None = ACTIONS[int(action)]
+        delay = self.timing.draw() if self.timing is not None else None
+        if self.timing is None or delay is None:  # lockstep: written at the read; delayed and lost: the safe action
+            self.core.act(command if self.timing is None else None)
+            s = self._sense()
+        else:  # as the bridge's lockstep runner with injected timing (rpi_bridge/runner.py)
+            self.clock.advance(delay)
+            self.core.act(command)
+            self.clock.advance(PERIOD_S - delay)
+            s = self.core.sense()
         ended = s.phase not in ("ready", "running")
         reward, terminated, truncated = self._outcome(s.alpha, ended)
         self.core.events.clear()
@@ -339,12 +353,20 @@ def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, c
 
 
 def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, rig_profile: Any = None,
-                        randomize: float | None = None, **_: Any) -> gym.Env:
+                        randomize: float | None = None, qube_clock: str = "lockstep", **_: Any) -> gym.Env:
     """Factory for the ``qube-local`` task: a simulated rig inside the worker, its physics drawn from ``seed`` around
-    ``rig_profile`` (a name, a JSON file or a RigProfile; default ``ideal``)."""
+    ``rig_profile`` (a name, a JSON file or a RigProfile; default ``ideal``), on the simulated clock ``qube_clock``:
+    ``lockstep``, or ``delayed`` (the profile's ``loop_delay_ms`` and ``loop_miss_rate``, as ``python -m
+    services.qube_sim --clock delayed`` applies them)."""
     if probe:
         return _QubeTask()
     from services.qube_sim.profile import RigProfile, load_profile
 
+    if qube_clock not in LOCAL_CLOCKS:
+        raise ValueError(f"qube-local runs on a simulated clock ({' or '.join(LOCAL_CLOCKS)}), not {qube_clock!r}")
     profile = rig_profile if isinstance(rig_profile, RigProfile) else load_profile(rig_profile or "ideal")
-    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize)
+    timing = None
+    if qube_clock == "delayed":
+        lo, hi = profile.loop_delay_ms
+        timing = InjectedTiming((lo / 1e3, hi / 1e3), profile.loop_miss_rate, seed=seed)
+    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize, timing=timing)

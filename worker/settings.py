@@ -43,7 +43,9 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     rig_id: str | None = setting(None, "QUBE-Servo 2 rig to drive when --env qube")
     qube_clock: Clock = setting("realtime", "--env qube: the clock of the rig (a real rig runs in realtime; a "
                                 "services.qube_sim rig in its --clock): under realtime and delayed the rig time is "
-                                "measured, under lockstep it is read from the simulated clock", aliases=["--clock"])
+                                "measured, under lockstep it is read from the simulated clock; --env qube-local: "
+                                "delayed applies the rig profile's loop timing (any other value: lockstep), and the "
+                                "rig time always comes from the simulated clock", aliases=["--clock"])
     reply_timeout: float = setting(120.0, "seconds to wait for the chief's answer to an episode before going on "
                                    "alone", gt=0)
     ack_timeout: float = setting(600.0, "after solving, seconds to keep sending the mature actor until the chief "
@@ -88,7 +90,8 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
             return {"qube_clock": self.qube_clock}
         if self.env != "qube-local":
             return {}
-        return {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}
+        options = {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}
+        return {**options, "qube_clock": "delayed"} if self.qube_clock == "delayed" else options
 
 
 class EvaluateSettings(MqttSettings, DeviceNoiseSettings):

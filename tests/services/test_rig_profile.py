@@ -113,6 +113,33 @@ def test_ideal_qube_local_trajectories_match_the_nominal_construction() -> None:
             assert (sa[0] == sb[0]).all() and sa[1:3] == sb[1:3]
 
 
+def test_qube_local_on_the_delayed_clock_applies_the_profiles_loop_timing() -> None:
+    """``delayed`` (the real loop's timing): every action reaches the motor U(loop_delay_ms) after its state's read,
+    a share loop_miss_rate is lost to the safe action; deterministic in the seed; lockstep draws nothing; and
+    qube-local refuses a clock it cannot simulate."""
+    profile = LAB.model_copy(update={"loop_miss_rate": 0.05, "loop_delay_ms": (6.0, 7.0)})
+
+    def play(**options: Any) -> tuple[list[float], Any]:
+        env = make_env("qube-local", 7, rig_profile=profile, **options)
+        obs, _ = env.reset(seed=7)
+        trace = []
+        for i in range(300):
+            obs, _, terminated, truncated, _ = env.step(i % 3)
+            trace.append(float(obs[0]))
+            if terminated or truncated:
+                break
+        return trace, env.timing  # type: ignore[attr-defined]
+
+    lockstep, none = play()
+    delayed, timing = play(qube_clock="delayed")
+    again, _ = play(qube_clock="delayed")
+    assert none is None and timing.delay_s == (0.006, 0.007)
+    assert delayed == again and delayed != lockstep
+    assert 0 < timing.injected_misses < len(delayed)
+    with pytest.raises(ValueError, match="simulated clock"):
+        make_env("qube-local", 7, qube_clock="realtime")
+
+
 # -- the non-ideal effects on the plant ----------------------------------------------------------------------------
 
 

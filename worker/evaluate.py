@@ -15,9 +15,9 @@ the mean reaches the task's TC (protocol/tasks.py). ``--video DIR`` writes an an
 (gymnasium tasks; needs the ``video`` extra: pygame renders, Pillow writes).
 
 ``--rigs N`` (qube-local) tests robustness instead (worker/robustness.py, as RealAIGym does): N rigs drawn from
-``--rig-profile``, one episode each with torque pulses of growing size on the arm at random times and extra encoder
-noise; for each rig it reports whether it balanced to the end, for how many seconds, and the largest pulse it
-survived.
+``--rig-profile``, each with torque pulses of growing size on the arm at random times and extra encoder noise: the
+trial (pulses within the controller's authority) and the sweep (on to twice it); for each rig it reports whether it
+balanced to the end of the trial, for how many seconds, and the largest pulse it survived in the sweep.
 
 Exit codes: 0 evaluated (whether or not TC was reached: see the report), 2 a bad option or a model that does not
 fit (one line on stderr), 1 the broker or rig could not be reached.
@@ -176,13 +176,16 @@ def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, see
     learner = load_learner(model, env_id, probe.observation_space, probe.action_space, algo)
     d = disturbances or rb.Disturbances()
     print(f"robustness of {model} on {rigs} {profile.name} rigs (seeds {seed}-{seed + rigs - 1}): pulses of "
-          f"{d.pulse_ms:g} ms, extra encoder noise {d.sensor_noise_counts:g} counts", flush=True)
+          f"{d.pulse_ms:g} ms up to {max(d.ladder, default=0):.0%} of stall in the trial"
+          + (f", up to {max(d.sweep):.0%} in the sweep" if d.sweep else "")
+          + f", extra encoder noise {d.sensor_noise_counts:g} counts", flush=True)
     results = []
     for i in range(rigs):
         r = rb.run_rig(learner.act_greedy, profile, i, seed + i, d)
         results.append(r)
         verdict = "balanced to the end" if r.balanced_to_end else "fell"
         print(f"rig {i + 1:3d}: {verdict:19s} after {r.balance_s:6.2f} s; largest pulse survived "
+              + ("in the sweep " if d.sweep else "") +
               f"{r.largest_pulse_nm * 1e3:5.1f} mN m ({r.largest_pulse_of_stall:.0%} of stall)",
               flush=True)
     return Robustness(model=str(model), env=env_id, rig_profile=profile.name, seed=seed, disturbances=asdict(d),
@@ -250,8 +253,10 @@ def check_video_support(env_id: str) -> None:
 def report(result: Evaluation | Robustness) -> str:
     if isinstance(result, Robustness):
         s = result.summary
-        return (f"{s['balanced_to_end']} of {s['rigs']} rigs balanced to the end; median {s['median_balance_s']:.2f} s "
-                f"balanced; every rig survived pulses up to {s['smallest_largest_pulse_nm'] * 1e3:.1f} mN m")
+        return (f"{s['balanced_to_end']} of {s['rigs']} rigs balanced to the end of the trial; median "
+                f"{s['median_balance_s']:.2f} s balanced; every rig survived pulses up to "
+                f"{s['smallest_largest_pulse_nm'] * 1e3:.1f} mN m (median largest "
+                f"{s['median_largest_pulse_of_stall']:.0%} of stall)")
     verdict = "reached" if result.reached_tc else "not reached"
     return (f"mean return {result.mean:.2f} ± {result.std:.2f} (min {result.min:.2f}, max {result.max:.2f}) over "
             f"{result.episodes} episodes; TC {result.tc:g}: {verdict}")

@@ -4,14 +4,21 @@ torque noise, delays): rigs drawn from a profile, torque pulses on the arm at ra
 
 Pulse sizes are fractions of the motor's stall torque at the bridge's voltage limit, kt * V / Rm with V = 400 SPI
 counts (9.6 V): 0.042 * 9.6 / 8.4 = 48 mN m (QUBE-Servo 2 User Manual Table 2.2). The balance task's own actions are
-+-60 counts (1.44 V, 7.2 mN m, 15 % of stall), so the ladder runs from 2 % to 30 % of stall: the smallest pulses
-are below what the controller commands, the largest twice its authority. A pulse lasts ``pulse_ms`` (default 50 ms,
-about 7 control periods: a tap on the arm, short against the pendulum's natural period of about 0.6 s).
++-60 counts (1.44 V): the controller's authority is 7.2 mN m, 15 % of stall (AUTHORITY). A pulse lasts ``pulse_ms``
+(default 50 ms, about 7 control periods: a tap on the arm, short against the pendulum's natural period of about
+0.6 s).
 
-One episode per rig: the rig resets, then pulses of growing size (the ladder, random sign) hit at random times (the
-first after ``first_s``, then gaps drawn uniformly from [gap_s / 2, 3 gap_s / 2]) until the pendulum falls or the
-episode reaches the task's cut-off. A pulse counts as survived when the pendulum is still balanced ``settle_s`` after
-it ended (or at the end of the episode).
+Each rig plays two disturbed episodes, pulses of growing size (random sign) at random times (the first after
+``first_s``, then gaps drawn uniformly from [gap_s / 2, 3 gap_s / 2]), until the pendulum falls or the episode reaches
+the task's cut-off:
+
+- **the trial**: the ladder 2, 4, 6, 8, 10, 12, 15 % of stall, every pulse within the controller's authority, so a
+  controller can cancel each one while it acts. Passed when the pendulum balances to the end;
+- **the sweep** (``sweep``): the ladder on to 20, 25, 30 % of stall, twice the authority: what no action can cancel
+  while it acts, to find where the controller gives out. It gives the largest pulse survived.
+
+A pulse counts as survived when the pendulum is still balanced ``settle_s`` after it ended (or at the end of the
+episode).
 """
 
 from __future__ import annotations
@@ -25,12 +32,16 @@ import numpy as np
 
 from protocol.qube import MAX_RETURN
 from rpi_bridge.control import ControlConfig
+from rpi_bridge.frame import VOLTS_PER_COUNT
 from services.qube_sim.dynamics import QubeParams
 from services.qube_sim.profile import RigProfile
-from worker.qube_env import PERIOD_S, QubeLocalEnv
+from worker.qube_env import ACTIONS, PERIOD_S, QubeLocalEnv
 
-STALL_VOLTAGE = ControlConfig().max_command * 24.0 / 999.0  # 9.6 V: the bridge's command limit
-LADDER = (0.02, 0.04, 0.06, 0.08, 0.10, 0.12, 0.15, 0.20, 0.25, 0.30)  # fractions of the stall torque
+STALL_VOLTAGE = ControlConfig().max_command * VOLTS_PER_COUNT  # 9.6 V: the bridge's command limit
+#: The controller's authority as a fraction of the stall torque: its largest action over the bridge's limit.
+AUTHORITY = max(abs(a) for a in ACTIONS) / ControlConfig().max_command
+LADDER = (0.02, 0.04, 0.06, 0.08, 0.10, 0.12, 0.15, 0.20, 0.25, 0.30)  # fractions of the stall torque: the sweep
+TRIAL_LADDER = tuple(f for f in LADDER if f <= AUTHORITY + 1e-12)  # the trial: pulses within the authority
 
 
 def stall_torque(params: QubeParams | None = None) -> float:
@@ -48,7 +59,8 @@ class Disturbances:
     gap_s: float = 1.5
     settle_s: float = 0.5
     sensor_noise_counts: float = 1.0  # extra encoder noise (standard deviation, counts)
-    ladder: tuple[float, ...] = LADDER
+    ladder: tuple[float, ...] = TRIAL_LADDER  # the trial's pulses
+    sweep: tuple[float, ...] = LADDER  # the sweep's pulses (empty: no sweep; the trial gives the largest survived)
 
 
 @dataclass
@@ -57,18 +69,20 @@ class RigResult:
 
     rig: int
     seed: int
-    balanced_to_end: bool
-    balance_s: float
-    largest_pulse_nm: float  # the largest pulse survived (0: none)
+    balanced_to_end: bool  # the trial
+    balance_s: float  # ... its seconds balanced
+    largest_pulse_nm: float  # the largest pulse survived in the sweep (in the trial without one; 0: none)
     largest_pulse_of_stall: float  # ... as a fraction of the stall torque
-    pulses: list[dict[str, float]] = field(default_factory=list)  # each pulse: start_s, torque_nm, survived
+    pulses: list[dict[str, float]] = field(default_factory=list)  # the trial's: start_s, torque_nm, survived
+    sweep_pulses: list[dict[str, float]] = field(default_factory=list)  # the sweep's
 
 
-def pulse_schedule(seed: int, d: Disturbances, horizon_s: float) -> list[tuple[float, float]]:
-    """(start s, fraction of stall with sign) for each pulse of the ladder that starts before ``horizon_s``."""
+def pulse_schedule(seed: int, d: Disturbances, ladder: tuple[float, ...],
+                   horizon_s: float) -> list[tuple[float, float]]:
+    """(start s, fraction of stall with sign) for each pulse of ``ladder`` that starts before ``horizon_s``."""
     rng = random.Random(f"pulses-{seed}")
     schedule, t = [], d.first_s
-    for fraction in d.ladder:
+    for fraction in ladder:
         if d.pulse_ms <= 0 or t >= horizon_s:
             break
         schedule.append((t, fraction * rng.choice((-1.0, 1.0))))
@@ -78,12 +92,29 @@ def pulse_schedule(seed: int, d: Disturbances, horizon_s: float) -> list[tuple[f
 
 def run_rig(act: Callable[[np.ndarray], int], profile: RigProfile, rig: int, seed: int, d: Disturbances,
             max_steps: int = MAX_RETURN) -> RigResult:
-    """One disturbed episode on rig ``seed`` of ``profile`` under the controller ``act(obs) -> action index``."""
+    """Rig ``seed`` of ``profile`` under the controller ``act(obs) -> action index``: the trial, then the sweep."""
     env = QubeLocalEnv(seed=seed, profile=profile)
     torque = stall_torque(env.device.params)
-    schedule = pulse_schedule(seed, d, max_steps * PERIOD_S)
+    balance_s, fell, pulses = _episode(env, act, torque, pulse_schedule(seed, d, d.ladder, max_steps * PERIOD_S), d,
+                                       seed, max_steps)
+    sweep: list[dict[str, float]] = []
+    if d.sweep and d.pulse_ms > 0:
+        _, _, sweep = _episode(env, act, torque, pulse_schedule(seed, d, d.sweep, max_steps * PERIOD_S), d, None,
+                               max_steps)
+    survived_nm = [abs(float(p["torque_nm"])) for p in (sweep or pulses) if p["survived"]]
+    largest = max(survived_nm, default=0.0)
+    return RigResult(rig=rig, seed=seed, balanced_to_end=not fell, balance_s=round(balance_s, 3),
+                     largest_pulse_nm=largest, largest_pulse_of_stall=round(largest / torque, 4), pulses=pulses,
+                     sweep_pulses=sweep)
+
+
+def _episode(env: QubeLocalEnv, act: Callable[[np.ndarray], int], torque: float,
+             schedule: list[tuple[float, float]], d: Disturbances, seed: int | None,
+             max_steps: int) -> tuple[float, bool, list[dict[str, float]]]:
+    """One disturbed episode: (seconds balanced, fell, each pulse with whether it was survived)."""
     obs, _ = env.reset(seed=seed)
-    env.device.encoder_noise_counts += d.sensor_noise_counts  # from the episode's start (the reset stays as it is)
+    noise = env.device.encoder_noise_counts
+    env.device.encoder_noise_counts = noise + d.sensor_noise_counts  # from the episode's start (not the reset)
     steps, fell, ended = 0, False, False
     while not ended:
         t = steps * PERIOD_S
@@ -93,18 +124,15 @@ def run_rig(act: Callable[[np.ndarray], int], profile: RigProfile, rig: int, see
         steps += 1
         fell, ended = terminated, terminated or truncated or steps >= max_steps
     env.device.dynamics.external_torque = 0.0
+    env.device.encoder_noise_counts = noise
     balance_s = steps * PERIOD_S
     pulses = []
     for start, signed in schedule:
         if start >= balance_s:
             break
-        end = start + d.pulse_ms / 1e3
-        survived = not fell or balance_s >= end + d.settle_s
+        survived = not fell or balance_s >= start + d.pulse_ms / 1e3 + d.settle_s
         pulses.append({"start_s": round(start, 3), "torque_nm": round(signed * torque, 6), "survived": survived})
-    survived_nm = [abs(float(p["torque_nm"])) for p in pulses if p["survived"]]
-    largest = max(survived_nm, default=0.0)
-    return RigResult(rig=rig, seed=seed, balanced_to_end=not fell, balance_s=round(balance_s, 3),
-                     largest_pulse_nm=largest, largest_pulse_of_stall=round(largest / torque, 4), pulses=pulses)
+    return balance_s, fell, pulses
 
 
 def run_rigs(act: Callable[[np.ndarray], int], profile: RigProfile, rigs: int, seed: int,
@@ -117,4 +145,6 @@ def run_rigs(act: Callable[[np.ndarray], int], profile: RigProfile, rigs: int, s
 def summary(results: list[RigResult]) -> dict[str, Any]:
     return {"rigs": len(results), "balanced_to_end": sum(r.balanced_to_end for r in results),
             "median_balance_s": float(np.median([r.balance_s for r in results])) if results else 0.0,
-            "smallest_largest_pulse_nm": min((r.largest_pulse_nm for r in results), default=0.0)}
+            "smallest_largest_pulse_nm": min((r.largest_pulse_nm for r in results), default=0.0),
+            "median_largest_pulse_of_stall": float(np.median([r.largest_pulse_of_stall for r in results]))
+            if results else 0.0}

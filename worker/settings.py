@@ -110,8 +110,9 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     rig_id: str | None = setting(None, "the rig to drive with --env qube (give --broker too)")
     rig_profile: str | None = setting(None, "--env qube-local: the simulated rigs' profile, a built-in (ideal, lab) "
                                       "or a JSON file (default ideal)", metavar="NAME|FILE")
-    rigs: int = setting(0, "--env qube-local: a robustness test instead, one disturbed episode on each of N rigs "
-                        "drawn from --rig-profile (torque pulses and extra sensor noise, docs/rig-profiles.md)",
+    rigs: int = setting(0, "--env qube-local: a robustness test instead, two disturbed episodes (the trial and the "
+                        "sweep) on each of N rigs drawn from --rig-profile (torque pulses and extra sensor noise, "
+                        "docs/rig-profiles.md)",
                         ge=0, le=1000)
     pulse_ms: float = setting(50.0, "--rigs: length of each torque pulse in ms (0: no pulses)", ge=0, le=1000)
     sensor_noise: float = setting(1.0, "--rigs: extra encoder noise, standard deviation in counts", ge=0, le=20)

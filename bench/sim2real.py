@@ -30,6 +30,7 @@ import platform
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,9 @@ from bench import stats
 
 TASK = "qube-local"
 POLICY = "plain"  # the QUBE's best strategy in bench/results/paper.json (plain 108 episodes, weighted 128, sync 131)
+ALGO = "ppo"
+#: The simulated clocks the fine-tuning runs on: lockstep, and delayed (the real loop's delays and lost actions).
+CLOCKS = ("lockstep", "delayed")
 RIGS = 3
 #: Report seeds (never used for tuning) and the pretrain's tuning seed.
 REPORT_SEEDS = tuple(range(101, 111))
@@ -51,7 +55,7 @@ DEFAULT_M = 600
 PRETRAIN_M = 600
 #: The rig-time issue's targets, for the last of 3 rigs, median over the report seeds.
 TARGETS: dict[str, dict[str, float]] = {
-    "randomised": {"episodes": 12, "balance_steps": 30_000, "rig_min": 4.0},
+    "randomised": {"episodes": 12, "balance_steps": 30_000, "rig_min": 4.0, "rig_wall_ratio": 1.25},
     "scratch": {"balance_steps": 34_000},
 }
 PRETRAINS: dict[str, dict[str, Any]] = {
@@ -61,8 +65,16 @@ PRETRAINS: dict[str, dict[str, Any]] = {
 QUICK: dict[str, Any] = {"seeds": (101,), "max_episodes": 6, "pretrain_episodes": 6, "held_out": 2, "trials": 1}
 
 
+@dataclass(frozen=True)
+class Setup:
+    """What every federation of one invocation shares: the learner and the federation strategy."""
+
+    algo: str = ALGO
+    policy: str = POLICY
+
+
 def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str, Any],
-             init_model: Path | None = None) -> dict[str, Any]:
+             init_model: Path | None = None, setup: Setup = Setup()) -> dict[str, Any]:
     """One in-process federation of RIGS rigs; its summary plus the run folder (reuses a finished run)."""
     summary_path = run_dir / "summary.json"
     if summary_path.exists():
@@ -70,9 +82,9 @@ def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str,
     from deploy.inprocess import run_federation
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    summary = run_federation(TASK, POLICY, seed, RIGS, max_episodes, run_dir, plot=False, tensorboard_files=False,
-                             tolerate_failures=True,
-                             env_options=env_options, init_model=init_model)
+    summary = run_federation(TASK, setup.policy, seed, RIGS, max_episodes, run_dir, plot=False,
+                             tensorboard_files=False, tolerate_failures=True, env_options=env_options,
+                             init_model=init_model, algo=setup.algo)
     return {**summary, "run_dir": str(run_dir)}
 
 
@@ -85,48 +97,68 @@ def last_rig(summary: dict[str, Any]) -> dict[str, Any]:
             "rig_min": round(rig["rig_s"] / 60, 3) if solved and rig else None,
             "idle_min": round(rig["idle_s"] / 60, 3) if rig else None,
             "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"],
+            "rig_wall_ratio": rig_wall_ratio(summary) if solved else None,
             "end_reason": summary.get("end_reason"),
             "unsolved": {w["id"]: w["state"] for w in summary.get("workers", []) if not w["solved"]}}
 
 
-def zero_shot(model: Path, rigs: int, disturbed: bool) -> dict[str, Any]:
-    """Balanced to the end on ``rigs`` held-out lab rigs: undisturbed (zero-shot) or under the disturbances."""
+def rig_wall_ratio(summary: dict[str, Any]) -> float | None:
+    """Wall-clock on real rigs over the slowest rig's rig time: the run lasts until its last rig is done, which is
+    its rig time plus the idle time it waited for the federation (summary.json ``last_rig``), against the most rig
+    time any rig spent. Under a simulated clock the idle time is modelled (protocol/rigtime.py); the learners'
+    compute between episodes is not in it."""
+    rigs = [w["rig"]["rig_s"] for w in summary.get("workers", []) if w.get("rig")]
+    last = summary.get("last_rig")
+    if not rigs or not last or not max(rigs) > 0:
+        return None
+    return round((last["rig_s"] + last["idle_s"]) / max(rigs), 3)
+
+
+def zero_shot(model: Path, rigs: int, disturbed: bool, seed: int = HELD_OUT_SEED) -> dict[str, Any]:
+    """Balanced to the end on ``rigs`` held-out lab rigs from ``seed`` on: undisturbed (zero-shot) or in the
+    robustness trial (worker/robustness.py: pulses within the controller's authority, then the sweep)."""
     from worker import robustness as rb
     from worker.evaluate import robustness
 
     d = rb.Disturbances() if disturbed else rb.Disturbances(pulse_ms=0, sensor_noise_counts=0)
-    result = robustness(model, TASK, "lab", rigs, seed=HELD_OUT_SEED, disturbances=d)
-    return {"model": str(model), "rigs": rigs, "balanced_to_end": result.summary["balanced_to_end"],
-            "median_balance_s": result.summary["median_balance_s"]}
+    result = robustness(model, TASK, "lab", rigs, seed=seed, disturbances=d)
+    return {"model": str(model), "rigs": rigs, "seed": seed, "balanced_to_end": result.summary["balanced_to_end"],
+            "median_balance_s": result.summary["median_balance_s"],
+            "largest_pulse_of_stall": result.summary["median_largest_pulse_of_stall"]}
 
 
-def pretrain(name: str, runs_dir: Path, max_episodes: int) -> dict[str, Any]:
-    """The ``name`` pretrain's federation; its model is that of the first rig to solve (runtime.model_file)."""
-    summary = federate(runs_dir / f"pretrain-{name}", PRETRAIN_SEED, max_episodes, PRETRAINS[name])
+def pretrain(name: str, runs_dir: Path, max_episodes: int, setup: Setup) -> dict[str, Any]:
+    """The ``name`` pretrain's federation (lockstep); its model is that of the first rig to solve
+    (runtime.model_file)."""
+    summary = federate(runs_dir / f"pretrain-{name}", PRETRAIN_SEED, max_episodes, PRETRAINS[name], setup=setup)
     return {"name": name, **last_rig(summary), "options": PRETRAINS[name], "seed": PRETRAIN_SEED}
 
 
-def _job(setting: str, seed: int, runs_dir: Path, max_episodes: int, model: str | None) -> dict[str, Any]:
+def _job(setting: str, seed: int, clock: str, runs_dir: Path, max_episodes: int, model: str | None,
+         setup: Setup) -> dict[str, Any]:
     import torch
 
     torch.set_num_threads(1)
-    summary = federate(runs_dir / f"{setting}-s{seed}", seed, max_episodes, {"rig_profile": "lab"},
-                       Path(model) if model else None)
-    return {"setting": setting, "seed": seed, **last_rig(summary)}
+    options = {"rig_profile": "lab", **({"qube_clock": clock} if clock != "lockstep" else {})}
+    summary = federate(runs_dir / clock / f"{setting}-s{seed}", seed, max_episodes, options,
+                       Path(model) if model else None, setup)
+    return {"setting": setting, "seed": seed, "clock": clock, **last_rig(summary)}
 
 
-def fine_tune(models: dict[str, str | None], seeds: list[int], runs_dir: Path, max_episodes: int,
-              jobs: int) -> list[dict[str, Any]]:
-    """Every setting on every report seed, ``jobs`` at a time (each single-threaded)."""
-    work = [(setting, seed) for seed in seeds for setting in models]
+def fine_tune(models: dict[str, str | None], seeds: list[int], clocks: list[str], runs_dir: Path,
+              max_episodes: int, jobs: int, setup: Setup) -> list[dict[str, Any]]:
+    """Every setting on every report seed and clock, ``jobs`` at a time (each single-threaded)."""
+    work = [(clock, setting, seed) for clock in clocks for seed in seeds for setting in models]
     with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
-        futures = [pool.submit(_job, setting, seed, runs_dir, max_episodes, models[setting]) for setting, seed in work]
+        futures = [pool.submit(_job, setting, seed, clock, runs_dir, max_episodes, models[setting], setup)
+                   for clock, setting, seed in work]
         out = []
-        for (setting, seed), fut in zip(work, futures, strict=True):
+        for (clock, setting, seed), fut in zip(work, futures, strict=True):
             out.append(fut.result())
             r = out[-1]
-            print(f"{setting:10s} seed {seed}: " + (f"last rig at episode {r['episodes']}, {r['balance_steps']} "
-                  f"balance steps, {r['rig_min']} rig min" if r["finished"] else "not finished"), flush=True)
+            print(f"{clock:8s} {setting:10s} seed {seed}: " + (
+                f"last rig at episode {r['episodes']}, {r['balance_steps']} balance steps, {r['rig_min']} rig min"
+                if r["finished"] else "not finished"), flush=True)
     return out
 
 
@@ -135,8 +167,8 @@ def table(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     out: dict[str, dict[str, Any]] = {}
     for setting in dict.fromkeys(r["setting"] for r in runs):
         rows = [r for r in runs if r["setting"] == setting]
-        cells = {key: stats.spread_censored([r[key] for r in rows])
-                 for key in ("episodes", "balance_steps", "rig_min")}
+        cells = {key: stats.spread_censored([r.get(key) for r in rows])
+                 for key in ("episodes", "balance_steps", "rig_min", "rig_wall_ratio")}
         cells["wall_min"] = stats.spread([r["wall_min"] for r in rows])
         cells["idle_min"] = stats.spread([r["idle_min"] or 0.0 for r in rows])
         met = {k: _at_most(cells[k]["median"], v) for k, v in TARGETS.get(setting, {}).items()}
@@ -167,25 +199,22 @@ def _cell(s: dict[str, Any], digits: int = 0) -> str:
 
 
 def report(result: dict[str, Any], source: str) -> str:
-    """The sim-to-real table (markdown) of a sim2real.json: per setting, the last of 3 lab rigs, median [IQR]."""
+    """The sim-to-real tables (markdown) of a sim2real.json: per clock and setting, the last of 3 lab rigs, median
+    [IQR]."""
     cfg = result["config"]
-    lines = [f"Last of {cfg['rigs']} `lab` rigs per run, `{cfg['policy']}`, report seeds {cfg['seeds'][0]}-"
-             f"{cfg['seeds'][-1]} ({len(cfg['seeds'])} runs per setting), median [IQR], unfinished runs counted as "
-             f"worse; pretrains on tuning seed {cfg['pretrain_seed']}; generated from `{source}` ({cfg['date']}, "
-             f"{cfg['cores']} cores, load average {cfg['load_average'][0]:.1f} at the start, "
-             f"{result['wall_s'] / 60:.0f} min for the runs this invocation made: it reuses finished runs' folders).",
-             "",
-             "| setting | finished | episodes | balance steps | rig minutes (balance + reset) | idle minutes | "
-             "wall minutes | targets |", "| --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for setting, row in result["table"].items():
-        met = ", ".join(f"{k} {'met' if ok else '**missed**'}" for k, ok in row["targets_met"].items()) or "-"
-        lines.append(f"| {LABELS.get(setting, setting)} | {row['finished']}/{row['runs']} | {_cell(row['episodes'])} | "
-                     f"{_cell(row['balance_steps'])} | {_cell(row['rig_min'], 1)} | {_cell(row['idle_min'], 1)} | "
-                     f"{_cell(row['wall_min'], 1)} | {met} |")
+    lines = [f"Last of {cfg['rigs']} `lab` rigs per run, learner `{cfg.get('algo', 'ppo')}`, `{cfg['policy']}`, "
+             f"report seeds {cfg['seeds'][0]}-{cfg['seeds'][-1]} ({len(cfg['seeds'])} runs per setting), median [IQR], "
+             f"unfinished runs counted as worse; pretrains on tuning seed {cfg['pretrain_seed']}; rig time from the "
+             f"simulated clock; generated from `{source}` ({cfg['date']}, {cfg['cores']} cores, load average "
+             f"{cfg['load_average'][0]:.1f} at the start, {result['wall_s'] / 60:.0f} min for the runs this "
+             "invocation made: it reuses finished runs' folders)."]
+    for clock, rows in _tables(result).items():
+        lines += ["", f"**Clock `{clock}`**" + (" (the real loop's delays and lost actions)" if clock == "delayed"
+                                                 else ""), "", *_table_lines(rows)]
+        saved = _saving(rows)
+        if saved:
+            lines += ["", saved]
     lines.append("")
-    saved = _saving(result["table"])
-    if saved:
-        lines.append(saved)
     for name, p in result["pretrains"].items():
         shot = result["zero_shot"].get(name)
         made = (f"finished at episode {p['episodes']} ({p['rig_min']} rig min)" if p["finished"]
@@ -196,14 +225,36 @@ def report(result: dict[str, Any], source: str) -> str:
     for r in result.get("runs", []):
         if not r["finished"]:
             rigs = ", ".join(f"{w} {state}" for w, state in (r.get("unsolved") or {}).items())
-            lines.append(f"- Unfinished: {LABELS.get(r['setting'], r['setting'])}, seed {r['seed']}: "
+            lines.append(f"- Unfinished: {LABELS.get(r['setting'], r['setting'])}, "
+                         f"{r.get('clock', 'lockstep')} clock, seed {r['seed']}: "
                          f"{r.get('end_reason') or 'no end reason recorded'}" + (f" ({rigs})" if rigs else "") + ".")
     trials = result["disturbed_trials"]
     if trials:
-        lines.append(f"- Fine-tuned controllers (randomised warm start) under the disturbances: "
-                     f"{sum(t['balanced_to_end'] for t in trials)} of {sum(t['rigs'] for t in trials)} trials "
-                     "balanced to the end.")
+        pulses = sorted(t["largest_pulse_of_stall"] for t in trials if "largest_pulse_of_stall" in t)
+        lines.append(f"- Fine-tuned controllers (randomised warm start, one per report seed, each on its own held-out "
+                     f"rig) in the robustness trial (pulses up to the controller's authority, 15 % of stall): "
+                     f"{sum(t['balanced_to_end'] for t in trials)} of {sum(t['rigs'] for t in trials)} balanced to "
+                     "the end" + (f"; in the sweep on to 30 % of stall the median largest pulse survived was "
+                                  f"{pulses[len(pulses) // 2]:.0%} of stall" if pulses else "") + ".")
     return "\n".join(lines)
+
+
+def _tables(result: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:
+    """The tables by clock (a result of before clocks has one ``table``, lockstep)."""
+    return result.get("tables") or {"lockstep": result["table"]}
+
+
+def _table_lines(rows: dict[str, dict[str, Any]]) -> list[str]:
+    out = ["| setting | finished | episodes | balance steps | rig minutes (balance + reset) | idle minutes | "
+           "wall on real rigs / slowest rig time | wall minutes here | targets |",
+           "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for setting, row in rows.items():
+        met = ", ".join(f"{k} {'met' if ok else '**missed**'}" for k, ok in row["targets_met"].items()) or "-"
+        ratio = _cell(row["rig_wall_ratio"], 2) if "rig_wall_ratio" in row else "-"
+        out.append(f"| {LABELS.get(setting, setting)} | {row['finished']}/{row['runs']} | {_cell(row['episodes'])} | "
+                   f"{_cell(row['balance_steps'])} | {_cell(row['rig_min'], 1)} | {_cell(row['idle_min'], 1)} | "
+                   f"{ratio} | {_cell(row['wall_min'], 1)} | {met} |")
+    return out
 
 
 def _saving(table: dict[str, dict[str, Any]]) -> str | None:
@@ -233,7 +284,8 @@ def main(argv: list[str] | None = None) -> int:
         write_report(args.out / "sim2real.json", [Path("README.md"), Path("docs/how-to/warm-start.md")])
         return 0
     start = time.monotonic()
-    pre = {name: pretrain(name, args.runs_dir, args.pretrain_episodes) for name in PRETRAINS}
+    setup = Setup(args.algo, args.policy)
+    pre = {name: pretrain(name, args.runs_dir, args.pretrain_episodes, setup) for name in PRETRAINS}
     models: dict[str, str | None] = {"scratch": None}
     for name, p in pre.items():
         if p["finished"]:
@@ -243,11 +295,12 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
     shots = {name: zero_shot(Path(p["run_dir"]) / "models" / _first(p), args.held_out, disturbed=False)
              for name, p in pre.items() if p["finished"]}
-    runs = fine_tune(models, args.seeds, args.runs_dir, args.max_episodes, args.jobs)
-    tuned = [r for r in runs if r["setting"] == "randomised" and r["finished"]][:args.trials]
-    disturbed = [zero_shot(Path(r["run_dir"]) / "models" / _first_of(r["run_dir"]), 1, disturbed=True)
-                 for r in tuned]
-    result = {"config": config(args), "pretrains": pre, "zero_shot": shots, "runs": runs, "table": table(runs),
+    runs = fine_tune(models, args.seeds, args.clocks, args.runs_dir, args.max_episodes, args.jobs, setup)
+    tuned = [r for r in runs if r["setting"] == "randomised" and r["clock"] == args.clocks[0] and r["finished"]]
+    disturbed = [zero_shot(Path(r["run_dir"]) / "models" / _first_of(r["run_dir"]), 1, disturbed=True,
+                           seed=HELD_OUT_SEED + HELD_OUT_RIGS + i) for i, r in enumerate(tuned[:args.trials])]
+    tables = {clock: table([r for r in runs if r["clock"] == clock]) for clock in args.clocks}
+    result = {"config": config(args), "pretrains": pre, "zero_shot": shots, "runs": runs, "tables": tables,
               "disturbed_trials": disturbed, "wall_s": round(time.monotonic() - start, 1)}
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / ("sim2real-quick.json" if args.quick else "sim2real.json")
@@ -268,7 +321,8 @@ def _first_of(run_dir: str) -> str:
 
 
 def config(args: argparse.Namespace) -> dict[str, Any]:
-    return {"task": TASK, "policy": POLICY, "rigs": RIGS, "seeds": args.seeds, "max_episodes": args.max_episodes,
+    return {"task": TASK, "policy": args.policy, "algo": args.algo, "clocks": args.clocks, "rigs": RIGS,
+            "seeds": args.seeds, "max_episodes": args.max_episodes,
             "pretrain_seed": PRETRAIN_SEED, "pretrain_episodes": args.pretrain_episodes, "randomize": RANDOMIZE,
             "held_out_rigs": args.held_out, "quick": args.quick, "jobs": args.jobs,
             "date": dt.date.today().isoformat(), "python": platform.python_version(), "cores": os.cpu_count(),
@@ -281,6 +335,11 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--report", action="store_true", help="write the table of <out>/sim2real.json into "
                         "README.md and docs/how-to/warm-start.md (runs nothing)")
     parser.add_argument("--seeds", nargs="+", type=int, help="report seeds (default 101-110)")
+    parser.add_argument("--clocks", nargs="+", choices=CLOCKS, default=list(CLOCKS),
+                        help="the fine-tuning runs' simulated clocks (default: both; the disturbed trials take the "
+                        "first's controllers)")
+    parser.add_argument("--algo", default=ALGO, help=f"the learner of every federation (default {ALGO})")
+    parser.add_argument("--policy", default=POLICY, help=f"the federation strategy (default {POLICY})")
     parser.add_argument("--max-episodes", type=int, help=f"episode cap of a fine-tuning run (default {DEFAULT_M})")
     parser.add_argument("--pretrain-episodes", type=int, help=f"episode cap of a pretrain (default {PRETRAIN_M})")
     parser.add_argument("--held-out", type=int, help=f"held-out lab rigs for zero-shot (default {HELD_OUT_RIGS})")
@@ -295,7 +354,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     args.pretrain_episodes = args.pretrain_episodes or (QUICK["pretrain_episodes"] if q else PRETRAIN_M)
     args.held_out = args.held_out or (QUICK["held_out"] if q else HELD_OUT_RIGS)
     args.trials = args.trials or (QUICK["trials"] if q else DISTURBED_TRIALS)
-    args.runs_dir = args.runs_dir or Path("bench/results/runs") / ("sim2real-quick" if q else "sim2real")
+    args.runs_dir = args.runs_dir or (Path("bench/results/runs") / ("sim2real-quick" if q else "sim2real")
+                                      / f"{args.algo}-{args.policy}")
     if any(v < 1 for v in (args.max_episodes, args.pretrain_episodes, args.held_out, args.trials, args.jobs)):
         parser.error("the caps, --held-out, --trials and --jobs must be at least 1")
     return args

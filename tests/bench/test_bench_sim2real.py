@@ -13,7 +13,8 @@ from bench import sim2real
 
 def run(setting: str, seed: int, episodes: int | None, steps: int | None, rig_min: float | None) -> dict:
     return {"setting": setting, "seed": seed, "finished": episodes is not None, "episodes": episodes,
-            "balance_steps": steps, "rig_min": rig_min, "idle_min": 0.5, "wall_min": 1.0, "run_dir": "x"}
+            "balance_steps": steps, "rig_min": rig_min, "idle_min": 0.5, "wall_min": 1.0, "run_dir": "x",
+            "rig_wall_ratio": None if episodes is None else 1.1}
 
 
 def test_the_table_takes_medians_counts_unfinished_runs_as_worse_and_checks_the_targets() -> None:
@@ -22,7 +23,8 @@ def test_the_table_takes_medians_counts_unfinished_runs_as_worse_and_checks_the_
     t = sim2real.table(runs)
     assert t["randomised"]["runs"] == 3 and t["randomised"]["finished"] == 2
     assert t["randomised"]["episodes"]["median"] == 12 and t["randomised"]["episodes"]["unfinished"] == 1
-    assert t["randomised"]["targets_met"] == {"episodes": True, "balance_steps": True, "rig_min": True}
+    assert t["randomised"]["targets_met"] == {"episodes": True, "balance_steps": True, "rig_min": True,
+                                              "rig_wall_ratio": True}
     assert t["scratch"]["targets_met"] == {"balance_steps": False}
 
 
@@ -46,17 +48,19 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
               "pretrains": {"randomised": {"finished": True, "episodes": 147, "rig_min": 20.0},
                             "ideal": {"finished": False}},
               "zero_shot": {"randomised": {"rigs": 10, "balanced_to_end": 9}},
-              "disturbed_trials": [{"rigs": 1, "balanced_to_end": 1}, {"rigs": 1, "balanced_to_end": 0}]}
+              "disturbed_trials": [{"rigs": 1, "balanced_to_end": 1, "largest_pulse_of_stall": 0.2},
+                                   {"rigs": 1, "balanced_to_end": 0, "largest_pulse_of_stall": 0.12}]}
     text = sim2real.report(result, "sim2real.json")
     assert "| from scratch | 1/2 | not reached (1 of 2 runs unfinished) |" in text  # the unfinished run is worse
     assert "| warm start: randomised pretrain (`lab`, +-20%) | 2/2 | 13 [12.5 to 13.5] |" in text
     assert "episodes **missed**" in text and "balance_steps **missed**" in text  # 13 > 12 and 29,750 <= 30,000 met
-    assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 trials" in text
+    assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 balanced to the end" in text
+    assert "median largest pulse survived was 20% of stall" in text and "**Clock `lockstep`**" in text
     assert "`ideal` pretrain: did not finish: no model; no zero-shot test." in text
     assert "What the randomised pretrain saves" not in text  # scratch's median is an unfinished run: no ratio
     finished = sim2real.table([run("scratch", 101, 200, 34_000, 30.0), run("randomised", 101, 12, 29_000, 4.0)])
     assert "falls from 30.0 minutes from scratch to 4.0 warm-started (13%)" in (sim2real._saving(finished) or "")
-    assert "- Unfinished: from scratch, seed 102: aborted: every unfinished worker offline (w0 failed)." in text
+    assert "- Unfinished: from scratch, lockstep clock, seed 102: aborted: every unfinished worker offline (w0 failed)." in text
     json_path = tmp_path / "sim2real.json"
     json_path.write_text(json.dumps(result))
     page = tmp_path / "page.md"

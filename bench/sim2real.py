@@ -27,6 +27,7 @@ import datetime as dt
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -162,6 +163,43 @@ def fine_tune(models: dict[str, str | None], seeds: list[int], clocks: list[str]
     return out
 
 
+def realtime(seed: int, model: str, runs_dir: Path, max_episodes: int, setup: Setup) -> dict[str, Any]:
+    """A warm-started federation of RIGS simulated ``lab`` rigs over MQTT in real time (``deploy.run_local --env qube
+    --qube-clock realtime``: the bridge's 7 ms loop, the real swing-ups, the learners' updates between episodes, the
+    rounds over the broker), where the wall-clock and every rig's time are measured: the wall-clock target's figure.
+    Reuses a finished run."""
+    run_dir = runs_dir / "realtime" / f"randomised-s{seed}"
+    if not (run_dir / "summary.json").exists():
+        command = [sys.executable, "-m", "deploy.run_local", "--env", "qube", "--qube-clock", "realtime",
+                   "--workers", str(RIGS), "--seed", str(seed), "--policy", setup.policy, "--algo", setup.algo,
+                   "--max-episodes", str(max_episodes), "--init-model", model, "--run-dir", str(run_dir),
+                   "--dashboard-port", "off"]
+        print(" ".join(command), flush=True)
+        subprocess.run(command, env={**os.environ, "FEDRL_RIG_PROFILE": "lab"}, check=False,
+                       stdout=subprocess.DEVNULL)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    wall = measured_wall(run_dir)
+    slowest = max((w["rig"]["rig_s"] for w in summary.get("workers", []) if w.get("rig")), default=0.0)
+    return {"seed": seed, **last_rig({**summary, "run_dir": str(run_dir)}), "measured_wall_min": wall,
+            "slowest_rig_min": round(slowest / 60, 3),
+            "measured_ratio": round(wall * 60 / slowest, 3) if wall and slowest > 0 else None}
+
+
+def measured_wall(run_dir: Path) -> float | None:
+    """Minutes from the first rig's first swing-up to the run's last round (metrics.jsonl: each record's chief time
+    ``t``; a worker's first episode began its reset and balance seconds before its record)."""
+    starts, end = [], None
+    seen: set[str] = set()
+    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+        rec = json.loads(line)
+        if rec.get("type") == "episode" and rec["worker"] not in seen and rec.get("reset_s") is not None:
+            seen.add(rec["worker"])
+            starts.append(rec["t"] - rec["reset_s"] - (rec.get("balance_s") or 0.0))
+        if rec.get("type") in ("episode", "round") and "t" in rec:
+            end = rec["t"]
+    return round((end - min(starts)) / 60, 3) if starts and end is not None else None
+
+
 def table(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     """Per setting: median [IQR] of the last rig's figures (unfinished runs count as worse) and the targets met."""
     out: dict[str, dict[str, Any]] = {}
@@ -228,6 +266,14 @@ def report(result: dict[str, Any], source: str) -> str:
             lines.append(f"- Unfinished: {LABELS.get(r['setting'], r['setting'])}, "
                          f"{r.get('clock', 'lockstep')} clock, seed {r['seed']}: "
                          f"{r.get('end_reason') or 'no end reason recorded'}" + (f" ({rigs})" if rigs else "") + ".")
+    live = [r for r in result.get("realtime", []) if r["finished"] and r.get("measured_ratio")]
+    if result.get("realtime"):
+        ratios = sorted(r["measured_ratio"] for r in live)
+        lines.append(f"- Measured in real time over MQTT (`deploy.run_local --env qube --qube-clock realtime`, the "
+                     f"randomised warm start, seeds {', '.join(str(r['seed']) for r in result['realtime'])}): "
+                     f"{len(live)} of {len(result['realtime'])} finished"
+                     + (f"; wall-clock over the slowest rig's rig time {ratios[len(ratios) // 2]:.2f} (median; "
+                        f"{ratios[0]:.2f} to {ratios[-1]:.2f})" if ratios else "") + ".")
     trials = result["disturbed_trials"]
     if trials:
         pulses = sorted(t["largest_pulse_of_stall"] for t in trials if "largest_pulse_of_stall" in t)
@@ -300,8 +346,10 @@ def main(argv: list[str] | None = None) -> int:
     disturbed = [zero_shot(Path(r["run_dir"]) / "models" / _first_of(r["run_dir"]), 1, disturbed=True,
                            seed=HELD_OUT_SEED + HELD_OUT_RIGS + i) for i, r in enumerate(tuned[:args.trials])]
     tables = {clock: table([r for r in runs if r["clock"] == clock]) for clock in args.clocks}
+    warm = models.get("randomised")
+    live = [realtime(seed, warm, args.runs_dir, args.max_episodes, setup) for seed in args.realtime] if warm else []
     result = {"config": config(args), "pretrains": pre, "zero_shot": shots, "runs": runs, "tables": tables,
-              "disturbed_trials": disturbed, "wall_s": round(time.monotonic() - start, 1)}
+              "disturbed_trials": disturbed, "realtime": live, "wall_s": round(time.monotonic() - start, 1)}
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / ("sim2real-quick.json" if args.quick else "sim2real.json")
     path.write_text(json.dumps(result, indent=2) + "\n")
@@ -326,7 +374,7 @@ def config(args: argparse.Namespace) -> dict[str, Any]:
             "pretrain_seed": PRETRAIN_SEED, "pretrain_episodes": args.pretrain_episodes, "randomize": RANDOMIZE,
             "held_out_rigs": args.held_out, "quick": args.quick, "jobs": args.jobs,
             "date": dt.date.today().isoformat(), "python": platform.python_version(), "cores": os.cpu_count(),
-            "load_average": os.getloadavg(), "targets": TARGETS}
+            "load_average": os.getloadavg(), "targets": TARGETS, "realtime_seeds": args.realtime}
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
@@ -338,6 +386,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--clocks", nargs="+", choices=CLOCKS, default=list(CLOCKS),
                         help="the fine-tuning runs' simulated clocks (default: both; the disturbed trials take the "
                         "first's controllers)")
+    parser.add_argument("--realtime", nargs="*", type=int, default=[], metavar="SEED",
+                        help="also run the randomised warm start over MQTT in real time on these report seeds, one at "
+                        "a time, where the wall-clock is measured (minutes each; best on a quiet machine)")
     parser.add_argument("--algo", default=ALGO, help=f"the learner of every federation (default {ALGO})")
     parser.add_argument("--policy", default=POLICY, help=f"the federation strategy (default {POLICY})")
     parser.add_argument("--max-episodes", type=int, help=f"episode cap of a fine-tuning run (default {DEFAULT_M})")

@@ -1,0 +1,171 @@
+"""Brokers per site joined to a core: the Mosquitto bridge of each site broker, derived from the wire contract.
+
+Each site runs its own Mosquitto; its workers (and rigs) connect to it. The chief and the dashboard connect to the
+core Mosquitto. A bridge on each site broker joins it to the core (docs/how-to/sites.md says why Mosquitto bridges,
+and what survives a broker's death):
+
+- **Which topics cross, and which way**, follows from protocol/routes.py and where each process runs (PLACEMENT): a
+  route published at a site and read at the core goes ``out``; one published at the core and read at a site comes
+  ``in``; the rest stays where it is (a rig's state and actions never leave its site, the chief's retained claim
+  never leaves the core). Same QoS as the route.
+- **What keeps messages across a broker's death** (each setting is explained where it is written, in
+  ``bridge_section``): the bridge holds a persistent session on the core (``cleansession false`` under a fixed client
+  id), so the core queues the chief's answers for a site whose broker is down, and the site queues its workers'
+  updates while the core is down; both brokers persist their sessions and queues. What a ``kill -9`` takes with it
+  (whatever arrived after the last autosave) the processes send again: a worker resends an unanswered update after a
+  reconnect and every ``resend_interval``, the chief counts it once and answers a closed round again.
+"""
+
+from __future__ import annotations
+
+import subprocess
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+from protocol.routes import BRIDGE, CHIEF, DASHBOARD, ROUTES, WORKER, Route
+from protocol.topics import check_id
+from services.broker import mosquitto
+from services.broker.embedded import free_port, stop_process
+
+HOST = "127.0.0.1"
+
+Place = Literal["site", "core"]
+SITE: Place = "site"
+CORE: Place = "core"
+#: Where each process of the contract runs: workers and rigs at their site, the chief and the dashboard at the core.
+PLACEMENT: dict[str, Place] = {WORKER: SITE, BRIDGE: SITE, CHIEF: CORE, DASHBOARD: CORE}
+#: Seconds after which a worker at a site sends an unanswered update again (FEDRL_RESEND_INTERVAL; the default is
+#: 30). A core that dies takes with it what it had acknowledged and not yet passed on, and nobody at a site sees it
+#: go: the resend must come while the chief's round still waits (FEDRL_ROUND_TIMEOUT, 30 s by default).
+RESEND_INTERVAL = 5.0
+#: Seconds between a bridge's pings when idle: a core lost without a TCP reset (a host or link down) is noticed
+#: within 1.5 of them, as the processes notice theirs (protocol.mqtt.KEEPALIVE).
+KEEPALIVE = 15
+#: Bridge reconnection: decorrelated jitter from the first to the second number of seconds (Mosquitto's default,
+#: 5 to 30 s, could outlast a round's timeout; a site must be back well within the chief's round_timeout).
+RESTART_TIMEOUT = (1, 5)
+
+
+@dataclass(frozen=True)
+class BridgeTopic:
+    """One ``topic`` line of a bridge: a route's topic filter, the way it crosses and its QoS."""
+
+    pattern: str
+    direction: Literal["in", "out"]
+    qos: int
+    route: Route
+
+    @property
+    def line(self) -> str:
+        return f"topic {self.pattern} {self.direction} {self.qos}"
+
+
+def bridge_topics(run: str | None = None, placement: dict[str, Place] | None = None) -> list[BridgeTopic]:
+    """The topics a site's bridge carries, in the contract's order: each route whose publisher and some subscriber
+    are on different sides, for one run (``run``) or any (None: ``+``). A retained route never crosses: a copy left
+    at a site would outlive the core's (the claim is cleared with an empty retained message)."""
+    where = placement or PLACEMENT
+    out: list[BridgeTopic] = []
+    for route in ROUTES:
+        publisher, readers = where[route.publisher], {where[s] for s in route.subscribers}
+        if readers <= {publisher}:
+            continue
+        if route.retain:
+            raise ValueError(f"{route.topic} is retained and would cross a bridge")
+        pattern = route.filter(run=run) if run and "run" in route.parameters else route.filter()
+        out.append(BridgeTopic(pattern, "out" if publisher == SITE else "in", route.qos, route))
+    return out
+
+
+@dataclass(frozen=True)
+class Bridge:
+    """A site broker's bridge to the core: the site's name, the core's ``host:port``, the run (None: any), and for a
+    secured core the bridge's login and the CA that signed the core's certificate (TLS)."""
+
+    site: str
+    core: str
+    run: str | None = None
+    username: str | None = None
+    password: str | None = None
+    cafile: str | None = None
+
+    def __post_init__(self) -> None:
+        check_id(self.site, "site name")
+        host, _, port = self.core.rpartition(":")
+        if not host or not port.isdigit():
+            raise ValueError(f"core broker {self.core!r}: give host:port")
+
+    @property
+    def client_id(self) -> str:
+        """The bridge's client id on the core, fixed so that the core keeps its session across reconnects (a
+        secured core with ``use_username_as_clientid`` uses the username instead, also fixed)."""
+        return self.username or f"bridge-{self.site}"
+
+
+def bridge_section(bridge: Bridge) -> str:
+    """The Mosquitto configuration of a site broker's bridge to the core (appended to the site broker's own)."""
+    lines = [
+        f"# Bridge of site {bridge.site} to the core (deploy/sites.py; docs/how-to/sites.md).",
+        f"connection {bridge.site}",
+        f"address {bridge.core}",
+        "bridge_protocol_version mqttv311",
+        "# A persistent session on the core under a fixed client id: while this site's broker is down, the core",
+        "# queues the chief's answers for it; while the core is down, this broker queues its workers' updates",
+        "# (local_cleansession follows cleansession). Both brokers keep those queues in their persistence files.",
+        f"remote_clientid {bridge.client_id}",
+        f"local_clientid local-{bridge.client_id}",
+        "cleansession false",
+        "# Back within seconds after either broker restarts, well inside the chief's round timeout.",
+        f"restart_timeout {RESTART_TIMEOUT[0]} {RESTART_TIMEOUT[1]}",
+        f"keepalive_interval {KEEPALIVE}",
+        "# The bridge's state, 1 or 0, retained on $SYS/broker/connection/<client id>/state at both ends.",
+        "notifications true",
+        "start_type automatic",
+    ]
+    if bridge.username:
+        lines += [f"remote_username {bridge.username}", f"remote_password {bridge.password or ''}"]
+    if bridge.cafile:
+        lines += [f"bridge_cafile {bridge.cafile}", "bridge_tls_version tlsv1.2", "bridge_insecure false"]
+    lines.append("# From protocol/routes.py: what a site publishes for the core (out), what the core sends it (in).")
+    lines += [t.line for t in bridge_topics(bridge.run)]
+    return "\n".join(lines) + "\n"
+
+
+class LoopbackSites:
+    """A core Mosquitto and site brokers bridged to it, on free ports of 127.0.0.1, each with persistence in its own
+    folder (services/broker/mosquitto.py): for tests and benchmarks. ``kill`` and ``start`` one by name (the core is
+    ``core``); a restarted broker keeps its port, so that its clients and bridges find it again."""
+
+    def __init__(self, folder: Path, sites: Sequence[str], autosave: int = 1) -> None:
+        self.folder, self.sites, self.autosave = folder, list(sites), autosave
+        self.ports = {name: free_port(HOST) for name in [CORE, *self.sites]}
+        self.procs: dict[str, subprocess.Popen] = {}
+        for name in self.ports:
+            (folder / name).mkdir(parents=True, exist_ok=True)
+            self.start(name)
+
+    def url(self, name: str) -> str:
+        return f"mqtt://{HOST}:{self.ports[name]}"
+
+    def start(self, name: str) -> None:
+        """Start broker ``name`` (again) on its port, with what its persistence file holds."""
+        extra = "" if name == CORE else bridge_section(Bridge(name, f"{HOST}:{self.ports[CORE]}"))
+        self.procs[name], _ = mosquitto.start(self.folder / name, port=self.ports[name], persistence=True,
+                                              autosave=self.autosave, extra=extra)
+
+    def kill(self, name: str) -> None:
+        """SIGKILL: the broker saves nothing more (what came since its last autosave is gone)."""
+        self.procs[name].kill()
+        self.procs[name].wait()
+
+    def stop(self) -> None:
+        for proc in self.procs.values():
+            stop_process(proc)
+
+    def __enter__(self) -> LoopbackSites:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()

@@ -18,7 +18,10 @@ and what survives a broker's death):
 
 from __future__ import annotations
 
+import argparse
+import secrets
 import subprocess
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -169,3 +172,161 @@ class LoopbackSites:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+# -- a deployment's brokers: users, ACLs and configurations -----------------------------------------------------
+
+MOSQUITTO_DIR = Path(__file__).parent / "mosquitto"
+MAKE_USERS = MOSQUITTO_DIR / "make-users.sh"
+
+
+@dataclass(frozen=True)
+class Site:
+    """A site: its name and how many workers and rigs it has. Worker i is ``<name>-w<i>`` and drives rig
+    ``<name>-rig<i>`` (make-users.sh's convention, with the site's name as the prefix)."""
+
+    name: str
+    workers: int
+    rigs: int = 0
+
+    @classmethod
+    def parse(cls, text: str) -> Site:
+        """``a=4`` (4 workers) or ``a=4:2`` (4 workers, 2 of them with a rig)."""
+        name, _, counts = text.partition("=")
+        workers, _, rigs = counts.partition(":")
+        if not (workers.isdigit() and (rigs == "" or rigs.isdigit())):
+            raise ValueError(f"site {text!r}: give NAME=WORKERS or NAME=WORKERS:RIGS")
+        site = cls(check_id(name, "site name"), int(workers), int(rigs or 0))
+        if site.rigs > site.workers:
+            raise ValueError(f"site {text!r}: more rigs than workers (worker i drives rig i)")
+        return site
+
+    @property
+    def worker_ids(self) -> list[str]:
+        return [f"{self.name}-w{i}" for i in range(self.workers)]
+
+    @property
+    def rig_ids(self) -> list[str]:
+        return [f"{self.name}-rig{i}" for i in range(self.rigs)]
+
+    @property
+    def bridge_user(self) -> str:
+        return f"bridge-{self.name}"
+
+
+def bridge_acl(site: Site, run: str | None = None) -> str:
+    """The core's ACL entry for a site's bridge: it publishes what the site's own workers and rigs publish (so one
+    site cannot speak for another's), reads what the chief sends them, and keeps its state notification."""
+    lines = [f"# Site {site.name}'s bridge (deploy/sites.py).", f"user {site.bridge_user}",
+             f"topic write $SYS/broker/connection/{site.bridge_user}/state"]
+    for topic in bridge_topics(run):
+        route = topic.route
+        if topic.direction == "in":
+            lines.append(f"topic read {topic.pattern}")
+            continue
+        level, names = ("id", site.worker_ids) if "id" in route.parameters else ("rig", site.rig_ids)
+        fixed = {"run": run} if run and "run" in route.parameters else {}
+        lines += [f"topic write {route.filter(**fixed, **{level: name})}" for name in names]
+    return "\n".join(lines) + "\n"
+
+
+def make_users(folder: Path, *args: str) -> None:
+    """deploy/mosquitto/make-users.sh into ``folder`` (users, hashed passwords, ACL, credentials/<user>.env)."""
+    done = subprocess.run(["bash", str(MAKE_USERS), "-o", str(folder), "--force", *args], capture_output=True,
+                          text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"make-users.sh failed: {done.stderr.strip()}")
+
+
+def add_user(folder: Path, user: str, password: str, acl: str) -> None:
+    """One more user in a broker folder made by make-users.sh: its hashed password and its ACL entry."""
+    done = subprocess.run(["mosquitto_passwd", "-b", str(folder / "passwd"), user, password], capture_output=True,
+                          text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"mosquitto_passwd failed: {done.stderr.strip() or done.stdout.strip()}")
+    with (folder / "acl").open("a", encoding="utf-8") as fh:
+        fh.write("\n" + acl)
+
+
+def logins(folder: Path) -> str:
+    """``user:password`` lines of a broker folder's credentials/<user>.env files (one secret for the replicas of
+    a site's workers, each of which picks its own line)."""
+    out = []
+    for path in sorted((folder / "credentials").glob("*.env")):
+        env = dict(line.split("=", 1) for line in path.read_text(encoding="utf-8").split())
+        out.append(f"{env['FEDRL_MQTT_USERNAME']}:{env['FEDRL_MQTT_PASSWORD']}\n")
+    return "".join(out)
+
+
+def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, run: str | None = None,
+                     core_ca: str | None = None) -> list[Path]:
+    """Every broker's folder for a multi-site deployment: ``core/`` (the chief's and the dashboard's users, one
+    user per site bridge) and ``site-<name>/`` (its workers' and rigs' users, its mosquitto.conf: ``base`` plus
+    its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site broker sees it).
+    Passwords are random; files with secrets are private. Returns the folders."""
+    run_args = ["--run", run] if run else []
+    core_dir = out / CORE
+    make_users(core_dir, "-w", "0", "--dashboard", *run_args)
+    (core_dir / "mosquitto.conf").write_text(base.read_text(encoding="utf-8"), encoding="utf-8")
+    folders = [core_dir]
+    for site in sites:
+        folder = out / f"site-{site.name}"
+        make_users(folder, "-w", str(site.workers), "-r", str(site.rigs), "--worker-prefix", f"{site.name}-w",
+                   "--rig-prefix", f"{site.name}-rig", "--no-chief", *run_args)
+        password = secrets.token_urlsafe(24)
+        add_user(core_dir, site.bridge_user, password, bridge_acl(site, run))
+        bridge = Bridge(site.name, core, run, site.bridge_user, password, core_ca)
+        private(folder / "mosquitto.conf", base.read_text(encoding="utf-8") + "\n" + bridge_section(bridge))
+        private(folder / "logins", logins(folder))
+        folders.append(folder)
+    return folders
+
+
+def private(path: Path, text: str) -> None:
+    """Write a file only its owner can read (it holds a password)."""
+    path.touch(mode=0o600, exist_ok=True)
+    path.chmod(0o600)
+    path.write_text(text, encoding="utf-8")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m deploy.sites", description="Write the brokers of a multi-site deployment (a core and one "
+        "broker per site, bridged to it): users, passwords, ACLs, each site's mosquitto.conf, the run's key.")
+    parser.add_argument("--site", action="append", type=Site.parse, required=True, metavar="NAME=WORKERS[:RIGS]",
+                        help="a site and how many workers (and rigs) it has; repeat for each site")
+    parser.add_argument("--core", required=True, metavar="HOST:PORT", help="the core broker as the sites reach it")
+    parser.add_argument("--core-ca", metavar="PATH", help="TLS to the core: its CA certificate, as the site brokers "
+                        "see it (e.g. /mosquitto/certs/core-ca.crt)")
+    parser.add_argument("--run", help="the one run these users may take part in (default: any)")
+    parser.add_argument("--base", type=Path, default=MOSQUITTO_DIR / "mosquitto.prod.conf",
+                        help="every broker's configuration before its bridge (default: mosquitto.prod.conf; "
+                        "mosquitto.overlay.conf on an orchestrator)")
+    parser.add_argument("-o", "--out", type=Path, default=MOSQUITTO_DIR / "secrets" / "sites",
+                        help="folder to write (default: deploy/mosquitto/secrets/sites, git-ignored)")
+    parser.add_argument("--force", action="store_true", help="replace what the folder holds")
+    args = parser.parse_args(argv)
+    try:
+        Bridge("check", args.core)
+        if args.run:
+            check_id(args.run, "run id")
+        names = [s.name for s in args.site]
+        if len(set(names)) != len(names) or CORE in names:
+            raise ValueError(f"site names must differ from each other and from {CORE!r}: {names}")
+        if args.out.exists() and any(args.out.iterdir()) and not args.force:
+            raise ValueError(f"{args.out} is not empty; pass --force to replace what it holds")
+        args.out.mkdir(parents=True, exist_ok=True)
+        args.out.chmod(0o700)
+        folders = write_deployment(args.out, args.site, args.core, args.base, args.run, args.core_ca)
+        private(args.out / "run_key", secrets.token_hex(32) + "\n")
+    except (ValueError, RuntimeError, OSError) as err:
+        print(f"python -m deploy.sites: {err}", file=sys.stderr)
+        return 2
+    for folder in folders:
+        print(f"wrote {folder}/")
+    print(f"wrote {args.out / 'run_key'} (FEDRL_RUN_KEY of the chief and every worker)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -178,6 +178,9 @@ class LoopbackSites:
 
 MOSQUITTO_DIR = Path(__file__).parent / "mosquitto"
 MAKE_USERS = MOSQUITTO_DIR / "make-users.sh"
+#: What a broker's folder gets from write_deployment: secrets all (a site's mosquitto.conf holds its bridge's
+#: password), never committed (deploy/k8s/example/.gitignore, deploy/swarm/.gitignore).
+SECRET_FILES = ("acl", "passwd", "logins", "run_key", "mosquitto.conf", "credentials")
 
 
 @dataclass(frozen=True)
@@ -263,11 +266,16 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
     """Every broker's folder for a multi-site deployment: ``core/`` (the chief's and the dashboard's users, one
     user per site bridge) and ``site-<name>/`` (its workers' and rigs' users, its mosquitto.conf: ``base`` plus
     its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site broker sees it).
-    Passwords are random; files with secrets are private. Returns the folders."""
+    Each folder also holds the run's key (``run_key``, the same everywhere: an orchestrator takes a folder per
+    place), and so does each process's credentials/<user>.env. Passwords and the key are random; files with
+    secrets are private. Returns the folders."""
     run_args = ["--run", run] if run else []
+    key = secrets.token_hex(32)
     core_dir = out / CORE
     make_users(core_dir, "-w", "0", "--dashboard", *run_args)
     (core_dir / "mosquitto.conf").write_text(base.read_text(encoding="utf-8"), encoding="utf-8")
+    private(core_dir / "run_key", key)
+    with_key(core_dir, key)
     folders = [core_dir]
     for site in sites:
         folder = out / f"site-{site.name}"
@@ -278,8 +286,17 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
         bridge = Bridge(site.name, core, run, site.bridge_user, password, core_ca)
         private(folder / "mosquitto.conf", base.read_text(encoding="utf-8") + "\n" + bridge_section(bridge))
         private(folder / "logins", logins(folder))
+        private(folder / "run_key", key)
+        with_key(folder, key)
         folders.append(folder)
     return folders
+
+
+def with_key(folder: Path, key: str) -> None:
+    """Add the run's key to each process's credentials/<user>.env: its whole environment file (FEDRL_ENV_FILE)."""
+    for path in (folder / "credentials").glob("*.env"):
+        text = path.read_text(encoding="utf-8")
+        path.write_text(text + ("" if text.endswith("\n") else "\n") + f"FEDRL_RUN_KEY={key}\n", encoding="utf-8")
 
 
 def private(path: Path, text: str) -> None:
@@ -292,7 +309,8 @@ def private(path: Path, text: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m deploy.sites", description="Write the brokers of a multi-site deployment (a core and one "
-        "broker per site, bridged to it): users, passwords, ACLs, each site's mosquitto.conf, the run's key.")
+        "broker per site, bridged to it): one folder per broker with its users, passwords, ACL, mosquitto.conf "
+        "(a site's with its bridge) and the run's key.")
     parser.add_argument("--site", action="append", type=Site.parse, required=True, metavar="NAME=WORKERS[:RIGS]",
                         help="a site and how many workers (and rigs) it has; repeat for each site")
     parser.add_argument("--core", required=True, metavar="HOST:PORT", help="the core broker as the sites reach it")
@@ -304,7 +322,7 @@ def main(argv: list[str] | None = None) -> int:
                         "mosquitto.overlay.conf on an orchestrator)")
     parser.add_argument("-o", "--out", type=Path, default=MOSQUITTO_DIR / "secrets" / "sites",
                         help="folder to write (default: deploy/mosquitto/secrets/sites, git-ignored)")
-    parser.add_argument("--force", action="store_true", help="replace what the folder holds")
+    parser.add_argument("--force", action="store_true", help="replace the secrets the folder holds")
     args = parser.parse_args(argv)
     try:
         Bridge("check", args.core)
@@ -313,18 +331,15 @@ def main(argv: list[str] | None = None) -> int:
         names = [s.name for s in args.site]
         if len(set(names)) != len(names) or CORE in names:
             raise ValueError(f"site names must differ from each other and from {CORE!r}: {names}")
-        if args.out.exists() and any(args.out.iterdir()) and not args.force:
-            raise ValueError(f"{args.out} is not empty; pass --force to replace what it holds")
+        if list(args.out.glob("*/run_key")) and not args.force:
+            raise ValueError(f"{args.out} holds a deployment's secrets already; pass --force to replace them")
         args.out.mkdir(parents=True, exist_ok=True)
-        args.out.chmod(0o700)
         folders = write_deployment(args.out, args.site, args.core, args.base, args.run, args.core_ca)
-        private(args.out / "run_key", secrets.token_hex(32) + "\n")
     except (ValueError, RuntimeError, OSError) as err:
         print(f"python -m deploy.sites: {err}", file=sys.stderr)
         return 2
     for folder in folders:
-        print(f"wrote {folder}/")
-    print(f"wrote {args.out / 'run_key'} (FEDRL_RUN_KEY of the chief and every worker)")
+        print(f"wrote {folder}/ (users, ACL, mosquitto.conf, run_key: FEDRL_RUN_KEY of the chief and the workers)")
     return 0
 
 

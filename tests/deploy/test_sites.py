@@ -143,3 +143,12 @@ def connect(url: str, name: str, topic: str, username: str, password: str
     conn = MqttConnection(BrokerAddress.parse(url, username=username, password=password), name).start()
     conn.subscribe(topic, lambda t, payload: got.put((t, payload)))
     return conn, got
+
+
+@pytest.mark.skipif(shutil.which("git") is None or not (ROOT / ".git").exists(), reason="not a git checkout")
+def test_the_secrets_deploy_sites_writes_are_never_committed() -> None:
+    paths = [f"{folder}/{place}/{name}" for folder in ("deploy/k8s/example", "deploy/swarm/secrets",
+                                                        "deploy/mosquitto/secrets/sites")
+             for place in ("core", "site-a") for name in sites.SECRET_FILES]
+    done = subprocess.run(["git", "check-ignore", "--no-index", *paths], capture_output=True, text=True, cwd=ROOT)
+    assert sorted(done.stdout.split()) == sorted(paths)

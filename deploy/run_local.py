@@ -196,8 +196,8 @@ def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs:
 def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], login: Login, key: str,
                   worker_ids: list[str], rigs: dict[int, str]) -> None:
     """The simulated rigs and the workers (worker i drives rig i), each on its site's broker when there are sites
-    (``--site-brokers``, round robin), where a worker resends an unanswered update at least every
-    deploy.sites.RESEND_INTERVAL seconds (what a dying core took with it, nobody at a site saw go)."""
+    (``--site-brokers``, round robin), where a worker resends an unanswered update every deploy.sites.RESEND_INTERVAL
+    seconds unless told otherwise (what a dying core took with it, nobody at a site saw go)."""
     assert s.run_dir is not None
     at_site = [{**common, "broker": s.site_brokers[i % len(s.site_brokers)]} if s.site_brokers else common
                for i in range(len(worker_ids))]
@@ -208,8 +208,8 @@ def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], log
         worker = s.child(WorkerSettings, **at_site[i], **login(wid), worker_id=wid, model_dir=s.run_dir / "models",
                          state_dir=s.run_dir / "workers", rig_id=rigs.get(i),
                          reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key)
-        if s.site_brokers:
-            worker = worker.model_copy(update={"resend_interval": min(worker.resend_interval, sites.RESEND_INTERVAL)})
+        if s.site_brokers and "resend_interval" not in worker.model_fields_set:  # unless FEDRL_RESEND_INTERVAL says
+            worker = worker.model_copy(update={"resend_interval": sites.RESEND_INTERVAL})
         fleet.start(f"worker-{wid}", "worker", worker)
 
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import secrets
+import shutil
 import subprocess
 import sys
 from collections.abc import Sequence
@@ -325,6 +326,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--force", action="store_true", help="replace the secrets the folder holds")
     args = parser.parse_args(argv)
     try:
+        if shutil.which("mosquitto_passwd") is None:
+            raise ValueError("needs mosquitto_passwd, to hash the passwords (apt-get install mosquitto)")
         Bridge("check", args.core)
         if args.run:
             check_id(args.run, "run id")

@@ -38,7 +38,9 @@ def listen(url: str, name: str, topic: str) -> tuple[MqttConnection, queue.Queue
 
 def test_the_bridge_keeps_what_crosses_while_the_other_side_is_down(tmp_path: Path) -> None:
     """An update sent while the core is dead, and an answer sent while the site's broker is dead, arrive once it is
-    back: the bridge's persistent session (``cleansession false``) has each side queue for the other."""
+    back: the bridge's persistent session (``cleansession false``) has each side queue for the other. At least once:
+    a broker back from a save older than its last acknowledgement sends a copy again (seen here under load), which
+    the processes drop (the next test)."""
     with LoopbackSites(tmp_path, ["a"]) as sites:
         chief, at_chief = listen(sites.url(CORE), "chief", UPDATE)
         worker, at_worker = listen(sites.url("a"), "worker", ANSWER)
@@ -53,8 +55,6 @@ def test_the_bridge_keeps_what_crosses_while_the_other_side_is_down(tmp_path: Pa
             chief.publish(ANSWER, b"sent while the site was down").wait_for_publish(5)
             sites.start("a")
             assert at_worker.get(timeout=15) == b"sent while the site was down"
-            time.sleep(1.0)
-            assert at_chief.empty() and at_worker.empty(), "a message arrived twice"
         finally:
             chief.stop()
             worker.stop()

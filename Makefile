@@ -10,7 +10,8 @@ RUN_STAMP := $(VENV)/.installed-run
 PYTEST_JOBS ?= -n 2 --dist loadgroup
 PIP    := $(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt
 
-.PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build tensorboard
+.PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build tensorboard \
+	k8s-check swarm-test
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
@@ -26,6 +27,8 @@ help:
 	@echo "make soak   - 16 workers over Mosquitto to the end, memory and round latency watched (bench/results/soak.*)"
 	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
 	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
+	@echo "make k8s-check   - render the Kubernetes manifests (kubectl kustomize) and validate them against 1.32"
+	@echo "make swarm-test  - the multi-site stack on a single-node Docker Swarm (swarm init if needed; docs/how-to/sites.md)"
 
 venv: $(STAMP)
 
@@ -81,6 +84,18 @@ docs-build: $(STAMP)
 # Containerised end-to-end tests: compose up + python -m deploy.docker, 2-worker CartPole (needs Docker + Compose).
 test-docker: $(STAMP)
 	FEDRL_REQUIRE_DOCKER=1 $(BIN)/python -m pytest -m docker -q -s
+
+# The multi-site deployment on orchestrators (docs/how-to/sites.md). k8s-check renders deploy/k8s/example offline
+# with its secrets from deploy.sites and validates every object against the Kubernetes 1.32 schemas (also in make
+# test when kubectl is installed). swarm-test makes this engine a single-node swarm if it is none yet, then deploys
+# deploy/swarm/stack.yml (two sites, a broker each, the core, the chief) and runs a federation to its end.
+k8s-check: $(STAMP)
+	$(BIN)/python -m pytest -q tests/deploy/test_k8s.py
+
+swarm-test: $(STAMP)
+	@test "$$(docker info --format '{{.Swarm.LocalNodeState}}' 2>/dev/null)" = active \
+		|| docker swarm init --advertise-addr 127.0.0.1
+	FEDRL_REQUIRE_DOCKER=1 $(BIN)/python -m pytest -m docker -q -s tests/deploy/test_swarm.py
 
 # Machines without registry access (root): engine, local base/Mosquitto images, CPU torch wheel (deploy/dev/).
 docker-dev:

@@ -31,6 +31,7 @@ from typing import IO, Any
 from chief.claim import EXIT_CLAIMED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
+from deploy import sites
 from deploy.settings import LocalRunSettings
 from protocol.messages import INTERRUPTED
 from protocol.mqtt import BrokerAddress
@@ -124,14 +125,7 @@ def main(argv: list[str] | None = None) -> int:
             dashboard = fleet.start("dashboard", "services.dashboard", s.child(
                 DashboardSettings, **common, **login("observer"), dashboard_host="127.0.0.1",
                 dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
-        for i, rig in rigs.items():
-            fleet.start(f"qube-sim-{rig}", "services.qube_sim", s.child(
-                SimRigSettings, **common, **login(rig), rig_id=rig, seed=worker_seed(s.seed, i)))
-        for i, wid in enumerate(worker_ids):
-            fleet.start(f"worker-{wid}", "worker", s.child(
-                WorkerSettings, **common, **login(wid), worker_id=wid, model_dir=run_dir / "models",
-                state_dir=run_dir / "workers", rig_id=rigs.get(i), reply_timeout=max(120.0, 4 * s.round_timeout),
-                run_key=key))
+        start_devices(s, fleet, common, login, key, worker_ids, rigs)
         print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
         if s.dashboard_port is not None:
             url = wait_for_url(dashboard, url_file)
@@ -177,12 +171,14 @@ def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs:
     assert s.run_dir is not None and s.run_id is not None
     if s.broker:
         address = BrokerAddress.parse(s.broker)
-        problem = unreachable(address)
-        if problem is not None:  # before anything starts: restarts and resumes are for brokers lost mid-run
-            print(f"cannot reach the MQTT broker at {address}: {problem} (check FEDRL_BROKER / --broker)",
-                  file=sys.stderr)
-            return None
-        print(f"using the broker at {address}")
+        for url, flag in [(s.broker, "FEDRL_BROKER / --broker"), *((u, "--site-brokers") for u in s.site_brokers)]:
+            problem = unreachable(BrokerAddress.parse(url))
+            if problem is not None:  # before anything starts: restarts and resumes are for brokers lost mid-run
+                print(f"cannot reach the MQTT broker at {BrokerAddress.parse(url)}: {problem} (check {flag})",
+                      file=sys.stderr)
+                return None
+        print(f"using the broker at {address}" + (f", the workers those of {len(s.site_brokers)} sites"
+                                                    if s.site_brokers else ""))
         return s.broker, lambda user: {}  # an external broker: the caller's login
     # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
     with storage_errors(s.run_dir / "broker"):  # a write names no file: name the folder
@@ -195,6 +191,26 @@ def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs:
     broker = f"mqtt://127.0.0.1:{port}"
     print(f"embedded broker on {broker} (users and ACL of this run in {creds.folder})")
     return broker, creds.login
+
+
+def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], login: Login, key: str,
+                  worker_ids: list[str], rigs: dict[int, str]) -> None:
+    """The simulated rigs and the workers (worker i drives rig i), each on its site's broker when there are sites
+    (``--site-brokers``, round robin), where a worker resends an unanswered update every deploy.sites.RESEND_INTERVAL
+    seconds unless told otherwise (what a dying core took with it, nobody at a site saw go)."""
+    assert s.run_dir is not None
+    at_site = [{**common, "broker": s.site_brokers[i % len(s.site_brokers)]} if s.site_brokers else common
+               for i in range(len(worker_ids))]
+    for i, rig in rigs.items():
+        fleet.start(f"qube-sim-{rig}", "services.qube_sim", s.child(
+            SimRigSettings, **at_site[i], **login(rig), rig_id=rig, seed=worker_seed(s.seed, i)))
+    for i, wid in enumerate(worker_ids):
+        worker = s.child(WorkerSettings, **at_site[i], **login(wid), worker_id=wid, model_dir=s.run_dir / "models",
+                         state_dir=s.run_dir / "workers", rig_id=rigs.get(i),
+                         reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key)
+        if s.site_brokers and "resend_interval" not in worker.model_fields_set:  # unless FEDRL_RESEND_INTERVAL says
+            worker = worker.model_copy(update={"resend_interval": sites.RESEND_INTERVAL})
+        fleet.start(f"worker-{wid}", "worker", worker)
 
 
 def run_chief(fleet: Fleet, chief: Settings, run_dir: Path) -> int:

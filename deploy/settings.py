@@ -5,12 +5,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, PositiveInt, field_validator
+from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, PositiveInt, field_validator, model_validator
 
 from chief.settings import FederationSettings
+from deploy import sites
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
-from runtime.settings import Counts, Port, Settings, setting
+from runtime.settings import Counts, Port, Settings, Words, setting
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
 
@@ -37,6 +38,11 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
 
     workers: PositiveInt | None = setting(None, "number of workers (unset: 4, or 3 for qube as in the paper)")
     broker: str | None = setting(None, "use this broker (mqtt://host:port) instead of starting the embedded one")
+    site_brokers: Words = setting([], "brokers per site, joined to --broker (docs/how-to/sites.md): worker i "
+                                  f"connects to the (i mod n)-th of these and resends an unanswered update every "
+                                  f"{sites.RESEND_INTERVAL:g} s (unless FEDRL_RESEND_INTERVAL says otherwise), the "
+                                  "chief and the dashboard connect to --broker (unset: everyone to --broker)",
+                                  metavar="URL,URL,...")
     run_id: str | None = setting(None, "run id, the topic prefix fedrl/<run>/ (unset: from the start time)")
     run_dir: Path | None = setting(None, "run folder (unset: runs/<time>-<env>-<policy>-s<seed>)")
     dashboard_port: PortOrOff = setting(0, "port of the live dashboard on 127.0.0.1 (0 = any free port, its URL is "
@@ -52,6 +58,19 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
         if value:
             BrokerAddress.parse(value)
         return value or None
+
+    @field_validator("site_brokers")
+    @classmethod
+    def _sites_parse(cls, value: list[str]) -> list[str]:
+        for url in value:
+            BrokerAddress.parse(url)
+        return value
+
+    @model_validator(mode="after")
+    def _sites_need_a_core(self) -> LocalRunSettings:
+        if self.site_brokers and not self.broker:
+            raise ValueError("--site-brokers needs --broker, the core broker they are joined to (the chief's)")
+        return self
 
     @field_validator("run_id")
     @classmethod

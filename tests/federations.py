@@ -4,11 +4,14 @@ fixture in conftest.py); those tests share the xdist group ``e2e``, so that one 
 
 from __future__ import annotations
 
+import json
 import multiprocessing
 import multiprocessing.synchronize
+import os
 import subprocess
 import sys
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -29,6 +32,34 @@ def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None) 
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     assert "all workers solved" in proc.stdout
+    return run_dir
+
+
+def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
+    """Each worker's (id, episodes, steps) from summary.json: what a disturbed run must reproduce."""
+    return [(w["id"], w["episodes"], w["steps"]) for w in json.loads((run_dir / "summary.json").read_text())["workers"]]
+
+
+def federate_through(tmp_path: Path, fault: Callable[[], None], argv: Sequence[str], env: dict[str, str],
+                     after_rounds: int = 10, name: str = "run") -> Path:
+    """A federation through the launcher (``python -m deploy.run_local`` with ``argv``), disturbed by ``fault`` once
+    ``after_rounds`` rounds have closed, to its end (asserted: exit 0); its run folder."""
+    run_dir = tmp_path / name
+    log = tmp_path / f"{name}-launcher.log"
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "deploy.run_local", *argv, "--run-dir", str(run_dir), "--run-id", name],
+        stdout=log.open("wb"), stderr=subprocess.STDOUT, env={**os.environ, **env})
+    try:
+        metrics = run_dir / "metrics.jsonl"
+        deadline = time.monotonic() + 300
+        while not metrics.exists() or metrics.read_text().count('"type":"round"') < after_rounds:
+            assert time.monotonic() < deadline and launcher.poll() is None, log.read_text()
+            time.sleep(0.05)
+        fault()
+        assert launcher.wait(timeout=400) == 0, log.read_text()[-3000:]
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
     return run_dir
 
 

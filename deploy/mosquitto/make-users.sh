@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Create the Mosquitto users, passwords and ACL for a federation with real rigs (mosquitto.prod.conf).
 #
-#   deploy/mosquitto/make-users.sh -w 4 -r 3 [-o DIR] [--run RUN_ID] [--force] [--acl-only]
+#   deploy/mosquitto/make-users.sh -w 4 -r 3 [-o DIR] [--run RUN_ID] [--force] [--acl-only] [--dashboard] [--no-chief]
 #
 # Username convention (the username is the identity the ACL checks):
-#   chief            the chief
+#   chief            the chief (not with --no-chief: a site broker of a multi-site deployment, deploy/sites.py)
+#   dashboard        the live dashboard, read-only (with --dashboard)
 #   <prefix><i>      worker i: username = its FEDRL_WORKER_ID (w0, w1, ...)
 #   <rig-prefix><j>  the Raspberry Pi bridge of rig j: username = its FEDRL_RIG_ID (rig0, rig1, ...)
 # Worker i drives rig i (for i < number of rigs); workers beyond the rigs learn a simulated or gym env.
@@ -14,7 +15,8 @@
 #   acl                    the access rules
 #   credentials/<user>.env FEDRL_MQTT_USERNAME / FEDRL_MQTT_PASSWORD (and the ids) to copy onto each host, mode 600
 # Options: -w/--workers N (default 4), -r/--rigs M (default 0), --run RUN_ID (default: any run), --worker-prefix,
-#          --rig-prefix, --force (overwrite DIR's files), --acl-only (write only the acl; no passwords).
+#          --rig-prefix, --force (overwrite DIR's files), --acl-only (write only the acl; no passwords),
+#          --dashboard (add the dashboard's user), --no-chief (leave the chief's user out).
 set -euo pipefail
 
 WORKERS=4
@@ -27,7 +29,10 @@ FORCE=0
 ACL_ONLY=0
 IMAGE=${FEDRL_MOSQUITTO_IMAGE:-eclipse-mosquitto:2}
 
-usage() { sed -n '2,18p' "$0" | sed 's/^# \{0,1\}//'; }
+CHIEF=1
+DASHBOARD=0
+
+usage() { sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
     case "$1" in
         -w|--workers) WORKERS=$2; shift ;;
@@ -38,6 +43,8 @@ while [ $# -gt 0 ]; do
         --rig-prefix) RPREFIX=$2; shift ;;
         --force) FORCE=1 ;;
         --acl-only) ACL_ONLY=1 ;;
+        --dashboard) DASHBOARD=1 ;;
+        --no-chief) CHIEF=0 ;;
         -h|--help) usage; exit 0 ;;
         *) echo "unknown option: $1" >&2; usage >&2; exit 2 ;;
     esac
@@ -72,13 +79,22 @@ write_acl() {
     echo "pattern read qube/%u/action"
     echo "pattern read qube/%u/reset"
     echo
-    echo "# Only the chief publishes the aggregate, transfer, start and stop messages and claims the run (retained, read"
-    echo "# back to see a second chief); it never touches a rig."
-    echo "user chief"
-    echo "topic deny qube/#"
-    echo "topic write fedrl/$RUN/chief/#"
-    echo "topic readwrite fedrl/$RUN/claim"
-    echo "topic read fedrl/$RUN/worker/#"
+    if [ "$CHIEF" = 1 ]; then
+        echo "# Only the chief publishes the aggregate, transfer, start and stop messages and claims the run (retained,"
+        echo "# read back to see a second chief); it never touches a rig."
+        echo "user chief"
+        echo "topic deny qube/#"
+        echo "topic write fedrl/$RUN/chief/#"
+        echo "topic readwrite fedrl/$RUN/claim"
+        echo "topic read fedrl/$RUN/worker/#"
+    fi
+    if [ "$DASHBOARD" = 1 ]; then
+        echo
+        echo "# The dashboard only listens: the whole run and every rig's status and telemetry."
+        echo "user dashboard"
+        echo "topic read fedrl/$RUN/#"
+        echo "topic read qube/#"
+    fi
     for ((i = 0; i < WORKERS; i++)); do
         wid="$WPREFIX$i"
         echo
@@ -114,7 +130,8 @@ add_user() {  # add_user <username> <extra env line or empty>
     echo "$1:$pw" >>"$OUT/passwd"
     printf 'FEDRL_MQTT_USERNAME=%s\nFEDRL_MQTT_PASSWORD=%s\n%s' "$1" "$pw" "$2" >"$OUT/credentials/$1.env"
 }
-add_user chief ""
+if [ "$CHIEF" = 1 ]; then add_user chief ""; fi
+if [ "$DASHBOARD" = 1 ]; then add_user dashboard ""; fi
 for ((i = 0; i < WORKERS; i++)); do
     extra="FEDRL_WORKER_ID=$WPREFIX$i"$'\n'
     if ((i < RIGS)); then extra+="FEDRL_RIG_ID=$RPREFIX$i"$'\n'; fi
@@ -135,4 +152,4 @@ else
     echo "neither mosquitto_passwd nor docker found: install mosquitto (apt-get install mosquitto)" >&2
     exit 1
 fi
-echo "wrote $OUT/passwd ($((1 + WORKERS + RIGS)) users) and $OUT/credentials/<user>.env"
+echo "wrote $OUT/passwd ($((CHIEF + DASHBOARD + WORKERS + RIGS)) users) and $OUT/credentials/<user>.env"

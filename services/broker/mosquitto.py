@@ -28,21 +28,23 @@ def available() -> bool:
 
 
 def start(folder: Path, port: int | None = None, max_packet_size: int | None = MAX_PACKET_SIZE,
-          persistence: bool = False) -> tuple[subprocess.Popen, int]:
+          persistence: bool = False, autosave: int = 1, extra: str = "") -> tuple[subprocess.Popen, int]:
     """Mosquitto on ``port`` (default: a free one, never 1883) of 127.0.0.1, its configuration and log in ``folder``;
     ``max_packet_size`` (the codec's payload limit plus headers by default; None: Mosquitto's own, none) closes the
     connection of a client sending a bigger packet. With ``persistence`` it keeps sessions and queued messages
-    across a restart (in ``folder``). Returns the process (stop it with ``embedded.stop_process``) and the port."""
+    across a restart (in ``folder``, saved every ``autosave`` seconds and when it stops; a ``kill -9`` loses what
+    came since the last save). ``extra`` is appended to the configuration (a bridge to another broker, say:
+    deploy/sites.py). Returns the process (stop it with ``embedded.stop_process``) and the port."""
     port = port or free_port(HOST)
-    store = f"persistence true\npersistence_location {folder}/\nautosave_interval 1\n" if persistence else (
+    store = f"persistence true\npersistence_location {folder}/\nautosave_interval {autosave}\n" if persistence else (
         "persistence false\n")
     if os.geteuid() == 0:
         store += "user root\n"  # as root, Mosquitto would switch to its own user, who cannot write the folder
     limit = f"max_packet_size {max_packet_size}\n" if max_packet_size is not None else ""
     conf = folder / f"mosquitto-{port}.conf"
     conf.write_text(f"listener {port} {HOST}\nallow_anonymous true\nset_tcp_nodelay true\n{limit}{store}"
-                    "log_dest stderr\n")
-    with (folder / f"mosquitto-{port}.log").open("wb") as log:
+                    f"log_dest stderr\n{extra}")
+    with (folder / f"mosquitto-{port}.log").open("ab") as log:  # a restart on the same port goes on with it
         proc = subprocess.Popen([binary(), "-c", str(conf)], stdout=log, stderr=subprocess.STDOUT)
     wait_for_port(HOST, port, proc=proc)
     return proc, port

@@ -95,7 +95,7 @@ def test_compose_has_broker_chief_and_scaled_workers() -> None:
 def test_mosquitto_dev_config() -> None:
     from services.broker.embedded import MAX_PACKET_SIZE
 
-    for name in ("mosquitto.conf", "mosquitto.loopback.conf", "mosquitto.prod.conf"):
+    for name in ("mosquitto.conf", "mosquitto.loopback.conf", "mosquitto.prod.conf", "mosquitto.overlay.conf"):
         conf = dict(line.split(None, 1) for line in (MOSQUITTO / name).read_text().splitlines()
                     if line.strip() and not line.startswith("#") and " " in line)
         assert conf["set_tcp_nodelay"] == "true"

@@ -5,11 +5,9 @@ as without the restart, and nobody waits out a reply timeout."""
 
 from __future__ import annotations
 
-import json
-import os
 import subprocess
-import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -17,14 +15,11 @@ import pytest
 from chief.audit import audit
 from services.broker.embedded import free_port, start_broker_process, stop_process
 from tests.conftest import HOST, mosquitto_available, start_mosquitto
+from tests.federations import federate_through, per_worker
 
 pytestmark = pytest.mark.slow
 
 SEED, WORKERS = 2, 2
-
-
-def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
-    return [(w["id"], w["episodes"], w["steps"]) for w in json.loads((run_dir / "summary.json").read_text())["workers"]]
 
 
 @pytest.fixture(scope="module")
@@ -37,25 +32,11 @@ def reference(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, int, 
     return per_worker(run_dir)
 
 
-def federate_through_a_restart(tmp_path: Path, port: int, restart: object) -> Path:
-    run_dir = tmp_path / "run"
-    launcher = subprocess.Popen(
-        [sys.executable, "-m", "deploy.run_local", "--workers", str(WORKERS), "--seed", str(SEED), "--max-episodes",
-         "600", "--broker", f"mqtt://{HOST}:{port}", "--run-dir", str(run_dir), "--run-id", "restart"],
-        stdout=(tmp_path / "launcher.log").open("wb"), stderr=subprocess.STDOUT,
-        env={**os.environ, "FEDRL_RESEND_INTERVAL": "600"})  # only a reconnect may trigger a resend here
-    try:
-        metrics = run_dir / "metrics.jsonl"
-        deadline = time.monotonic() + 300
-        while not metrics.exists() or metrics.read_text().count('"type":"round"') < 10:
-            assert time.monotonic() < deadline and launcher.poll() is None, (tmp_path / "launcher.log").read_text()
-            time.sleep(0.05)
-        restart()  # type: ignore[operator]
-        assert launcher.wait(timeout=400) == 0, (tmp_path / "launcher.log").read_text()[-3000:]
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
-    return run_dir
+def federate_through_a_restart(tmp_path: Path, port: int, restart: Callable[[], None]) -> Path:
+    return federate_through(
+        tmp_path, restart, ["--workers", str(WORKERS), "--seed", str(SEED), "--max-episodes", "600", "--broker",
+                            f"mqtt://{HOST}:{port}"],
+        {"FEDRL_RESEND_INTERVAL": "600"}, name="restart")  # only a reconnect may trigger a resend here
 
 
 def check(run_dir: Path, reference: list[tuple[str, int, int]]) -> str:

@@ -60,7 +60,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     assert "What the randomised pretrain saves" not in text  # scratch's median is an unfinished run: no ratio
     finished = sim2real.table([run("scratch", 101, 200, 34_000, 30.0), run("randomised", 101, 12, 29_000, 4.0)])
     assert "falls from 30.0 minutes from scratch to 4.0 warm-started (13%)" in (sim2real._saving(finished) or "")
-    assert "- Unfinished: from scratch, lockstep clock, seed 102: aborted: every unfinished worker offline (w0 failed)." in text
+    assert ("- Unfinished: from scratch, lockstep clock, seed 102: aborted: every unfinished worker offline "
+            "(w0 failed).") in text
     json_path = tmp_path / "sim2real.json"
     json_path.write_text(json.dumps(result))
     page = tmp_path / "page.md"

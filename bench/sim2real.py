@@ -128,6 +128,30 @@ def zero_shot(model: Path, rigs: int, disturbed: bool, seed: int = HELD_OUT_SEED
             "largest_pulse_of_stall": result.summary["median_largest_pulse_of_stall"]}
 
 
+def lqr_action(obs: Any) -> int:
+    """The reference controller: the bridge's balance LQR (rpi_bridge/reset.py, what holds the pendulum after a
+    swing-up) restricted to the task's actions as bang-bang, the sign of its command (worker/qube_env.py ACTIONS).
+    The nearest action instead leaves a dead band of +-30 counts in which it does nothing: on the trials' rigs it
+    balanced to the end on none of 10, a median of 1.1 s (the first pulse comes at 1 s)."""
+    from rpi_bridge.reset import ResetController
+    from worker.qube_env import ACTIONS
+
+    alpha, alpha_dot, theta, theta_dot = (float(v) for v in obs)
+    u = ResetController().hold_command(theta, alpha, theta_dot, alpha_dot)
+    return ACTIONS.index(60 if u > 0 else -60 if u < 0 else 0)
+
+
+def reference_trials(rigs: int) -> dict[str, Any]:
+    """The robustness trial of the reference controller on the disturbed trials' held-out rigs (one each): what a
+    hand-designed controller with the same three actions survives."""
+    from services.qube_sim.profile import load_profile
+    from worker import robustness as rb
+
+    results = [rb.run_rig(lqr_action, load_profile("lab"), i, HELD_OUT_SEED + HELD_OUT_RIGS + i, rb.Disturbances())
+               for i in range(rigs)]
+    return {"controller": "bridge LQR, sign of its command", **rb.summary(results)}
+
+
 def pretrain(name: str, runs_dir: Path, max_episodes: int, setup: Setup) -> dict[str, Any]:
     """The ``name`` pretrain's federation (lockstep); its model is that of the first rig to solve
     (runtime.model_file)."""
@@ -282,6 +306,12 @@ def report(result: dict[str, Any], source: str) -> str:
                      f"{sum(t['balanced_to_end'] for t in trials)} of {sum(t['rigs'] for t in trials)} balanced to "
                      "the end" + (f"; in the sweep on to 30 % of stall the median largest pulse survived was "
                                   f"{pulses[len(pulses) // 2]:.0%} of stall" if pulses else "") + ".")
+    ref = result.get("reference_trials")
+    if ref:
+        lines.append(f"- For comparison, the bridge's balance LQR restricted to the same three actions on the same "
+                     f"held-out rigs: {ref['balanced_to_end']} of {ref['rigs']} balanced to the end in the trial; "
+                     f"median largest pulse survived in the sweep {ref['median_largest_pulse_of_stall']:.0%} of "
+                     "stall.")
     return "\n".join(lines)
 
 
@@ -345,11 +375,13 @@ def main(argv: list[str] | None = None) -> int:
     tuned = [r for r in runs if r["setting"] == "randomised" and r["clock"] == args.clocks[0] and r["finished"]]
     disturbed = [zero_shot(Path(r["run_dir"]) / "models" / _first_of(r["run_dir"]), 1, disturbed=True,
                            seed=HELD_OUT_SEED + HELD_OUT_RIGS + i) for i, r in enumerate(tuned[:args.trials])]
+    reference = reference_trials(len(disturbed) or args.trials)
     tables = {clock: table([r for r in runs if r["clock"] == clock]) for clock in args.clocks}
     warm = models.get("randomised")
     live = [realtime(seed, warm, args.runs_dir, args.max_episodes, setup) for seed in args.realtime] if warm else []
     result = {"config": config(args), "pretrains": pre, "zero_shot": shots, "runs": runs, "tables": tables,
-              "disturbed_trials": disturbed, "realtime": live, "wall_s": round(time.monotonic() - start, 1)}
+              "disturbed_trials": disturbed, "reference_trials": reference, "realtime": live,
+              "wall_s": round(time.monotonic() - start, 1)}
     args.out.mkdir(parents=True, exist_ok=True)
     path = args.out / ("sim2real-quick.json" if args.quick else "sim2real.json")
     path.write_text(json.dumps(result, indent=2) + "\n")

@@ -49,7 +49,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
                             "ideal": {"finished": False}},
               "zero_shot": {"randomised": {"rigs": 10, "balanced_to_end": 9}},
               "disturbed_trials": [{"rigs": 1, "balanced_to_end": 1, "largest_pulse_of_stall": 0.2},
-                                   {"rigs": 1, "balanced_to_end": 0, "largest_pulse_of_stall": 0.12}]}
+                                   {"rigs": 1, "balanced_to_end": 0, "largest_pulse_of_stall": 0.12}],
+              "reference_trials": {"rigs": 2, "balanced_to_end": 1, "median_largest_pulse_of_stall": 0.175}}
     text = sim2real.report(result, "sim2real.json")
     assert "| from scratch | 1/2 | not reached (1 of 2 runs unfinished) |" in text  # the unfinished run is worse
     assert "| warm start: randomised pretrain (`lab`, +-20%) | 2/2 | 13 [12.5 to 13.5] |" in text
@@ -57,6 +58,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 balanced to the end" in text
     assert "median largest pulse survived was 20% of stall" in text and "**Clock `lockstep`**" in text
     assert "`ideal` pretrain: did not finish: no model; no zero-shot test." in text
+    assert "LQR restricted to the same three actions on the same held-out rigs: 1 of 2 balanced" in text
+    assert "sweep 18% of stall" in text
     assert "What the randomised pretrain saves" not in text  # scratch's median is an unfinished run: no ratio
     finished = sim2real.table([run("scratch", 101, 200, 34_000, 30.0), run("randomised", 101, 12, 29_000, 4.0)])
     assert "falls from 30.0 minutes from scratch to 4.0 warm-started (13%)" in (sim2real._saving(finished) or "")
@@ -69,3 +72,13 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     sim2real.write_report(json_path, [page])
     table = sim2real.report(result, str(json_path))
     assert page.read_text() == f"before\n{sim2real.BEGIN}\n{table}\n{sim2real.END}\nafter\n"
+
+
+def test_the_reference_controller_is_the_bridges_lqr_as_bang_bang() -> None:
+    from rpi_bridge.reset import ResetController
+    from worker.qube_env import ACTIONS
+
+    for obs in ([0.0, 0.0, 0.0, 0.0], [0.05, 0.0, 0.0, 0.0], [-0.05, 0.0, 0.0, 0.0], [0.0, 0.0, 0.3, 1.0]):
+        u = ResetController().hold_command(obs[2], obs[0], obs[3], obs[1])
+        assert ACTIONS[sim2real.lqr_action(obs)] == (60 if u > 0 else -60 if u < 0 else 0)
+    assert ACTIONS[sim2real.lqr_action([0.05, 0.0, 0.0, 0.0])] != ACTIONS[sim2real.lqr_action([-0.05, 0.0, 0.0, 0.0])]

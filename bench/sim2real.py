@@ -100,7 +100,8 @@ def last_rig(summary: dict[str, Any]) -> dict[str, Any]:
             "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"],
             "rig_wall_ratio": rig_wall_ratio(summary) if solved else None,
             "end_reason": summary.get("end_reason"),
-            "unsolved": {w["id"]: w["state"] for w in summary.get("workers", []) if not w["solved"]}}
+            "unsolved": {w["id"]: w["state"] + (f": {w['detail']}" if w.get("detail") else "")
+                         for w in summary.get("workers", []) if not w["solved"]}}
 
 
 def rig_wall_ratio(summary: dict[str, Any]) -> float | None:

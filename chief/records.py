@@ -215,7 +215,7 @@ class WorkerSummary(Record):
     ``played``, counted and refused apart (absent when its submissions did not say); its ``rig`` time on a QUBE-Servo
     2 task (absent for the gymnasium tasks)."""
 
-    OPTIONAL = frozenset({"played", "rig"})
+    OPTIONAL = frozenset({"played", "rig", "detail"})
 
     id: str
     index: int
@@ -226,6 +226,8 @@ class WorkerSummary(Record):
     state: WorkerState
     played: PlayedTotals | None = None
     rig: RigTime | None = None
+    #: Why a worker that did not solve stopped learning, in its own words (its error or stopped status).
+    detail: str | None = None
 
 
 class InitModelRecord(Record):
@@ -307,6 +309,7 @@ class SavedWorker(Record):
     last_round: int
     excused: bool
     helping: bool
+    detail: str = ""
     returns: list[tuple[int, float]]
     pis: list[tuple[int, float]]
 

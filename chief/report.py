@@ -146,7 +146,8 @@ def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | No
         workers.append(WorkerSummary(id=w, index=index, solved=solved,
                                      episodes=rec.solved_episode if solved else rec.last_episode,
                                      steps=rec.steps_at_solve if solved else rec.steps,
-                                     final_pi=rec.pi, state=rec.state, played=played.get(w), rig=rigs.get(w)))
+                                     final_pi=rec.pi, state=rec.state, played=played.get(w), rig=rigs.get(w),
+                                     detail=rec.detail or None if not solved else None))
     all_solved = all(w.solved for w in workers)
     last = max(workers, key=lambda x: (x.episodes, x.steps))
     return RunSummary(

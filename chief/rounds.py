@@ -244,6 +244,7 @@ class WorkerRecord:
     last_round: int = 0
     excused: bool = False  # not waited for (timed out, or said it stopped) until it submits again
     helping: bool = False  # finished, and still playing and sharing (a strategy whose finishers help)
+    detail: str = ""  # why it stopped learning, in its own words (its last ``error`` or ``stopped`` status)
 
     def pi_at(self, episode: int) -> float | None:
         """The PI of this worker's latest accepted submission for an episode <= ``episode``."""
@@ -379,7 +380,7 @@ class RoundKeeper:
             return self._reject(sub, r, *problem)
         return self._accept(sub, r, rec, now)
 
-    def note_status(self, worker_id: str, state: str, now: float) -> list[RoundOutcome]:
+    def note_status(self, worker_id: str, state: str, now: float, detail: str = "") -> list[RoundOutcome]:
         """A worker's status message. Its last will (``offline``) marks it offline, still waited for until the
         round times out; ``error`` or ``stopped`` (it said so itself) stops the wait at once. A ``finished`` status
         is only news: the worker's MatureParams is its finish. What a worker sent always still counts."""
@@ -388,7 +389,7 @@ class RoundKeeper:
             return []
         rec.state = "offline"
         if state != "offline":
-            rec.excused = True
+            rec.excused, rec.detail = True, f"{state}: {detail}" if detail else state
         return self._maybe_close(now)
 
     def tick(self, now: float) -> list[RoundOutcome]:

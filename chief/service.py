@@ -344,7 +344,7 @@ class ChiefService:
         if msg.kind == "status":
             if msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
-            return keeper.note_status(msg.worker_id, msg.state, now)
+            return keeper.note_status(msg.worker_id, msg.state, now, msg.detail)
         verdict = keeper.submit(submission_of(msg), now)
         self._answer(verdict, now)
         return verdict.outcomes

@@ -487,3 +487,15 @@ def test_an_interrupted_run_keeps_its_open_round_and_resumes_through_the_saved_s
     over.abort("aborted: test")
     over.resume()
     assert (over.done, over.resumable) == (True, False)
+
+
+def test_a_worker_that_stopped_learning_is_reported_in_its_own_words() -> None:
+    from chief.report import summarize
+
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    k.submit(w["w0"].sub(1, 20.0), now=1.0)
+    k.note_status("w0", "error", now=2.0, detail="ResetFailed: simulated rig could not reset")
+    k.note_status("w1", "offline", now=2.0, detail="connection lost")  # a last will: no words of its own
+    rows = {r.id: r for r in summarize(k, "aborted").workers}
+    assert rows["w0"].state == "offline" and rows["w0"].detail == "error: ResetFailed: simulated rig could not reset"
+    assert rows["w1"].detail is None and "detail" not in rows["w1"].dump()

@@ -96,6 +96,8 @@ def last_rig(summary: dict[str, Any]) -> dict[str, Any]:
     return {"finished": solved, "episodes": summary.get("episodes_to_all_solved"),
             "balance_steps": rig.get("balance_steps") if solved else None,
             "rig_min": round(rig["rig_s"] / 60, 3) if solved and rig else None,
+            "balance_min": round(rig["balance_s"] / 60, 3) if solved and rig else None,
+            "reset_min": round(rig["reset_s"] / 60, 3) if solved and rig else None,
             "idle_min": round(rig["idle_s"] / 60, 3) if rig else None,
             "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"],
             "rig_wall_ratio": rig_wall_ratio(summary) if solved else None,
@@ -280,8 +282,10 @@ def report(result: dict[str, Any], source: str) -> str:
     lines.append("")
     for name, p in result["pretrains"].items():
         shot = result["zero_shot"].get(name)
-        made = (f"finished at episode {p['episodes']} ({p['rig_min']} rig min)" if p["finished"]
-                else "did not finish: no model")
+        split = (f": {p['balance_min']:.1f} balancing, {p['reset_min']:.1f} in swing-up resets"
+                 if p.get("balance_min") is not None else "")
+        made = (f"finished at episode {p['episodes']}, its last rig after {p['rig_min']:.1f} rig minutes{split} "
+                f"({p['wall_min']:.1f} wall minutes here)" if p["finished"] else "did not finish: no model")
         zero = (f"zero-shot: balanced to the end on {shot['balanced_to_end']} of {shot['rigs']} held-out `lab` rigs"
                 if shot else "no zero-shot test")
         lines.append(f"- `{name}` pretrain: {made}; {zero}.")

@@ -45,7 +45,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     result = {"config": {"rigs": 3, "policy": "plain", "seeds": [101, 102], "pretrain_seed": 1, "date": "2026-12-02",
                          "cores": 2, "load_average": [3.0, 3.0, 3.0]}, "wall_s": 600.0, "table": sim2real.table(runs),
               "runs": runs,
-              "pretrains": {"randomised": {"finished": True, "episodes": 147, "rig_min": 20.0},
+              "pretrains": {"randomised": {"finished": True, "episodes": 147, "rig_min": 20.0, "balance_min": 5.0,
+                                           "reset_min": 15.0, "wall_min": 9.5},
                             "ideal": {"finished": False}},
               "zero_shot": {"randomised": {"rigs": 10, "balanced_to_end": 9}},
               "disturbed_trials": [{"rigs": 1, "balanced_to_end": 1, "largest_pulse_of_stall": 0.2},
@@ -58,6 +59,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 balanced to the end" in text
     assert "median largest pulse survived was 20% of stall" in text and "**Clock `lockstep`**" in text
     assert "`ideal` pretrain: did not finish: no model; no zero-shot test." in text
+    assert ("`randomised` pretrain: finished at episode 147, its last rig after 20.0 rig minutes: 5.0 balancing, "
+            "15.0 in swing-up resets (9.5 wall minutes here)") in text
     assert "LQR restricted to the same three actions on the same held-out rigs: 1 of 2 balanced" in text
     assert "sweep 18% of stall" in text
     assert "What the randomised pretrain saves" not in text  # scratch's median is an unfinished run: no ratio

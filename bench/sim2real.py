@@ -302,7 +302,10 @@ def report(result: dict[str, Any], source: str) -> str:
                      f"randomised warm start, seeds {', '.join(str(r['seed']) for r in result['realtime'])}): "
                      f"{len(live)} of {len(result['realtime'])} finished"
                      + (f"; wall-clock over the slowest rig's rig time {ratios[len(ratios) // 2]:.2f} (median; "
-                        f"{ratios[0]:.2f} to {ratios[-1]:.2f})" if ratios else "") + ".")
+                        f"{ratios[0]:.2f} to {ratios[-1]:.2f})" if ratios else "") + "; last rig per seed: "
+                     + "; ".join(f"{r['seed']}: " + (f"episode {r['episodes']}, {r['balance_steps']:,} balance steps, "
+                                                     f"{r['rig_min']:.1f} rig min" if r["finished"] else "unfinished")
+                                 for r in result["realtime"]) + ".")
     trials = result["disturbed_trials"]
     if trials:
         pulses = sorted(t["largest_pulse_of_stall"] for t in trials if "largest_pulse_of_stall" in t)

@@ -27,6 +27,7 @@ import datetime as dt
 import json
 import os
 import platform
+import re
 import subprocess
 import sys
 import time
@@ -208,8 +209,20 @@ def realtime(seed: int, model: str, runs_dir: Path, max_episodes: int, setup: Se
     wall = measured_wall(run_dir)
     slowest = max((w["rig"]["rig_s"] for w in summary.get("workers", []) if w.get("rig")), default=0.0)
     return {"seed": seed, **last_rig({**summary, "run_dir": str(run_dir)}), "measured_wall_min": wall,
-            "slowest_rig_min": round(slowest / 60, 3),
+            "slowest_rig_min": round(slowest / 60, 3), "missed_actions": missed_actions(run_dir),
             "measured_ratio": round(wall * 60 / slowest, 3) if wall and slowest > 0 else None}
+
+
+def missed_actions(run_dir: Path) -> float | None:
+    """The share of control periods whose action came too late over all rigs, from each simulated rig's last
+    periodic report in its log (rpi_bridge/runner.py: "<ticks> ticks, <misses> misses"): the machine's load shows
+    there, against the ``lab`` profile's loop_miss_rate."""
+    ticks = misses = 0
+    for log in sorted((run_dir / "logs").glob("qube-sim-*.log")):
+        found = re.findall(r"(\d+) ticks, (\d+) misses", log.read_text())
+        if found:
+            ticks, misses = ticks + int(found[-1][0]), misses + int(found[-1][1])
+    return round(misses / ticks, 4) if ticks else None
 
 
 def measured_wall(run_dir: Path) -> float | None:
@@ -303,9 +316,7 @@ def report(result: dict[str, Any], source: str) -> str:
                      f"{len(live)} of {len(result['realtime'])} finished"
                      + (f"; wall-clock over the slowest rig's rig time {ratios[len(ratios) // 2]:.2f} (median; "
                         f"{ratios[0]:.2f} to {ratios[-1]:.2f})" if ratios else "") + "; last rig per seed: "
-                     + "; ".join(f"{r['seed']}: " + (f"episode {r['episodes']}, {r['balance_steps']:,} balance steps, "
-                                                     f"{r['rig_min']:.1f} rig min" if r["finished"] else "unfinished")
-                                 for r in result["realtime"]) + ".")
+                     + "; ".join(_live(r) for r in result["realtime"]) + ".")
     trials = result["disturbed_trials"]
     if trials:
         pulses = sorted(t["largest_pulse_of_stall"] for t in trials if "largest_pulse_of_stall" in t)
@@ -321,6 +332,14 @@ def report(result: dict[str, Any], source: str) -> str:
                      f"median largest pulse survived in the sweep {ref['median_largest_pulse_of_stall']:.0%} of "
                      "stall.")
     return "\n".join(lines)
+
+
+def _live(r: dict[str, Any]) -> str:
+    """One real-time run's last rig, and the share of its rigs' actions that came too late."""
+    rig = (f"episode {r['episodes']}, {r['balance_steps']:,} balance steps, {r['rig_min']:.1f} rig min"
+           if r["finished"] else "unfinished")
+    late = f", {r['missed_actions']:.1%} of actions late" if r.get("missed_actions") is not None else ""
+    return f"{r['seed']}: {rig}{late}"
 
 
 def _tables(result: dict[str, Any]) -> dict[str, dict[str, dict[str, Any]]]:

@@ -53,7 +53,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
                                    {"rigs": 1, "balanced_to_end": 0, "largest_pulse_of_stall": 0.12}],
               "reference_trials": {"rigs": 2, "balanced_to_end": 1, "median_largest_pulse_of_stall": 0.175},
               "realtime": [{"seed": 101, "finished": True, "measured_ratio": 1.16, "episodes": 19,
-                            "balance_steps": 44_427, "rig_min": 6.237}, {"seed": 102, "finished": False}]}
+                            "balance_steps": 44_427, "rig_min": 6.237, "missed_actions": 0.0094},
+                           {"seed": 102, "finished": False}]}
     text = sim2real.report(result, "sim2real.json")
     assert "| from scratch | 1/2 | not reached (1 of 2 runs unfinished) |" in text  # the unfinished run is worse
     assert "| warm start: randomised pretrain (`lab`, +-20%) | 2/2 | 13 [12.5 to 13.5] |" in text
@@ -66,7 +67,8 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     assert "LQR restricted to the same three actions on the same held-out rigs: 1 of 2 balanced" in text
     assert "sweep 18% of stall" in text
     assert ("seeds 101, 102): 1 of 2 finished; wall-clock over the slowest rig's rig time 1.16 (median; 1.16 to "
-            "1.16); last rig per seed: 101: episode 19, 44,427 balance steps, 6.2 rig min; 102: unfinished.") in text
+            "1.16); last rig per seed: 101: episode 19, 44,427 balance steps, 6.2 rig min, 0.9% of actions late; "
+            "102: unfinished.") in text
     assert "What the randomised pretrain saves" not in text  # scratch's median is an unfinished run: no ratio
     finished = sim2real.table([run("scratch", 101, 200, 34_000, 30.0), run("randomised", 101, 12, 29_000, 4.0)])
     assert "falls from 30.0 minutes from scratch to 4.0 warm-started (13%)" in (sim2real._saving(finished) or "")

@@ -24,6 +24,11 @@ def aggregate(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) ->
     return Aggregate(gradient=federation.weighted_sum(gradients, weights), weights=weights)
 
 
+def share(progress: float) -> float:
+    """Eq. 8's numerator, s_n = progress_n (what an edge sums before the root divides, chief/tiers.py)."""
+    return progress
+
+
 def keep_weight(progress: float) -> float:
     """Eq. 10: w_T = progress (PI / TC when the return floor is 0)."""
     return progress
@@ -36,4 +41,5 @@ STRATEGY = Strategy(
     keep_weight=keep_weight,
     tolerates=lambda n: 0,
     robustness="a linear mean: one worker's gradient (or a worker claiming full progress) can move g_bar anywhere",
+    share=share,
 )

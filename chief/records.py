@@ -20,6 +20,18 @@ from runtime.storage import atomic_write
 
 METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
+#: A tiered run's witness (written by an observer of the wire, deploy/inprocess.py --edges): every worker's actor
+#: gradient and every aggregate the root sent, so the audit can check the root's Eq. 9 against the flat one.
+GRADIENTS = "gradients.npz"
+
+
+def gradient_key(episode: int, step: int, who: str, name: str) -> str:
+    """The key of one tensor in GRADIENTS: round (episode, step), the worker (or ``ROOT``), the tensor's name."""
+    return f"e{episode}s{step}/{who}/{name}"
+
+
+#: Whose tensor in GRADIENTS is the root's aggregate (no worker id can be it: '@' is no id character).
+ROOT = "@root"
 
 WorkerState = Literal["active", "lagging", "offline", "finished"]
 
@@ -102,9 +114,10 @@ class StepRecord(Record):
 class RoundRecord(Record):
     """A closed round and the chief's answer to it (chief.rounds.RoundOutcome without its tensors). ``offline``:
     in a round where a worker finished, the learners the chief knew were offline and left out of the transfer
-    (absent when none)."""
+    (absent when none). ``edges``: in a tiered run (docs/explanation/tiered.md), each edge whose partial the root
+    combined, with the contributors it summed (absent in a flat run)."""
 
-    OPTIONAL = frozenset({"offline"})
+    OPTIONAL = frozenset({"offline", "edges"})
 
     type: Literal["round"] = "round"
     round: int
@@ -125,6 +138,7 @@ class RoundRecord(Record):
     clipped: dict[str, float] = Field(default_factory=dict)
     t: float = 0.0
     offline: list[str] | None = None
+    edges: dict[str, list[str]] | None = None
 
 
 class RefusedRecord(Record):

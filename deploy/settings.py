@@ -83,6 +83,8 @@ class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettin
 
     workers: int = setting(4, "number of workers", ge=1)
     run_dir: Path = setting(help="the run folder to write")
+    edges: int = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), worker i behind edge "
+                         "e<i mod N>; 0: flat. A strategy that cannot be split (median, trimmed) runs flat", ge=0)
 
     @field_validator("env")
     @classmethod

@@ -154,7 +154,7 @@ class WorkerService:
         cfg = self.cfg
         torch.set_num_threads(1)
         self.conn.start()
-        chief = topics.chief(cfg.run_id, "+")
+        chief = topics.chief(cfg.run_id, "+") if cfg.edge is None else topics.relayed(cfg.run_id, cfg.edge, "+")
         self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
         try:
             start = self._join()
@@ -190,7 +190,8 @@ class WorkerService:
                             critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs, algo=cfg.algo,
                             host=socket.gethostname(), pid=os.getpid(),
                             init_model=self.init_model.digest if self.init_model else None,
-                            init_model_path=self.init_model.given[:1000] if self.init_model else "")
+                            init_model_path=self.init_model.given[:1000] if self.init_model else "",
+                            edge=cfg.edge)
         self.actor_spec = probe.actor_spec()
         deadline = time.monotonic() + cfg.start_timeout
         next_hello = 0.0

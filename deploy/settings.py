@@ -5,7 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, PositiveInt, field_validator, model_validator
+from pydantic import (
+    BeforeValidator,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PlainSerializer,
+    PositiveInt,
+    field_validator,
+    model_validator,
+)
 
 from chief.settings import FederationSettings
 from deploy import sites
@@ -51,6 +59,9 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
                                                  "to look at the final state")
     qube_clock: Clock = setting("lockstep", "clock of the simulated rigs when --env qube (python -m services.qube_sim "
                                 "--help)")
+    edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), each its own "
+                                    "process (python -m chief --role edge), worker i behind edge e<i mod N>; 0: flat. "
+                                    "A strategy that cannot be split (median, trimmed) runs flat")
 
     @field_validator("broker")
     @classmethod
@@ -83,8 +94,9 @@ class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettin
 
     workers: int = setting(4, "number of workers", ge=1)
     run_dir: Path = setting(help="the run folder to write")
-    edges: int = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), worker i behind edge "
-                         "e<i mod N>; 0: flat. A strategy that cannot be split (median, trimmed) runs flat", ge=0)
+    edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), worker i behind "
+                                    "edge e<i mod N>, each in its own thread; 0: flat. A strategy that cannot be split "
+                                    "(median, trimmed) runs flat")
 
     @field_validator("env")
     @classmethod

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from protocol.routes import BRIDGE, CHIEF, DASHBOARD, ROUTES, WORKER, Route
+from protocol.routes import BRIDGE, CHIEF, DASHBOARD, EDGE, ROUTES, WORKER, Route
 from protocol.topics import check_id
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
@@ -38,8 +38,9 @@ HOST = "127.0.0.1"
 Place = Literal["site", "core"]
 SITE: Place = "site"
 CORE: Place = "core"
-#: Where each process of the contract runs: workers and rigs at their site, the chief and the dashboard at the core.
-PLACEMENT: dict[str, Place] = {WORKER: SITE, BRIDGE: SITE, CHIEF: CORE, DASHBOARD: CORE}
+#: Where each process of the contract runs: workers, rigs and edge chiefs at their site, the chief and the dashboard
+#: at the core.
+PLACEMENT: dict[str, Place] = {WORKER: SITE, BRIDGE: SITE, EDGE: SITE, CHIEF: CORE, DASHBOARD: CORE}
 #: Seconds after which a worker at a site sends an unanswered update again (FEDRL_RESEND_INTERVAL; the default is
 #: 30). A core that dies takes with it what it had acknowledged and not yet passed on, and nobody at a site sees it
 #: go: the resend must come while the chief's round still waits (FEDRL_ROUND_TIMEOUT, 30 s by default).

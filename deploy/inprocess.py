@@ -13,7 +13,6 @@ round records as a federation over MQTT (tests/e2e/test_inprocess_equivalence.py
 from __future__ import annotations
 
 import json
-import logging
 import math
 import secrets
 import sys
@@ -24,21 +23,18 @@ from pathlib import Path
 from typing import Any
 
 import msgpack
-import numpy as np
 
 from chief import strategies, tiers
 from chief.edge import EdgeService
-from chief.records import GRADIENTS, ROOT, gradient_key
 from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
 from chief.settings import ChiefSettings
 from deploy.settings import InprocessSettings
+from deploy.witness import Witness
 from protocol import topics
-from protocol.codec import RejectCounter, decode, encode
+from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
-from protocol.messages import ChiefAggregate, MatureParams, RunStop, WorkerUpdate
-from protocol.routes import CHIEF, WORKER, route_for
-from protocol.tensors import unpack_arrays
+from protocol.messages import RunStop
 from protocol.transport import Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
@@ -94,7 +90,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         services[f"e{e}"] = EdgeService(ChiefSettings.given(
             run_id=RUN_ID, role="edge", edge_id=f"e{e}", round_timeout=math.inf, start_timeout=START_TIMEOUT,
             run_key=key), connect=hub.connect).run
-    witness = Witness(hub, run_dir / GRADIENTS) if edges else None
+    witness = Witness(hub.connect, RUN_ID, run_dir) if edges else None
     for i in range(workers):
         wid = f"w{i}"
         worker_conns[wid] = []
@@ -124,31 +120,6 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         {"worker_s": {w: [round(x, 5) for x in c[0].seconds] for w, c in worker_conns.items() if c},
          "chief_s": [round(x, 5) for x in chief_conn[0].seconds]}) + "\n")
     return summary
-
-
-class Witness:
-    """An observer of a tiered run's wire: every worker's actor gradient and every aggregate the root sent, saved as
-    GRADIENTS (chief.records.gradient_key) for the audit's ``tiered-exact`` check."""
-
-    def __init__(self, hub: Hub, path: Path) -> None:
-        self.path = path
-        self.tensors: dict[str, np.ndarray] = {}
-        self.conn = hub.connect("witness", None, RejectCounter(logging.getLogger("witness")))
-        self.conn.start()
-        for publisher, kind in ((WORKER, "update"), (CHIEF, "aggregate")):
-            self.conn.subscribe(route_for(publisher, kind).filter(run=RUN_ID), self._note, qos=1)
-
-    def _note(self, topic: str, payload: bytes) -> None:
-        msg = decode(payload, WorkerUpdate, MatureParams, ChiefAggregate)
-        if isinstance(msg, MatureParams):
-            return
-        who = msg.worker_id if isinstance(msg, WorkerUpdate) else ROOT
-        for name, array in unpack_arrays(msg.gradient or {}).items():
-            self.tensors[gradient_key(msg.episode, msg.step, who, name)] = array
-
-    def save(self) -> None:
-        self.conn.stop()
-        np.savez_compressed(self.path, **self.tensors)  # type: ignore[arg-type]
 
 
 _Threads = dict[str, Any]  # name -> exit code, the exception it raised, or its running thread

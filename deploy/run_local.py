@@ -34,11 +34,14 @@ from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy import sites
 from deploy.settings import LocalRunSettings
+from deploy.witness import Witness
+from protocol.codec import RejectCounter
 from protocol.messages import INTERRUPTED
-from protocol.mqtt import BrokerAddress
+from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import worker_seed
+from protocol.transport import Connect
 from runtime.cli import exits_on_storage_faults
-from runtime.settings import Settings, returns_code, to_env
+from runtime.settings import RunMqttSettings, Settings, returns_code, to_env
 from runtime.storage import EXIT_STORAGE, storage_errors
 from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.service import wait_for_url
@@ -130,6 +133,8 @@ def main(argv: list[str] | None = None) -> int:
         for e in sorted(set(edges.values())):  # before the workers: an edge passes the root's RunStart on to them
             fleet.start(f"edge-{e}", "chief", s.child(ChiefSettings, **common, **login(e), run_key=key,
                                                       role="edge", edge_id=e, edges=0, run_dir=run_dir))
+        witness = (Witness(_observer(broker, s.run_id, login), s.run_id, run_dir) if s.witness and edges
+                   else None)
         start_devices(s, fleet, common, login, key, worker_ids, rigs, edges)
         print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
         if s.dashboard_port is not None:
@@ -138,6 +143,8 @@ def main(argv: list[str] | None = None) -> int:
                   flush=True)
         code = run_chief(fleet, s.child(ChiefSettings, **common, **login("chief"), run_key=key, run_dir=run_dir,
                                         edges=len(set(edges.values()))), run_dir)
+        if witness is not None:
+            print(f"witness: every gradient and root aggregate in {witness.save()}")
         code = report(s, argv, code, time.monotonic() - t0)
         ended = (run_dir / "summary.json").exists() and code != EXIT_INTERRUPTED
         if ended and s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
@@ -179,6 +186,16 @@ def edge_of(s: LocalRunSettings, worker_ids: list[str]) -> dict[str, str]:
         print(f"note: {tiers.why_flat(strategy)}", file=sys.stderr)
         return {}
     return {w: f"e{i % s.edges}" for i, w in enumerate(worker_ids)}
+
+
+def _observer(broker: str, run_id: str, login: Login) -> Connect:
+    """A Connect for a read-only MQTT client of the run (the dashboard's login)."""
+    address = RunMqttSettings.given(broker=broker, run_id=run_id, **login("observer")).address()
+
+    def connect(client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
+        return MqttConnection(address, client_id=client_id, will=will, rejects=rejects)
+
+    return connect
 
 
 def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs: dict[int, str],

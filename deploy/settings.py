@@ -62,6 +62,9 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
     edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), each its own "
                                     "process (python -m chief --role edge), worker i behind edge e<i mod N>; 0: flat. "
                                     "A strategy that cannot be split (median, trimmed) runs flat")
+    witness: bool = setting(False, "with --edges: an observer keeps every worker's gradient and every root aggregate "
+                            "in the run folder (gradients.npz), so that python -m chief.audit checks the root's "
+                            "Eq. 9 against the flat one (docs/explanation/tiered.md)")
 
     @field_validator("broker")
     @classmethod

@@ -6,6 +6,8 @@ both edges, and the audit passes."""
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -47,3 +49,20 @@ def test_a_tiered_federation_is_the_flat_one_across_levels(tmp_path: Path) -> No
     with pytest.raises(AuditFailure) as failure:
         audit(tmp_path)
     assert failure.value.invariant == "tiered-exact"
+
+
+def test_a_tiered_federation_over_a_real_broker(tmp_path: Path) -> None:
+    """The same over MQTT (deploy.run_local --edges 2: the embedded broker with the run's users and ACL, each edge
+    chief its own process), the wire witnessed: every root aggregate is the flat one within the bound."""
+    run_dir = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "deploy.run_local", "--workers", "4", "--edges", "2", "--witness",
+                           "--env", ENV, "--seed", str(SEED), "--max-episodes", "3", "--run-dir", str(run_dir),
+                           "--run-id", "tiered", "--dashboard-port", "off"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    report = audit(run_dir)
+    rounds = [r for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
+    assert len(rounds) == 3 and all(set(r["edges"]) == {"e0", "e1"} for r in rounds)
+    assert report.tiered == 3
+    for e in ("e0", "e1"):
+        assert "3 partials sent" in (run_dir / "logs" / f"edge-{e}.log").read_text()

@@ -432,8 +432,9 @@ def eq8_weights(run: Run) -> None:
 
 @check("tiered-edges")
 def tiered_edges(run: Run) -> None:
-    """A tiered run (docs/explanation/tiered.md): each round's contributors are exactly the disjoint union of the
-    contributors its edges' partials summed, and a worker stays behind one edge."""
+    """Algorithm 1's P across levels (docs/explanation/tiered.md): in a tiered run each round's contributors, whose
+    gradients Eq. 9 sums, are exactly the disjoint union of the contributors its edges' partials summed, and a worker
+    stays behind one edge."""
     edge_of: dict[str, str] = {}
     for r in run.rounds:
         if r.edges is None:

@@ -215,13 +215,18 @@ class Site:
         return [f"{self.name}-rig{i}" for i in range(self.rigs)]
 
     @property
+    def edge_id(self) -> str:
+        """The id of the site's edge chief in a tiered run (docs/explanation/tiered.md): the site's name."""
+        return self.name
+
+    @property
     def bridge_user(self) -> str:
         return f"bridge-{self.name}"
 
 
 def bridge_acl(site: Site, run: str | None = None) -> str:
-    """The core's ACL entry for a site's bridge: it publishes what the site's own workers and rigs publish (so one
-    site cannot speak for another's), reads what the chief sends them, and keeps its state notification."""
+    """The core's ACL entry for a site's bridge: it publishes what the site's own workers, rigs and edge chief publish
+    (so one site cannot speak for another's), reads what the chief sends them, and keeps its state notification."""
     lines = [f"# Site {site.name}'s bridge (deploy/sites.py).", f"user {site.bridge_user}",
              f"topic write $SYS/broker/connection/{site.bridge_user}/state"]
     for topic in bridge_topics(run):
@@ -229,7 +234,8 @@ def bridge_acl(site: Site, run: str | None = None) -> str:
         if topic.direction == "in":
             lines.append(f"topic read {topic.pattern}")
             continue
-        level, names = ("id", site.worker_ids) if "id" in route.parameters else ("rig", site.rig_ids)
+        level, names = next((level, names) for level, names in (("id", site.worker_ids), ("edge", [site.edge_id]),
+                                                                 ("rig", site.rig_ids)) if level in route.parameters)
         fixed = {"run": run} if run and "run" in route.parameters else {}
         lines += [f"topic write {route.filter(**fixed, **{level: name})}" for name in names]
     return "\n".join(lines) + "\n"

@@ -272,8 +272,9 @@ def logins(folder: Path) -> str:
 def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, run: str | None = None,
                      core_ca: str | None = None) -> list[Path]:
     """Every broker's folder for a multi-site deployment: ``core/`` (the chief's and the dashboard's users, one
-    user per site bridge) and ``site-<name>/`` (its workers' and rigs' users, its mosquitto.conf: ``base`` plus
-    its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site broker sees it).
+    user per site bridge) and ``site-<name>/`` (its workers', rigs' and edge chief's users, its mosquitto.conf:
+    ``base`` plus its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site
+    broker sees it).
     Each folder also holds the run's key (``run_key``, the same everywhere: an orchestrator takes a folder per
     place), and so does each process's credentials/<user>.env. Passwords and the key are random; files with
     secrets are private. Returns the folders."""
@@ -288,7 +289,7 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
     for site in sites:
         folder = out / f"site-{site.name}"
         make_users(folder, "-w", str(site.workers), "-r", str(site.rigs), "--worker-prefix", f"{site.name}-w",
-                   "--rig-prefix", f"{site.name}-rig", "--no-chief", *run_args)
+                   "--rig-prefix", f"{site.name}-rig", "--no-chief", "--edge", site.edge_id, *run_args)
         password = secrets.token_urlsafe(24)
         add_user(core_dir, site.bridge_user, password, bridge_acl(site, run))
         bridge = Bridge(site.name, core, run, site.bridge_user, password, core_ca)

@@ -473,6 +473,26 @@ def tiered_exact(run: Run) -> None:
         run.report.tiered += 1
 
 
+@check("quorum")
+def quorum(run: Run) -> None:
+    """Algorithm 1's wait for the round's messages, k of n (summary.json ``quorum`` k, docs/explanation/tiered.md):
+    a round closed without some of the workers it waited for (``late``) only with at least k contributors, none of
+    them late; a run without a quorum has no late worker; and every submission refused as ``late`` was for a round
+    that closed without its worker, whose gradient Eq. 9 then left out."""
+    k = run.summary.quorum
+    for r in run.rounds:
+        if not r.late:
+            continue
+        _holds(k is not None, f"round {r.round} closed without {r.late}, and the run has no quorum")
+        assert k is not None
+        _holds(len(r.contributors) >= k and not set(r.late) & set(r.contributors), f"round {r.round} closed with "
+               f"{len(r.contributors)} contributors {r.contributors}, late {r.late}, under a quorum of {k}")
+    late = {r.round: set(r.late or ()) for r in run.rounds}
+    for e in run.refused:
+        _holds(e.reason != "late" or e.worker in late.get(e.round, set()), f"{e.worker}'s submission for round "
+               f"{e.round} was refused as late, but that round did not close without it")
+
+
 def _witnessed(gradients: dict[str, np.ndarray], episode: int, step: int, who: str) -> dict[str, np.ndarray]:
     """One sender's tensors of round (episode, step) in a GRADIENTS witness, by name."""
     prefix = gradient_key(episode, step, who, "")

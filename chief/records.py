@@ -115,9 +115,10 @@ class RoundRecord(Record):
     """A closed round and the chief's answer to it (chief.rounds.RoundOutcome without its tensors). ``offline``:
     in a round where a worker finished, the learners the chief knew were offline and left out of the transfer
     (absent when none). ``edges``: in a tiered run (docs/explanation/tiered.md), each edge whose partial the root
-    combined, with the contributors it summed (absent in a flat run)."""
+    combined, with the contributors it summed (absent in a flat run). ``late``: in a run with a quorum, the workers
+    the round closed without (absent when none)."""
 
-    OPTIONAL = frozenset({"offline", "edges"})
+    OPTIONAL = frozenset({"offline", "edges", "late"})
 
     type: Literal["round"] = "round"
     round: int
@@ -139,6 +140,7 @@ class RoundRecord(Record):
     t: float = 0.0
     offline: list[str] | None = None
     edges: dict[str, list[str]] | None = None
+    late: list[str] | None = None
 
 
 class RefusedRecord(Record):
@@ -258,8 +260,8 @@ class RunSummary(Record):
     the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from
     scratch)."""
 
-    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
-                          "played_steps", "refused_steps", "last_rig", "init_model"})
+    OPTIONAL = frozenset({"quorum", "mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates",
+                          "restarts", "played_steps", "refused_steps", "last_rig", "init_model"})
 
     run_id: str = ""
     env: str
@@ -278,6 +280,7 @@ class RunSummary(Record):
     rounds: int
     rounds_per_episode: int = 1
     max_staleness: int = 0
+    quorum: int | None = None
     end_reason: str
     mode: str | None = None
     wall_s: float | None = None
@@ -337,6 +340,7 @@ class KeeperState(Record):
     critic_spec: dict[str, list[int]] | None
     rounds_per_episode: int
     max_staleness: int = 0
+    quorum: int = 0
     round: int
     workers: list[SavedWorker]
     pending: list[dict[str, Any]]

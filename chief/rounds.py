@@ -164,6 +164,7 @@ class RoundOutcome:
     clipped: dict[str, float] = field(default_factory=dict)  # worker -> factor its gradient was scaled by
     offline: list[str] = field(default_factory=list)  # learners left out of a finishing round's transfer: offline
     edges: dict[str, list[str]] = field(default_factory=dict)  # a root's round: edge -> its partial's contributors
+    late: list[str] = field(default_factory=list)  # a quorum's round: the waited-on workers it closed without
     partial: tiers.Partial | None = None  # an edge's round: its part of Eq. 9, for the root
 
     @property
@@ -181,7 +182,8 @@ class RoundOutcome:
                 "source_pi": self.source_pi, "keep_weights": self.keep_weights, "recipient_pis": self.recipient_pis,
                 "finished": self.finished, "timed_out": self.timed_out, "clipped": self.clipped,
                 **({"offline": self.offline} if self.offline else {}),
-                **({"edges": self.edges} if self.edges else {})}
+                **({"edges": self.edges} if self.edges else {}),
+                **({"late": self.late} if self.late else {})}
 
 
 @dataclass
@@ -273,6 +275,7 @@ class RoundKeeper:
         shape: RoundShape = PER_EPISODE,
         max_staleness: int = 0,
         tier: Tier = "flat",
+        quorum: int = 0,
     ) -> None:
         if not workers:
             raise ValueError("a federation needs at least one worker")
@@ -285,6 +288,10 @@ class RoundKeeper:
         federation.progress(task.tc, task.tc, task.r_floor)  # validates tc > r_floor
         if tier != "flat" and not tiers.decomposable(self.strategy):
             raise ValueError(tiers.why_flat(self.strategy))
+        if quorum and not (self.strategy.allows_staleness and tier == "flat" and 1 <= quorum <= len(workers)):
+            raise ValueError(f"a quorum of {quorum}: 1..{len(workers)} workers, a per-episode strategy (not "
+                             f"{policy!r}: every worker must apply each step's mean with its own), and a flat run")
+        self.quorum = quorum  # k: a round closes when k of its waited-on workers submitted (0: all of them)
         self.tier = tier
         #: A root's partials: round -> edge -> (its Partial, its contributors, the factors it clipped their
         #: gradients by).
@@ -380,8 +387,13 @@ class RoundKeeper:
         if rec.state == "finished" and (sub.mature or not rec.helping):
             return self._reject(sub, r, "finished", f"{sub.worker_id} finished at episode {rec.solved_episode}")
         if r < self.round:
-            verdict = self._reject(sub, r, "stale", f"round {r} is closed (open round {self.round})")
-            verdict.replay = self.answers.get(r)
+            answer = self.answers.get(r)
+            if answer is not None and sub.worker_id in answer.late:  # dropped: its round closed with a quorum
+                verdict = self._reject(sub, r, "late", f"round {r} closed with its quorum of {self.quorum} before "
+                                       "this submission came")
+            else:
+                verdict = self._reject(sub, r, "stale", f"round {r} is closed (open round {self.round})")
+            verdict.replay = answer
             return verdict
         last = min(self.round + AHEAD_WINDOW * self.shape.per_episode, self.shape.last_of(self.max_episodes))
         if r > last:
@@ -541,13 +553,19 @@ class RoundKeeper:
 
     def _maybe_close(self, now: float) -> list[RoundOutcome]:
         outcomes: list[RoundOutcome] = []
-        while not self.done and (self.pending or self.ahead) and not self.waiting_for():
+        while not self.done and (self.pending or self.ahead) and self._complete():
             outcomes += self._close()
             self._open_next(now)
         return outcomes
 
+    def _complete(self) -> bool:
+        """Whether the open round has what it waits for: every waited-on worker's submission or, with a quorum k,
+        k of them (all of them when fewer than k are left to wait for)."""
+        return not self.waiting_for() or (self.quorum > 0 and len(self.pending) >= self.quorum)
+
     def _close(self) -> list[RoundOutcome]:
         subs, r = self.pending, self.round
+        late = self.waiting_for() if self.quorum else []  # the round closes without them (a quorum's)
         mature = {w: s for w, s in subs.items() if s.mature}
         outcome = self._partial(r, subs, sorted(mature)) if self.tier == "edge" else None
         if outcome is None and mature:
@@ -558,6 +576,7 @@ class RoundKeeper:
                 outcome.offline = self._offline_learners(mature)
         if self.tier == "root":
             outcome.edges = {e: held[1] for e, held in sorted(self.partials.get(r, {}).items())}
+        outcome.late = late
         self.answers[r] = outcome
         self.answers.pop(r - ANSWERS_KEPT, None)
         self.partials.pop(r, None)

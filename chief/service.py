@@ -187,7 +187,7 @@ class ChiefService:
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
                                           shape=shape, max_staleness=cfg.max_staleness,
-                                          tier="root" if cfg.edges else "flat")
+                                          tier="root" if cfg.edges else "flat", quorum=cfg.quorum)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
             if self.outputs.tensorboard:

@@ -31,6 +31,17 @@ class FederationSettings(Settings):
                                  "rounds are unanswered (0: it waits for every answer; per-episode strategies only)",
                                  ge=0, le=STALENESS_LIMIT)
 
+    quorum: int = setting(0, "k of a k-of-n round: it closes when k of the workers it waits for submitted; a later "
+                          "submission for it is dropped (refused as late, its worker applies the round's answer); 0: "
+                          "every worker (docs/explanation/tiered.md). Per-episode strategies, flat runs", ge=0)
+
+    @model_validator(mode="after")
+    def _quorum_fits(self) -> FederationSettings:
+        if self.quorum and not strategies.get(self.policy).allows_staleness:
+            raise ValueError(f"--quorum {self.quorum}: policy {self.policy!r} shares every PPO step, whose mean each "
+                             "worker must apply with its own; use 0")
+        return self
+
     @model_validator(mode="after")
     def _staleness_fits(self) -> FederationSettings:
         if self.max_staleness and not strategies.get(self.policy).allows_staleness:
@@ -69,6 +80,9 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
             raise ValueError("--edge-id goes with --role edge, and --role edge needs one")
         if self.role == "edge" and self.edges:
             raise ValueError("--edges is the root chief's setting, not an edge's")
+        if self.edges and self.quorum:
+            raise ValueError("--quorum runs flat: an edge waits for all of its workers (a quorum across edges is not "
+                             "built yet)")
         if self.edges and not tiers.decomposable(strategies.get(self.policy)):
             raise ValueError(f"--edges {self.edges}: {tiers.why_flat(strategies.get(self.policy))}")
         return self

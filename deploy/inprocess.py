@@ -54,7 +54,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
                    tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
                    init_model: Path | None = None, models: bool = True, max_staleness: int = 0,
-                   tolerate_failures: bool = False, algo: str = "ppo", edges: int = 0) -> dict[str, Any]:
+                   tolerate_failures: bool = False, algo: str = "ppo", edges: int = 0, quorum: int = 0,
+                   pace: dict[str, float] | None = None) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
     write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
     ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
@@ -67,7 +68,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     that run's summary, which says which workers did not solve (else a RuntimeError after the run, as for a bug).
     ``edges``: a tiered run (docs/explanation/tiered.md), worker i behind edge chief ``e{i mod edges}``, each an
     EdgeService in its own thread, and the wire observed into GRADIENTS for the audit's exactness check; a strategy
-    that cannot be split runs flat (a note on stderr)."""
+    that cannot be split runs flat (a note on stderr). ``quorum``: k of a k-of-n round (ChiefSettings.quorum);
+    ``pace``: worker -> how many times slower than its own pace it plays (a straggler, WorkerSettings.slowdown)."""
     import torch  # after worker/'s check of the learn extra (one line where it is missing)
 
     torch.set_num_threads(1)
@@ -81,7 +83,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, algo=algo, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
                             idle_timeout=IDLE_TIMEOUT, run_dir=run_dir, init_model=init_model, run_key=key,
-                            max_staleness=max_staleness, edges=edges),
+                            max_staleness=max_staleness, edges=edges, quorum=quorum),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
     worker_conns: dict[str, list[_Timed]] = {}
@@ -95,7 +97,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         wid = f"w{i}"
         worker_conns[wid] = []
         cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, algo=algo, device_noise=device_noise,
-                                   edge=f"e{i % edges}" if edges else None,
+                                   edge=f"e{i % edges}" if edges else None, slowdown=(pace or {}).get(wid, 1.0),
                                    reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
                                    resend_interval=math.inf, init_model=init_model, run_key=key,
                                    model_dir=run_dir / "models" if models else None, **(env_options or {}))
@@ -215,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
                                  device_noise=s.device_noise, progress=True, init_model=s.init_model,
-                                 max_staleness=s.max_staleness, algo=s.algo, edges=s.edges)
+                                 max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

@@ -181,6 +181,14 @@ class WorkerService:
             time.sleep(0.2)  # let the last status go out
             self.conn.stop()
 
+    def _play(self, algo: Algorithm2) -> WorkerUpdate | MatureParams:
+        """The next episode, played ``slowdown`` times slower than this machine plays it (a straggler)."""
+        began = time.monotonic()
+        submission = algo.play()
+        if self.cfg.slowdown > 1.0:
+            self._interrupt.wait((self.cfg.slowdown - 1.0) * (time.monotonic() - began))
+        return submission
+
     def _join(self) -> RunStart | None:
         """Say hello every second until the chief's RunStart names this worker."""
         cfg = self.cfg
@@ -234,7 +242,7 @@ class WorkerService:
                      index, seed, cfg.env, start.policy, algo.next_episode if pending is None else algo.episode)
             self._status("training", episode=algo.next_episode - 1)
             while pending is not None or (algo.next_episode <= start.max_episodes and not self.halted):
-                submission: WorkerUpdate | MatureParams | None = pending if pending is not None else algo.play()
+                submission: WorkerUpdate | MatureParams | None = pending if pending is not None else self._play(algo)
                 pending = None
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner, algo, start)

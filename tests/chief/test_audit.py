@@ -241,8 +241,13 @@ def doctor_edges(lines: list[dict]) -> None:
     r["edges"] = {"e0": r["contributors"][:1], "e1": []}  # a tiered round whose edges summed too few
 
 
+def doctor_late(lines: list[dict]) -> None:
+    first(lines, type="round", round=3)["late"] = ["w0"]  # a round that closed without a worker, and no quorum
+
+
 DOCTORED = [
     (doctor_edges, "tiered-edges"),
+    (doctor_late, "quorum"),
     (doctor_played_under, "played"),
     (doctor_restarted, "receipts"),
     (doctor_restarted_round, "delivery"),
@@ -277,7 +282,7 @@ def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     protects."""
     assert ({invariant for _, invariant in DOCTORED} | {"summary", "rig-time", "tiered-exact"}
             == {c.invariant for c in CHECKS})
-    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 15
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 16
     for c in CHECKS:
         assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
 

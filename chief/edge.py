@@ -8,7 +8,8 @@ transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedr
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 
 It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
-workers' tensor shapes from their hellos; it writes no run folder (the root's records cover every submission).
+workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
+run folder (the root's records cover every submission).
 """
 
 from __future__ import annotations
@@ -132,6 +133,10 @@ class EdgeService:
 
     def _handle(self, msg: Any, payload: bytes) -> None:
         if isinstance(msg, WorkerHello):
+            if msg.edge == self.edge and msg.worker_id not in self.specs:
+                # From its first hello on (before the root's RunStart lets it submit), so nothing it sends is missed.
+                for leaf in (topics.UPDATE, topics.STATUS):
+                    self.conn.subscribe(topics.worker(self.cfg.run_id, msg.worker_id, leaf), self._on_worker, qos=1)
             if msg.edge == self.edge:
                 self.specs[msg.worker_id] = (dict(msg.actor_spec), dict(msg.critic_spec))
             return
@@ -176,9 +181,6 @@ class EdgeService:
                                   shape=RoundShape(per_episode=start.rounds_per_episode),
                                   max_staleness=start.max_staleness, tier="edge")
         self.start = start
-        for w in mine:
-            for leaf in (topics.UPDATE, topics.STATUS):
-                self.conn.subscribe(topics.worker(self.cfg.run_id, w, leaf), self._on_worker, qos=1)
         log.info("edge %s: %d workers (%s), policy %s", self.edge, len(mine), ", ".join(mine), start.policy)
 
     def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from chief import federation
 from chief.strategies.base import Strategy, no_gradient
 
 Arrays = Mapping[str, np.ndarray]
@@ -74,11 +75,7 @@ def shares(strategy: Strategy, progress: Mapping[str, float]) -> dict[str, float
 
 def weights(all_shares: Mapping[str, float]) -> dict[str, float]:
     """Eq. 8: w_n = s_n / sum s, uniform when the sum is 0 (the flat strategies' weights exactly)."""
-    ids = sorted(all_shares)
-    total = sum(all_shares[i] for i in ids)
-    if total <= 0.0:
-        return {i: 1.0 / len(ids) for i in ids}
-    return {i: all_shares[i] / total for i in ids}
+    return federation.normalised(all_shares)
 
 
 def _sum(gradients: Mapping[str, Arrays], scale: Mapping[str, float]) -> dict[str, np.ndarray]:

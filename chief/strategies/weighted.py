@@ -11,11 +11,7 @@ from chief.strategies.base import Aggregate, Arrays, Strategy
 
 def contribution_weights(progress: Mapping[str, float]) -> dict[str, float]:
     """Eq. 8: w_n = progress_n / sum(progress), uniform when every worker is at the floor."""
-    ids = sorted(progress)
-    total = sum(progress[i] for i in ids)
-    if total <= 0.0:
-        return {i: 1.0 / len(ids) for i in ids}
-    return {i: progress[i] / total for i in ids}
+    return federation.normalised(progress)
 
 
 def aggregate(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:

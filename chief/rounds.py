@@ -356,9 +356,12 @@ class RoundKeeper:
 
     def waiting_for(self) -> list[str]:
         """Active workers whose submission for the current round is still missing (not those already past it)."""
-        return [w for w, rec in self.workers.items()
-                if (rec.state in ("active", "offline") or rec.helping) and not rec.excused
-                and w not in self.pending and rec.last_round <= self.round]
+        return [w for w in self.workers if w not in self.pending and self._waits_for(self.workers[w])]
+
+    def _waits_for(self, rec: WorkerRecord) -> bool:
+        """Whether the open round waits for this worker (if its submission is not in yet)."""
+        return ((rec.state in ("active", "offline") or rec.helping) and not rec.excused
+                and rec.last_round <= self.round)
 
     def progress(self, pi: float | None) -> float:
         """Sign-safe progress of a PI (the floor when the worker has none yet)."""
@@ -561,7 +564,10 @@ class RoundKeeper:
     def _complete(self) -> bool:
         """Whether the open round has what it waits for: every waited-on worker's submission or, with a quorum k,
         k of them (all of them when fewer than k are left to wait for)."""
-        return not self.waiting_for() or (self.quorum > 0 and len(self.pending) >= self.quorum)
+        if self.quorum > 0 and len(self.pending) >= self.quorum:
+            return True
+        # The workers not in yet, as a set difference (one pass in C): a round of N workers costs O(N), not O(N^2).
+        return not any(self._waits_for(self.workers[w]) for w in self.workers.keys() - self.pending.keys())
 
     def _close(self) -> list[RoundOutcome]:
         subs, r = self.pending, self.round

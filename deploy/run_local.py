@@ -130,8 +130,10 @@ def main(argv: list[str] | None = None) -> int:
             dashboard = fleet.start("dashboard", "services.dashboard", s.child(
                 DashboardSettings, **common, **login("observer"), dashboard_host="127.0.0.1",
                 dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
-        for e in sorted(set(edges.values())):  # before the workers: an edge passes the root's RunStart on to them
-            fleet.start(f"edge-{e}", "chief", s.child(ChiefSettings, **common, **login(e), run_key=key,
+        for k, e in enumerate(sorted(set(edges.values()), key=lambda e: int(e[1:]))):
+            # Before the workers (it passes the root's RunStart on to them); with sites, at its workers' site.
+            at = {**common, "broker": s.site_brokers[k]} if s.site_brokers else common
+            fleet.start(f"edge-{e}", "chief", s.child(ChiefSettings, **at, **login(e), run_key=key,
                                                       role="edge", edge_id=e, edges=0, run_dir=run_dir))
         witness = (Witness(_observer(broker, s.run_id, login), s.run_id, run_dir) if s.witness and edges
                    else None)

@@ -84,6 +84,9 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
     def _sites_need_a_core(self) -> LocalRunSettings:
         if self.site_brokers and not self.broker:
             raise ValueError("--site-brokers needs --broker, the core broker they are joined to (the chief's)")
+        if self.site_brokers and self.edges and self.edges != len(self.site_brokers):
+            raise ValueError(f"--edges {self.edges} with {len(self.site_brokers)} --site-brokers: one edge chief per "
+                             "site (edge k at site k, worker i at both's i mod n)")
         return self
 
     @field_validator("run_id")

@@ -4,6 +4,7 @@ to the flat Eq. 8-9 aggregate within the derived bound, for every strategy that 
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -100,3 +101,34 @@ def test_per_step_critics_are_split_too() -> None:
              for g in (["w00", "w03"], ["w01", "w02", "w04", "w05"])]
     critic = tiers.combine(parts)[1]
     assert critic is not None and tiers.excess(critics, flat.weights, 2, flat.gradient, critic) <= 1.0
+
+
+def test_edge_and_root_keepers_close_the_flat_round() -> None:
+    """Two edge keepers and a root keeper (chief/rounds.py tiers) close the rounds a flat keeper closes on the same
+    submissions: the same contributors, Eq. 8 weights and, within the bound, Eq. 9 (transfers through the edges:
+    tests/e2e/test_tiered.py)."""
+    from chief.rounds import RoundKeeper
+    from tests.chief.test_rounds import CARTPOLE, SPEC, fakes
+
+    ids = ["w0", "w1", "w2", "w3"]
+    behind = {"e0": ["w0", "w2"], "e1": ["w1", "w3"]}
+
+    def make(workers: list[str], tier: str) -> RoundKeeper:
+        return RoundKeeper(workers, "weighted", CARTPOLE, 100, 10.0, actor_spec=dict(SPEC), tier=tier)  # type: ignore[arg-type]
+
+    flat, root = make(ids, "flat"), make(ids, "root")
+    edges = {e: make(ws, "edge") for e, ws in behind.items()}
+    w = fakes(*ids)
+    for episode in range(1, 4):
+        subs = {x: w[x].sub(episode, 20.0 + 10 * i, gv=float(i + 1)) for i, x in enumerate(ids)}
+        [expected] = [o for x in ids for o in flat.submit(subs[x], 0.0).outcomes]
+        for e, ws in behind.items():
+            [part] = [o for x in ws for o in edges[e].submit(subs[x], 0.0).outcomes]
+            assert part.kind == "partial" and part.partial is not None and part.contributors == ws
+            root.add_partial(part.round, e, part.partial, part.contributors, part.clipped)
+            outs = [o for x in ws for o in root.submit(replace(subs[x], gradient={}), 0.0).outcomes]
+        [got] = outs
+        assert (got.contributors, got.weights, got.edges) == (expected.contributors, expected.weights, behind)
+        assert got.gradient is not None and expected.gradient is not None
+        learners = {x: subs[x].gradient for x in ids}
+        assert tiers.excess(learners, got.weights, 2, expected.gradient, got.gradient) <= 1.0  # type: ignore[arg-type]

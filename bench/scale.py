@@ -15,9 +15,11 @@ at once and waits for the answer. Per point, over the rounds after the first (co
 - ``broker_msgs_per_s``: the broker's messages received and sent per second over the measured rounds (its $SYS
   counters); ``update_bytes``: one device's update message.
 
-The audit (python -m chief.audit) checks every point's run folder. Hosts: every process runs on this machine's
-loopback (127.0.0.1), one broker for all; spreading the edges over network namespaces is not built (the report's
-``hosts`` says so). Writes bench/results/scale.json (``--out``), one row per point.
+The audit (python -m chief.audit) checks every point's run folder. Hosts: one machine and one broker; the devices
+and the root chief on 127.0.0.1, each edge chief in its own network namespace acting as a host (a veth pair to this
+one, 10.201.k.0/30; needs root and ``ip``), or on 127.0.0.1 with ``--no-netns`` or where namespaces cannot be made
+(one line says so; each row's ``edge_hosts`` and the report's ``hosts`` too). Writes bench/results/scale.json
+(``--out``), one row per point.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from protocol.messages import WorkerUpdate
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import PI_WINDOW
 from services.broker import mosquitto
-from services.broker.embedded import stop_process
+from services.broker.embedded import free_port, stop_process
 
 OUT = Path("bench/results/scale.json")
 HOST = "127.0.0.1"
@@ -90,6 +92,46 @@ class BrokerCounters:
         self.conn.stop()
 
 
+class EdgeHosts:
+    """Network namespaces acting as the edges' hosts: edge k runs in namespace ``fedrl-scale-e<k>``, joined to this
+    host by a veth pair (10.201.k.1 on this side, 10.201.k.2 on its side), and reaches the broker over it."""
+
+    def __init__(self, count: int) -> None:
+        self.names = [f"fedrl-scale-e{k}" for k in range(count)]
+
+    @classmethod
+    def make(cls, count: int) -> EdgeHosts | None:
+        """The namespaces, or None (after one line saying why) where they cannot be made (not root, no ``ip``)."""
+        hosts = cls(count)
+        try:
+            for k, ns in enumerate(hosts.names):
+                here, there = f"fe{k}h", f"fe{k}n"
+                for cmd in (["netns", "add", ns], ["link", "add", here, "type", "veth", "peer", "name", there],
+                            ["link", "set", there, "netns", ns], ["addr", "add", f"10.201.{k}.1/30", "dev", here],
+                            ["link", "set", here, "up"],
+                            ["netns", "exec", ns, "ip", "addr", "add", f"10.201.{k}.2/30", "dev", there],
+                            ["netns", "exec", ns, "ip", "link", "set", there, "up"],
+                            ["netns", "exec", ns, "ip", "link", "set", "lo", "up"]):
+                    subprocess.run(["ip", *cmd], check=True, capture_output=True, text=True)
+        except (OSError, subprocess.CalledProcessError) as err:
+            hosts.close()
+            print(f"scale: no network namespaces ({getattr(err, 'stderr', '') or err}): every edge on 127.0.0.1",
+                  flush=True)
+            return None
+        return hosts
+
+    def command(self, k: int, argv: list[str]) -> list[str]:
+        return ["ip", "netns", "exec", self.names[k], *argv]
+
+    @staticmethod
+    def broker(k: int, port: int) -> str:
+        return f"mqtt://10.201.{k}.1:{port}"
+
+    def close(self) -> None:
+        for ns in self.names:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # its end of the veth pair goes with it
+
+
 def root_times(run_dir: Path) -> list[float]:
     """Per round, from the root's records: its first counted submission to the round's record (s)."""
     first: dict[int, float] = {}
@@ -102,13 +144,17 @@ def root_times(run_dir: Path) -> list[float]:
     return [closed[r] - first[r] for r in sorted(closed) if r in first]
 
 
-def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str, Any], folder: Path
-          ) -> dict[str, Any]:
-    """One federation of ``devices`` simulated devices, flat or behind ``edges`` edge chiefs, for ``rounds``."""
+def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str, Any], folder: Path,
+          netns: bool = True) -> dict[str, Any]:
+    """One federation of ``devices`` simulated devices, flat or behind ``edges`` edge chiefs (each in its own
+    network namespace with ``netns``, where they can be made), for ``rounds``."""
     name = f"{topology}-{devices}" + (f"-{edges}e" if edges else "")
     work = folder / name
     work.mkdir()
-    broker_proc, port = mosquitto.start(work, max_packet_size=8 * 1024 * 1024, extra="sys_interval 1\n")
+    hosts = EdgeHosts.make(edges) if netns and edges else None
+    outer = free_port()  # the listener the namespaces reach (every address), beside the loopback one
+    broker_proc, port = mosquitto.start(work, max_packet_size=8 * 1024 * 1024,
+                                        extra=f"sys_interval 1\nlistener {outer}\n" if hosts else "sys_interval 1\n")
     broker = f"mqtt://{HOST}:{port}"
     run_dir = work / "run"
     logs = [(work / f"{n}.log").open("wb") for n in ["root", *(f"e{k}" for k in range(edges))]]
@@ -117,8 +163,11 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
     root = subprocess.Popen([sys.executable, "-m", "chief", *common, "--workers", str(devices), "--edges", str(edges),
                              "--max-episodes", str(rounds), "--run-dir", str(run_dir)],
                             stdout=logs[0], stderr=subprocess.STDOUT)
-    edge_procs = [subprocess.Popen([sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}"],
-                                   stdout=logs[k + 1], stderr=subprocess.STDOUT) for k in range(edges)]
+    edge_procs = [subprocess.Popen(
+        hosts.command(k, [sys.executable, "-m", "chief", *common, "--broker", hosts.broker(k, outer), "--role", "edge",
+                          "--edge-id", f"e{k}"]) if hosts else
+        [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}"],
+        stdout=logs[k + 1], stderr=subprocess.STDOUT) for k in range(edges)]
     fleet = counters = None
     try:
         print(f"scale: {name}: connecting {devices} devices", flush=True)
@@ -154,6 +203,8 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
         for log in logs:
             log.close()
         stop_process(broker_proc)
+        if hosts is not None:
+            hosts.close()
     steady = slice(1, None) if rounds > 1 else slice(None)
     update = WorkerUpdate(worker_id=f"w{devices - 1}", episode=rounds, episode_return=20.0, pi=20.0,
                           recent_returns=[20.0] * min(rounds, PI_WINDOW), steps=20, gradient=fleet.grads[fleet.ids[-1]])
@@ -164,6 +215,7 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
             "update_bytes": len(encode(update)),
             "round_ms": round(1000 * statistics.median(t["last_s"] for t in times[steady]), 1),
             "broker_msgs_per_s": {"core": round(msgs_per_s, 1)},
+            "edge_hosts": "network namespaces" if hosts else ("127.0.0.1" if edges else None),
             "audit": str(report)}
 
 
@@ -174,6 +226,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="measure this point instead (repeatable), e.g. 1024:tiered:16 or 64:flat")
     parser.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds per point (default {ROUNDS})")
     parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--no-netns", action="store_true", help="every edge on 127.0.0.1 (no network namespaces)")
     args = parser.parse_args(argv)
     points = [(int(n), topology, int(rest[0]) if rest else 0) for n, topology, *rest in
               (p.split(":") for p in args.point)] if args.point else (QUICK if args.quick else FULL)
@@ -183,12 +236,15 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(prefix="fedrl-scale-") as tmp:
         for n, topology, edges in points:
-            rows.append(point(n, topology, edges, args.rounds, arrays, Path(tmp)))
+            rows.append(point(n, topology, edges, args.rounds, arrays, Path(tmp), netns=not args.no_netns))
             r = rows[-1]
             print(f"scale: {r['n']} devices {r['topology']} ({r['edges']} edges): root {r['root_ms_per_round']} ms "
                   f"and {r['root_bytes_per_round']} B per round, round {r['round_ms']} ms, broker "
                   f"{r['broker_msgs_per_s']['core']} msg/s; audit {r['audit']}", flush=True)
-    result = {"points": rows, "hosts": "127.0.0.1 (one machine, one Mosquitto; network namespaces not built)",
+    spread = {r["edge_hosts"] for r in rows if r["edge_hosts"]}
+    result = {"points": rows, "hosts": "one machine, one Mosquitto; the devices and the root on 127.0.0.1, each edge "
+              + ("in its own network namespace (a veth pair to this host)" if spread == {"network namespaces"}
+                 else "on 127.0.0.1" if spread else "(no edges)"),
               "cores": os.cpu_count(), "load_average_at_start": load, "wall_s": round(time.monotonic() - began, 1),
               "flat_64_ms_cost_json": FLAT_64_MS,
               "command": "python -m bench.scale " + " ".join(argv if argv is not None else sys.argv[1:])}

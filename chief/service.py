@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import math
 import os
 import queue
 import secrets
@@ -58,6 +59,9 @@ EXIT_INTERRUPTED = 130
 #: The kinds of a worker's submissions (a root takes them summed, in its edges' partials).
 UPDATE_KINDS = frozenset({"update", "mature"})
 
+#: The fewest seconds between two RunStarts the chief sends again for workers' hellos.
+ANNOUNCE_INTERVAL = 1.0
+
 #: Seconds between two progress lines.
 PROGRESS_INTERVAL = 2.0
 
@@ -106,6 +110,7 @@ class ChiefService:
         self._must_save = False
         self.duplicates = 0
         self.edge_of: dict[str, str] = {}  # a root's workers: the edge each said it is behind
+        self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
         session, since = ((self.saved[1]["session"], self.saved[1].get("claimed_since", 0.0)) if self.saved is not None
@@ -291,6 +296,7 @@ class ChiefService:
 
     def _announce(self) -> None:
         assert self.keeper is not None
+        self._announced = time.monotonic()
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
                        algo=self.roster.algo,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
@@ -358,7 +364,11 @@ class ChiefService:
         now = time.monotonic()
         if msg.kind == "hello":
             if self._register(msg):
-                self._announce()  # a restarted worker learns the run and the open round
+                # A restarted worker learns the run and the open round. At most once a second: the RunStart is the
+                # same for every worker, each says hello every second until named, and at 1,024 workers (through
+                # edges that pass it on to theirs) a burst of hellos must not become a burst of RunStarts.
+                if now - self._announced >= ANNOUNCE_INTERVAL:
+                    self._announce()
             return []
         if msg.kind == "partial":
             return self._partial(msg, now)

@@ -60,6 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
     n, slow = args.workers, f"w{args.workers - 1}"
+    load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
         runs = [measure("baseline", n - 1, args.episodes, args.seed, args.env, folder),
@@ -70,7 +71,8 @@ def main(argv: list[str] | None = None) -> int:
                                 pace={slow: args.slowdown}))
     base = runs[0]["s_per_round"]
     result = {"env": args.env, "seed": args.seed, "episodes": args.episodes, "slowdown": args.slowdown,
-              "straggler": slow, "load_average_at_start": os.getloadavg()[0], "cores": os.cpu_count(),
+              "straggler": slow, "load_average_at_start": load, "load_average_at_end": os.getloadavg()[0],
+              "cores": os.cpu_count(),
               "runs": runs, "quorum_slowdown_pct": round(100 * (runs[1]["s_per_round"] / base - 1), 1),
               **({"unbounded_slowdown_pct": round(100 * (runs[2]["s_per_round"] / base - 1), 1)}
                  if len(runs) > 2 else {}),

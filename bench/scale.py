@@ -234,24 +234,36 @@ def main(argv: list[str] | None = None) -> int:
     began = time.monotonic()
     load = os.getloadavg()[0]
     rows = []
+    failed = 0
     with tempfile.TemporaryDirectory(prefix="fedrl-scale-") as tmp:
         for n, topology, edges in points:
-            rows.append(point(n, topology, edges, args.rounds, arrays, Path(tmp), netns=not args.no_netns))
-            r = rows[-1]
-            print(f"scale: {r['n']} devices {r['topology']} ({r['edges']} edges): root {r['root_ms_per_round']} ms "
-                  f"and {r['root_bytes_per_round']} B per round, round {r['round_ms']} ms, broker "
-                  f"{r['broker_msgs_per_s']['core']} msg/s; audit {r['audit']}", flush=True)
-    spread = {r["edge_hosts"] for r in rows if r["edge_hosts"]}
+            try:
+                r = point(n, topology, edges, args.rounds, arrays, Path(tmp), netns=not args.no_netns)
+            except Exception as exc:  # one failed point (a device's connection timed out, say) is a row saying so
+                failed += 1
+                rows.append({"n": n, "topology": topology, "edges": edges, "error": f"{type(exc).__name__}: {exc}"})
+                print(f"scale: {n} devices {topology} ({edges} edges) FAILED: {rows[-1]['error']}", flush=True)
+            else:
+                rows.append(r)
+                print(f"scale: {r['n']} devices {r['topology']} ({r['edges']} edges): root {r['root_ms_per_round']} "
+                      f"ms and {r['root_bytes_per_round']} B per round, round {r['round_ms']} ms, broker "
+                      f"{r['broker_msgs_per_s']['core']} msg/s; audit {r['audit']}", flush=True)
+            write(args.out, rows, load, began, argv)  # after every point: a later failure keeps what was measured
+    print(f"scale: {len(rows)} points in {args.out} ({round(time.monotonic() - began, 1)} s), {failed} failed")
+    return 1 if failed else 0
+
+
+def write(out: Path, rows: list[dict[str, Any]], load: float, began: float, argv: list[str] | None) -> None:
+    """scale.json: the rows so far and how they were measured."""
+    spread = {r.get("edge_hosts") for r in rows if r.get("edge_hosts")}
     result = {"points": rows, "hosts": "one machine, one Mosquitto; the devices and the root on 127.0.0.1, each edge "
               + ("in its own network namespace (a veth pair to this host)" if spread == {"network namespaces"}
                  else "on 127.0.0.1" if spread else "(no edges)"),
               "cores": os.cpu_count(), "load_average_at_start": load, "wall_s": round(time.monotonic() - began, 1),
               "flat_64_ms_cost_json": FLAT_64_MS,
               "command": "python -m bench.scale " + " ".join(argv if argv is not None else sys.argv[1:])}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
-    print(f"scale: {len(rows)} points in {args.out} ({result['wall_s']} s)")
-    return 0
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -104,14 +104,15 @@ def test_a_sac_federation_shares_and_audits(policy: str, tmp_path: Path) -> None
 
     from chief.audit import audit
     from deploy.inprocess import run_federation
+    from worker.envs import env_spec
 
-    summary = run_federation("CartPole-v0", policy, 1, 2, 3, tmp_path, plot=False, tensorboard_files=False,
+    summary = run_federation("CartPole-v0", policy, 1, 2, 2, tmp_path, plot=False, tensorboard_files=False,
                              algo="sac", models=False)
     assert summary["algo"] == "sac"
-    per_episode = 10 if policy == "sync" else 1
-    assert summary["rounds"] == 3 * per_episode
+    per_episode = env_spec("CartPole-v0").learner_config("sac").update_epochs if policy == "sync" else 1
+    assert summary["rounds"] == 2 * per_episode
     rounds = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()
               if json.loads(line)["type"] == "round"]
-    assert len(rounds) == 3 * per_episode
+    assert len(rounds) == 2 * per_episode
     assert all(r["kind"] == "aggregate" and r["contributors"] == ["w0", "w1"] for r in rounds)
     audit(tmp_path)

@@ -13,6 +13,7 @@ BENCHES = {
                       "zero-shot; the last rig's episodes, balance steps and rig minutes",
     "bench.staleness": "idle seconds per rig on qube-local, one rig resetting 3x slower, max staleness 0 and 1",
     "bench.soak": "16 workers over Mosquitto to the end: broker and chief memory over time, round latency",
+    "bench.tune": "tuning runs of a learner's preset (--set KEY=VALUE) on tuning seeds only, in process; JSONL",
 }
 
 if __name__ == "__main__":

@@ -216,3 +216,16 @@ def test_figures_and_readme_from_the_fixture(tmp_path: Path, old_format: bool) -
     assert again in text and "## Quick variant: CartPole-v0, 4 seeds, M = 200" in text  # the same block again
     with pytest.raises(ValueError):
         report.replace_block("no markers", "x")
+
+
+def test_a_new_learner_merges_into_an_old_ppo_only_report(tmp_path: Path) -> None:
+    fixture_results(tmp_path, old_format=True)
+    old = json.loads((tmp_path / "paper-CartPole-v0.json").read_text())
+    assert "learners" not in old
+    sac_run = {**_run("federation", "sync", 101, 20), "algo": "sac"}
+    cfg = {**old["config"], "algos": ["sac"], "strategies": ["sync"], "command": "python -m bench.paper --algos sac"}
+    merged = paper.merge_task(old, paper.task_report("CartPole-v0", [sac_run], cfg))
+    assert list(merged["learners"]) == ["ppo", "sac"] and len(merged["runs"]) == len(old["runs"]) + 1
+    assert merged["learners"]["ppo"]["summary"] == old["summary"]
+    assert merged["learners"]["ppo"]["config"]["command"] == "python -m bench.paper --quick"
+    assert merged["learners"]["sac"]["target"]["target"] == {"episodes": 15}

@@ -51,6 +51,8 @@ REPORT_SEEDS = tuple(range(101, 111))
 #: README's earlier tables (1-5), the end-to-end tests (1-3). Never reported here.
 TUNING_SEEDS = tuple(range(1, 13))
 BASELINE = "independent"
+#: The learners of ``make bench`` by default: PPO and SAC run every task; DQN (discrete actions only) on request.
+BENCH_ALGOS = ("ppo", "sac")
 DEFAULT_M = 2000
 
 #: The project's targets per learner, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds,
@@ -313,8 +315,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--tasks", nargs="+", choices=sorted(TASK_SPECS), help=f"default: {' '.join(TASKS)}")
     parser.add_argument("--strategies", nargs="+", choices=names, help="default: every registered one")
     parser.add_argument("--algos", nargs="+", choices=learners.names(),
-                        help=f"the workers' learners (default: {' '.join(learners.names())}; --quick: "
-                             f"{learners.DEFAULT})"),
+                        help=f"the workers' learners (default: {' '.join(BENCH_ALGOS)}; --quick: {learners.DEFAULT})"),
     parser.add_argument("--seeds", nargs="+", type=int, help="base seeds (default 101-110, never used for tuning)")
     parser.add_argument("--workers", type=int, help="workers per federation (default 4; 3 rigs for the QUBE)")
     parser.add_argument("--max-episodes", type=int, help=f"M, the most rounds a run takes (default {DEFAULT_M})")
@@ -336,7 +337,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.mode == "mqtt":
         args.tasks = ["qube" if t == "qube-local" else t for t in args.tasks]
     args.strategies = args.strategies or names
-    args.algos = args.algos or ([learners.DEFAULT] if quick else learners.names())
+    args.algos = args.algos or ([learners.DEFAULT] if quick else list(BENCH_ALGOS))
     args.seeds = args.seeds or list(QUICK["seeds"] if quick else REPORT_SEEDS)
     args.max_episodes = args.max_episodes or (QUICK["max_episodes"] if quick else DEFAULT_M)
     args.jobs = args.jobs or ((os.cpu_count() or 1) if args.mode == "inprocess" else 1)

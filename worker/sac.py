@@ -51,6 +51,7 @@ from worker.ppo import (
     StepGradients,
     UpdateStats,
     _tensors,
+    blend,
     mlp,
     network_fields,
     save_model,
@@ -294,7 +295,7 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
 # ----------------------------------------------------------------------------------------------------
 
 
-def _finite(reward: float, *arrays: Any) -> bool:
+def finite_transition(reward: float, *arrays: Any) -> bool:
     """Whether the reward and every value of ``arrays`` are finite."""
     return math.isfinite(reward) and all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
 
@@ -437,7 +438,7 @@ class SACLearner:
         A transition with a value that is not finite (reward, observations or action) is refused: in the replay it
         would poison every mini-batch that draws it, for as long as it stays. It is counted in
         ``rejected_transitions`` and logged (the first, then every 100th)."""
-        if not _finite(reward, obs, next_obs, action):
+        if not finite_transition(reward, obs, next_obs, action):
             self.rejected_transitions += 1
             if self.rejected_transitions == 1 or self.rejected_transitions % 100 == 0:
                 log.warning("SAC refused a transition with a non-finite value (%d so far): not in the replay",
@@ -633,12 +634,7 @@ class SACLearner:
 
         Only the actor is blended (critics, targets and alpha stay the worker's own). A ValueError for a weight
         outside [0, 1], before anything changed."""
-        w = float(keep_weight)
-        if not (math.isfinite(w) and 0.0 <= w <= 1.0):
-            raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
-        theta_bar = _tensors(params, self.actor)
-        for name, p in self.actor.named_parameters():
-            p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
+        blend(self.actor, params, keep_weight)
 
     # -- persistence ----------------------------------------------------------------------------------------
 

@@ -23,7 +23,7 @@ from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
 from protocol import topics
-from protocol.auth import refusal, signed
+from protocol.auth import admitted, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     ChiefAck,
@@ -78,14 +78,9 @@ class EdgeService:
     # -- network thread: decode, enqueue -----------------------------------------------------------------------
 
     def _on_root(self, topic: str, payload: bytes) -> None:
-        try:
-            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic)
-        except DecodeError as err:
-            self.rejects.reject_error(topic, err)
-            return
-        refused = refusal(msg, self.key)
-        if refused is not None:
-            self.rejects.reject(topic, *refused)
+        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic, key=self.key,
+                       rejects=self.rejects)
+        if msg is None:
             return
         self.events.put((topic, msg, payload))
 

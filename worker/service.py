@@ -22,8 +22,8 @@ from typing import Any
 import torch
 
 from protocol import topics
-from protocol.auth import refusal
-from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.auth import admitted
+from protocol.codec import RejectCounter, encode
 from protocol.messages import (
     INTERRUPTED,
     ChiefAck,
@@ -124,14 +124,9 @@ class WorkerService:
         self.conn.publish(topic, payload, qos=qos_of(topic))
 
     def _on_chief(self, topic: str, payload: bytes) -> None:
-        try:
-            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic)
-        except DecodeError as err:
-            self.rejects.reject_error(topic, err)
-            return
-        refused = refusal(msg, self.key)
-        if refused is not None:  # forged, or untagged in a run with a key
-            self.rejects.reject(topic, *refused)
+        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic, key=self.key,
+                       rejects=self.rejects)
+        if msg is None:
             return
         if isinstance(msg, ChiefAck) and msg.worker_id != self.cfg.worker_id:
             return  # another worker's acknowledgement

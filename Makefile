@@ -11,7 +11,7 @@ PYTEST_JOBS ?= -n 2 --dist loadgroup
 PIP    := $(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt
 
 .PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build tensorboard \
-	k8s-check swarm-test
+	k8s-check swarm-test scale scale-quick
 
 help:
 	@echo "make run    - federation on this machine: embedded broker + chief + FEDRL_WORKERS workers (default 4)"
@@ -25,6 +25,8 @@ help:
 	@echo "make docs-build - build it into site/ with warnings as errors (mkdocs build --strict)"
 	@echo "make tensorboard RUN=runs/<run> - install the TensorBoard viewer (the viewer extra) and serve the run's event files"
 	@echo "make soak   - 16 workers over Mosquitto to the end, memory and round latency watched (bench/results/soak.*)"
+	@echo "make scale  - flat chief against a root fed by edge chiefs, 4 to 1,024 simulated devices (bench/results/scale.json)"
+	@echo "make scale-quick - its reduced set: flat up to 64 devices, 256 devices over 4 edges"
 	@echo "make test-docker - containerised end-to-end tests (docker compose up, python -m deploy.docker)"
 	@echo "make docker-dev  - (root) Docker engine + local base/Mosquitto images where no registry is reachable"
 	@echo "make k8s-check   - render the Kubernetes manifests (kubectl kustomize) and validate them against 1.32"
@@ -89,6 +91,12 @@ test-docker: $(STAMP)
 # with its secrets from deploy.sites and validates every object against the Kubernetes 1.32 schemas (also in make
 # test when kubectl is installed). swarm-test makes this engine a single-node swarm if it is none yet, then deploys
 # deploy/swarm/stack.yml (two sites, a broker each, the core, the chief) and runs a federation to its end.
+scale: $(STAMP)
+	$(BIN)/python -m bench.scale
+
+scale-quick: $(STAMP)
+	$(BIN)/python -m bench.scale --quick
+
 k8s-check: $(STAMP)
 	$(BIN)/python -m pytest -q tests/deploy/test_k8s.py
 

@@ -13,6 +13,9 @@ BENCHES = {
                       "zero-shot; the last rig's episodes, balance steps and rig minutes",
     "bench.staleness": "idle seconds per rig on qube-local, one rig resetting 3x slower, max staleness 0 and 1",
     "bench.soak": "16 workers over Mosquitto to the end: broker and chief memory over time, round latency",
+    "bench.scale": "flat chief against a root fed by edge chiefs, 4 to 1,024 simulated devices (make scale)",
+    "bench.stragglers": "one worker in 16 ten times slower: k-of-n rounds (--quorum) against waiting for it",
+    "bench.tune": "tuning runs of a learner's preset (--set KEY=VALUE) on tuning seeds only, in process; JSONL",
 }
 
 if __name__ == "__main__":

@@ -128,10 +128,12 @@ def bytes_per_round(env_id: str, worker_counts: tuple[int, ...] = WORKER_COUNTS,
 
 
 class ScriptedFleet:
-    """N fake workers, one MQTT connection each, speaking the wire format with real-size gradients."""
+    """N fake workers, one MQTT connection each, speaking the wire format with real-size gradients; with ``edges``
+    E > 0, worker i is behind edge chief ``e<i mod E>`` (a tiered run, bench/scale.py)."""
 
-    def __init__(self, broker: str, workers: int, arrays: dict[str, np.ndarray]) -> None:
+    def __init__(self, broker: str, workers: int, arrays: dict[str, np.ndarray], edges: int = 0) -> None:
         self.ids = [f"w{i}" for i in range(workers)]
+        self.edge = {w: f"e{i % edges}" for i, w in enumerate(self.ids)} if edges else {}
         self.spec = {k: tuple(v.shape) for k, v in arrays.items()}
         rng = np.random.default_rng(1)
         self.grads = {w: pack_arrays({k: rng.normal(0, 1e-3, v.shape).astype(np.float32) for k, v in arrays.items()})
@@ -143,7 +145,8 @@ class ScriptedFleet:
         address = BrokerAddress.parse(broker)
         for w in self.ids:
             conn = MqttConnection(address, client_id=f"{RUN}-fake-{w}")
-            conn.subscribe(topics.chief(RUN, "+"), self._handler(w))
+            conn.subscribe(topics.relayed(RUN, self.edge[w], "+") if w in self.edge else topics.chief(RUN, "+"),
+                           self._handler(w))
             self.conns.append(conn.start())
 
     def _handler(self, wid: str) -> Any:
@@ -167,7 +170,7 @@ class ScriptedFleet:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             for w, conn in zip(self.ids, self.conns, strict=True):
-                hello = WorkerHello(worker_id=w, env_id="CartPole-v0", actor_spec=self.spec)
+                hello = WorkerHello(worker_id=w, env_id="CartPole-v0", actor_spec=self.spec, edge=self.edge.get(w))
                 conn.publish(topics.worker(RUN, w, topics.HELLO), encode(hello))
             try:
                 while True:

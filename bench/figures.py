@@ -20,9 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from bench.runs import outcome
+from bench.paper import learner_blocks
+from bench.runs import algo_of, outcome
 
-REFERENCE_LABELS = {"single": "1 worker (ours)", "sb3": "SB3 zoo PPO"}
+REFERENCE_LABELS = {"single": "1 worker (ours)", "sb3": "SB3 zoo"}
 
 
 def _plt() -> Any:
@@ -69,10 +70,17 @@ def mean_curve(runs: list[dict[str, Any]], axis: str) -> tuple[np.ndarray, np.nd
 
 
 def run_groups(rep: dict[str, Any], references: tuple[str, ...]) -> list[tuple[str, list[dict[str, Any]]]]:
-    """A task's runs by strategy, then by each reference kind, labelled as the figures show them."""
-    groups = [(s, [r for r in rep["runs"] if r["kind"] == "federation" and r["strategy"] == s])
-              for s in rep["strategies"]]
-    return groups + [(REFERENCE_LABELS[k], [r for r in rep["runs"] if r["kind"] == k]) for k in references]
+    """A task's runs by learner and strategy, then by each reference kind, labelled as the figures show them (the
+    learner named when the task has more than one)."""
+    blocks = learner_blocks(rep)
+    groups = []
+    for algo, block in blocks.items():
+        mine = [r for r in rep["runs"] if algo_of(r) == algo]
+        prefix = f"{algo} " if len(blocks) > 1 else ""
+        groups += [(prefix + s, [r for r in mine if r["kind"] == "federation" and r["strategy"] == s])
+                   for s in block.get("strategies", [])]
+        groups += [(prefix + REFERENCE_LABELS[k], [r for r in mine if r["kind"] == k]) for k in references]
+    return groups
 
 
 def fig5(reports: dict[str, dict[str, Any]], path: Path, axis: str = "episodes") -> Path:
@@ -85,7 +93,7 @@ def fig5(reports: dict[str, dict[str, Any]], path: Path, axis: str = "episodes")
             if curve is None:
                 continue
             x, mean, lo, hi = curve
-            style = "--" if label == REFERENCE_LABELS["single"] else "-"
+            style = "--" if label.endswith(REFERENCE_LABELS["single"]) else "-"
             (line,) = ax.plot(x, mean, style, linewidth=1.4, label=label)
             ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.15, linewidth=0)
         ax.axhline(rep["tc"], color="black", linestyle=":", linewidth=1.2, label=f"TC {rep['tc']:g}")

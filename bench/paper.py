@@ -1,18 +1,21 @@
 """``python -m bench.paper`` (``make bench``): the paper's Section V experiment, with statistics, references and cost.
 
 Every task (the four gymnasium tasks with 4 workers, the simulated QUBE with 3 rigs) under every strategy of the
-registry (chief/strategies/, found automatically), on base seeds never used for tuning. Each run is the same chief
+registry (chief/strategies/, found automatically), for every learner (``--algos``: tasks x learners x strategies x
+seeds; each result keeps its learner), on base seeds never used for tuning. Each run is the same chief
 and worker logic as ``make run``: in process by default (deploy.inprocess), or ``--mode mqtt`` (deploy.run_local:
 embedded broker, chief and workers as separate processes; ``qube-local`` then becomes ``qube``, rigs over MQTT).
 Runs go ``--jobs`` at a time (default: the number of cores), each single-threaded.
 
-In the same run: one worker of ours alone (``independent``, 1 worker) and Stable-Baselines3 PPO with its zoo
-hyperparameters (bench/sb3_ref.py), on the same seeds and under the same stop rule; and the cost benchmark
-(bench/cost.py). Results: ``<out>/paper.json`` (configuration, per task the median [IQR] of the last worker's
-episodes and steps, the rank tests against ``independent``, the references, the project's targets) and
-``<out>/paper-<task>.json`` (the same plus every run), figures ``fig5-*.png`` and ``fig7-*.png``, ``cost.json``;
-finally docs/results.md and the README's results table (bench/report.py). Run folders go to
-``bench/results/runs/<variant>/`` (not committed); ``--resume`` reuses the results of runs already there.
+In the same run, per learner: one worker of ours alone (``independent``, 1 worker) and Stable-Baselines3 with its
+zoo hyperparameters (bench/sb3_ref.py: PPO beside our PPO; SAC, or DQN on discrete actions, beside our SAC), on the
+same seeds and under the same stop rule; and the cost benchmark (bench/cost.py). Results: ``<out>/paper.json``
+(configuration, per task and learner the median [IQR] of the last worker's episodes and steps, the rank tests against
+the same learner's ``independent``, the references, the project's targets) and ``<out>/paper-<task>.json`` (the same
+plus every run; a learner measured by an earlier invocation into the same folder keeps its results there), figures
+``fig5-*.png`` and ``fig7-*.png``, ``cost.json``; finally docs/results.md and the README's results table
+(bench/report.py). Run folders go to ``bench/results/runs/<variant>/`` (not committed); ``--resume`` reuses the
+results of runs already there.
 
 ``--quick`` (``make bench-quick``) is a reduced variant for a 2-core machine in under 15 minutes: see QUICK.
 """
@@ -34,8 +37,9 @@ from pathlib import Path
 from typing import Any
 
 from bench import stats
-from bench.runs import Job, execute, outcome
+from bench.runs import Job, algo_of, execute, outcome
 from chief import strategies as registry
+from protocol import learners
 from protocol.qube import PERIOD_S
 from protocol.tasks import TASKS as TASK_SPECS
 
@@ -47,16 +51,27 @@ REPORT_SEEDS = tuple(range(101, 111))
 #: README's earlier tables (1-5), the end-to-end tests (1-3). Never reported here.
 TUNING_SEEDS = tuple(range(1, 13))
 BASELINE = "independent"
+#: The learners of ``make bench`` by default: PPO and SAC run every task; DQN (discrete actions only) on request.
+BENCH_ALGOS = ("ppo", "sac")
 DEFAULT_M = 2000
 
-#: The project's targets, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds, in episodes.
-TARGETS: dict[str, dict[str, float]] = {
-    "CartPole-v0": {"episodes": 40},
-    "Acrobot-v1": {"episodes": 60},
-    "MountainCarContinuous-v0": {"episodes": 20, "solved_share": 0.9},
-    "Pendulum-v1": {"episodes": 100},
-    "qube-local": {"balance_s": 240.0},  # 4 min of simulated balance time per rig (steps of 7 ms)
-    "qube": {"balance_s": 240.0},
+#: The project's targets per learner, for the last worker to finish (of 4; of 3 rigs), median over 10 report seeds,
+#: in episodes.
+TARGETS: dict[str, dict[str, dict[str, float]]] = {
+    "ppo": {
+        "CartPole-v0": {"episodes": 40},
+        "Acrobot-v1": {"episodes": 60},
+        "MountainCarContinuous-v0": {"episodes": 20, "solved_share": 0.9},
+        "Pendulum-v1": {"episodes": 100},
+        "qube-local": {"balance_s": 240.0},  # 4 min of simulated balance time per rig (steps of 7 ms)
+        "qube": {"balance_s": 240.0},
+    },
+    "sac": {  # issue 16: an off-policy learner's sample efficiency
+        "CartPole-v0": {"episodes": 15},
+        "Acrobot-v1": {"episodes": 15},
+        "MountainCarContinuous-v0": {"episodes": 12, "solved_share": 0.9},
+        "Pendulum-v1": {"episodes": 20},
+    },
 }
 
 #: The quick variant (make bench-quick), for under 15 minutes on the 2-core VM. What it leaves out: MountainCar-
@@ -77,22 +92,23 @@ def default_workers(task: str) -> int:
 
 
 def plan(tasks: Iterable[str], strategy_names: Iterable[str], seeds: Iterable[int], workers: int | None,
-         max_episodes: int, mode: str, references: Iterable[str], sb3_tasks: Iterable[str] | None = None
-         ) -> list[Job]:
-    """Every run of the experiment: federations, then the references."""
-    from bench.sb3_ref import ZOO
+         max_episodes: int, mode: str, references: Iterable[str], sb3_tasks: Iterable[str] | None = None,
+         algos: Iterable[str] = (learners.DEFAULT,)) -> list[Job]:
+    """Every run of the experiment, per task and learner: federations, then the references."""
+    from bench import sb3_ref
 
     jobs: list[Job] = []
     refs = set(references)
-    sb3 = set(ZOO) if sb3_tasks is None else set(sb3_tasks)
     for task in tasks:
         n = workers or default_workers(task)
-        for seed in seeds:
-            jobs += [Job("federation", task, s, seed, n, max_episodes, mode) for s in strategy_names]
-            if "single" in refs:
-                jobs.append(Job("single", task, BASELINE, seed, 1, max_episodes, mode))
-            if "sb3" in refs and task in sb3 and task in ZOO:
-                jobs.append(Job("sb3", task, "sb3-zoo-ppo", seed, 1, 0, "inprocess"))
+        for algo in algos:
+            sb3 = sb3_ref.reference(algo, task) if sb3_tasks is None or task in sb3_tasks else None
+            for seed in seeds:
+                jobs += [Job("federation", task, s, seed, n, max_episodes, mode, algo) for s in strategy_names]
+                if "single" in refs:
+                    jobs.append(Job("single", task, BASELINE, seed, 1, max_episodes, mode, algo))
+                if "sb3" in refs and sb3 is not None:
+                    jobs.append(Job("sb3", task, sb3_ref.label(sb3), seed, 1, 0, "inprocess", algo))
     return jobs
 
 
@@ -202,9 +218,10 @@ def significance(by_strategy: dict[str, list[dict[str, Any]]], max_episodes: int
 
 
 def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[str, Any], workers: int,
-                    seeds: list[int]) -> dict[str, Any]:
-    """The project's target for this task: the best strategy's median against it, and against half of independent."""
-    target = TARGETS.get(task)
+                    seeds: list[int], algo: str = learners.DEFAULT) -> dict[str, Any]:
+    """The project's target for this task and learner: the best strategy's median against it, and against half of the
+    same learner's independent."""
+    target = TARGETS.get(algo, {}).get(task)
     if target is None or not summary:
         return {}
 
@@ -236,9 +253,8 @@ def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[s
     return result
 
 
-def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -> dict[str, Any]:
-    """Everything about one task: summaries per strategy, tests, references, target, and every run."""
-    mine = [r for r in results if r["task"] == task]
+def learner_report(task: str, mine: list[dict[str, Any]], cfg: dict[str, Any], algo: str) -> dict[str, Any]:
+    """One learner on one task: summaries per strategy, tests against its own ``independent``, references, target."""
     fed = [r for r in mine if r["kind"] == "federation"]
     names = [s for s in cfg["strategies"] if any(r["strategy"] == s for r in fed)]
     by_strategy = {s: [r for r in fed if r["strategy"] == s] for s in names}
@@ -251,13 +267,41 @@ def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -
         if runs:
             refs[kind] = summarize(runs)
             if kind == "sb3":
-                refs[kind]["zoo_entry"] = next((r["zoo_entry"] for r in runs if "zoo_entry" in r), None)
-                refs[kind]["n_envs"] = next((r["n_envs"] for r in runs if "n_envs" in r), None)
-    return {"task": task, "tc": TASK_SPECS[task].tc, "workers": workers, "max_episodes": cfg["max_episodes"],
-            "mode": cfg["mode"], "seeds": cfg["seeds"], "strategies": names, "summary": summary,
-            "significance": tests, "references": refs,
-            "target": evaluate_target(task, summary, tests, workers, cfg["seeds"]["report"]),
+                for key in ("zoo_entry", "n_envs", "strategy"):
+                    refs[kind][key] = next((r[key] for r in runs if key in r), None)
+    return {"algo": algo, "config": cfg, "workers": workers, "max_episodes": cfg["max_episodes"],
+            "seeds": cfg["seeds"], "strategies": names, "summary": summary, "significance": tests,
+            "references": refs, "target": evaluate_target(task, summary, tests, workers, cfg["seeds"]["report"], algo)}
+
+
+def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -> dict[str, Any]:
+    """Everything about one task: per learner (``learners``) summaries per strategy, tests, references and target;
+    and every run. The top-level ``workers``, ``max_episodes`` and ``seeds`` are those of the first learner."""
+    mine = [r for r in results if r["task"] == task]
+    algos = [a for a in cfg.get("algos", [learners.DEFAULT]) if any(algo_of(r) == a for r in mine)]
+    blocks = {a: learner_report(task, [r for r in mine if algo_of(r) == a], cfg, a) for a in algos}
+    first = next(iter(blocks.values()), {"workers": cfg["workers"] or default_workers(task)})
+    return {"task": task, "tc": TASK_SPECS[task].tc, "workers": first["workers"],
+            "max_episodes": cfg["max_episodes"], "mode": cfg["mode"], "seeds": cfg["seeds"], "learners": blocks,
             "runs": mine}
+
+
+def learner_blocks(rep: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """A task report's blocks per learner; a report from before learners were a dimension is PPO's alone."""
+    if "learners" in rep:
+        return dict(rep["learners"])
+    keys = ("workers", "max_episodes", "seeds", "strategies", "summary", "significance", "references", "target")
+    return {learners.DEFAULT: {"algo": learners.DEFAULT, **{k: rep[k] for k in keys if k in rep}}}
+
+
+def merge_task(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:
+    """``new``, keeping ``old``'s learners that ``new`` did not measure (their blocks, configuration and runs)."""
+    kept = {a: {"config": old.get("config"), **b} if "config" not in b and old.get("config") else b
+            for a, b in learner_blocks(old).items() if a not in new["learners"]}
+    if not kept:
+        return new
+    runs = [r for r in old.get("runs", []) if algo_of(r) in kept]
+    return {**new, "learners": {**kept, **new["learners"]}, "runs": runs + new.get("runs", [])}
 
 
 # -- command line -----------------------------------------------------------------------------------------------
@@ -270,6 +314,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         f"{k}={v}" for k, v in QUICK.items()))
     parser.add_argument("--tasks", nargs="+", choices=sorted(TASK_SPECS), help=f"default: {' '.join(TASKS)}")
     parser.add_argument("--strategies", nargs="+", choices=names, help="default: every registered one")
+    parser.add_argument("--algos", nargs="+", choices=learners.names(),
+                        help=f"the workers' learners (default: {' '.join(BENCH_ALGOS)}; --quick: {learners.DEFAULT})"),
     parser.add_argument("--seeds", nargs="+", type=int, help="base seeds (default 101-110, never used for tuning)")
     parser.add_argument("--workers", type=int, help="workers per federation (default 4; 3 rigs for the QUBE)")
     parser.add_argument("--max-episodes", type=int, help=f"M, the most rounds a run takes (default {DEFAULT_M})")
@@ -291,6 +337,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     if args.mode == "mqtt":
         args.tasks = ["qube" if t == "qube-local" else t for t in args.tasks]
     args.strategies = args.strategies or names
+    args.algos = args.algos or ([learners.DEFAULT] if quick else list(BENCH_ALGOS))
     args.seeds = args.seeds or list(QUICK["seeds"] if quick else REPORT_SEEDS)
     args.max_episodes = args.max_episodes or (QUICK["max_episodes"] if quick else DEFAULT_M)
     args.jobs = args.jobs or ((os.cpu_count() or 1) if args.mode == "inprocess" else 1)
@@ -312,6 +359,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     started = time.monotonic()
     cfg = {"variant": "quick" if args.quick else "full", "mode": args.mode, "strategies": args.strategies,
+           "algos": args.algos,
            "tasks": args.tasks, "seeds": seeds_block(args.seeds), "workers": args.workers,
            "max_episodes": args.max_episodes, "jobs": args.jobs, "references": args.references,
            "baseline": BASELINE, "command": "python -m bench.paper " + " ".join(argv if argv is not None
@@ -320,13 +368,16 @@ def main(argv: list[str] | None = None) -> int:
     if cfg["seeds"]["report_seeds_used_for_tuning"]:
         print(f"WARNING: seeds {cfg['seeds']['report_seeds_used_for_tuning']} were used for tuning", file=sys.stderr)
     jobs = plan(args.tasks, args.strategies, args.seeds, args.workers, args.max_episodes, args.mode,
-                args.references, QUICK["sb3_tasks"] if args.quick else None)
+                args.references, QUICK["sb3_tasks"] if args.quick else None, args.algos)
     results = run_jobs(jobs, args.jobs, args.runs_dir, resume=args.resume)
     cfg["runs_wall_s"] = round(time.monotonic() - started, 1)
     args.out.mkdir(parents=True, exist_ok=True)
     reports = {task: task_report(task, results, cfg) for task in args.tasks}
     for task, rep in reports.items():
-        (args.out / f"paper-{task}.json").write_text(json.dumps({"config": cfg, **rep}, indent=1) + "\n")
+        path = args.out / f"paper-{task}.json"
+        if path.exists():  # another learner's results of this task, from an earlier invocation, stay
+            reports[task] = rep = merge_task(json.loads(path.read_text()), rep)
+        path.write_text(json.dumps({"config": cfg, **rep}, indent=1) + "\n")
     cost = None
     if not args.no_cost:
         from bench import cost as cost_bench

@@ -1,9 +1,10 @@
 """One benchmark run and what is measured from its run folder.
 
-A run is a federation (``kind: federation``), one worker of ours alone (``kind: single``) or Stable-Baselines3's
-PPO (``kind: sb3``, bench/sb3_ref.py). Federations run either in process (``deploy.inprocess``, the default for
-sweeps) or as ``make run`` does (``deploy.run_local``: embedded broker, chief and workers as separate processes);
-each result names its mode. Every federation's run folder is audited (chief.audit).
+A run is a federation (``kind: federation``), one worker of ours alone (``kind: single``) or a Stable-Baselines3
+reference (``kind: sb3``, bench/sb3_ref.py), each of one learner of ours (``algo``: the workers' learner, or the one
+an SB3 run is the reference of); every result keeps it. Federations run either in process (``deploy.inprocess``,
+the default for sweeps) or as ``make run`` does (``deploy.run_local``: embedded broker, chief and workers as
+separate processes); each result names its mode. Every federation's run folder is audited (chief.audit).
 
 Per worker, from the run folder:
 
@@ -51,14 +52,17 @@ class Job:
     workers: int
     max_episodes: int
     mode: str = "inprocess"  # inprocess | mqtt (federations and single workers)
+    algo: str = "ppo"  # the learner (protocol/learners.py); results from before learners had names are PPO's
 
     @property
     def key(self) -> tuple[Any, ...]:
-        return (self.kind, self.task, self.strategy, self.seed, self.workers, self.max_episodes, self.mode)
+        return (self.kind, self.task, self.strategy, self.seed, self.workers, self.max_episodes, self.mode, self.algo)
 
     @property
     def name(self) -> str:
-        return f"{self.task}-{self.kind}-{self.strategy}-s{self.seed}-n{self.workers}-m{self.max_episodes}-{self.mode}"
+        """The run folder's name (PPO's without the learner, as before learners had names)."""
+        name = f"{self.task}-{self.kind}-{self.strategy}-s{self.seed}-n{self.workers}-m{self.max_episodes}-{self.mode}"
+        return name if self.algo == "ppo" else f"{name}-{self.algo}"
 
 
 def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
@@ -68,7 +72,7 @@ def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
         if job.kind == "sb3":
             from bench import sb3_ref
 
-            result = sb3_ref.run(job.task, job.seed)
+            result = sb3_ref.run(job.task, job.seed, algo=job.strategy.removeprefix("sb3-zoo-"))
             result["mode"] = "in-process"
         else:
             run_dir = runs_dir / job.name
@@ -77,15 +81,16 @@ def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
                 from deploy.inprocess import run_federation
 
                 run_federation(job.task, job.strategy, job.seed, job.workers, job.max_episodes, run_dir,
-                               plot=False, tensorboard_files=False)
+                               plot=False, tensorboard_files=False, algo=job.algo)
             else:
                 _run_mqtt(job, run_dir)
             result = collect(run_dir, job)
     except Exception as err:  # a failed run is reported, never dropped
         result = {"kind": job.kind, "task": job.task, "strategy": job.strategy, "seed": job.seed,
-                  "workers": job.workers, "max_episodes": job.max_episodes, "finished": False,
+                  "workers": job.workers, "max_episodes": job.max_episodes, "finished": False, "algo": job.algo,
                   "error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-3000:]}
     result["job"] = asdict(job)
+    result["algo"] = job.algo
     result["run_wall_s"] = round(time.monotonic() - t0, 2)
     return result
 
@@ -95,6 +100,7 @@ def _run_mqtt(job: Job, run_dir: Path) -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "deploy.run_local", "--env", env, "--policy", job.strategy, "--seed", str(job.seed),
          "--workers", str(job.workers), "--max-episodes", str(job.max_episodes), "--run-dir", str(run_dir),
+         "--algo", job.algo,
          "--run-id", f"bench-{job.strategy}-s{job.seed}-n{job.workers}"],
         capture_output=True, text=True)
     if not (run_dir / SUMMARY).exists():
@@ -139,6 +145,11 @@ def collect(run_dir: Path, job: Job) -> dict[str, Any]:
         "solved_workers": len(solved), "total_steps": summary.total_steps, "per_worker": workers,
         "audit": audited, "curve": learning_curve(episodes), "run_dir": str(run_dir),
     }
+
+
+def algo_of(r: dict[str, Any]) -> str:
+    """A result's learner (results from before learners had names are PPO's)."""
+    return str(r.get("algo") or r.get("job", {}).get("algo") or "ppo")
 
 
 def outcome(r: dict[str, Any]) -> tuple[int | None, int | None]:

@@ -18,7 +18,9 @@ DESCRIPTION = (
     "setting or an unusable run folder, 3 when no worker came, 4 when the run was aborted (every unfinished worker "
     "offline for --idle-timeout s), 130 when it was interrupted (Ctrl-C or SIGTERM: the summary says "
     "'interrupted', and the same command resumes the run), 6 when another chief holds the run (its claim on "
-    "fedrl/<run>/claim)."
+    "fedrl/<run>/claim). With --role edge --edge-id <edge> it is an edge chief of a tiered run instead "
+    "(docs/explanation/tiered.md): it closes its workers' part of each round into one partial for the root chief "
+    "(--edges N) and passes the root's answers on to them."
 )
 
 
@@ -26,6 +28,11 @@ DESCRIPTION = (
 def main(argv: list[str] | None = None) -> int:
     s = ChiefSettings.load(argv, prog="python -m chief", description=DESCRIPTION)
     setup_logging(s.log_level, "chief")
+
+    if s.role == "edge":
+        from chief.edge import EdgeService
+
+        return run_service(f"edge {s.edge_id}", lambda: EdgeService(s))
 
     def build() -> ChiefService:
         service = ChiefService(s)

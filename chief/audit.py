@@ -52,13 +52,25 @@ from pathlib import Path
 
 import numpy as np
 
-from chief import federation, strategies
+from chief import federation, strategies, tiers
 from chief.played import played_totals
-from chief.records import EpisodeRecord, RefusedRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from chief.records import (
+    GRADIENTS,
+    ROOT,
+    EpisodeRecord,
+    RefusedRecord,
+    RoundRecord,
+    RunSummary,
+    StepRecord,
+    gradient_key,
+    read_metrics,
+)
 from chief.rigtime import last_rig, rig_times
+from chief.rounds import scaled
 from protocol.messages import Receipt
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
+from protocol.tensors import digest
 from runtime.settings import program, returns_code
 
 Submitted = EpisodeRecord | StepRecord
@@ -85,12 +97,14 @@ class AuditReport:
     transfer_deliveries: int = 0
     receipts: int = 0
     staleness: int = 0
+    tiered: int = 0
     uncounted: list[tuple[str, int]] = field(default_factory=list)
 
     def __str__(self) -> str:
         text = (f"{self.rounds} rounds, {self.submissions} counted submissions, {self.transfers} transfers "
                 f"({self.transfer_deliveries} recipients), {self.receipts} receipts confirmed"
-                + (f" (max staleness {self.staleness})" if self.staleness else ""))
+                + (f" (max staleness {self.staleness})" if self.staleness else "")
+                + (f"; {self.tiered} tiered aggregates within the bound of the flat Eq. 9" if self.tiered else ""))
         if self.uncounted:
             text += (f"; {len(self.uncounted)} submissions left in a round the run never closed (an aborted run, "
                      "or a finished helper's after the last finish)")
@@ -125,12 +139,18 @@ class Run:
     rounds: list[RoundRecord]
     refused: list[RefusedRecord] = field(default_factory=list)
     report: AuditReport = field(default_factory=AuditReport)
+    gradients: dict[str, np.ndarray] | None = None  # a tiered run's witness (GRADIENTS), when it has one
 
     @classmethod
     def read(cls, run_dir: Path) -> Run:
         summary, episodes, steps, rounds, refused = load(run_dir)
+        witness = run_dir / GRADIENTS
+        gradients = None
+        if witness.exists():
+            with np.load(witness) as data:
+                gradients = {k: data[k] for k in data.files}
         return cls(summary, episodes, steps, rounds, refused,
-                   AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)))
+                   AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)), gradients)
 
     # -- rounds: the run's shape (protocol.rounds) maps (episode, step) to a round number and back --------------
 
@@ -408,6 +428,75 @@ def eq8_weights(run: Run) -> None:
         if expected:
             total = sum(r.weights.values())
             _holds(math.isclose(total, 1.0, abs_tol=1e-9), f"round {r.round}'s weights sum to {total}")
+
+
+@check("tiered-edges")
+def tiered_edges(run: Run) -> None:
+    """Algorithm 1's P across levels (docs/explanation/tiered.md): in a tiered run each round's contributors, whose
+    gradients Eq. 9 sums, are exactly the disjoint union of the contributors its edges' partials summed, and a worker
+    stays behind one edge."""
+    edge_of: dict[str, str] = {}
+    for r in run.rounds:
+        if r.edges is None:
+            continue
+        listed = sorted(w for ws in r.edges.values() for w in ws)
+        _holds(listed == sorted(r.contributors), f"round {r.round}'s edges summed {listed}, its contributors are "
+               f"{sorted(r.contributors)}")
+        for e, ws in r.edges.items():
+            for w in ws:
+                _holds(edge_of.setdefault(w, e) == e, f"{w} is behind edge {edge_of[w]} and, in round {r.round}, {e}")
+
+
+@check("tiered-exact")
+def tiered_exact(run: Run) -> None:
+    """Eq. 8-9 across levels: every aggregate the root of a tiered run sent (the run's GRADIENTS witness, when it has
+    one) is the flat Eq. 9 of the same submissions (bounded as the edges bounded them, with the round's Eq. 8
+    weights) within chief/tiers.py's derived float32/float64 bound, and it is what the round's digest says."""
+    if run.gradients is None:
+        return
+    for r in run.rounds:
+        if r.edges is None or r.kind != "aggregate" or not r.digest:
+            continue
+        episode, step = run.place_of(r.round)
+        root = _witnessed(run.gradients, episode, step, ROOT)
+        learners = sorted(w for w in r.contributors if w not in r.finished)
+        grads = {w: scaled(_witnessed(run.gradients, episode, step, w), r.clipped.get(w, 1.0)) for w in learners}
+        _holds(bool(root) and all(grads.values()), f"round {r.round}: the witness lacks the root's aggregate or a "
+               "contributor's gradient")
+        if not run.shape.per_step:
+            _holds(digest(root) == r.digest, f"round {r.round}: the witnessed aggregate is not the recorded one")
+        flat = run.strategy.aggregate(grads, {w: run.progress(r.pis[w]) for w in learners})
+        assert flat.gradient is not None
+        worst = tiers.excess(grads, r.weights, len(r.edges), flat.gradient, root)
+        _holds(worst <= 1.0, f"round {r.round}: the root's aggregate is {worst:.3g} times the derived bound away "
+               "from the flat Eq. 9 of the same submissions")
+        run.report.tiered += 1
+
+
+@check("quorum")
+def quorum(run: Run) -> None:
+    """Algorithm 1's wait for the round's messages, k of n (summary.json ``quorum`` k, docs/explanation/tiered.md):
+    a round closed without some of the workers it waited for (``late``) only with at least k contributors, none of
+    them late; a run without a quorum has no late worker; and every submission refused as ``late`` was for a round
+    that closed without its worker, whose gradient Eq. 9 then left out."""
+    k = run.summary.quorum
+    for r in run.rounds:
+        if not r.late:
+            continue
+        _holds(k is not None, f"round {r.round} closed without {r.late}, and the run has no quorum")
+        assert k is not None
+        _holds(len(r.contributors) >= k and not set(r.late) & set(r.contributors), f"round {r.round} closed with "
+               f"{len(r.contributors)} contributors {r.contributors}, late {r.late}, under a quorum of {k}")
+    late = {r.round: set(r.late or ()) for r in run.rounds}
+    for e in run.refused:
+        _holds(e.reason != "late" or e.worker in late.get(e.round, set()), f"{e.worker}'s submission for round "
+               f"{e.round} was refused as late, but that round did not close without it")
+
+
+def _witnessed(gradients: dict[str, np.ndarray], episode: int, step: int, who: str) -> dict[str, np.ndarray]:
+    """One sender's tensors of round (episode, step) in a GRADIENTS witness, by name."""
+    prefix = gradient_key(episode, step, who, "")
+    return {k[len(prefix):]: v for k, v in gradients.items() if k.startswith(prefix)}
 
 
 @check("delivery")

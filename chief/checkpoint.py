@@ -82,7 +82,7 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
         actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.shape.per_episode,
-        max_staleness=k.max_staleness, round=k.round, workers=workers,
+        max_staleness=k.max_staleness, quorum=k.quorum, round=k.round, workers=workers,
         pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
@@ -113,7 +113,8 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
         raise ValueError(f"the saved run learns {state.env_id!r}, not {task.env_id!r}")
     k = RoundKeeper([w.worker_id for w in state.workers], state.policy, task, state.max_episodes,
                     state.round_timeout, actor_spec=_unspec(state.actor_spec), critic_spec=_unspec(state.critic_spec),
-                    shape=RoundShape(per_episode=state.rounds_per_episode), max_staleness=state.max_staleness)
+                    shape=RoundShape(per_episode=state.rounds_per_episode), max_staleness=state.max_staleness,
+                    quorum=state.quorum)
     k.workers.update((w.worker_id, restore_worker(w)) for w in state.workers)
     k.round = state.round
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state.pending}

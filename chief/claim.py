@@ -18,8 +18,8 @@ import queue
 import time
 
 from protocol import topics
-from protocol.auth import refusal, signed
-from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.auth import admitted, signed
+from protocol.codec import RejectCounter, encode
 from protocol.messages import ChiefClaim
 from protocol.routes import qos_of
 from protocol.transport import Transport
@@ -52,16 +52,9 @@ class RunClaim:
     def _on_message(self, topic: str, payload: bytes) -> None:
         if not payload:  # a claim cleared
             return
-        try:
-            msg = decode(payload, ChiefClaim, topic=topic)
-        except DecodeError as err:
-            self.rejects.reject_error(topic, err)
-            return
-        refused = refusal(msg, self.key)
-        if refused is not None:
-            self.rejects.reject(topic, *refused)
-            return
-        self._seen.put(msg)
+        msg = admitted(payload, ChiefClaim, topic=topic, key=self.key, rejects=self.rejects)
+        if isinstance(msg, ChiefClaim):
+            self._seen.put(msg)
 
     def _publish(self) -> None:
         self.conn.publish(self.topic, encode(self.claim), qos=qos_of(self.topic), retain=True)

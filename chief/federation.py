@@ -31,6 +31,15 @@ def progress(pi: float, tc: float, r_floor: float) -> float:
     return float(np.clip((pi - r_floor) / (tc - r_floor), 0.0, 1.0))
 
 
+def normalised(shares: Mapping[str, float]) -> dict[str, float]:
+    """Eq. 8: w_n = s_n / sum(s), in sorted worker order, uniform when the sum is 0."""
+    ids = sorted(shares)
+    total = sum(shares[i] for i in ids)
+    if total <= 0.0:
+        return {i: 1.0 / len(ids) for i in ids}
+    return {i: shares[i] / total for i in ids}
+
+
 def weighted_sum(gradients: Mapping[str, Arrays], weights: Mapping[str, float]) -> dict[str, np.ndarray]:
     """Eq. 9: g_bar = sum_n w_n g_n, tensor by tensor in float64 (all gradients must share names and shapes)."""
     if not gradients:

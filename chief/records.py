@@ -20,6 +20,18 @@ from runtime.storage import atomic_write
 
 METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
+#: A tiered run's witness (written by an observer of the wire, deploy/inprocess.py --edges): every worker's actor
+#: gradient and every aggregate the root sent, so the audit can check the root's Eq. 9 against the flat one.
+GRADIENTS = "gradients.npz"
+
+
+def gradient_key(episode: int, step: int, who: str, name: str) -> str:
+    """The key of one tensor in GRADIENTS: round (episode, step), the worker (or ``ROOT``), the tensor's name."""
+    return f"e{episode}s{step}/{who}/{name}"
+
+
+#: Whose tensor in GRADIENTS is the root's aggregate (no worker id can be it: '@' is no id character).
+ROOT = "@root"
 
 WorkerState = Literal["active", "lagging", "offline", "finished"]
 
@@ -102,9 +114,11 @@ class StepRecord(Record):
 class RoundRecord(Record):
     """A closed round and the chief's answer to it (chief.rounds.RoundOutcome without its tensors). ``offline``:
     in a round where a worker finished, the learners the chief knew were offline and left out of the transfer
-    (absent when none)."""
+    (absent when none). ``edges``: in a tiered run (docs/explanation/tiered.md), each edge whose partial the root
+    combined, with the contributors it summed (absent in a flat run). ``late``: in a run with a quorum, the workers
+    the round closed without (absent when none)."""
 
-    OPTIONAL = frozenset({"offline"})
+    OPTIONAL = frozenset({"offline", "edges", "late"})
 
     type: Literal["round"] = "round"
     round: int
@@ -125,6 +139,8 @@ class RoundRecord(Record):
     clipped: dict[str, float] = Field(default_factory=dict)
     t: float = 0.0
     offline: list[str] | None = None
+    edges: dict[str, list[str]] | None = None
+    late: list[str] | None = None
 
 
 class RefusedRecord(Record):
@@ -246,8 +262,8 @@ class RunSummary(Record):
     the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from
     scratch)."""
 
-    OPTIONAL = frozenset({"mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates", "restarts",
-                          "played_steps", "refused_steps", "last_rig", "init_model"})
+    OPTIONAL = frozenset({"quorum", "mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates",
+                          "restarts", "played_steps", "refused_steps", "last_rig", "init_model"})
 
     run_id: str = ""
     env: str
@@ -266,6 +282,7 @@ class RunSummary(Record):
     rounds: int
     rounds_per_episode: int = 1
     max_staleness: int = 0
+    quorum: int | None = None
     end_reason: str
     mode: str | None = None
     wall_s: float | None = None
@@ -326,6 +343,7 @@ class KeeperState(Record):
     critic_spec: dict[str, list[int]] | None
     rounds_per_episode: int
     max_staleness: int = 0
+    quorum: int = 0
     round: int
     workers: list[SavedWorker]
     pending: list[dict[str, Any]]

@@ -158,7 +158,8 @@ def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | No
         total_steps=sum(rec.steps for rec in keeper.workers.values()),
         played_steps=sum(p.steps for p in played.values()) if played else None,
         refused_steps=sum(p.refused_steps for p in played.values()) if played else None, rounds=keeper.round - 1,
-        rounds_per_episode=keeper.rounds_per_episode, max_staleness=keeper.max_staleness, end_reason=reason,
+        rounds_per_episode=keeper.rounds_per_episode, max_staleness=keeper.max_staleness,
+        quorum=keeper.quorum or None, end_reason=reason,
         last_rig=last_rig(dict(rigs)), **meta)
 
 

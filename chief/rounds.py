@@ -60,7 +60,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from chief import federation, strategies
+from chief import federation, strategies, tiers
 from protocol.messages import INTERRUPTED
 from protocol.rounds import PER_EPISODE, STALENESS_LIMIT, RoundShape
 from protocol.tasks import PI_WINDOW, TaskSpec, performance_index
@@ -69,6 +69,10 @@ from protocol.tensors import NORM_LIMIT, answer_digest, digest, l2_norm
 log = logging.getLogger(__name__)
 
 WorkerState = Literal["active", "lagging", "offline", "finished"]
+#: Where a keeper sits in a tiered run (docs/explanation/tiered.md): ``flat`` (the one chief), ``root`` (its
+#: workers' gradients arrive summed, in the edges' partials) or ``edge`` (closes its workers' part of each round
+#: into a partial, chief/tiers.py, and leaves the answer to the root).
+Tier = Literal["flat", "root", "edge"]
 Arrays = dict[str, np.ndarray]
 
 #: How many episodes ahead of the open round a submission may be (a worker that went on without an answer, or one
@@ -142,7 +146,7 @@ class RoundOutcome:
 
     round: int
     episode: int
-    kind: Literal["aggregate", "transfer"]
+    kind: Literal["aggregate", "transfer", "partial"]
     strategy: str
     contributors: list[str]
     step: int = 0
@@ -159,6 +163,9 @@ class RoundOutcome:
     timed_out: list[str] = field(default_factory=list)
     clipped: dict[str, float] = field(default_factory=dict)  # worker -> factor its gradient was scaled by
     offline: list[str] = field(default_factory=list)  # learners left out of a finishing round's transfer: offline
+    edges: dict[str, list[str]] = field(default_factory=dict)  # a root's round: edge -> its partial's contributors
+    late: list[str] = field(default_factory=list)  # a quorum's round: the waited-on workers it closed without
+    partial: tiers.Partial | None = None  # an edge's round: its part of Eq. 9, for the root
 
     @property
     def digest(self) -> str:
@@ -174,7 +181,9 @@ class RoundOutcome:
                 "weights": self.weights, "digest": self.digest, "source": self.source_worker,
                 "source_pi": self.source_pi, "keep_weights": self.keep_weights, "recipient_pis": self.recipient_pis,
                 "finished": self.finished, "timed_out": self.timed_out, "clipped": self.clipped,
-                **({"offline": self.offline} if self.offline else {})}
+                **({"offline": self.offline} if self.offline else {}),
+                **({"edges": self.edges} if self.edges else {}),
+                **({"late": self.late} if self.late else {})}
 
 
 @dataclass
@@ -266,6 +275,8 @@ class RoundKeeper:
         critic_spec: dict[str, tuple[int, ...]] | None = None,
         shape: RoundShape = PER_EPISODE,
         max_staleness: int = 0,
+        tier: Tier = "flat",
+        quorum: int = 0,
     ) -> None:
         if not workers:
             raise ValueError("a federation needs at least one worker")
@@ -276,6 +287,16 @@ class RoundKeeper:
             raise ValueError(f"policy {policy!r} cannot run with a staleness of {max_staleness} "
                              f"(0..{STALENESS_LIMIT}, and 0 for a per-step strategy)")
         federation.progress(task.tc, task.tc, task.r_floor)  # validates tc > r_floor
+        if tier != "flat" and not tiers.decomposable(self.strategy):
+            raise ValueError(tiers.why_flat(self.strategy))
+        if quorum and not (self.strategy.allows_staleness and tier == "flat" and 1 <= quorum <= len(workers)):
+            raise ValueError(f"a quorum of {quorum}: 1..{len(workers)} workers, a per-episode strategy (not "
+                             f"{policy!r}: every worker must apply each step's mean with its own), and a flat run")
+        self.quorum = quorum  # k: a round closes when k of its waited-on workers submitted (0: all of them)
+        self.tier = tier
+        #: A root's partials: round -> edge -> (its Partial, its contributors, the factors it clipped their
+        #: gradients by).
+        self.partials: dict[int, dict[str, tuple[tiers.Partial, list[str], dict[str, float]]]] = {}
         self.policy = policy
         self.task = task
         self.max_episodes = max_episodes
@@ -336,9 +357,12 @@ class RoundKeeper:
 
     def waiting_for(self) -> list[str]:
         """Active workers whose submission for the current round is still missing (not those already past it)."""
-        return [w for w, rec in self.workers.items()
-                if (rec.state in ("active", "offline") or rec.helping) and not rec.excused
-                and w not in self.pending and rec.last_round <= self.round]
+        return [w for w in self.workers if w not in self.pending and self._waits_for(self.workers[w])]
+
+    def _waits_for(self, rec: WorkerRecord) -> bool:
+        """Whether the open round waits for this worker (if its submission is not in yet)."""
+        return ((rec.state in ("active", "offline") or rec.helping) and not rec.excused
+                and rec.last_round <= self.round)
 
     def progress(self, pi: float | None) -> float:
         """Sign-safe progress of a PI (the floor when the worker has none yet)."""
@@ -367,8 +391,13 @@ class RoundKeeper:
         if rec.state == "finished" and (sub.mature or not rec.helping):
             return self._reject(sub, r, "finished", f"{sub.worker_id} finished at episode {rec.solved_episode}")
         if r < self.round:
-            verdict = self._reject(sub, r, "stale", f"round {r} is closed (open round {self.round})")
-            verdict.replay = self.answers.get(r)
+            answer = self.answers.get(r)
+            if answer is not None and sub.worker_id in answer.late:  # dropped: its round closed with a quorum
+                verdict = self._reject(sub, r, "late", f"round {r} closed with its quorum of {self.quorum} before "
+                                       "this submission came")
+            else:
+                verdict = self._reject(sub, r, "stale", f"round {r} is closed (open round {self.round})")
+            verdict.replay = answer
             return verdict
         last = min(self.round + AHEAD_WINDOW * self.shape.per_episode, self.shape.last_of(self.max_episodes))
         if r > last:
@@ -444,13 +473,18 @@ class RoundKeeper:
     def _check(self, sub: Submission, rec: WorkerRecord) -> tuple[str, str] | None:
         """(reason, detail) when the submission must not count, else None."""
         tensors = sub.params if sub.mature else sub.gradient
-        if tensors is None:
+        if self.tier == "root" and not sub.mature:
+            # Its gradient is in its edge's partial (checked there): only an empty placeholder travels here.
+            if tensors or sub.critic_gradient:
+                return "invalid", "a root takes a worker's gradient only summed in its edge's partial"
+            tensors = None
+        elif tensors is None:
             return "invalid", "no tensors"
-        wants_critic = self.shape.per_step and not sub.mature
+        wants_critic = self.shape.per_step and not sub.mature and self.tier != "root"
         if (sub.critic_gradient is not None) != wants_critic:
             return "invalid", (f"a critic gradient is {'required' if wants_critic else 'not expected'} under policy "
                                f"{self.policy!r}")
-        for what, arrays, spec in (("actor", tensors, self.actor_spec), ("critic", sub.critic_gradient,
+        for what, arrays, spec in (("actor", tensors, self.actor_spec), ("critic", sub.critic_gradient or None,
                                                                           self.critic_spec)):
             if arrays is None:
                 continue
@@ -523,21 +557,36 @@ class RoundKeeper:
 
     def _maybe_close(self, now: float) -> list[RoundOutcome]:
         outcomes: list[RoundOutcome] = []
-        while not self.done and (self.pending or self.ahead) and not self.waiting_for():
+        while not self.done and (self.pending or self.ahead) and self._complete():
             outcomes += self._close()
             self._open_next(now)
         return outcomes
 
+    def _complete(self) -> bool:
+        """Whether the open round has what it waits for: every waited-on worker's submission or, with a quorum k,
+        k of them (all of them when fewer than k are left to wait for)."""
+        if self.quorum > 0 and len(self.pending) >= self.quorum:
+            return True
+        # The workers not in yet, as a set difference (one pass in C): a round of N workers costs O(N), not O(N^2).
+        return not any(self._waits_for(self.workers[w]) for w in self.workers.keys() - self.pending.keys())
+
     def _close(self) -> list[RoundOutcome]:
         subs, r = self.pending, self.round
+        late = self.waiting_for() if self.quorum else []  # the round closes without them (a quorum's)
         mature = {w: s for w, s in subs.items() if s.mature}
-        outcome = self._transfer(r, subs, mature) if mature else None
+        outcome = self._partial(r, subs, sorted(mature)) if self.tier == "edge" else None
+        if outcome is None and mature:
+            outcome = self._transfer(r, subs, mature)
         if outcome is None:
             outcome = self._aggregate(r, subs, finished=sorted(mature))
             if mature:
                 outcome.offline = self._offline_learners(mature)
+        if self.tier == "root":
+            outcome.edges = {e: held[1] for e, held in sorted(self.partials.get(r, {}).items())}
+        outcome.late = late
         self.answers[r] = outcome
         self.answers.pop(r - ANSWERS_KEPT, None)
+        self.partials.pop(r, None)
         self.pending = {}
         self.round_opened_at = None
         self.round += 1
@@ -547,7 +596,8 @@ class RoundKeeper:
             self.done_reason = f"reached the maximum of {self.max_episodes} episodes"
         return [outcome]
 
-    def _outcome(self, r: int, kind: Literal["aggregate", "transfer"], subs: dict[str, Submission]) -> RoundOutcome:
+    def _outcome(self, r: int, kind: Literal["aggregate", "transfer", "partial"],
+                 subs: dict[str, Submission]) -> RoundOutcome:
         contributors = sorted(subs)
         episode, step = self.shape.of(r)
         return RoundOutcome(round=r, episode=episode, step=step, kind=kind,
@@ -558,7 +608,9 @@ class RoundKeeper:
         outcome = self._outcome(r, "aggregate", subs)
         outcome.finished = finished
         learners = sorted(w for w in subs if not subs[w].mature)
-        if learners:
+        if learners and self.tier == "root":
+            self._combine(outcome, r, learners)
+        elif learners:
             progress = {w: self.progress(subs[w].pi) for w in learners}
             grads, outcome.clipped = bound_norms({w: subs[w].gradient for w in learners})  # type: ignore[misc]
             agg = self.strategy.aggregate(grads, progress)
@@ -569,6 +621,50 @@ class RoundKeeper:
         for w in finished:
             self._finish(self.workers[w], subs[w].episode)
         return outcome
+
+    def _combine(self, outcome: RoundOutcome, r: int, learners: list[str]) -> None:
+        """A root's Eq. 9: the edges' partials of round ``r`` combined (chief/tiers.py), in edge order; Eq. 8's
+        weights over all of the round's learners."""
+        held = self.partials.get(r, {})
+        edges = sorted(held)
+        outcome.gradient, outcome.critic_gradient = tiers.combine([held[e][0] for e in edges])
+        if outcome.gradient is not None:
+            outcome.weights = tiers.weights(tiers.shares(self.strategy, {w: self.progress(self.pending[w].pi)
+                                                                          for w in learners}))
+        for e in edges:
+            outcome.clipped.update(held[e][2])
+
+    def add_partial(self, r: int, edge: str, partial: tiers.Partial, contributors: list[str],
+                    clipped: dict[str, float]) -> None:
+        """A root keeps an edge's partial of round ``r`` (before its contributors' submissions, whose last closes
+        the round), and notes which of the round's contributors it holds."""
+        self.partials.setdefault(r, {})[edge] = (partial, sorted(contributors), clipped)
+
+    def _partial(self, r: int, subs: dict[str, Submission], finished: list[str]) -> RoundOutcome:
+        """An edge's round: its learners' (bounded) gradients summed into one Partial for the root (chief/tiers.py);
+        its finishers leave, as the root will decide (a mature actor always ends its worker's learning)."""
+        outcome = self._outcome(r, "partial", subs)
+        outcome.finished = finished
+        learners = sorted(w for w in subs if not subs[w].mature)
+        grads, outcome.clipped = bound_norms({w: subs[w].gradient for w in learners})  # type: ignore[misc]
+        critics = (bound_norms({w: subs[w].critic_gradient for w in learners})[0]  # type: ignore[misc]
+                   if self.shape.per_step and learners else None)
+        outcome.partial = tiers.partial(self.strategy, grads, {w: self.progress(subs[w].pi) for w in learners},
+                                        critics)
+        for w in finished:
+            self._finish(self.workers[w], subs[w].episode)
+        return outcome
+
+    def excuse(self, workers: list[str], now: float) -> list[RoundOutcome]:
+        """A root stops waiting in the open round for workers their edge timed out (marked lagging, as ``tick``
+        does); the outcomes of the rounds that closes."""
+        for w in workers:
+            rec = self.workers.get(w)
+            if rec is not None and w not in self.pending:
+                rec.excused = True
+                if rec.state == "active":
+                    rec.state = "lagging"
+        return self._maybe_close(now)
 
     def _finish(self, rec: WorkerRecord, episode: int) -> None:
         rec.state, rec.solved_episode, rec.steps_at_solve = "finished", episode, rec.steps
@@ -623,7 +719,12 @@ def bound_norms(gradients: Gradients) -> tuple[Gradients, dict[str, float]]:
         if norm > bound:
             factor = bound / norm
             clipped[w] = factor
-            out[w] = {k: (np.asarray(v, np.float64) * factor).astype(np.float32) for k, v in gradients[w].items()}
+            out[w] = scaled(gradients[w], factor)
             log.warning("the gradient of %s (norm %.3g) is above %g x the round's median norm %.3g: scaled by %.3g",
                         w, norm, NORM_FACTOR, reference, factor)
     return out, clipped
+
+
+def scaled(arrays: Arrays, factor: float) -> Arrays:
+    """A gradient scaled down by ``bound_norms``'s factor (in float64, back to float32)."""
+    return {k: (np.asarray(v, np.float64) * factor).astype(np.float32) for k, v in arrays.items()}

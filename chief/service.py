@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import logging
+import math
 import os
 import queue
 import secrets
@@ -22,8 +23,9 @@ from chief.report import MetricsLog, plot_learning_curves, run_summary, write_su
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
 from chief.settings import ChiefSettings
+from chief.tiers import Partial
 from protocol import topics
-from protocol.auth import signed
+from protocol.auth import refusal, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     STAT_BOUNDS,
@@ -31,6 +33,7 @@ from protocol.messages import (
     ChiefAggregate,
     ChiefClaim,
     ChiefTransfer,
+    EdgePartial,
     MatureParams,
     RunStart,
     RunStop,
@@ -52,6 +55,12 @@ EXIT_OK, EXIT_NO_WORKERS, EXIT_ABORTED = 0, 3, 4
 #: The exit code of a chief that was interrupted (SIGINT or SIGTERM): the run is saved and resumable.
 EXIT_INTERRUPTED = 130
 
+
+#: The kinds of a worker's submissions (a root takes them summed, in its edges' partials).
+UPDATE_KINDS = frozenset({"update", "mature"})
+
+#: The fewest seconds between two RunStarts the chief sends again for workers' hellos.
+ANNOUNCE_INTERVAL = 1.0
 
 #: Seconds between two progress lines.
 PROGRESS_INTERVAL = 2.0
@@ -100,6 +109,8 @@ class ChiefService:
         self._outbox: list[tuple[str, bytes]] = []  # held back until the state is saved
         self._must_save = False
         self.duplicates = 0
+        self.edge_of: dict[str, str] = {}  # a root's workers: the edge each said it is behind
+        self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
         session, since = ((self.saved[1]["session"], self.saved[1].get("claimed_since", 0.0)) if self.saved is not None
@@ -118,6 +129,9 @@ class ChiefService:
                              "use the same --run-id to resume it, or another --run-dir")
         if not keeper.resumable:
             raise ValueError(f"the run in {self.cfg.run_dir} is over ({keeper.done_reason}); choose another --run-dir")
+        if self.cfg.edges:
+            raise ValueError(f"{self.cfg.run_dir} holds a started run, and a tiered root does not resume one yet (the "
+                             "edges' partials of its open round are not saved); choose another --run-dir")
         if keeper.policy != self.cfg.policy:
             raise ValueError(f"the saved run uses policy {keeper.policy!r}, not {self.cfg.policy!r}")
 
@@ -131,9 +145,13 @@ class ChiefService:
 
     def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
+            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, EdgePartial, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
+            return
+        refused = refusal(msg, self.key) if isinstance(msg, EdgePartial) else None
+        if refused is not None:  # an edge holds the run's key: a partial without its tag is no edge's
+            self.rejects.reject(topic, *refused)
             return
         self.events.put((topic, msg))
 
@@ -151,9 +169,9 @@ class ChiefService:
                           run, other.session, other.host or "?", other.pid,
                           dt.datetime.fromtimestamp(other.since).isoformat(timespec="seconds"), self.claim.topic)
                 return EXIT_CLAIMED
-            for route in received_by(CHIEF):  # the workers' hello, status and update
-                if route.retain:
-                    continue  # the claim: RunClaim's
+            for route in received_by(CHIEF):  # the workers' hello, status and update (a root: the edges' partials)
+                if route.retain or (UPDATE_KINDS & route.kinds if cfg.edges else "partial" in route.kinds):
+                    continue  # the claim is RunClaim's; a root's updates come summed in the partials
                 self.conn.subscribe(route.filter(run=run), self._on_message, qos=route.qos)
             if self.saved is not None:
                 self._resume(*self.saved)
@@ -173,7 +191,8 @@ class ChiefService:
                 shape = strategies.get(cfg.policy).rounds(self.roster.update_steps)  # ValueError if it cannot run
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
-                                          shape=shape, max_staleness=cfg.max_staleness)
+                                          shape=shape, max_staleness=cfg.max_staleness,
+                                          tier="root" if cfg.edges else "flat", quorum=cfg.quorum)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
             if self.outputs.tensorboard:
@@ -255,6 +274,11 @@ class ChiefService:
         return self.roster.workers
 
     def _register(self, hello: WorkerHello) -> bool:
+        if (hello.edge is None) == bool(self.cfg.edges):
+            self.rejects.reject(topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO), "wrong_tier",
+                                f"edge {hello.edge!r}, and this chief is " + (f"the root of {self.cfg.edges} edges"
+                                                                               if self.cfg.edges else "flat"))
+            return False
         new = hello.worker_id not in self.roster.hosts
         refused = self.roster.offer(hello.worker_id, hello.env_id, dict(hello.actor_spec), hello.host,
                                     critic_spec=dict(hello.critic_spec), update_steps=hello.update_steps,
@@ -264,18 +288,23 @@ class ChiefService:
             self.rejects.reject(topics.worker(self.cfg.run_id, hello.worker_id, topics.HELLO), *refused)
             return False
         if new:
-            log.info("worker %s joined from %s (pid %d)", hello.worker_id, hello.host or "?", hello.pid)
+            log.info("worker %s joined from %s (pid %d)%s", hello.worker_id, hello.host or "?", hello.pid,
+                     f" behind edge {hello.edge}" if hello.edge else "")
+        if hello.edge is not None and not self.roster.started:
+            self.edge_of[hello.worker_id] = hello.edge
         return True
 
     def _announce(self) -> None:
         assert self.keeper is not None
+        self._announced = time.monotonic()
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
                        algo=self.roster.algo,
                        max_episodes=self.cfg.max_episodes, tc=self.spec.tc, r_floor=self.spec.r_floor,
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
                        finishers_help=self.keeper.strategy.finishers_help,
-                       max_staleness=self.keeper.max_staleness)
+                       max_staleness=self.keeper.max_staleness,
+                       edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers})
         self._send(msg)
 
     def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
@@ -335,8 +364,14 @@ class ChiefService:
         now = time.monotonic()
         if msg.kind == "hello":
             if self._register(msg):
-                self._announce()  # a restarted worker learns the run and the open round
+                # A restarted worker learns the run and the open round. At most once a second: the RunStart is the
+                # same for every worker, each says hello every second until named, and at 1,024 workers (through
+                # edges that pass it on to theirs) a burst of hellos must not become a burst of RunStarts.
+                if now - self._announced >= ANNOUNCE_INTERVAL:
+                    self._announce()
             return []
+        if msg.kind == "partial":
+            return self._partial(msg, now)
         if msg.worker_id not in keeper.workers:
             self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, msg.kind), "unknown_worker",
                                 "not part of this run")
@@ -348,6 +383,22 @@ class ChiefService:
         verdict = keeper.submit(submission_of(msg), now)
         self._answer(verdict, now)
         return verdict.outcomes
+
+    def _partial(self, msg: EdgePartial, now: float) -> list[RoundOutcome]:
+        """A root takes an edge's part of a round (docs/explanation/tiered.md): its partial sum first, then its
+        contributors' submissions, the last of which may close the round; then the workers the edge timed out."""
+        keeper = self.keeper
+        assert keeper is not None
+        subs: list[WorkerUpdate | MatureParams] = [*msg.updates, *msg.matures]
+        if msg.round >= keeper.round:
+            keeper.add_partial(msg.round, msg.edge_id, partial_of(msg), [s.worker_id for s in subs],
+                               dict(msg.clipped))
+        outcomes: list[RoundOutcome] = []
+        for sub in subs:
+            verdict = keeper.submit(submission_of(sub), now)
+            self._answer(verdict, now)
+            outcomes += verdict.outcomes
+        return outcomes + keeper.excuse(list(msg.timed_out), now)
 
     def _answer(self, verdict: Verdict, now: float) -> None:
         """Record what was accepted, count what was not, acknowledge mature actors, answer again a round a worker
@@ -476,6 +527,12 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
                       stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS},
                       rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS},
                       played=msg.played.model_dump() if msg.played is not None else None)
+
+
+def partial_of(msg: EdgePartial) -> Partial:
+    """An edge's partial as the root's RoundKeeper takes it."""
+    return Partial(None if msg.gradient is None else unpack_arrays(msg.gradient), msg.total, msg.count, msg.uniform,
+                   None if msg.critic_gradient is None else unpack_arrays(msg.critic_gradient))
 
 
 def answer_of(outcome: RoundOutcome, session: str) -> ChiefAggregate | ChiefTransfer:

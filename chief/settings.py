@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
-from pydantic import model_validator
+from pydantic import field_validator, model_validator
 
-from chief import strategies
+from chief import strategies, tiers
 from protocol import learners
 from protocol.rounds import STALENESS_LIMIT
+from protocol.topics import check_id
 from runtime.model_file import ModelPath
 from runtime.settings import LearnerName, OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
 
@@ -29,6 +30,17 @@ class FederationSettings(Settings):
     max_staleness: int = setting(0, "S, bounded staleness: a worker plays its next episode while up to S of its own "
                                  "rounds are unanswered (0: it waits for every answer; per-episode strategies only)",
                                  ge=0, le=STALENESS_LIMIT)
+
+    quorum: int = setting(0, "k of a k-of-n round: it closes when k of the workers it waits for submitted; a later "
+                          "submission for it is dropped (refused as late, its worker applies the round's answer); 0: "
+                          "every worker (docs/explanation/tiered.md). Per-episode strategies, flat runs", ge=0)
+
+    @model_validator(mode="after")
+    def _quorum_fits(self) -> FederationSettings:
+        if self.quorum and not strategies.get(self.policy).allows_staleness:
+            raise ValueError(f"--quorum {self.quorum}: policy {self.policy!r} shares every PPO step, whose mean each "
+                             "worker must apply with its own; use 0")
+        return self
 
     @model_validator(mode="after")
     def _staleness_fits(self) -> FederationSettings:
@@ -50,4 +62,28 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     init_model: ModelPath | None = setting(
         None, "the model every worker must start from (its --init-model: a model file or a run folder); unset: the "
         "first worker's, or scratch", metavar="PATH")
+    role: Literal["chief", "edge"] = setting("chief", "chief: the run's chief (the root when --edges > 0); edge: an "
+                                             "edge chief, closing its workers' part of each round for the root "
+                                             "(docs/explanation/tiered.md)")
+    edge_id: str | None = setting(None, "--role edge: this edge's id (its workers say it in their --edge)")
+    edges: int = setting(0, "--role chief: how many edge chiefs feed this root (0: a flat run, every worker's update "
+                         "to this chief)", ge=0, le=1024)
+
+    @field_validator("edge_id")
+    @classmethod
+    def _edge_id(cls, value: str | None) -> str | None:
+        return check_id(value, "edge id") if value else None
+
+    @model_validator(mode="after")
+    def _role_fits(self) -> ChiefSettings:
+        if (self.role == "edge") != (self.edge_id is not None):
+            raise ValueError("--edge-id goes with --role edge, and --role edge needs one")
+        if self.role == "edge" and self.edges:
+            raise ValueError("--edges is the root chief's setting, not an edge's")
+        if self.edges and self.quorum:
+            raise ValueError("--quorum runs flat: an edge waits for all of its workers (a quorum across edges is not "
+                             "built yet)")
+        if self.edges and not tiers.decomposable(strategies.get(self.policy)):
+            raise ValueError(f"--edges {self.edges}: {tiers.why_flat(strategies.get(self.policy))}")
+        return self
 

@@ -24,10 +24,13 @@ from typing import Any
 
 import msgpack
 
+from chief import strategies, tiers
+from chief.edge import EdgeService
 from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
 from chief.settings import ChiefSettings
 from deploy.settings import InprocessSettings
+from deploy.witness import Witness
 from protocol import topics
 from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
@@ -51,7 +54,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
                    device_noise: float = 1.0, plot: bool = True, progress: bool = False,
                    tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
                    init_model: Path | None = None, models: bool = True, max_staleness: int = 0,
-                   tolerate_failures: bool = False, algo: str = "ppo") -> dict[str, Any]:
+                   tolerate_failures: bool = False, algo: str = "ppo", edges: int = 0, quorum: int = 0,
+                   pace: dict[str, float] | None = None) -> dict[str, Any]:
     """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
     write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
     ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
@@ -61,10 +65,17 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does; ``max_staleness``: the run's
     bounded staleness S (ChiefSettings.max_staleness). A worker that fails (its rig could not reset, say) leaves the
     federation, and the run ends as aborted once no learner is left (IDLE_TIMEOUT); ``tolerate_failures``: return
-    that run's summary, which says which workers did not solve (else a RuntimeError after the run, as for a bug)."""
+    that run's summary, which says which workers did not solve (else a RuntimeError after the run, as for a bug).
+    ``edges``: a tiered run (docs/explanation/tiered.md), worker i behind edge chief ``e{i mod edges}``, each an
+    EdgeService in its own thread, and the wire observed into GRADIENTS for the audit's exactness check; a strategy
+    that cannot be split runs flat (a note on stderr). ``quorum``: k of a k-of-n round (ChiefSettings.quorum);
+    ``pace``: worker -> how many times slower than its own pace it plays (a straggler, WorkerSettings.slowdown)."""
     import torch  # after worker/'s check of the learn extra (one line where it is missing)
 
     torch.set_num_threads(1)
+    if edges and not tiers.decomposable(strategies.get(policy)):
+        print(f"note: {tiers.why_flat(strategies.get(policy))}", file=sys.stderr)
+        edges = 0
     hub = Hub()
     key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)
     chief_conn: list[_Timed] = []
@@ -72,15 +83,21 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, algo=algo, policy=policy, seed=seed,
                             max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
                             idle_timeout=IDLE_TIMEOUT, run_dir=run_dir, init_model=init_model, run_key=key,
-                            max_staleness=max_staleness),
+                            max_staleness=max_staleness, edges=edges, quorum=quorum),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
     worker_conns: dict[str, list[_Timed]] = {}
     services: dict[str, Callable[[], int]] = {"chief": chief.run}
+    for e in range(edges):
+        services[f"e{e}"] = EdgeService(ChiefSettings.given(
+            run_id=RUN_ID, role="edge", edge_id=f"e{e}", round_timeout=math.inf, start_timeout=START_TIMEOUT,
+            run_key=key), connect=hub.connect).run
+    witness = Witness(hub.connect, RUN_ID, run_dir) if edges else None
     for i in range(workers):
         wid = f"w{i}"
         worker_conns[wid] = []
         cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, algo=algo, device_noise=device_noise,
+                                   edge=f"e{i % edges}" if edges else None, slowdown=(pace or {}).get(wid, 1.0),
                                    reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
                                    resend_interval=math.inf, init_model=init_model, run_key=key,
                                    model_dir=run_dir / "models" if models else None, **(env_options or {}))
@@ -93,6 +110,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         raise RuntimeError(f"the in-process chief failed (exit {codes['chief']!r})")
     for thread in [c for c in codes.values() if isinstance(c, threading.Thread)]:
         thread.join()
+    if witness is not None:
+        witness.save()
     failed = {w: c for w, c in codes.items() if c not in (EXIT_OK, EXIT_ABORTED)}
     if failed and not (tolerate_failures and all(c == EXIT_ERROR for c in failed.values())):
         raise RuntimeError(f"in-process workers failed: {failed}")
@@ -198,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
                                  device_noise=s.device_noise, progress=True, init_model=s.init_model,
-                                 max_staleness=s.max_staleness, algo=s.algo)
+                                 max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

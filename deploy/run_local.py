@@ -28,16 +28,20 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from chief import strategies, tiers
 from chief.claim import EXIT_CLAIMED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy import sites
 from deploy.settings import LocalRunSettings
+from deploy.witness import Witness
+from protocol.codec import RejectCounter
 from protocol.messages import INTERRUPTED
-from protocol.mqtt import BrokerAddress
+from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import worker_seed
+from protocol.transport import Connect
 from runtime.cli import exits_on_storage_faults
-from runtime.settings import Settings, returns_code, to_env
+from runtime.settings import RunMqttSettings, Settings, returns_code, to_env
 from runtime.storage import EXIT_STORAGE, storage_errors
 from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.service import wait_for_url
@@ -110,8 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.monotonic()
     worker_ids = [f"w{i}" for i in range(s.workers)]
     rigs = {i: f"rig{i}" for i in range(s.workers)} if s.env == "qube" else {}
+    edges = edge_of(s, worker_ids)
     try:
-        reached = start_broker(s, fleet, worker_ids, rigs)
+        reached = start_broker(s, fleet, worker_ids, rigs, edges)
         if reached is None:
             return 1
         broker, login = reached
@@ -125,14 +130,23 @@ def main(argv: list[str] | None = None) -> int:
             dashboard = fleet.start("dashboard", "services.dashboard", s.child(
                 DashboardSettings, **common, **login("observer"), dashboard_host="127.0.0.1",
                 dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
-        start_devices(s, fleet, common, login, key, worker_ids, rigs)
+        for k, e in enumerate(sorted(set(edges.values()), key=lambda e: int(e[1:]))):
+            # Before the workers (it passes the root's RunStart on to them); with sites, at its workers' site.
+            at = {**common, "broker": s.site_brokers[k]} if s.site_brokers else common
+            fleet.start(f"edge-{e}", "chief", s.child(ChiefSettings, **at, **login(e), run_key=key,
+                                                      role="edge", edge_id=e, edges=0, run_dir=run_dir))
+        witness = (Witness(_observer(broker, s.run_id, login), s.run_id, run_dir) if s.witness and edges
+                   else None)
+        start_devices(s, fleet, common, login, key, worker_ids, rigs, edges)
         print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
         if s.dashboard_port is not None:
             url = wait_for_url(dashboard, url_file)
             print(f"dashboard: {url}" if url else f"!! the dashboard did not start; see {log_dir / 'dashboard.log'}",
                   flush=True)
-        code = run_chief(fleet, s.child(ChiefSettings, **common, **login("chief"), run_key=key, run_dir=run_dir),
-                         run_dir)
+        code = run_chief(fleet, s.child(ChiefSettings, **common, **login("chief"), run_key=key, run_dir=run_dir,
+                                        edges=len(set(edges.values()))), run_dir)
+        if witness is not None:
+            print(f"witness: every gradient and root aggregate in {witness.save()}")
         code = report(s, argv, code, time.monotonic() - t0)
         ended = (run_dir / "summary.json").exists() and code != EXIT_INTERRUPTED
         if ended and s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
@@ -164,8 +178,30 @@ def warm_start_fits(s: LocalRunSettings) -> bool:
 Login = Callable[[str], dict[str, Any]]
 
 
-def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs: dict[int, str]
-                 ) -> tuple[str, Login] | None:
+def edge_of(s: LocalRunSettings, worker_ids: list[str]) -> dict[str, str]:
+    """A tiered run's worker -> edge chief (worker i behind ``e<i mod N>``); empty for a flat run, and for a strategy
+    that cannot be split (after a note saying so)."""
+    if not s.edges:
+        return {}
+    strategy = strategies.get(s.policy)
+    if not tiers.decomposable(strategy):
+        print(f"note: {tiers.why_flat(strategy)}", file=sys.stderr)
+        return {}
+    return {w: f"e{i % s.edges}" for i, w in enumerate(worker_ids)}
+
+
+def _observer(broker: str, run_id: str, login: Login) -> Connect:
+    """A Connect for a read-only MQTT client of the run (the dashboard's login)."""
+    address = RunMqttSettings.given(broker=broker, run_id=run_id, **login("observer")).address()
+
+    def connect(client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
+        return MqttConnection(address, client_id=client_id, will=will, rejects=rejects)
+
+    return connect
+
+
+def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs: dict[int, str],
+                 edges: dict[str, str] | None = None) -> tuple[str, Login] | None:
     """The broker's URL and the login of each process: FEDRL_BROKER's (None, after one line, when it cannot be
     reached), or an embedded broker with this run's own users and ACL."""
     assert s.run_dir is not None and s.run_id is not None
@@ -183,7 +219,7 @@ def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs:
     # This run's own users and ACL: nothing else on the machine can connect, let alone publish as the chief.
     with storage_errors(s.run_dir / "broker"):  # a write names no file: name the folder
         creds = make_credentials(s.run_dir / "broker", s.run_id, worker_ids,
-                                 {worker_ids[i]: rig for i, rig in rigs.items()})
+                                 {worker_ids[i]: rig for i, rig in rigs.items()}, edges)
     with (fleet.log_dir / "broker.log").open("ab") as broker_log:
         proc, port = start_broker_process(credentials=creds, stdout=broker_log, stderr=subprocess.STDOUT,
                                           process_group=0)  # as Fleet.start: Ctrl-C is the launcher's
@@ -194,7 +230,7 @@ def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs:
 
 
 def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], login: Login, key: str,
-                  worker_ids: list[str], rigs: dict[int, str]) -> None:
+                  worker_ids: list[str], rigs: dict[int, str], edges: dict[str, str] | None = None) -> None:
     """The simulated rigs and the workers (worker i drives rig i), each on its site's broker when there are sites
     (``--site-brokers``, round robin), where a worker resends an unanswered update every deploy.sites.RESEND_INTERVAL
     seconds unless told otherwise (what a dying core took with it, nobody at a site saw go)."""
@@ -207,7 +243,7 @@ def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], log
     for i, wid in enumerate(worker_ids):
         worker = s.child(WorkerSettings, **at_site[i], **login(wid), worker_id=wid, model_dir=s.run_dir / "models",
                          state_dir=s.run_dir / "workers", rig_id=rigs.get(i),
-                         reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key)
+                         reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key, edge=(edges or {}).get(wid))
         if s.site_brokers and "resend_interval" not in worker.model_fields_set:  # unless FEDRL_RESEND_INTERVAL says
             worker = worker.model_copy(update={"resend_interval": sites.RESEND_INTERVAL})
         fleet.start(f"worker-{wid}", "worker", worker)

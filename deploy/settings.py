@@ -5,7 +5,15 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BeforeValidator, NonNegativeFloat, PlainSerializer, PositiveInt, field_validator, model_validator
+from pydantic import (
+    BeforeValidator,
+    NonNegativeFloat,
+    NonNegativeInt,
+    PlainSerializer,
+    PositiveInt,
+    field_validator,
+    model_validator,
+)
 
 from chief.settings import FederationSettings
 from deploy import sites
@@ -51,6 +59,12 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
                                                  "to look at the final state")
     qube_clock: Clock = setting("lockstep", "clock of the simulated rigs when --env qube (python -m services.qube_sim "
                                 "--help)")
+    edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), each its own "
+                                    "process (python -m chief --role edge), worker i behind edge e<i mod N>; 0: flat. "
+                                    "A strategy that cannot be split (median, trimmed) runs flat")
+    witness: bool = setting(False, "with --edges: an observer keeps every worker's gradient and every root aggregate "
+                            "in the run folder (gradients.npz), so that python -m chief.audit checks the root's "
+                            "Eq. 9 against the flat one (docs/explanation/tiered.md)")
 
     @field_validator("broker")
     @classmethod
@@ -70,6 +84,9 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
     def _sites_need_a_core(self) -> LocalRunSettings:
         if self.site_brokers and not self.broker:
             raise ValueError("--site-brokers needs --broker, the core broker they are joined to (the chief's)")
+        if self.site_brokers and self.edges and self.edges != len(self.site_brokers):
+            raise ValueError(f"--edges {self.edges} with {len(self.site_brokers)} --site-brokers: one edge chief per "
+                             "site (edge k at site k, worker i at both's i mod n)")
         return self
 
     @field_validator("run_id")
@@ -83,6 +100,9 @@ class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettin
 
     workers: int = setting(4, "number of workers", ge=1)
     run_dir: Path = setting(help="the run folder to write")
+    edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), worker i behind "
+                                    "edge e<i mod N>, each in its own thread; 0: flat. A strategy that cannot be split "
+                                    "(median, trimmed) runs flat")
 
     @field_validator("env")
     @classmethod

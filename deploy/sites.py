@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-from protocol.routes import BRIDGE, CHIEF, DASHBOARD, ROUTES, WORKER, Route
+from protocol.routes import BRIDGE, CHIEF, DASHBOARD, EDGE, ROUTES, WORKER, Route
 from protocol.topics import check_id
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
@@ -38,8 +38,9 @@ HOST = "127.0.0.1"
 Place = Literal["site", "core"]
 SITE: Place = "site"
 CORE: Place = "core"
-#: Where each process of the contract runs: workers and rigs at their site, the chief and the dashboard at the core.
-PLACEMENT: dict[str, Place] = {WORKER: SITE, BRIDGE: SITE, CHIEF: CORE, DASHBOARD: CORE}
+#: Where each process of the contract runs: workers, rigs and edge chiefs at their site, the chief and the dashboard
+#: at the core.
+PLACEMENT: dict[str, Place] = {WORKER: SITE, BRIDGE: SITE, EDGE: SITE, CHIEF: CORE, DASHBOARD: CORE}
 #: Seconds after which a worker at a site sends an unanswered update again (FEDRL_RESEND_INTERVAL; the default is
 #: 30). A core that dies takes with it what it had acknowledged and not yet passed on, and nobody at a site sees it
 #: go: the resend must come while the chief's round still waits (FEDRL_ROUND_TIMEOUT, 30 s by default).
@@ -214,13 +215,18 @@ class Site:
         return [f"{self.name}-rig{i}" for i in range(self.rigs)]
 
     @property
+    def edge_id(self) -> str:
+        """The id of the site's edge chief in a tiered run (docs/explanation/tiered.md): the site's name."""
+        return self.name
+
+    @property
     def bridge_user(self) -> str:
         return f"bridge-{self.name}"
 
 
 def bridge_acl(site: Site, run: str | None = None) -> str:
-    """The core's ACL entry for a site's bridge: it publishes what the site's own workers and rigs publish (so one
-    site cannot speak for another's), reads what the chief sends them, and keeps its state notification."""
+    """The core's ACL entry for a site's bridge: it publishes what the site's own workers, rigs and edge chief publish
+    (so one site cannot speak for another's), reads what the chief sends them, and keeps its state notification."""
     lines = [f"# Site {site.name}'s bridge (deploy/sites.py).", f"user {site.bridge_user}",
              f"topic write $SYS/broker/connection/{site.bridge_user}/state"]
     for topic in bridge_topics(run):
@@ -228,7 +234,8 @@ def bridge_acl(site: Site, run: str | None = None) -> str:
         if topic.direction == "in":
             lines.append(f"topic read {topic.pattern}")
             continue
-        level, names = ("id", site.worker_ids) if "id" in route.parameters else ("rig", site.rig_ids)
+        level, names = next((level, names) for level, names in (("id", site.worker_ids), ("edge", [site.edge_id]),
+                                                                 ("rig", site.rig_ids)) if level in route.parameters)
         fixed = {"run": run} if run and "run" in route.parameters else {}
         lines += [f"topic write {route.filter(**fixed, **{level: name})}" for name in names]
     return "\n".join(lines) + "\n"
@@ -265,8 +272,9 @@ def logins(folder: Path) -> str:
 def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, run: str | None = None,
                      core_ca: str | None = None) -> list[Path]:
     """Every broker's folder for a multi-site deployment: ``core/`` (the chief's and the dashboard's users, one
-    user per site bridge) and ``site-<name>/`` (its workers' and rigs' users, its mosquitto.conf: ``base`` plus
-    its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site broker sees it).
+    user per site bridge) and ``site-<name>/`` (its workers', rigs' and edge chief's users, its mosquitto.conf:
+    ``base`` plus its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site
+    broker sees it).
     Each folder also holds the run's key (``run_key``, the same everywhere: an orchestrator takes a folder per
     place), and so does each process's credentials/<user>.env. Passwords and the key are random; files with
     secrets are private. Returns the folders."""
@@ -281,7 +289,7 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
     for site in sites:
         folder = out / f"site-{site.name}"
         make_users(folder, "-w", str(site.workers), "-r", str(site.rigs), "--worker-prefix", f"{site.name}-w",
-                   "--rig-prefix", f"{site.name}-rig", "--no-chief", *run_args)
+                   "--rig-prefix", f"{site.name}-rig", "--no-chief", "--edge", site.edge_id, *run_args)
         password = secrets.token_urlsafe(24)
         add_user(core_dir, site.bridge_user, password, bridge_acl(site, run))
         bridge = Bridge(site.name, core, run, site.bridge_user, password, core_ca)

@@ -17,6 +17,7 @@ from typing import Any, Final, TypeVar
 
 import msgpack
 
+from protocol.codec import DecodeError, RejectCounter, decode
 from protocol.messages import Message
 
 #: The field that carries the authenticator (left out of what it authenticates).
@@ -58,6 +59,22 @@ def signed(message: M, key: bytes | None) -> M:
     if key is None:
         return message
     return message.model_copy(update={TAG_FIELD: tag_of(message, key)})
+
+
+def admitted(payload: bytes, *types: type[Message], topic: str, key: bytes | None,
+             rejects: RejectCounter) -> Message | None:
+    """``payload`` decoded as one of ``types`` (protocol/codec.py) and checked against the run's key: the message, or
+    None when it is malformed, forged or unsigned, which ``rejects`` counts and logs."""
+    try:
+        msg = decode(payload, *types, topic=topic)
+    except DecodeError as err:
+        rejects.reject_error(topic, err)
+        return None
+    refused = refusal(msg, key)
+    if refused is not None:
+        rejects.reject(topic, *refused)
+        return None
+    return msg
 
 
 def refusal(message: Message, key: bytes | None) -> tuple[str, str] | None:

@@ -17,6 +17,8 @@ LEARNERS: dict[str, str] = {
            "episode",
     "sac": "Soft Actor-Critic, off-policy (worker/sac.py): replay buffer, twin soft Q critics, entropy temperature; "
            "a categorical policy for discrete actions",
+    "dqn": "Double DQN with n-step returns, off-policy (worker/dqn.py): replay buffer, target network, epsilon-greedy; "
+           "discrete actions only",
 }
 
 

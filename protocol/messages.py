@@ -4,7 +4,8 @@ Federation (paper Algorithms 1-2): WorkerHello, WorkerStatus, WorkerUpdate (acto
 MatureParams (a finished worker's actor), ChiefAggregate (Eq. 9 mean gradient), ChiefTransfer (Eq. 10-11),
 ChiefAck (the chief holds a worker's mature actor, or refuses it), RunStart, RunStop. The chief's answers carry the
 number of the round they answer (protocol/rounds.py) next to its episode and step, and the chief's ``session``;
-ChiefClaim is a chief's exclusive, retained claim of a run. Every chief message carries ``tag``: its HMAC-SHA256
+ChiefClaim is a chief's exclusive, retained claim of a run. EdgePartial is an edge chief's part of a round, for the root
+chief (a tiered run). Every chief message carries ``tag``: its HMAC-SHA256
 under the run's key (protocol/auth.py), empty when the run has no key.
 Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
 """
@@ -86,6 +87,8 @@ class WorkerHello(Message):
     #: The network digest (runtime/model_file.py) of the model this worker was warm-started from; None from scratch.
     init_model: str | None = Field(default=None, pattern=r"^[0-9a-f]{64}$")
     init_model_path: str = Field(default="", max_length=1000)  # that model's path as the worker was given it
+    #: The edge chief this worker's rounds go through (docs/explanation/tiered.md); None: straight to the chief.
+    edge: Ident | None = None
 
 
 class WorkerStatus(Message):
@@ -282,12 +285,40 @@ class RunStart(Message):
     rounds_per_episode: int = Field(default=1, ge=1, le=MAX_PER_EPISODE)
     finishers_help: bool = False
     max_staleness: int = Field(default=0, ge=0, le=STALENESS_LIMIT)
+    #: Worker -> the edge its rounds go through (a tiered run, docs/explanation/tiered.md); empty: a flat run.
+    edges: dict[Ident, Ident] = Field(default_factory=dict)
     tag: Tag = ""
 
     @property
     def shape(self) -> RoundShape:
         """How this run numbers its rounds."""
         return RoundShape(per_episode=self.rounds_per_episode)
+
+
+class EdgePartial(Message):
+    """An edge chief closed its workers' part of round ``round`` (docs/explanation/tiered.md, chief/tiers.py): the
+    submissions it counted, without their tensors (``updates``: each WorkerUpdate with an empty ``gradient``), a
+    finisher's MatureParams whole (``matures``), and the unnormalised Eq. 9 sum of their (bounded) gradients: the
+    sum of share_n g_n (``gradient``, float32), the share total ``total`` and the count ``count`` (``uniform``: the
+    plain sum, every share being 0), the critic's under a per-step strategy. ``clipped``: the factor a gradient was
+    scaled by (chief/rounds.py bound_norms, against the edge's own median); ``timed_out``: the edge's workers it
+    stopped waiting for."""
+
+    kind: Literal["partial"] = "partial"
+    edge_id: Ident
+    round: int = Field(ge=1)
+    episode: int = Field(ge=1)
+    step: int = Field(default=0, ge=0)
+    updates: tuple[WorkerUpdate, ...] = ()
+    matures: tuple[MatureParams, ...] = ()
+    gradient: TensorDict | None = None
+    critic_gradient: TensorDict | None = None
+    total: float = Field(default=0.0, ge=0.0)
+    count: int = Field(default=0, ge=0)
+    uniform: bool = False
+    clipped: dict[Ident, Annotated[float, Field(gt=0.0, le=1.0)]] = Field(default_factory=dict)
+    timed_out: tuple[Ident, ...] = ()
+    tag: Tag = ""
 
 
 #: RunStop.reason (and summary.json's ``end_reason``) of a run the operator interrupted (Ctrl-C, SIGTERM): it is
@@ -418,6 +449,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         ChiefAck,
         RunStart,
         RunStop,
+        EdgePartial,
         ChiefClaim,
         QubeState,
         QubeAction,

@@ -9,20 +9,22 @@ from dataclasses import dataclass
 from protocol import qube, topics
 from protocol.messages import MESSAGE_TYPES, Message
 
-CHIEF, WORKER, BRIDGE, DASHBOARD = "chief", "worker", "rpi_bridge", "dashboard"
+CHIEF, EDGE, WORKER, BRIDGE, DASHBOARD = "chief", "edge", "worker", "rpi_bridge", "dashboard"
 #: The processes on the wire, by the package each runs from.
 PROCESSES: dict[str, str] = {
-    CHIEF: "`python -m chief`: mediates the federation (Algorithm 1)",
+    CHIEF: "`python -m chief`: mediates the federation (Algorithm 1); in a tiered run the root, fed by the edges",
     WORKER: "`python -m worker`: learns on its own environment (Algorithm 2), drives a rig for the QUBE tasks",
+    EDGE: "`python -m chief --role edge --edge-id <edge>`: closes its workers' part of each round and forwards one "
+    "partial aggregate to the root chief, then passes the root's answers on to its workers (a tiered run)",
     BRIDGE: "`python -m rpi_bridge` on a rig's Raspberry Pi, or the simulated rig `python -m services.qube_sim` "
     "(the same BridgeService)",
     DASHBOARD: "`python -m services.dashboard`: the live web view; it only listens",
 }
 #: The topic levels a route's pattern leaves open (``<name>``), and what goes there.
-PARAMETERS: dict[str, str] = {"run": "the run id", "id": "the worker id", "rig": "the rig id"}
+PARAMETERS: dict[str, str] = {"run": "the run id", "id": "the worker id", "rig": "the rig id", "edge": "the edge id"}
 #: The levels that name whom a message is from or for, and the payload field that must say the same (the codec
 #: refuses a message whose field contradicts its topic: a worker speaking for another, a rig for another).
-SENDER_FIELDS: dict[str, str] = {"id": "worker_id", "rig": "rig_id"}
+SENDER_FIELDS: dict[str, str] = {"id": "worker_id", "rig": "rig_id", "edge": "edge_id"}
 
 
 @dataclass(frozen=True)
@@ -91,13 +93,20 @@ def _c(leaf: str) -> str:
     return f"{topics.FEDRL}/<run>/chief/{leaf}"
 
 
+def _e(leaf: str) -> str:
+    return f"{topics.FEDRL}/<run>/edge/<edge>/{leaf}"
+
+
 def _r(leaf: str) -> str:
     return f"{topics.QUBE}/<rig>/{leaf}"
 
 
 M = MESSAGE_TYPES
-_FEDERATION = (CHIEF, DASHBOARD)
-_WORKERS = (WORKER, DASHBOARD)
+_FEDERATION = (CHIEF, EDGE, DASHBOARD)
+_WORKERS = (WORKER, EDGE, DASHBOARD)
+#: What an edge passes on from the root to its workers, verbatim (the root's tag stays valid).
+_RELAYED = ((topics.START, "run_start"), (topics.AGGREGATE, "aggregate"), (topics.TRANSFER, "transfer"),
+            (topics.ACK, "ack"), (topics.STOP, "run_stop"))
 ROUTES: tuple[Route, ...] = (
     Route(_w(topics.HELLO), WORKER, _FEDERATION, (M["hello"],), 1, "every second until a RunStart names the worker"),
     Route(_w(topics.STATUS), WORKER, _FEDERATION, (M["status"],), 1, "every change of its state", will=True),
@@ -110,7 +119,12 @@ ROUTES: tuple[Route, ...] = (
           "the answer to a round in which a worker finished"),
     Route(_c(topics.ACK), CHIEF, _WORKERS, (M["ack"],), 1, "the answer to every MatureParams"),
     Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
-    Route(f"{topics.FEDRL}/<run>/{topics.CLAIM}", CHIEF, _FEDERATION, (M["claim"],), 1,
+    Route(_e(topics.PARTIAL), EDGE, (CHIEF, DASHBOARD), (M["partial"],), 1,
+          "an edge's part of a round: its counted submissions without their tensors, one unnormalised Eq. 9 sum"),
+    *(Route(_e(f"{topics.CHIEF}/{leaf}"), EDGE, (WORKER, DASHBOARD), (M[kind],), 1,
+            f"the root chief's {kind} message on fedrl/<run>/chief/{leaf}, passed on verbatim to the edge's workers")
+      for leaf, kind in _RELAYED),
+    Route(f"{topics.FEDRL}/<run>/{topics.CLAIM}", CHIEF, (CHIEF, DASHBOARD), (M["claim"],), 1,
           "the one retained message: the chief that holds the run (so a second chief sees it and does not start); "
           "cleared by an empty retained message when the run ends", retain=True),
     Route(_r(topics.STATE), BRIDGE, (WORKER,), (M["qube_state"],), 0,
@@ -129,12 +143,17 @@ def route_of(topic: str) -> Route | None:
     return next((r for r in ROUTES if r.matches(topic)), None)
 
 
+def route_for(publisher: str, kind: str) -> Route:
+    """The route ``publisher`` sends messages of ``kind`` on (a KeyError for a kind it does not send)."""
+    found = [r for r in ROUTES if r.publisher == publisher and kind in r.kinds]
+    if not found:
+        raise KeyError(f"the {publisher} sends no {kind!r} message")
+    return found[0]
+
+
 def chief_route(kind: str) -> Route:
     """The route the chief publishes messages of ``kind`` on (a KeyError for a kind it does not send)."""
-    found = [r for r in ROUTES if r.publisher == CHIEF and kind in r.kinds]
-    if not found:
-        raise KeyError(f"the chief sends no {kind!r} message")
-    return found[0]
+    return route_for(CHIEF, kind)
 
 
 def qos_of(topic_filter: str) -> int:

@@ -27,7 +27,17 @@ def worker(run: str, worker_id: str, leaf: str) -> str:
 
 
 def chief(run: str, leaf: str) -> str:
-    return f"{FEDRL}/{check_id(run, 'run id')}/chief/{leaf}"
+    return f"{FEDRL}/{check_id(run, 'run id')}/{CHIEF}/{leaf}"
+
+
+def edge(run: str, edge_id: str, leaf: str) -> str:
+    """An edge chief's topics: its partials for the root, and the root's answers it passes on to its workers."""
+    return f"{FEDRL}/{check_id(run, 'run id')}/edge/{check_id(edge_id, 'edge id')}/{leaf}"
+
+
+def relayed(run: str, edge_id: str, leaf: str) -> str:
+    """Where an edge chief passes the root chief's messages (``leaf``: start, aggregate...) on to its workers."""
+    return edge(run, edge_id, f"{CHIEF}/{leaf}")
 
 
 def claim(run: str) -> str:
@@ -41,5 +51,7 @@ def rig(rig_id: str, leaf: str) -> str:
 
 HELLO, STATUS, UPDATE = "hello", "status", "update"
 CLAIM = "claim"
+CHIEF = "chief"
 START, AGGREGATE, TRANSFER, ACK, STOP = "start", "aggregate", "transfer", "ack", "stop"
+PARTIAL = "partial"
 STATE, ACTION, RESET, TELEMETRY = "state", "action", "reset", "telemetry"

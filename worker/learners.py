@@ -101,6 +101,7 @@ class LearnerKind:
 _KINDS: dict[str, LearnerKind] = {
     "ppo": LearnerKind("ppo", "worker.ppo", "PPOLearner", "PPOConfig", "Batch"),
     "sac": LearnerKind("sac", "worker.sac", "SACLearner", "SACConfig", "SACBatch"),
+    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner", "DQNConfig", "SACBatch"),
 }
 assert set(_KINDS) == set(learners.LEARNERS), "protocol/learners.py and worker/learners.py name the same learners"
 

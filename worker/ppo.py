@@ -592,12 +592,7 @@ class PPOLearner:
 
         Only the actor is blended (the critic and, with ``normalize_obs``, the observation statistics stay the
         worker's own). A ValueError for a weight outside [0, 1], before anything changed."""
-        w = float(keep_weight)
-        if not (math.isfinite(w) and 0.0 <= w <= 1.0):
-            raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
-        theta_bar = _tensors(params, self.actor)
-        for name, p in self.actor.named_parameters():
-            p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
+        blend(self.actor, params, keep_weight)
 
     # -- persistence ----------------------------------------------------------------------------------------
 
@@ -670,6 +665,18 @@ class PPOLearner:
 
     def load(self, path: str | Path) -> None:
         self.load_state_dict(torch.load(Path(path), weights_only=True))
+
+
+@torch.no_grad()
+def blend(net: nn.Module, params: Mapping[str, Any], keep_weight: float) -> None:
+    """Eq. 11 in place on ``net``: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1]
+    (every learner's ``blend_actor``). A ValueError for a weight outside [0, 1], before anything changed."""
+    w = float(keep_weight)
+    if not (math.isfinite(w) and 0.0 <= w <= 1.0):
+        raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
+    theta_bar = _tensors(params, net)
+    for name, p in net.named_parameters():
+        p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
 
 
 def take_optimizers(state: Mapping[str, Any],

@@ -34,6 +34,7 @@ the global RNGs.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import asdict, dataclass, fields
@@ -50,11 +51,14 @@ from worker.ppo import (
     StepGradients,
     UpdateStats,
     _tensors,
+    blend,
     mlp,
     network_fields,
     save_model,
     take_optimizers,
 )
+
+log = logging.getLogger("worker")
 
 #: Bounds of the Gaussian's log standard deviation (before the tanh squashing), as is usual for SAC.
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -291,6 +295,11 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
 # ----------------------------------------------------------------------------------------------------
 
 
+def finite_transition(reward: float, *arrays: Any) -> bool:
+    """Whether the reward and every value of ``arrays`` are finite."""
+    return math.isfinite(reward) and all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
+
+
 @dataclass
 class SACBatch:
     """What ``prepare()`` fixes for the K per-step rounds of an episode: ``n``, the number of transitions in the
@@ -357,6 +366,8 @@ class SACLearner:
         self._episode_gradient: dict[str, np.ndarray] | None = None
         # the latest mini-batch's mean log pi estimate, for the temperature step of apply_step
         self._alpha_term: torch.Tensor | None = None
+        #: transitions ``remember`` refused because a value was not finite (they never enter the replay)
+        self.rejected_transitions = 0
 
     @property
     def target_entropy(self) -> float:
@@ -422,7 +433,17 @@ class SACLearner:
         self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool, truncated: bool
     ) -> None:
         """Store <s_t, a_t, r_{t+1}, s_{t+1}> and the episode flags in the FIFO replay (the oldest drops out when it
-        is full). Box actions come in env units and are stored rescaled to [-1, 1] (clipped), the actor's range."""
+        is full). Box actions come in env units and are stored rescaled to [-1, 1] (clipped), the actor's range.
+
+        A transition with a value that is not finite (reward, observations or action) is refused: in the replay it
+        would poison every mini-batch that draws it, for as long as it stays. It is counted in
+        ``rejected_transitions`` and logged (the first, then every 100th)."""
+        if not finite_transition(reward, obs, next_obs, action):
+            self.rejected_transitions += 1
+            if self.rejected_transitions == 1 or self.rejected_transitions % 100 == 0:
+                log.warning("SAC refused a transition with a non-finite value (%d so far): not in the replay",
+                            self.rejected_transitions)
+            return
         i = self._pos
         self._obs[i] = np.asarray(obs, dtype=np.float32).reshape(-1)
         self._next_obs[i] = np.asarray(next_obs, dtype=np.float32).reshape(-1)
@@ -448,7 +469,7 @@ class SACLearner:
         cfg = self.config
         new = self._pending
         batch = self.prepare()
-        steps = 0 if batch.n < cfg.learning_starts else max(1, round(cfg.utd_ratio * new))
+        steps = 0 if batch.n < max(cfg.learning_starts, 1) else max(1, round(cfg.utd_ratio * new))
         grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
         totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy"), 0.0)
         actor_steps, skipped = 0, 0
@@ -471,10 +492,9 @@ class SACLearner:
                               alpha=self.alpha, gradient_steps=steps)
 
     def prepare(self) -> SACBatch:
-        """The K = ``update_epochs`` steps of this episode draw from the replay as it is now: its size. The new
-        transitions count as used (``update()`` takes its number of steps from them before calling this)."""
-        if self._size == 0:
-            raise ValueError("update() needs transitions in the replay: call remember() first")
+        """The K = ``update_epochs`` steps of this episode draw from the replay as it is now: its size (they take no
+        step while it holds fewer than ``learning_starts``, or nothing). The new transitions count as used
+        (``update()`` takes its number of steps from them before calling this)."""
         self._pending = 0
         return SACBatch(n=self._size, steps=self.config.update_epochs)
 
@@ -494,11 +514,14 @@ class SACLearner:
     def minibatch_gradients(self, batch: SACBatch) -> StepGradients:
         """One random mini-batch from the replay: the critic's gradient of J_Q (both Q networks, against the soft Q
         target of the target critics) and the actor's of J_pi (with the critic's current parameters), each after
-        optional norm clipping; None where the loss or a gradient is not finite. Nothing is applied: ``apply_step``
-        does that (with these, or with a federation's mean of them). approx_kl and clip_fraction are 0.0 (PPO's)."""
+        optional norm clipping; None where the loss or a gradient is not finite, and both None (losses NaN) while the
+        replay holds fewer than ``learning_starts`` transitions. Nothing is applied: ``apply_step`` does that (with
+        these, or with a federation's mean of them). approx_kl and clip_fraction are 0.0 (PPO's)."""
         cfg = self.config
-        if batch.n < 1:
-            raise ValueError("minibatch_gradients() needs transitions in the replay")
+        if batch.n < max(cfg.learning_starts, 1):  # no gradients yet: shared as zeros, and a step of zeros is none
+            self._alpha_term = None
+            return StepGradients(critic=None, actor=None, actor_loss=math.nan, critic_loss=math.nan,
+                                 entropy=math.nan, approx_kl=0.0, clip_fraction=0.0)
         obs, actions, rewards, next_obs, terminated = self._sample(batch.n)
         alpha = self.log_alpha.detach().exp()
         discrete = self.actor.discrete
@@ -552,27 +575,32 @@ class SACLearner:
         return out
 
     @staticmethod
-    def _step(net: nn.Module, optimizer: torch.optim.Optimizer, grads: Mapping[str, np.ndarray]) -> None:
+    def _step(net: nn.Module, optimizer: torch.optim.Optimizer, grads: Mapping[str, np.ndarray] | None) -> bool:
+        """One optimizer step of ``net`` with ``grads``; none (False) for None or all zeros: no worker had a
+        gradient (every one before ``learning_starts``), and Adam's step count and moments stay as they are."""
+        if grads is None or not any(np.any(g) for g in grads.values()):
+            return False
         optimizer.zero_grad()
         for name, g in _tensors(grads, net).items():
             net.get_parameter(name).grad = g
         optimizer.step()
         optimizer.zero_grad()
+        return True
 
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
-        """One critic-optimizer step and one actor-optimizer step with the given gradients (None: that network is not
-        stepped), then the local steps: the temperature (J(alpha), from the latest ``minibatch_gradients``' log pi
-        estimate) and the Polyak update of the target critics."""
-        if critic is not None:
-            self._step(self.critic, self.critic_optimizer, critic)
-        if actor is not None:
-            self._step(self.actor, self.actor_optimizer, actor)
+        """One critic-optimizer step and one actor-optimizer step with the given gradients (None or all zeros: that
+        network is not stepped), then the local steps: the temperature (J(alpha), from the latest
+        ``minibatch_gradients``' log pi estimate, none before ``learning_starts``) and, after a critic step, the
+        Polyak update of the target critics."""
+        stepped = self._step(self.critic, self.critic_optimizer, critic)
+        self._step(self.actor, self.actor_optimizer, actor)
         if self._alpha_term is not None and torch.isfinite(self._alpha_term):
             self.alpha_optimizer.zero_grad()
             temperature_loss(self.log_alpha, self._alpha_term, self.target_entropy).backward()
             self.alpha_optimizer.step()
             self.alpha_optimizer.zero_grad()
-        polyak_update(self.target_critic.parameters(), self.critic.parameters(), self.config.tau)
+        if stepped:
+            polyak_update(self.target_critic.parameters(), self.critic.parameters(), self.config.tau)
 
     # -- federation hooks ---------------------------------------------------------------------------------
 
@@ -606,12 +634,7 @@ class SACLearner:
 
         Only the actor is blended (critics, targets and alpha stay the worker's own). A ValueError for a weight
         outside [0, 1], before anything changed."""
-        w = float(keep_weight)
-        if not (math.isfinite(w) and 0.0 <= w <= 1.0):
-            raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
-        theta_bar = _tensors(params, self.actor)
-        for name, p in self.actor.named_parameters():
-            p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
+        blend(self.actor, params, keep_weight)
 
     # -- persistence ----------------------------------------------------------------------------------------
 

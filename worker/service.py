@@ -22,8 +22,8 @@ from typing import Any
 import torch
 
 from protocol import topics
-from protocol.auth import refusal
-from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.auth import admitted
+from protocol.codec import RejectCounter, encode
 from protocol.messages import (
     INTERRUPTED,
     ChiefAck,
@@ -124,14 +124,9 @@ class WorkerService:
         self.conn.publish(topic, payload, qos=qos_of(topic))
 
     def _on_chief(self, topic: str, payload: bytes) -> None:
-        try:
-            msg = decode(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic)
-        except DecodeError as err:
-            self.rejects.reject_error(topic, err)
-            return
-        refused = refusal(msg, self.key)
-        if refused is not None:  # forged, or untagged in a run with a key
-            self.rejects.reject(topic, *refused)
+        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic, key=self.key,
+                       rejects=self.rejects)
+        if msg is None:
             return
         if isinstance(msg, ChiefAck) and msg.worker_id != self.cfg.worker_id:
             return  # another worker's acknowledgement
@@ -154,7 +149,7 @@ class WorkerService:
         cfg = self.cfg
         torch.set_num_threads(1)
         self.conn.start()
-        chief = topics.chief(cfg.run_id, "+")
+        chief = topics.chief(cfg.run_id, "+") if cfg.edge is None else topics.relayed(cfg.run_id, cfg.edge, "+")
         self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
         try:
             start = self._join()
@@ -181,6 +176,14 @@ class WorkerService:
             time.sleep(0.2)  # let the last status go out
             self.conn.stop()
 
+    def _play(self, algo: Algorithm2) -> WorkerUpdate | MatureParams:
+        """The next episode, played ``slowdown`` times slower than this machine plays it (a straggler)."""
+        began = time.monotonic()
+        submission = algo.play()
+        if self.cfg.slowdown > 1.0:
+            self._interrupt.wait((self.cfg.slowdown - 1.0) * (time.monotonic() - began))
+        return submission
+
     def _join(self) -> RunStart | None:
         """Say hello every second until the chief's RunStart names this worker."""
         cfg = self.cfg
@@ -190,7 +193,8 @@ class WorkerService:
                             critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs, algo=cfg.algo,
                             host=socket.gethostname(), pid=os.getpid(),
                             init_model=self.init_model.digest if self.init_model else None,
-                            init_model_path=self.init_model.given[:1000] if self.init_model else "")
+                            init_model_path=self.init_model.given[:1000] if self.init_model else "",
+                            edge=cfg.edge)
         self.actor_spec = probe.actor_spec()
         deadline = time.monotonic() + cfg.start_timeout
         next_hello = 0.0
@@ -233,7 +237,7 @@ class WorkerService:
                      index, seed, cfg.env, start.policy, algo.next_episode if pending is None else algo.episode)
             self._status("training", episode=algo.next_episode - 1)
             while pending is not None or (algo.next_episode <= start.max_episodes and not self.halted):
-                submission: WorkerUpdate | MatureParams | None = pending if pending is not None else algo.play()
+                submission: WorkerUpdate | MatureParams | None = pending if pending is not None else self._play(algo)
                 pending = None
                 if isinstance(submission, MatureParams):  # Algorithm 2: learning finished -> hand it over, stop
                     self._save(learner, algo, start)

@@ -41,6 +41,11 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them); must match the "
                                 "chief's")
     rig_id: str | None = setting(None, "QUBE-Servo 2 rig to drive when --env qube")
+    slowdown: float = setting(1.0, "a straggler for measurements: after each episode wait (slowdown - 1) times the "
+                              "episode's wall time, so that it plays this many times slower (1: no wait)", ge=1.0,
+                              le=1000.0)
+    edge: str | None = setting(None, "the edge chief this worker's rounds go through in a tiered run (its answers "
+                               "come on fedrl/<run>/edge/<edge>/..., docs/explanation/tiered.md); unset: the chief's")
     qube_clock: Clock = setting("realtime", "--env qube: the clock of the rig (a real rig runs in realtime; a "
                                 "services.qube_sim rig in its --clock): under realtime and delayed the rig time is "
                                 "measured, under lockstep it is read from the simulated clock; --env qube-local: "

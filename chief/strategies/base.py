@@ -6,6 +6,8 @@ A strategy decides two things of Algorithm 1 (paper Section IV):
   the contribution weight of each (Eq. 8-9 for the linear rules; ``None`` for a rule that is not a weighted sum);
 - ``keep_weight(progress)``: w_T, how much of its own actor a recipient keeps when a mature actor arrives (Eq. 10);
   ``None`` when the strategy transfers nothing;
+- ``share(progress)``: for the linear rules, a contributor's unnormalised Eq. 8 weight, which lets edges close
+  their part of a round (chief/tiers.py);
 - ``rounds(K)``: the run's round shape (protocol/rounds.py) for workers taking K PPO mini-batch steps per episode:
   one round per episode (the paper: each worker runs its K PPO steps and submits the episode's mean actor gradient,
   ``one_per_episode``) or one per mini-batch step (K rounds per episode: each step's actor and critic gradients are
@@ -58,6 +60,10 @@ class Strategy:
     #: A worker that finished keeps playing and sharing (without transferring anything) until every worker has
     #: finished; its own solve episode stays the one it finished at.
     finishers_help: bool = False
+    #: s_n, a contributor's unnormalised weight from its progress alone, when ``aggregate`` is Eq. 9's normalised
+    #: sum g_bar = sum s_n g_n / sum s_n (uniform when every s_n is 0): then edges can close their workers' part of
+    #: a round (chief/tiers.py). None: not a weighted sum (a median), which runs flat.
+    share: Callable[[float], float] | None = None
 
     @property
     def allows_staleness(self) -> bool:

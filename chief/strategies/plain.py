@@ -27,4 +27,5 @@ STRATEGY = Strategy(
     keep_weight=keep_weight,
     tolerates=lambda n: 0,
     robustness="a linear mean: one worker's gradient can move g_bar anywhere",
+    share=lambda progress: 1.0,
 )

@@ -33,4 +33,5 @@ STRATEGY = Strategy(
     robustness="a linear mean: one worker's gradient can move every step",
     rounds=one_per_step,
     finishers_help=True,
+    share=lambda progress: 1.0,
 )

@@ -11,17 +11,18 @@ from chief.strategies.base import Aggregate, Arrays, Strategy
 
 def contribution_weights(progress: Mapping[str, float]) -> dict[str, float]:
     """Eq. 8: w_n = progress_n / sum(progress), uniform when every worker is at the floor."""
-    ids = sorted(progress)
-    total = sum(progress[i] for i in ids)
-    if total <= 0.0:
-        return {i: 1.0 / len(ids) for i in ids}
-    return {i: progress[i] / total for i in ids}
+    return federation.normalised(progress)
 
 
 def aggregate(gradients: Mapping[str, Arrays], progress: Mapping[str, float]) -> Aggregate:
     """Eq. 9: g_bar = sum_n w_n g_n with the Eq. 8 weights."""
     weights = contribution_weights({w: progress[w] for w in gradients})
     return Aggregate(gradient=federation.weighted_sum(gradients, weights), weights=weights)
+
+
+def share(progress: float) -> float:
+    """Eq. 8's numerator, s_n = progress_n (what an edge sums before the root divides, chief/tiers.py)."""
+    return progress
 
 
 def keep_weight(progress: float) -> float:
@@ -36,4 +37,5 @@ STRATEGY = Strategy(
     keep_weight=keep_weight,
     tolerates=lambda n: 0,
     robustness="a linear mean: one worker's gradient (or a worker claiming full progress) can move g_bar anywhere",
+    share=share,
 )

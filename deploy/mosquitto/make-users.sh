@@ -2,10 +2,12 @@
 # Create the Mosquitto users, passwords and ACL for a federation with real rigs (mosquitto.prod.conf).
 #
 #   deploy/mosquitto/make-users.sh -w 4 -r 3 [-o DIR] [--run RUN_ID] [--force] [--acl-only] [--dashboard] [--no-chief]
+#                                  [--edge ID]
 #
 # Username convention (the username is the identity the ACL checks):
 #   chief            the chief (not with --no-chief: a site broker of a multi-site deployment, deploy/sites.py)
 #   dashboard        the live dashboard, read-only (with --dashboard)
+#   edge-<id>        the edge chief <id> of a tiered run (with --edge ID; docs/explanation/tiered.md)
 #   <prefix><i>      worker i: username = its FEDRL_WORKER_ID (w0, w1, ...)
 #   <rig-prefix><j>  the Raspberry Pi bridge of rig j: username = its FEDRL_RIG_ID (rig0, rig1, ...)
 # Worker i drives rig i (for i < number of rigs); workers beyond the rigs learn a simulated or gym env.
@@ -16,7 +18,8 @@
 #   credentials/<user>.env FEDRL_MQTT_USERNAME / FEDRL_MQTT_PASSWORD (and the ids) to copy onto each host, mode 600
 # Options: -w/--workers N (default 4), -r/--rigs M (default 0), --run RUN_ID (default: any run), --worker-prefix,
 #          --rig-prefix, --force (overwrite DIR's files), --acl-only (write only the acl; no passwords),
-#          --dashboard (add the dashboard's user), --no-chief (leave the chief's user out).
+#          --dashboard (add the dashboard's user), --no-chief (leave the chief's user out), --edge ID (add the
+#          user of edge chief ID, for the broker its workers use).
 set -euo pipefail
 
 WORKERS=4
@@ -31,8 +34,9 @@ IMAGE=${FEDRL_MOSQUITTO_IMAGE:-eclipse-mosquitto:2}
 
 CHIEF=1
 DASHBOARD=0
+EDGE=
 
-usage() { sed -n '2,19p' "$0" | sed 's/^# \{0,1\}//'; }
+usage() { sed -n '2,22p' "$0" | sed 's/^# \{0,1\}//'; }
 while [ $# -gt 0 ]; do
     case "$1" in
         -w|--workers) WORKERS=$2; shift ;;
@@ -45,6 +49,7 @@ while [ $# -gt 0 ]; do
         --acl-only) ACL_ONLY=1 ;;
         --dashboard) DASHBOARD=1 ;;
         --no-chief) CHIEF=0 ;;
+        --edge) EDGE=$2; shift ;;
         -h|--help) usage; exit 0 ;;
         *) echo "unknown option: $1" >&2; usage >&2; exit 2 ;;
     esac
@@ -53,6 +58,7 @@ done
 [[ "$WORKERS" =~ ^[0-9]+$ && "$RIGS" =~ ^[0-9]+$ ]] || { echo "-w and -r take whole numbers" >&2; exit 2; }
 [[ "$RUN" == "+" || "$RUN" =~ ^[A-Za-z0-9_.:-]{1,64}$ ]] || { echo "bad run id: $RUN" >&2; exit 2; }
 # A prefix becomes part of user names, client ids and ACL topics: no MQTT wildcard (+ #), level (/), space or NUL.
+[[ -z "$EDGE" || "$EDGE" =~ ^[A-Za-z0-9_.:-]{1,59}$ ]] || { echo "bad edge id: $EDGE" >&2; exit 2; }
 for p in "$WPREFIX" "$RPREFIX"; do
     [[ "$p" =~ ^[A-Za-z0-9_.:-]{1,32}$ ]] || {
         echo "bad prefix '$p': letters, digits and _ . : - only (no + # / or spaces)" >&2; exit 2; }
@@ -87,6 +93,18 @@ write_acl() {
         echo "topic write fedrl/$RUN/chief/#"
         echo "topic readwrite fedrl/$RUN/claim"
         echo "topic read fedrl/$RUN/worker/#"
+        echo "# As the root of a tiered run: its edge chiefs' partial aggregates."
+        echo "topic read fedrl/$RUN/edge/+/partial"
+    fi
+    if [ -n "$EDGE" ]; then
+        echo
+        echo "# Edge chief $EDGE: reads the chief's answers and its workers' messages, publishes its partials and"
+        echo "# passes the chief's answers on to its workers, under its own id only."
+        echo "user edge-$EDGE"
+        echo "topic deny qube/#"
+        echo "topic read fedrl/$RUN/chief/#"
+        echo "topic read fedrl/$RUN/worker/#"
+        echo "topic write fedrl/$RUN/edge/$EDGE/#"
     fi
     if [ "$DASHBOARD" = 1 ]; then
         echo
@@ -101,6 +119,7 @@ write_acl() {
         echo "user $wid"
         echo "topic deny qube/$wid/#"
         echo "topic read fedrl/$RUN/chief/#"
+        echo "topic read fedrl/$RUN/edge/+/chief/#"
         if ((i < RIGS)); then
             rig="$RPREFIX$i"
             echo "topic write qube/$rig/action"
@@ -132,6 +151,7 @@ add_user() {  # add_user <username> <extra env line or empty>
 }
 if [ "$CHIEF" = 1 ]; then add_user chief ""; fi
 if [ "$DASHBOARD" = 1 ]; then add_user dashboard ""; fi
+if [ -n "$EDGE" ]; then add_user "edge-$EDGE" "FEDRL_ROLE=edge"$'\n'"FEDRL_EDGE_ID=$EDGE"$'\n'; fi
 for ((i = 0; i < WORKERS; i++)); do
     extra="FEDRL_WORKER_ID=$WPREFIX$i"$'\n'
     if ((i < RIGS)); then extra+="FEDRL_RIG_ID=$RPREFIX$i"$'\n'; fi

@@ -130,38 +130,48 @@ class Credentials:
         return {"mqtt_username": user, "mqtt_password": self.users[user]}
 
 
-def run_acl(run_id: str, workers: list[str], rigs: dict[str, str]) -> dict[str, dict[str, list[str]]]:
+def run_acl(run_id: str, workers: list[str], rigs: dict[str, str], edges: dict[str, str] | None = None
+            ) -> dict[str, dict[str, list[str]]]:
     """Who may publish and subscribe where in one run: the chief on its topics, each worker on its own (and its
-    rig's action and reset), each rig on its own, and a read-only observer (the dashboard)."""
+    rig's action and reset), each rig on its own, and a read-only observer (the dashboard). In a tiered run
+    (``edges``: worker -> its edge chief) each edge on its own topics, reading the chief's and the workers', and
+    each worker reads its edge's instead of the chief's."""
     run = f"fedrl/{run_id}"
+    edges = edges or {}
     publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#", f"{run}/claim"], "observer": []}
-    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#", f"{run}/claim"], "observer": [f"{run}/#", "qube/#"]}
+    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#", f"{run}/claim", f"{run}/edge/+/partial"],
+                                       "observer": [f"{run}/#", "qube/#"]}
+    for e in sorted(set(edges.values())):
+        publish[e] = [f"{run}/edge/{e}/#"]
+        subscribe[e] = [f"{run}/chief/#", f"{run}/worker/#"]
     for w in workers:
         rig = rigs.get(w)
         publish[w] = [f"{run}/worker/{w}/#"] + ([f"qube/{rig}/action", f"qube/{rig}/reset"] if rig else [])
-        subscribe[w] = [f"{run}/chief/#"] + ([f"qube/{rig}/#"] if rig else [])
+        answers = f"{run}/edge/{edges[w]}/chief/#" if w in edges else f"{run}/chief/#"
+        subscribe[w] = [answers] + ([f"qube/{rig}/#"] if rig else [])
     for rig in rigs.values():
         publish[rig] = [f"qube/{rig}/#"]
         subscribe[rig] = [f"qube/{rig}/#"]
     return {"publish": publish, "subscribe": subscribe}
 
 
-def make_credentials(folder: Path, run_id: str, workers: list[str], rigs: dict[str, str] | None = None
-                     ) -> Credentials:
-    """Random passwords for the chief, each worker and rig and an observer, written as an argon2 password file and
-    an ACL into ``folder`` (created, private)."""
+def make_credentials(folder: Path, run_id: str, workers: list[str], rigs: dict[str, str] | None = None,
+                     edges: dict[str, str] | None = None) -> Credentials:
+    """Random passwords for the chief, each worker, rig and edge chief (``edges``: worker -> edge) and an observer,
+    written as an argon2 password file and an ACL into ``folder`` (created, private)."""
     from pwdlib import PasswordHash
     from pwdlib.hashers.argon2 import Argon2Hasher
 
     rigs = rigs or {}
     folder.mkdir(parents=True, exist_ok=True)
     folder.chmod(0o700)
-    users = {name: secrets.token_urlsafe(24) for name in ["chief", "observer", *workers, *rigs.values()]}
+    users = {name: secrets.token_urlsafe(24) for name in ["chief", "observer", *workers, *rigs.values(),
+                                                         *sorted(set((edges or {}).values()))]}
     hasher = PasswordHash((Argon2Hasher(),))
     creds = Credentials(folder, users)
     creds.password_file.write_text("".join(f"{u}:{hasher.hash(p)}\n" for u, p in users.items()), encoding="utf-8")
     creds.password_file.chmod(0o600)
-    creds.acl_file.write_text(json.dumps(run_acl(run_id, workers, rigs), indent=2), encoding="utf-8")
+    creds.acl_file.write_text(json.dumps(run_acl(run_id, workers, rigs, edges), indent=2), encoding="utf-8")
     return creds
 
 

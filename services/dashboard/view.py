@@ -41,6 +41,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
+from protocol.routes import EDGE, route_of
 
 Event = dict[str, Any]
 
@@ -164,6 +165,9 @@ class RunView:
         """Fold one decoded message in; returns the events for the page (empty when nothing shown changed)."""
         kind = str(getattr(msg, "kind", type(msg).__name__))
         handler = self._handlers.get(kind)
+        route = route_of(topic)
+        if route is not None and route.publisher == EDGE:
+            handler = None  # an edge's partial, or its copy of the chief's answer: the chief's own is shown
         if handler is None:
             self.ignored[kind] += 1
             return []

@@ -16,14 +16,16 @@ from chief.records import EpisodeRecord, RoundRecord
 
 def test_tiny_inprocess_benchmark_end_to_end(tmp_path: Path) -> None:
     out, runs = tmp_path / "results", tmp_path / "runs"
-    code = paper.main(["--tasks", "CartPole-v0", "--strategies", "independent", "weighted", "--seeds", "101",
-                       "--workers", "2", "--max-episodes", "12", "--jobs", "1", "--references", "single",
-                       "--no-cost", "--no-readme", "--out", str(out), "--runs-dir", str(runs)])
+    code = paper.main(["--tasks", "CartPole-v0", "--strategies", "independent", "weighted", "--algos", "ppo",
+                       "--seeds", "101", "--workers", "2", "--max-episodes", "12", "--jobs", "1", "--references",
+                       "single", "--no-cost", "--no-readme", "--out", str(out), "--runs-dir", str(runs)])
     assert code == 0
     index = json.loads((out / "paper.json").read_text())
     assert index["config"]["mode"] == "inprocess" and index["config"]["seeds"]["report"] == [101]
     assert index["config"]["seeds"]["tuning"] == list(paper.TUNING_SEEDS)
-    rep = json.loads((out / "paper-CartPole-v0.json").read_text())
+    full = json.loads((out / "paper-CartPole-v0.json").read_text())
+    assert list(full["learners"]) == ["ppo"] and all(r["algo"] == "ppo" for r in full["runs"])
+    rep = {**full, **full["learners"]["ppo"]}
     assert rep["strategies"] == ["independent", "weighted"]
     assert len(rep["runs"]) == 3  # two federations and the single worker
     for run in rep["runs"]:
@@ -44,6 +46,29 @@ def test_tiny_inprocess_benchmark_end_to_end(tmp_path: Path) -> None:
     results = paper.run_jobs(paper.plan(["CartPole-v0"], ["weighted"], [101], 2, 12, "inprocess", []), 1, runs,
                              resume=True)
     assert results[0]["run_wall_s"] == next(r for r in rep["runs"] if r["strategy"] == "weighted")["run_wall_s"]
+    # another learner into the same folder: PPO's results stay beside it
+    code = paper.main(["--tasks", "CartPole-v0", "--strategies", "weighted", "--algos", "sac", "--seeds", "101",
+                       "--workers", "2", "--max-episodes", "3", "--jobs", "1", "--references", "--no-cost",
+                       "--no-readme", "--out", str(out), "--runs-dir", str(runs)])
+    assert code == 0
+    both = json.loads((out / "paper-CartPole-v0.json").read_text())
+    assert list(both["learners"]) == ["ppo", "sac"] and len(both["runs"]) == 4
+    assert both["learners"]["ppo"]["summary"] == rep["summary"]
+    assert [r["algo"] for r in both["runs"]] == ["ppo"] * 3 + ["sac"]
+    assert list(json.loads((out / "paper.json").read_text())["tasks"]["CartPole-v0"]["learners"]) == ["ppo", "sac"]
+
+
+def test_plan_has_the_learner_dimension_and_each_learners_sb3_reference() -> None:
+    jobs = paper.plan(["CartPole-v0", "Pendulum-v1"], ["independent", "sync"], [101, 102], None, 50, "inprocess",
+                      ["single", "sb3"], algos=["ppo", "sac"])
+    fed = [j for j in jobs if j.kind == "federation"]
+    assert len(fed) == 2 * 2 * 2 * 2 and {j.algo for j in fed} == {"ppo", "sac"}
+    sb3 = {(j.task, j.algo): j.strategy for j in jobs if j.kind == "sb3"}
+    assert sb3 == {("CartPole-v0", "ppo"): "sb3-zoo-ppo", ("CartPole-v0", "sac"): "sb3-zoo-dqn",
+                   ("Pendulum-v1", "ppo"): "sb3-zoo-ppo", ("Pendulum-v1", "sac"): "sb3-zoo-sac"}
+    assert len({j.name for j in jobs}) == len(jobs)  # a run folder per job
+    assert Job("single", "CartPole-v0", "independent", 1, 1, 5).name.endswith("-inprocess")  # PPO's as before
+    assert paper.parse_args([]).algos == ["ppo", "sac"] and paper.parse_args(["--quick"]).algos == ["ppo"]
 
 
 def test_plan_covers_every_strategy_and_the_references() -> None:
@@ -122,7 +147,7 @@ def _run(kind: str, strategy: str, seed: int, eps: int | None, m: int = 200) -> 
             "total_steps": 1000, "per_worker": workers, "audit": {"passed": True, "detail": "ok"}, "curve": curve}
 
 
-def fixture_results(out: Path) -> dict[str, Any]:
+def fixture_results(out: Path, old_format: bool = False) -> dict[str, Any]:
     seeds = [101, 102, 103, 104]
     runs = [_run("federation", "independent", s, e) for s, e in zip(seeds, [80, 90, None, 120], strict=True)]
     runs += [_run("federation", "weighted", s, e) for s, e in zip(seeds, [30, 35, 38, 40], strict=True)]
@@ -133,6 +158,9 @@ def fixture_results(out: Path) -> dict[str, Any]:
            "command": "python -m bench.paper --quick", "machine": {"cores": 2}, "wall_s": 12.0,
            "finished_at": "2026-01-01T00:00:00+00:00"}
     rep = paper.task_report("CartPole-v0", runs, cfg)
+    if old_format:  # as bench.paper wrote it before learners were a dimension: PPO's alone, at the top level
+        block = rep.pop("learners")["ppo"]
+        rep.update({k: v for k, v in block.items() if k not in ("algo", "config")})
     out.mkdir(parents=True, exist_ok=True)
     (out / "paper-CartPole-v0.json").write_text(json.dumps({"config": cfg, **rep}))
     from bench.cost import bytes_per_round, growth
@@ -152,7 +180,7 @@ def fixture_results(out: Path) -> dict[str, Any]:
 
 def test_statistics_and_target_on_the_fixture(tmp_path: Path) -> None:
     index = fixture_results(tmp_path)
-    rep = index["tasks"]["CartPole-v0"]
+    rep = index["tasks"]["CartPole-v0"]["learners"]["ppo"]
     ind, wtd = rep["summary"]["independent"], rep["summary"]["weighted"]
     assert ind["last_worker_episodes"]["median"] == 105.0  # 80 90 120 and one unfinished (ranked worst)
     assert ind["unfinished_seeds"] == [103] and wtd["last_worker_episodes"]["median"] == 36.5
@@ -164,8 +192,9 @@ def test_statistics_and_target_on_the_fixture(tmp_path: Path) -> None:
     assert rep["references"]["single"]["finished"] == 3 and rep["references"]["sb3"]["zoo_entry"] == "CartPole-v1"
 
 
-def test_figures_and_readme_from_the_fixture(tmp_path: Path) -> None:
-    index = fixture_results(tmp_path)
+@pytest.mark.parametrize("old_format", [False, True])
+def test_figures_and_readme_from_the_fixture(tmp_path: Path, old_format: bool) -> None:
+    index = fixture_results(tmp_path, old_format)
     paths = figures.draw_all(figures.load_reports(tmp_path), tmp_path)
     assert all(p.stat().st_size > 1000 for p in paths)
     readme, page = tmp_path / "README.md", tmp_path / "docs" / "results.md"
@@ -174,14 +203,29 @@ def test_figures_and_readme_from_the_fixture(tmp_path: Path) -> None:
                         "--links-from", str(tmp_path)]) == 0
     head = readme.read_text()
     assert "stale text" not in head and head.startswith("# x\n\nbefore") and head.rstrip().endswith("after")
-    assert "| CartPole-v0 | 4 | 195 |" in head and "| 36.5 (4/4) |" in head and "[`paper.json`](paper.json)" in head
+    assert "| CartPole-v0 | `ppo` | 4 | 195 |" in head and "| 36.5 (4/4) |" in head
+    assert "[`paper.json`](paper.json)" in head
     assert "| `weighted` | 36.5 [33.75-38.5] |" not in head  # the full tables are on the docs page only
     text = page.read_text()
     assert text.startswith(report.PAGE_HEAD) and "| `weighted` | 36.5 [33.75-38.5] |" in text
     assert "**p = 0.0286, fewer**" in text and "| 1 worker of ours alone | 67.5 [63.75-unfinished] |" in text
     assert "`independent` seeds 103" in text and "[`fig7-episodes.png`](fig7-episodes.png)" in text
-    assert "t ~ N^1.00" in text and "| CartPole-v0 | <= 40 episodes | `weighted`: 36.5 episodes" in text
+    assert "t ~ N^1.00" in text and "| CartPole-v0 | `ppo` | <= 40 episodes | `weighted`: 36.5 episodes" in text
+    assert "| SB3 PPO, zoo `CartPole-v1` (8 envs) |" in text and "learner `ppo`" in text
     again = report.markdown(index, tmp_path, tmp_path)
     assert again in text and "## Quick variant: CartPole-v0, 4 seeds, M = 200" in text  # the same block again
     with pytest.raises(ValueError):
         report.replace_block("no markers", "x")
+
+
+def test_a_new_learner_merges_into_an_old_ppo_only_report(tmp_path: Path) -> None:
+    fixture_results(tmp_path, old_format=True)
+    old = json.loads((tmp_path / "paper-CartPole-v0.json").read_text())
+    assert "learners" not in old
+    sac_run = {**_run("federation", "sync", 101, 20), "algo": "sac"}
+    cfg = {**old["config"], "algos": ["sac"], "strategies": ["sync"], "command": "python -m bench.paper --algos sac"}
+    merged = paper.merge_task(old, paper.task_report("CartPole-v0", [sac_run], cfg))
+    assert list(merged["learners"]) == ["ppo", "sac"] and len(merged["runs"]) == len(old["runs"]) + 1
+    assert merged["learners"]["ppo"]["summary"] == old["summary"]
+    assert merged["learners"]["ppo"]["config"]["command"] == "python -m bench.paper --quick"
+    assert merged["learners"]["sac"]["target"]["target"] == {"episodes": 15}

@@ -30,7 +30,7 @@ def test_stop_rule_uses_the_last_ten() -> None:
 def test_zoo_entries_and_linear_schedule() -> None:
     assert set(sb3_ref.ZOO) == {t for t in TASKS if not t.startswith("qube")}
     assert sb3_ref.ZOO["CartPole-v0"].zoo_key == "CartPole-v1"
-    assert sb3_ref.ZOO["Pendulum-v1"].ppo["gamma"] == 0.9 and sb3_ref.ZOO["Pendulum-v1"].ppo["use_sde"]
+    assert sb3_ref.ZOO["Pendulum-v1"].kwargs["gamma"] == 0.9 and sb3_ref.ZOO["Pendulum-v1"].kwargs["use_sde"]
     assert sb3_ref.linear(1e-3)(0.5) == pytest.approx(5e-4)
 
 
@@ -82,3 +82,16 @@ def test_worker_scaling_in_process(tmp_path: Path) -> None:
         assert p["rounds"] == 3 and p["audit_passed"] and p["steps_per_s"]["median"] > 0
         assert 0.0 <= p["wait_share"]["median"] < 1.0
     assert s["time_basis"] == "modelled"
+
+
+def test_each_learner_has_its_sb3_reference() -> None:
+    assert {t: sb3_ref.reference("sac", t) for t in sb3_ref.ZOO} == {
+        "CartPole-v0": "dqn", "Acrobot-v1": "dqn", "Pendulum-v1": "sac", "MountainCarContinuous-v0": "sac"}
+    assert sb3_ref.reference("ppo", "Acrobot-v1") == "ppo" and sb3_ref.reference("sac", "qube-local") is None
+    pytest.importorskip("stable_baselines3")
+    sac, entry = sb3_ref.build("MountainCarContinuous-v0", seed=101, algo="sac")
+    assert entry.kwargs["ent_coef"] == 0.1 and sac.use_sde and sac.batch_size == 512
+    dqn, _ = sb3_ref.build("CartPole-v0", seed=101, algo="dqn")
+    assert dqn.target_update_interval == 10 and dqn.gradient_steps == 128
+    r = sb3_ref.run("Pendulum-v1", seed=101, max_steps=120, algo="sac")
+    assert r["strategy"] == "sb3-zoo-sac" and not r["finished"] and r["steps"] == 120

@@ -236,7 +236,18 @@ def doctor_restarted_round(lines: list[dict]) -> None:
     first(lines, type="episode", worker="w2", episode=8)["receipt"] = {"round": 5, "applied": "restarted"}
 
 
+def doctor_edges(lines: list[dict]) -> None:
+    r = first(lines, type="round", round=3)
+    r["edges"] = {"e0": r["contributors"][:1], "e1": []}  # a tiered round whose edges summed too few
+
+
+def doctor_late(lines: list[dict]) -> None:
+    first(lines, type="round", round=3)["late"] = ["w0"]  # a round that closed without a worker, and no quorum
+
+
 DOCTORED = [
+    (doctor_edges, "tiered-edges"),
+    (doctor_late, "quorum"),
     (doctor_played_under, "played"),
     (doctor_restarted, "receipts"),
     (doctor_restarted_round, "delivery"),
@@ -266,10 +277,12 @@ DOCTORED = [
 
 def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     """Each registered check is failed by some doctored run folder below (``summary`` by a doctored summary.json,
-    ``rig-time`` by a doctored rig's record in tests/chief/test_rigtime.py), and its docstring says which equation,
-    algorithm or figure of the paper it protects."""
-    assert {invariant for _, invariant in DOCTORED} | {"summary", "rig-time"} == {c.invariant for c in CHECKS}
-    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 13
+    ``rig-time`` by a doctored rig's record in tests/chief/test_rigtime.py, ``tiered-exact`` by a doctored witness in
+    tests/e2e/test_tiered.py), and its docstring says which equation, algorithm or figure of the paper it
+    protects."""
+    assert ({invariant for _, invariant in DOCTORED} | {"summary", "rig-time", "tiered-exact"}
+            == {c.invariant for c in CHECKS})
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 16
     for c in CHECKS:
         assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
 

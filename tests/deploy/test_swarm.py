@@ -59,7 +59,9 @@ def test_the_stack_places_brokers_chief_dashboard_and_workers_per_site() -> None
         assert workers["environment"]["FEDRL_BROKER"] == f"mqtt://site-{s}:1883"
         assert workers["networks"] == [f"site-{s}"]  # a site's workers see their own broker only
         assert services[f"site-{s}"]["networks"] == [f"site-{s}", "core"]
-        assert services[f"edge-{s}"]["deploy"]["replicas"] == 0  # the edge role's slot, disabled
+        edge = services[f"edge-{s}"]  # the site's edge chief: 0 replicas in a flat run
+        assert edge["deploy"]["replicas"] == "${FEDRL_EDGE_REPLICAS:-0}" and edge["networks"] == [f"site-{s}"]
+        assert "FEDRL_ROLE=edge" in edge["entrypoint"][2] and edge["environment"]["FEDRL_SITE"] == s
     assert services["chief"]["environment"]["FEDRL_BROKER"] == "mqtt://core:1883"
     assert services["workers-a"]["environment"]["FEDRL_RESEND_INTERVAL"] == f"{sites.RESEND_INTERVAL:g}"
     for name, svc in services.items():
@@ -101,6 +103,8 @@ def test_swarm_and_kubernetes_start_a_worker_alike() -> None:
     swarm = worker_start(services["workers-a"]["entrypoint"][2])
     job = yaml.safe_load((K8S / "base" / "site" / "workers.yaml").read_text())
     assert swarm == worker_start(container(job)["command"][2])
+    edge = yaml.safe_load((K8S / "base" / "site" / "edge.yaml").read_text())
+    assert worker_start(services["edge-a"]["entrypoint"][2]) == worker_start(container(edge)["command"][2])
 
 
 # -- live, on a single-node swarm -----------------------------------------------------------------------------------

@@ -23,12 +23,12 @@ from worker.settings import TrainLocalSettings, parse_override
 
 
 def test_the_wire_and_the_worker_name_the_same_learners() -> None:
-    assert names.names() == ["ppo", "sac"] and names.DEFAULT == "ppo"
+    assert names.names() == ["ppo", "sac", "dqn"] and names.DEFAULT == "ppo"
     for name in names.names():
         kind = learners.get(name)
         assert kind.name == name and "update_epochs" in kind.config_fields()
-    with pytest.raises(ValueError, match="unknown learner 'dqn'; choose one of ppo, sac"):
-        learners.get("dqn")
+    with pytest.raises(ValueError, match="unknown learner 'a2c'; choose one of ppo, sac, dqn"):
+        learners.get("a2c")
 
 
 def test_a_ppo_model_records_its_learner_and_older_ones_are_ppo() -> None:
@@ -64,11 +64,15 @@ def test_the_chief_counts_a_hello_of_another_learner_as_refused(tmp_path: Path) 
 @pytest.mark.parametrize("env_id", ["CartPole-v0", "Pendulum-v1"])
 def test_each_learner_builds_for_discrete_and_continuous_tasks(env_id: str) -> None:
     for name in names.names():
+        if name == "dqn" and env_id == "Pendulum-v1":
+            with pytest.raises(ValueError, match="DQN needs Discrete actions"):
+                build_learner_and_env(env_id, seed=3, device_noise=0.0, algo=name)
+            continue
         env, learner = build_learner_and_env(env_id, seed=3, device_noise=0.0, algo=name)
         obs, _ = env.reset(seed=3)
         action = learner.act(obs)
         assert env.action_space.contains(action) or env_id == "Pendulum-v1"  # Box actions may be raw (the env clips)
-        assert learner.actor_spec() and learner.critic_spec()
+        assert learner.actor_spec() and (learner.critic_spec() or name == "dqn")  # DQN has no critic
         assert learners.recorded(learner.state_dict()) == name
         env.close()
 
@@ -96,22 +100,25 @@ def test_overrides_are_the_chosen_learners_fields() -> None:
     assert s.learner_overrides() == {"utd_ratio": 0.5}
 
 
-@pytest.mark.parametrize("policy", ["weighted", "sync"])
-def test_a_sac_federation_shares_and_audits(policy: str, tmp_path: Path) -> None:
-    """SAC workers federate under a per-episode and the per-step strategy: every round an aggregate of both workers
-    (K = update_epochs rounds per episode under sync), the summary names the learner and the audit passes."""
+@pytest.mark.parametrize(("algo", "policy"), [("sac", "weighted"), ("sac", "sync"), ("dqn", "weighted"),
+                                             ("dqn", "sync")])
+def test_an_off_policy_federation_shares_and_audits(algo: str, policy: str, tmp_path: Path) -> None:
+    """SAC and DQN workers federate under a per-episode and the per-step strategy: every round an aggregate of both
+    workers (K = update_epochs rounds per episode under sync; DQN's critic is empty), the summary names the learner
+    and the audit passes."""
     import json
 
     from chief.audit import audit
     from deploy.inprocess import run_federation
+    from worker.envs import env_spec
 
-    summary = run_federation("CartPole-v0", policy, 1, 2, 3, tmp_path, plot=False, tensorboard_files=False,
-                             algo="sac", models=False)
-    assert summary["algo"] == "sac"
-    per_episode = 10 if policy == "sync" else 1
-    assert summary["rounds"] == 3 * per_episode
+    summary = run_federation("CartPole-v0", policy, 1, 2, 2, tmp_path, plot=False, tensorboard_files=False,
+                             algo=algo, models=False)
+    assert summary["algo"] == algo
+    per_episode = env_spec("CartPole-v0").learner_config(algo).update_epochs if policy == "sync" else 1
+    assert summary["rounds"] == 2 * per_episode
     rounds = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()
               if json.loads(line)["type"] == "round"]
-    assert len(rounds) == 3 * per_episode
+    assert len(rounds) == 2 * per_episode
     assert all(r["kind"] == "aggregate" and r["contributors"] == ["w0", "w1"] for r in rounds)
     audit(tmp_path)

@@ -166,11 +166,50 @@ def test_actions_fit_the_space(kind: str) -> None:
         assert SPACES[kind].contains(action)
 
 
-def test_a_non_finite_reward_never_reaches_the_parameters() -> None:
+@pytest.mark.parametrize("bad", ["reward", "obs", "next_obs", "action"])
+def test_a_non_finite_transition_never_enters_the_replay(bad: str) -> None:
+    """A NaN in the replay would poison every mini-batch that draws it: remember refuses it and counts it."""
     sac = learner("box")
-    fill(sac, 20, reward=float("nan"))
-    start = {k: v.clone() for k, v in sac.critic.state_dict().items()}
+    fill(sac, 10)
+    good = dict(obs=np.zeros(3, np.float32), action=np.zeros(1, np.float32), reward=0.5,
+                next_obs=np.zeros(3, np.float32))
+    nan = {"reward": math.nan, "action": np.array([math.nan], np.float32)}.get(bad, np.full(3, math.nan, np.float32))
+    sac.remember(**{**good, bad: nan}, terminated=False, truncated=False)  # type: ignore[arg-type]
+    assert sac.memory_size == 10 and sac.rejected_transitions == 1
+    assert all(torch.isfinite(v).all() for k, v in sac.memory_state().items() if k != "pending")
+    fill(sac, 5, seed=7)
     stats = sac.update()
-    assert stats.skipped_steps > 0
-    assert all(torch.isfinite(p).all() for p in sac.critic.parameters())
-    assert same({k: v.clone() for k, v in sac.critic.state_dict().items()}, start)
+    assert stats.gradient_steps > 0 and stats.skipped_steps == 0
+    assert all(torch.isfinite(p).all() for p in [*sac.critic.parameters(), *sac.actor.parameters()])
+
+
+def test_an_episode_of_only_non_finite_rewards_takes_no_step() -> None:
+    sac = learner("box", learning_starts=0)
+    start = params(sac)
+    fill(sac, 20, reward=float("nan"))
+    assert sac.memory_size == 0 and sac.rejected_transitions == 20
+    assert sac.update().gradient_steps == 0
+    assert same(params(sac), start)
+
+
+@pytest.mark.parametrize("kind", SPACES)
+def test_per_step_rounds_before_learning_starts_step_nothing(kind: str) -> None:
+    """Under ``sync`` the K rounds of an episode come whatever the replay holds: before ``learning_starts`` each
+    worker shares zeros, and the chief's mean of zeros (or no answer, its own None) moves no network, no Adam state,
+    no target critic and no temperature."""
+    sac = learner(kind, learning_starts=30)
+    fill(sac, 20)
+    start, target, alpha = params(sac), copy.deepcopy(sac.target_critic.state_dict()), sac.alpha
+    batch = sac.prepare()
+    for _ in range(sac.config.update_epochs):
+        step = sac.minibatch_gradients(batch)
+        assert step.actor is None and step.critic is None
+        zeros = ({k: np.zeros(s, np.float32) for k, s in sac.critic_spec().items()},
+                 {k: np.zeros(s, np.float32) for k, s in sac.actor_spec().items()})
+        sac.apply_step(*zeros)  # the chief's mean when every worker shared zeros
+        sac.apply_step(step.critic, step.actor)  # no answer: the worker's own step
+    assert same(params(sac), start) and same(sac.target_critic.state_dict(), target) and sac.alpha == alpha
+    assert not sac.actor_optimizer.state and not sac.critic_optimizer.state
+    fill(sac, 10)
+    step = sac.minibatch_gradients(sac.prepare())  # 30 transitions: learning starts
+    assert step.actor is not None and step.critic is not None

@@ -1,0 +1,92 @@
+"""``python -m bench.stragglers``: what one straggler costs a federation with k-of-n rounds (``--quorum``).
+
+Three in-process federations (deploy/inprocess.py) of the same task, seed and episode cap: ``baseline``, N - 1
+workers at their own pace, every round waiting for all of them; ``quorum``, the same N - 1 plus one worker
+``--slowdown`` times slower, rounds closing with a quorum of N - 1 (its late submissions dropped); and, unless
+``--no-unbounded``, ``unbounded``, the same N with every round waiting for the straggler. Each run's time per round
+is the median gap between two rounds' close times in its records (metrics.jsonl ``t``, the chief's clock); the
+slowdown is the quorum run's against the baseline's. Every run is audited. Writes bench/results/stragglers.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from chief.audit import audit
+from deploy.inprocess import run_federation
+
+OUT = Path("bench/results/stragglers.json")
+
+
+def seconds_per_round(run_dir: Path) -> float:
+    """The median gap between two consecutive rounds' close times (s)."""
+    times = [r["t"] for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
+    return statistics.median(b - a for a, b in itertools.pairwise(times))
+
+
+def measure(name: str, workers: int, episodes: int, seed: int, env: str, folder: Path, quorum: int = 0,
+            pace: dict[str, float] | None = None) -> dict[str, Any]:
+    """One federation, audited: its median seconds per round and what it did."""
+    run_dir = folder / name
+    began = time.monotonic()
+    summary = run_federation(env, "weighted", seed, workers, episodes, run_dir, plot=False, tensorboard_files=False,
+                             models=False, quorum=quorum, pace=pace)
+    report = audit(run_dir)
+    rounds = [r for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
+    return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {},
+            "rounds": summary["rounds"], "s_per_round": round(seconds_per_round(run_dir), 4),
+            "wall_s": round(time.monotonic() - began, 1),
+            "rounds_without": sum(1 for r in rounds if r.get("late")),
+            "late_refused": summary.get("rejected_messages", {}).get("late", 0), "audit": str(report)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m bench.stragglers", description=__doc__.splitlines()[0])
+    parser.add_argument("--workers", type=int, default=16, help="N, the straggler included (default 16)")
+    parser.add_argument("--slowdown", type=float, default=10.0, help="how many times slower the straggler plays")
+    parser.add_argument("--episodes", type=int, default=12, help="episode cap of every run (default 12)")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--env", default="CartPole-v0")
+    parser.add_argument("--no-unbounded", action="store_true", help="leave out the run that waits for the straggler")
+    parser.add_argument("--out", type=Path, default=OUT)
+    args = parser.parse_args(argv)
+    n, slow = args.workers, f"w{args.workers - 1}"
+    load = os.getloadavg()[0]
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = Path(tmp)
+        runs = [measure("baseline", n - 1, args.episodes, args.seed, args.env, folder),
+                measure("quorum", n, args.episodes, args.seed, args.env, folder, quorum=n - 1,
+                        pace={slow: args.slowdown})]
+        if not args.no_unbounded:
+            runs.append(measure("unbounded", n, args.episodes, args.seed, args.env, folder,
+                                pace={slow: args.slowdown}))
+    base = runs[0]["s_per_round"]
+    result = {"env": args.env, "seed": args.seed, "episodes": args.episodes, "slowdown": args.slowdown,
+              "straggler": slow, "load_average_at_start": load, "load_average_at_end": os.getloadavg()[0],
+              "cores": os.cpu_count(),
+              "runs": runs, "quorum_slowdown_pct": round(100 * (runs[1]["s_per_round"] / base - 1), 1),
+              **({"unbounded_slowdown_pct": round(100 * (runs[2]["s_per_round"] / base - 1), 1)}
+                 if len(runs) > 2 else {}),
+              "command": "python -m bench.stragglers " + " ".join(argv if argv is not None else sys.argv[1:])}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(result, indent=1) + "\n")
+    for r in runs:
+        print(f"{r['name']:>10}: {r['workers']} workers, {r['s_per_round']:.3f} s per round (median), "
+              f"{r['rounds_without']} rounds closed without the straggler; audit: {r['audit']}")
+    print(f"k-of-n: {result['quorum_slowdown_pct']:+.1f} % per round against {n - 1} workers without the straggler"
+          + (f"; waiting for it: {result['unbounded_slowdown_pct']:+.1f} %" if len(runs) > 2 else "")
+          + f"; {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,222 @@
+"""``python -m chief --role edge --edge-id <edge>``: an edge chief of a tiered run (docs/explanation/tiered.md).
+
+The adapter between an edge's workers and the root chief. It decides nothing itself: its RoundKeeper (tier
+``edge``, chief/rounds.py) counts its workers' submissions with the chief's own checks and closes their part of each
+round into one partial (chief/tiers.py), which goes to the root as an EdgePartial (the submissions without their
+tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of the root (RunStart, aggregate,
+transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
+root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
+
+It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
+workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
+run folder (the root's records cover every submission).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from typing import Any
+
+from chief.rounds import RoundKeeper, RoundOutcome, Verdict
+from chief.service import submission_of
+from chief.settings import ChiefSettings
+from protocol import topics
+from protocol.auth import admitted, signed
+from protocol.codec import DecodeError, RejectCounter, decode, encode
+from protocol.messages import (
+    ChiefAck,
+    ChiefAggregate,
+    ChiefTransfer,
+    EdgePartial,
+    MatureParams,
+    RunStart,
+    RunStop,
+    WorkerHello,
+    WorkerStatus,
+    WorkerUpdate,
+)
+from protocol.mqtt import MqttConnection
+from protocol.rounds import RoundShape
+from protocol.routes import WORKER, route_for
+from protocol.tasks import task
+from protocol.tensors import pack_arrays
+from protocol.transport import Connect, Transport
+
+log = logging.getLogger("edge")
+
+EXIT_OK, EXIT_NOT_STARTED = 0, 3
+#: Closed rounds whose root answers an edge keeps, to answer a worker again that missed one.
+ANSWERS_KEPT = 32
+
+Root = RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck
+
+
+class EdgeService:
+    """One edge chief, from the root's RunStart to its RunStop."""
+
+    def __init__(self, cfg: ChiefSettings, connect: Connect | None = None) -> None:
+        assert cfg.edge_id is not None
+        self.cfg = cfg
+        self.edge = cfg.edge_id
+        self.key = cfg.key()
+        self.rejects = RejectCounter(log)
+        self.events: queue.Queue[tuple[str, Any, bytes]] = queue.Queue()
+        self.specs: dict[str, tuple[dict[str, tuple[int, ...]], dict[str, tuple[int, ...]]]] = {}
+        self.keeper: RoundKeeper | None = None
+        self.start: RunStart | None = None
+        self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
+        self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
+        self.partials = 0
+        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
+
+    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
+        return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
+                              rejects=rejects)
+
+    # -- network thread: decode, enqueue -----------------------------------------------------------------------
+
+    def _on_root(self, topic: str, payload: bytes) -> None:
+        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic, key=self.key,
+                       rejects=self.rejects)
+        if msg is None:
+            return
+        self.events.put((topic, msg, payload))
+
+    def _on_worker(self, topic: str, payload: bytes) -> None:
+        try:
+            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
+        except DecodeError as err:
+            self.rejects.reject_error(topic, err)
+            return
+        self.events.put((topic, msg, payload))
+
+    # -- main thread -------------------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        run = self.cfg.run_id
+        self.conn.start()
+        try:
+            self.conn.subscribe(topics.chief(run, "+"), self._on_root, qos=1)
+            self.conn.subscribe(route_for(WORKER, "hello").filter(run=run), self._on_worker, qos=1)
+            log.info("edge %s of run %s: waiting for the root's RunStart", self.edge, run)
+            deadline = time.monotonic() + self.cfg.start_timeout
+            while True:
+                try:
+                    topic, msg, payload = self.events.get(timeout=0.1)
+                except queue.Empty:
+                    if self.keeper is None and time.monotonic() > deadline:
+                        log.error("no RunStart naming workers of edge %s within %.0f s", self.edge,
+                                  self.cfg.start_timeout)
+                        return EXIT_NOT_STARTED
+                else:
+                    if isinstance(msg, RunStop):
+                        self._relay(topics.STOP, payload)
+                        log.info("edge %s: the run is over (%s); %d partials sent", self.edge, msg.reason,
+                                 self.partials)
+                        return EXIT_OK
+                    try:
+                        self._handle(msg, payload)
+                    except Exception as exc:  # one message never ends the edge
+                        log.exception("handling %s from %s failed", msg.kind, topic)
+                        self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
+                if self.keeper is not None:
+                    self._forward(self.keeper.tick(time.monotonic()))
+        finally:
+            self.conn.stop()
+
+    def _handle(self, msg: Any, payload: bytes) -> None:
+        if isinstance(msg, WorkerHello):
+            if msg.edge == self.edge and msg.worker_id not in self.specs:
+                # From its first hello on (before the root's RunStart lets it submit), so nothing it sends is missed.
+                for leaf in (topics.UPDATE, topics.STATUS):
+                    self.conn.subscribe(topics.worker(self.cfg.run_id, msg.worker_id, leaf), self._on_worker, qos=1)
+            if msg.edge == self.edge:
+                self.specs[msg.worker_id] = (dict(msg.actor_spec), dict(msg.critic_spec))
+            return
+        if isinstance(msg, RunStart):
+            self._started(msg)
+            self._relay(topics.START, payload)
+            return
+        if isinstance(msg, ChiefAck):
+            if self.keeper is not None and msg.worker_id in self.keeper.workers:
+                self._relay(topics.ACK, payload)
+            return
+        if isinstance(msg, ChiefAggregate | ChiefTransfer):
+            leaf = topics.AGGREGATE if isinstance(msg, ChiefAggregate) else topics.TRANSFER
+            self.answers[msg.round] = (leaf, payload)
+            self.answers.pop(msg.round - ANSWERS_KEPT, None)
+            self._relay(leaf, payload)
+            return
+        keeper = self.keeper
+        if keeper is None or msg.worker_id not in keeper.workers:
+            return
+        now = time.monotonic()
+        if isinstance(msg, WorkerStatus):
+            self._forward(keeper.note_status(msg.worker_id, msg.state, now))
+            return
+        verdict = keeper.submit(submission_of(msg), now)
+        self._count(verdict, msg)
+        self._forward(verdict.outcomes)
+
+    def _started(self, start: RunStart) -> None:
+        """The root's RunStart: this edge's workers are those it names for it; build their keeper once."""
+        if self.keeper is not None:
+            return
+        mine = sorted(w for w, e in start.edges.items() if e == self.edge and w in start.workers)
+        if not mine:
+            log.warning("the run names no worker of edge %s", self.edge)
+            return
+        known = [w for w in mine if w in self.specs]
+        actor, critic = self.specs[known[0]] if known else (None, None)
+        spec = task(start.env_id)
+        self.keeper = RoundKeeper(mine, start.policy, spec, start.max_episodes, self.cfg.round_timeout,
+                                  actor_spec=actor, critic_spec=critic or None,
+                                  shape=RoundShape(per_episode=start.rounds_per_episode),
+                                  max_staleness=start.max_staleness, tier="edge")
+        self.start = start
+        log.info("edge %s: %d workers (%s), policy %s", self.edge, len(mine), ", ".join(mine), start.policy)
+
+    def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
+        """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused
+        mature actor with the root's session, as the root would)."""
+        if verdict.status == "accepted":
+            self.held[(msg.worker_id, verdict.round)] = msg
+            return
+        if verdict.status == "rejected":
+            topic = topics.worker(self.cfg.run_id, msg.worker_id, topics.UPDATE)
+            self.rejects.reject(topic, verdict.reason, f"{msg.kind} for episode {msg.episode}: {verdict.detail}")
+            if verdict.ack is not None and self.start is not None:
+                ack = verdict.ack
+                self._relay(topics.ACK, encode(signed(ChiefAck(
+                    worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=False,
+                    reason=ack.reason[:2000], session=self.start.session), self.key)))
+        answer = self.answers.get(verdict.round)
+        if answer is not None and verdict.reason in ("duplicate", "stale"):
+            self._relay(*answer)
+
+    def _forward(self, outcomes: list[RoundOutcome]) -> None:
+        """Each of its closed rounds as one EdgePartial to the root."""
+        for outcome in outcomes:
+            part = outcome.partial
+            assert part is not None
+            subs = [self.held.pop((w, outcome.round)) for w in outcome.contributors]
+            msg = EdgePartial(
+                edge_id=self.edge, round=outcome.round, episode=outcome.episode, step=outcome.step,
+                updates=tuple(s.model_copy(update={"gradient": {}, "critic_gradient": None}) for s in subs
+                              if isinstance(s, WorkerUpdate)),
+                matures=tuple(s for s in subs if isinstance(s, MatureParams)),
+                gradient=None if part.gradient is None else pack_arrays(part.gradient),
+                critic_gradient=None if part.critic is None else pack_arrays(part.critic),
+                total=part.total, count=part.count, uniform=part.uniform, clipped=outcome.clipped,
+                timed_out=tuple(outcome.timed_out))
+            self._partial(signed(msg, self.key))
+            self.partials += 1
+
+    def _partial(self, msg: EdgePartial) -> None:
+        self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), encode(msg), qos=1)
+
+    def _relay(self, leaf: str, payload: bytes) -> None:
+        """A root's message (or an edge's refusal in the root's name) to this edge's workers, as it came."""
+        self.conn.publish(topics.relayed(self.cfg.run_id, self.edge, leaf), payload, qos=1)

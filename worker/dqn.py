@@ -22,7 +22,6 @@ the exploration schedule.
 from __future__ import annotations
 
 import copy
-import logging
 import math
 from collections import deque
 from collections.abc import Mapping, Sequence
@@ -46,9 +45,8 @@ from worker.ppo import (
     save_model,
     take_optimizers,
 )
-from worker.sac import SACBatch, finite_transition
+from worker.sac import FiniteTransitions, SACBatch
 
-log = logging.getLogger("worker")
 #: A replay transition: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m.
 Transition = tuple[np.ndarray, int, float, np.ndarray, bool, float]
 __all__ = ["DQNConfig", "DQNLearner", "SACBatch", "double_q_target", "n_step_return", "td_loss"]
@@ -168,7 +166,8 @@ class DQNLearner:
         self.target = copy.deepcopy(self.actor).requires_grad_(False)
         self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
-        self.env_steps = self.gradient_steps = self.rejected_transitions = 0
+        self.env_steps = self.gradient_steps = 0
+        self._finite = FiniteTransitions("DQN")
         self._window: deque[tuple[np.ndarray, int, float]] = deque()  # the open n-step window of this episode
         self._replay: list[Transition] = []  # a ring of replay_size: the oldest is overwritten when it is full
         self._pos = 0
@@ -176,6 +175,11 @@ class DQNLearner:
         self._episode_gradient: dict[str, np.ndarray] | None = None
 
     # -- acting and storing ----------------------------------------------------------------------------------------
+
+    @property
+    def rejected_transitions(self) -> int:
+        """Transitions ``remember`` refused because a value was not finite."""
+        return self._finite.refused
 
     def _obs_tensor(self, obs: Any) -> torch.Tensor:
         x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, int(np.prod(self.obs_shape)))
@@ -196,13 +200,10 @@ class DQNLearner:
                  truncated: bool) -> None:
         """Add the step to the episode's n-step window; a full window (or the episode's end, for every step left in
         it) becomes a replay transition <s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m>. A transition with a value
-        that is not finite is refused, counted (``rejected_transitions``) and logged, as SAC does; it ends the
-        window (the steps before it are stored with the returns they have)."""
+        that is not finite is refused, counted (``rejected_transitions``) and logged (worker.sac.FiniteTransitions);
+        it ends the window, and the steps still in it are dropped with it (their returns would run through it)."""
         self.env_steps += 1
-        if not finite_transition(reward, obs, next_obs, action):
-            self.rejected_transitions += 1
-            if self.rejected_transitions == 1 or self.rejected_transitions % 100 == 0:
-                log.warning("DQN refused a transition with a non-finite value (%d so far)", self.rejected_transitions)
+        if not self._finite.admit(reward, obs, next_obs, action):
             self._window.clear()
             return
         self._window.append((np.asarray(obs, dtype=np.float32).reshape(-1), int(action),

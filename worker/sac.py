@@ -295,9 +295,24 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
 # ----------------------------------------------------------------------------------------------------
 
 
-def finite_transition(reward: float, *arrays: Any) -> bool:
-    """Whether the reward and every value of ``arrays`` are finite."""
-    return math.isfinite(reward) and all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays)
+class FiniteTransitions:
+    """Keeps a transition with a value that is not finite out of a learner's replay: in it, it would poison every
+    mini-batch that draws it, for as long as it stays. Counts what it refuses (``refused``) and logs the first, then
+    every 100th."""
+
+    def __init__(self, learner: str) -> None:
+        self.learner = learner
+        self.refused = 0
+
+    def admit(self, reward: float, *arrays: Any) -> bool:
+        """Whether the reward and every value of ``arrays`` are finite (else the transition is counted and logged)."""
+        if math.isfinite(reward) and all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays):
+            return True
+        self.refused += 1
+        if self.refused == 1 or self.refused % 100 == 0:
+            log.warning("%s refused a transition with a non-finite value (%d so far): not in the replay",
+                        self.learner, self.refused)
+        return False
 
 
 @dataclass
@@ -366,8 +381,12 @@ class SACLearner:
         self._episode_gradient: dict[str, np.ndarray] | None = None
         # the latest mini-batch's mean log pi estimate, for the temperature step of apply_step
         self._alpha_term: torch.Tensor | None = None
-        #: transitions ``remember`` refused because a value was not finite (they never enter the replay)
-        self.rejected_transitions = 0
+        self._finite = FiniteTransitions("SAC")
+
+    @property
+    def rejected_transitions(self) -> int:
+        """Transitions ``remember`` refused because a value was not finite (they never entered the replay)."""
+        return self._finite.refused
 
     @property
     def target_entropy(self) -> float:
@@ -435,14 +454,9 @@ class SACLearner:
         """Store <s_t, a_t, r_{t+1}, s_{t+1}> and the episode flags in the FIFO replay (the oldest drops out when it
         is full). Box actions come in env units and are stored rescaled to [-1, 1] (clipped), the actor's range.
 
-        A transition with a value that is not finite (reward, observations or action) is refused: in the replay it
-        would poison every mini-batch that draws it, for as long as it stays. It is counted in
-        ``rejected_transitions`` and logged (the first, then every 100th)."""
-        if not finite_transition(reward, obs, next_obs, action):
-            self.rejected_transitions += 1
-            if self.rejected_transitions == 1 or self.rejected_transitions % 100 == 0:
-                log.warning("SAC refused a transition with a non-finite value (%d so far): not in the replay",
-                            self.rejected_transitions)
+        A transition with a value that is not finite (reward, observations or action) is refused, counted in
+        ``rejected_transitions`` and logged (FiniteTransitions)."""
+        if not self._finite.admit(reward, obs, next_obs, action):
             return
         i = self._pos
         self._obs[i] = np.asarray(obs, dtype=np.float32).reshape(-1)

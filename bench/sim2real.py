@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as dt
+import functools
 import json
 import os
 import platform
@@ -137,12 +138,19 @@ def lqr_action(obs: Any) -> int:
     swing-up) restricted to the task's actions as bang-bang, the sign of its command (worker/qube_env.py ACTIONS).
     The nearest action instead leaves a dead band of +-30 counts in which it does nothing: on the trials' rigs it
     balanced to the end on none of 10, a median of 1.1 s (the first pulse comes at 1 s)."""
-    from rpi_bridge.reset import ResetController
     from worker.qube_env import ACTIONS
 
     alpha, alpha_dot, theta, theta_dot = (float(v) for v in obs)
-    u = ResetController().hold_command(theta, alpha, theta_dot, alpha_dot)
+    u = _bridge_lqr().hold_command(theta, alpha, theta_dot, alpha_dot)
     return ACTIONS.index(60 if u > 0 else -60 if u < 0 else 0)
+
+
+@functools.cache
+def _bridge_lqr() -> Any:
+    """The bridge's reset controller with its default configuration, made once (its hold command keeps no state)."""
+    from rpi_bridge.reset import ResetController
+
+    return ResetController()
 
 
 def reference_trials(rigs: int) -> dict[str, Any]:

@@ -131,11 +131,14 @@ class ScriptedFleet:
     """N fake workers, one MQTT connection each, speaking the wire format with real-size gradients; with ``edges``
     E > 0, worker i is behind edge chief ``e<i mod E>`` (a tiered run, bench/scale.py)."""
 
-    def __init__(self, broker: str, workers: int, arrays: dict[str, np.ndarray], edges: int = 0) -> None:
-        self.ids = [f"w{i}" for i in range(workers)]
-        self.edge = {w: f"e{i % edges}" for i, w in enumerate(self.ids)} if edges else {}
+    def __init__(self, broker: str, workers: int, arrays: dict[str, np.ndarray], edges: int = 0, first: int = 0,
+                 connect_timeout: float = 10.0) -> None:
+        """``workers`` devices ``w<first>``, ``w<first + 1>``, ... (bench/fleets.py spreads a larger fleet over
+        processes, each holding one such slice)."""
+        self.ids = [f"w{first + i}" for i in range(workers)]
+        self.edge = {w: f"e{(first + i) % edges}" for i, w in enumerate(self.ids)} if edges else {}
         self.spec = {k: tuple(v.shape) for k, v in arrays.items()}
-        rng = np.random.default_rng(1)
+        rng = np.random.default_rng(1 + first)
         self.grads = {w: pack_arrays({k: rng.normal(0, 1e-3, v.shape).astype(np.float32) for k, v in arrays.items()})
                       for w in self.ids}
         self.arrivals: dict[int, dict[str, float]] = {}
@@ -147,14 +150,14 @@ class ScriptedFleet:
             conn = MqttConnection(address, client_id=f"{RUN}-fake-{w}")
             conn.subscribe(topics.relayed(RUN, self.edge[w], "+") if w in self.edge else topics.chief(RUN, "+"),
                            self._handler(w))
-            self.conns.append(conn.start())
+            self.conns.append(conn.start(connect_timeout))
 
     def _handler(self, wid: str) -> Any:
         def on_message(topic: str, payload: bytes) -> None:
-            now = time.perf_counter()
+            now = time.monotonic()  # CLOCK_MONOTONIC: one clock for every process of a spread fleet
             leaf = topic.rsplit("/", 1)[-1]
             if leaf == "aggregate":
-                if wid == "w0":  # one worker decodes (for the receipts); the rest just note the arrival
+                if wid == self.ids[0]:  # one worker decodes (for the receipts); the rest just note the arrival
                     msg = decode(payload, ChiefAggregate)
                     self.answers.put(msg)
                     episode = msg.episode
@@ -162,7 +165,7 @@ class ScriptedFleet:
                     episode = -1
                 with self.lock:
                     self.arrivals.setdefault(episode, {})[wid] = now
-            elif leaf == "start" and wid == "w0":
+            elif leaf == "start" and wid == self.ids[0]:
                 self.answers.put(decode(payload, RunStart))
         return on_message
 
@@ -182,7 +185,8 @@ class ScriptedFleet:
 
     def round(self, episode: int, previous: ChiefAggregate | None, timeout: float = 120.0) -> dict[str, float]:
         """One round: every worker publishes its update; returns the seconds until the first and the last worker
-        had the aggregate."""
+        had the aggregate (``first_s``, ``last_s``) and the clock (time.monotonic) at the first publish, the first
+        and the last arrival (``start``, ``first``, ``last``)."""
         receipt = None
         if previous is not None:
             receipt = Receipt(round=previous.episode, applied="aggregate",
@@ -196,7 +200,7 @@ class ScriptedFleet:
             payloads.append(encode(msg))
         with self.lock:
             self.arrivals.pop(-1, None)
-        start = time.perf_counter()
+        start = time.monotonic()
         for w, conn, payload in zip(self.ids, self.conns, payloads, strict=True):
             conn.publish(topics.worker(RUN, w, topics.UPDATE), payload)
         deadline = time.monotonic() + timeout
@@ -204,7 +208,9 @@ class ScriptedFleet:
             with self.lock:
                 got = {**self.arrivals.get(episode, {}), **self.arrivals.get(-1, {})}
             if len(got) == len(self.ids):
-                return {"first_s": min(got.values()) - start, "last_s": max(got.values()) - start}
+                first, last = min(got.values()), max(got.values())
+                return {"first_s": first - start, "last_s": last - start, "start": start, "first": first,
+                        "last": last}
             time.sleep(0.0005)
         raise TimeoutError(f"round {episode}: only {len(got)} of {len(self.ids)} workers got the aggregate")
 

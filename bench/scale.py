@@ -3,9 +3,10 @@ to 1,024 simulated devices (``make scale``; ``make scale-quick`` for the reduced
 
 Each point is one federation over a Mosquitto started here on a free loopback port: a real root chief
 (``python -m chief``, policy ``weighted``; ``--edges E`` in a tiered point), E real edge chiefs (``python -m chief
---role edge``), and N simulated devices (bench.cost.ScriptedFleet: one MQTT connection each, real-size CartPole-v0
-actor gradients, no learning; device i behind edge ``e<i mod E>``). Every round each device publishes its update
-at once and waits for the answer. Per point, over the rounds after the first (connections warming up):
+--role edge``), and N simulated devices (bench.fleets.SpreadFleet: one MQTT connection each, real-size CartPole-v0
+actor gradients, no learning; device i behind edge ``e<i mod E>``; up to 128 devices per process). Every round each
+device publishes its update at once and waits for the answer. Per point, over the rounds after the first
+(connections warming up):
 
 - ``root_ms_per_round``: the median of the root's own time per round, from its records (metrics.jsonl): first
   submission counted to the round's record (receiving, decoding, the round state machine, Eq. 9, the record);
@@ -36,13 +37,17 @@ import time
 from pathlib import Path
 from typing import Any
 
-from bench.cost import RUN, ScriptedFleet, actor_arrays
+import numpy as np
+
+from bench.cost import RUN, actor_arrays
+from bench.fleets import SpreadFleet
 from chief.audit import audit
 from chief.records import EpisodeRecord, RoundRecord, read_metrics
 from protocol.codec import encode
 from protocol.messages import WorkerUpdate
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tasks import PI_WINDOW
+from protocol.tensors import pack_arrays
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
 
@@ -172,18 +177,17 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
     try:
         print(f"scale: {name}: connecting {devices} devices", flush=True)
         counters = BrokerCounters(broker)
-        fleet = ScriptedFleet(broker, devices, arrays, edges=edges)
+        fleet = SpreadFleet(broker, devices, arrays, edges=edges)
         fleet.join(timeout=600)
-        times, cpu, read, previous = [], [], [], None
+        times, cpu, read = [], [], []
         stats = proc_stats(root.pid, port)
         msgs, began = counters.total(), time.monotonic()
         for episode in range(1, rounds + 1):
-            times.append(fleet.round(episode, previous, timeout=600))
+            times.append(fleet.round(episode, timeout=600))
             now = proc_stats(root.pid, port) if root.poll() is None else stats
             cpu.append(now[0] - stats[0])
             read.append(now[1] - stats[1])
             stats = now
-            previous = fleet.latest(episode, timeout=600)
             if episode == 1:  # the measurement starts after the first round
                 time.sleep(1.5)  # let the $SYS counters catch up
                 msgs, began = counters.total(), time.monotonic()
@@ -206,8 +210,11 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
         if hosts is not None:
             hosts.close()
     steady = slice(1, None) if rounds > 1 else slice(None)
+    rng = np.random.default_rng(0)
     update = WorkerUpdate(worker_id=f"w{devices - 1}", episode=rounds, episode_return=20.0, pi=20.0,
-                          recent_returns=[20.0] * min(rounds, PI_WINDOW), steps=20, gradient=fleet.grads[fleet.ids[-1]])
+                          recent_returns=[20.0] * min(rounds, PI_WINDOW), steps=20,
+                          gradient=pack_arrays({k: rng.normal(0, 1e-3, v.shape).astype(np.float32)
+                                                for k, v in arrays.items()}))
     return {"n": devices, "topology": topology, "edges": edges, "rounds": rounds,
             "root_ms_per_round": round(1000 * statistics.median(root_times(run_dir)[steady]), 2),
             "root_cpu_ms_per_round": round(1000 * statistics.mean(cpu[steady]), 1),

@@ -195,10 +195,14 @@ class ChiefService:
                                           tier="root" if cfg.edges else "flat", quorum=cfg.quorum)
                 self._save()
             assert self.metrics is not None and self.keeper is not None
-            if self.outputs.tensorboard:
+            if self.outputs.tensorboard and tensorboard.live(cfg.workers):
                 self.metrics.attach(tensorboard.open_board(  # the event files follow metrics.jsonl from here on
                     cfg.run_dir, self.keeper.shape.per_episode,
                     wall_start=time.time() - (time.monotonic() - self.t0)))
+            elif self.outputs.tensorboard:
+                log.info("%d workers: the TensorBoard event files are drawn at the end of the run, not live (more "
+                         "than %d); python -m chief.tensorboard %s draws them at any time", cfg.workers,
+                         tensorboard.LIVE_WORKERS, cfg.run_dir)
             self._announce()
             if not self._federate():
                 return EXIT_CLAIMED
@@ -488,6 +492,8 @@ class ChiefService:
         self.claim.clear()
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
+        if self.outputs.tensorboard and not tensorboard.live(cfg.workers):
+            tensorboard.rebuild(cfg.run_dir)
         if self.outputs.plot:
             plot_learning_curves(cfg.run_dir, self.metrics.curves, self.spec.tc,
                                  f"{cfg.env}, {len(keeper.workers)} workers, policy {cfg.policy}, seed {cfg.seed}")

@@ -14,8 +14,10 @@ steps so far, as counted by the chief (its accepted episodes' ``steps``). Tags, 
 
 Only what ``metrics.jsonl`` holds is drawn (what the chief accepted), through one translation (``Translator``): the
 chief writes live, record by record as it appends them (``open_board``), and ``python -m chief.tensorboard RUN_DIR``
-(re)builds the files from a run's ``metrics.jsonl`` afterwards. Writing needs ``tensorboardX`` (``pip install
-.[tb]``); without it the chief logs one line and runs on without event files.
+(re)builds the files from a run's ``metrics.jsonl`` afterwards. A run of more than ``LIVE_WORKERS`` workers is drawn
+once, at its end (``live``): a live board holds a writer per worker (an open file and a thread each) and would cost
+the chief time in every round; the rebuild opens at most ``LIVE_WORKERS`` writers at a time. Writing needs
+``tensorboardX`` (``pip install .[tb]``); without it the chief logs one line and runs on without event files.
 """
 
 from __future__ import annotations
@@ -26,16 +28,21 @@ import logging
 import sys
 import time
 from collections import defaultdict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from chief.records import METRICS, AnyRecord, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 
+Line = EpisodeRecord | StepRecord | RoundRecord
+
 log = logging.getLogger(__name__)
 
 FOLDER = "tensorboard"
 EVENT_FILES = "events.out.tfevents.*"
+#: The most workers whose event files the chief writes live, and the most writers open at once in a rebuild.
+LIVE_WORKERS = 64
 
 #: WorkerUpdate's PPO statistics (protocol.messages.STAT_BOUNDS) -> CleanRL's tags.
 LOSS_TAGS = {
@@ -160,12 +167,16 @@ class Translator:
 class Board:
     """Writes a run's points into one event-file folder per worker (tensorboardX), from the records fed to it."""
 
-    def __init__(self, root: Path, translator: Translator, wall_start: float, writer_class: Any) -> None:
+    def __init__(self, root: Path, translator: Translator, wall_start: float, writer_class: Any,
+                 only: set[str] | None = None) -> None:
+        """``only``: write these workers' points alone (a rebuild in groups; the translation still sees every
+        record)."""
         self.root = root
         self.translator = translator
         self.wall_start = wall_start
         self._writer_class = writer_class
         self._writers: dict[str, Any] = {}
+        self.only = only
         self.points = 0
         self.failed = False
 
@@ -194,6 +205,8 @@ class Board:
 
     def _write(self, points: list[Point]) -> None:
         for p in points:
+            if self.only is not None and p.worker not in self.only:
+                continue
             writer = self._writers.get(p.worker)
             if writer is None:
                 # flush_secs: what is written shows up in TensorBoard within a few seconds
@@ -221,12 +234,30 @@ def _writer_class() -> Any:
     return SummaryWriter
 
 
+def live(workers: int) -> bool:
+    """Whether the chief of a run of ``workers`` writes its event files live (else once, at the end: ``rebuild``)."""
+    return workers <= LIVE_WORKERS
+
+
 def open_board(run_dir: Path, rounds_per_episode: int = 1, wall_start: float | None = None) -> Board | None:
     """The run's event files, rebuilt from the records ``metrics.jsonl`` already holds (none for a new run; a resumed
     chief's, cut back to its saved state), ready for the records still to come. None (logged once) without
     tensorboardX or when the folder cannot be redrawn: the run never fails for its event files.
 
     ``wall_start``: the wall-clock time of the records' t = 0 (default: estimated from the run folder)."""
+    drawn = _redraw(run_dir, wall_start)
+    if drawn is None:
+        return None
+    writer_class, records, wall_start = drawn
+    board = Board(run_dir / FOLDER, Translator(rounds_per_episode), wall_start, writer_class)
+    for record in records:
+        board.record(record)
+    return board
+
+
+def _redraw(run_dir: Path, wall_start: float | None) -> tuple[Any, list[Line], float] | None:
+    """The writer class, the records to draw and their t = 0 on the wall clock, the old event files gone; None
+    (logged once) without tensorboardX or when the folder cannot be redrawn."""
     writer_class = _writer_class()
     if writer_class is None:
         log.warning("tensorboardX is not installed: no TensorBoard event files for this run (pip install .[tb], "
@@ -243,12 +274,7 @@ def open_board(run_dir: Path, rounds_per_episode: int = 1, wall_start: float | N
     except (OSError, ValueError) as err:
         log.warning("cannot redraw the TensorBoard event files in %s (%s); the run goes on without them", root, err)
         return None
-    if wall_start is None:
-        wall_start = _estimate_wall_start(run_dir, records)
-    board = Board(root, Translator(rounds_per_episode), wall_start, writer_class)
-    for record in records:
-        board.record(record)
-    return board
+    return writer_class, records, _estimate_wall_start(run_dir, records) if wall_start is None else wall_start
 
 
 def _estimate_wall_start(run_dir: Path, records: list[EpisodeRecord | StepRecord | RoundRecord]) -> float:
@@ -265,7 +291,7 @@ def _estimate_wall_start(run_dir: Path, records: list[EpisodeRecord | StepRecord
     return (path.stat().st_mtime if path.exists() else time.time()) - last_t
 
 
-def rounds_per_episode_of(run_dir: Path, records: list[AnyRecord]) -> int:
+def rounds_per_episode_of(run_dir: Path, records: Sequence[AnyRecord]) -> int:
     """K of a finished run: its summary's, else one more than the highest step its records name."""
     try:
         return RunSummary.read(run_dir).rounds_per_episode
@@ -273,11 +299,30 @@ def rounds_per_episode_of(run_dir: Path, records: list[AnyRecord]) -> int:
         return 1 + max((r.step for r in records if isinstance(r, StepRecord)), default=0)
 
 
-def rebuild(run_dir: Path) -> Board | None:
-    """(Re)write a run's event files from its metrics.jsonl; the closed Board, or None without tensorboardX."""
-    board = open_board(run_dir, rounds_per_episode_of(run_dir, read_metrics(run_dir)))
-    if board is not None:
+def rebuild(run_dir: Path, group: int | None = None) -> Board | None:
+    """(Re)write a run's event files from its metrics.jsonl, ``group`` (default LIVE_WORKERS) workers at a time (one
+    pass over the records each, so that few files and threads are open at once); the last closed Board (its
+    ``points`` and translation cover every group), or None without tensorboardX or when the folder cannot be
+    redrawn."""
+    group = group or LIVE_WORKERS
+    drawn = _redraw(run_dir, None)
+    if drawn is None:
+        return None
+    writer_class, records, wall_start = drawn
+    k = rounds_per_episode_of(run_dir, records)
+    workers = sorted({r.worker for r in records if not isinstance(r, RoundRecord)})
+    points = 0
+    board = None
+    for i in range(0, max(len(workers), 1), group):
+        board = Board(run_dir / FOLDER, Translator(k), wall_start, writer_class, only=set(workers[i:i + group]))
+        for record in records:
+            board.record(record)
         board.close()
+        points += board.points
+        if board.failed:
+            break
+    assert board is not None
+    board.points = points
     return board
 
 

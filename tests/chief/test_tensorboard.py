@@ -170,6 +170,31 @@ def test_the_offline_rebuild_draws_the_same_board(weighted_run: Path, tmp_path: 
 
 
 @needs_writer
+def test_a_large_run_is_drawn_once_at_its_end_and_the_same(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                           caplog: pytest.LogCaptureFixture) -> None:
+    """Above LIVE_WORKERS workers the chief keeps no writer per worker during the run (each holds a file and a
+    thread, and costs it time every round): it draws the board once, at the end, a group of workers at a time, and
+    that board is the live one of the same run."""
+    live_dir, late_dir = tmp_path / "live", tmp_path / "late"
+    run_federation("CartPole-v0", "weighted", 3, 3, 4, live_dir, plot=False)
+    monkeypatch.setattr(tensorboard, "LIVE_WORKERS", 2)  # 3 workers: drawn at the end, two writers open at most
+    opened: list[int] = []
+    board_class = tensorboard.Board
+
+    class Counting(board_class):  # type: ignore[misc, valid-type]
+        def _write(self, points: list[tensorboard.Point]) -> None:
+            super()._write(points)
+            opened.append(len(self._writers))
+
+    monkeypatch.setattr(tensorboard, "Board", Counting)
+    with caplog.at_level(logging.INFO):
+        run_federation("CartPole-v0", "weighted", 3, 3, 4, late_dir, plot=False)
+    assert "drawn at the end of the run" in caplog.text
+    assert opened and max(opened) <= 2
+    assert read_board(late_dir) == read_board(live_dir)
+
+
+@needs_writer
 def test_a_per_step_strategy_draws_each_episode_once(tmp_path: Path) -> None:
     """Under `sync` every mini-batch step is a round and sends its own statistics: an episode's losses and
     contribution weights are drawn once, as the means over its steps, at the episode's env steps."""

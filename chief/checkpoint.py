@@ -76,8 +76,11 @@ def _unoutcome(d: dict[str, Any]) -> RoundOutcome:
 def keeper_state(k: RoundKeeper) -> KeeperState:
     """Everything a RoundKeeper needs to go on, as plain data."""
     names = [f.name for f in dataclasses.fields(WorkerRecord) if f.name not in _PAIRS]
-    workers = [SavedWorker(**{name: getattr(rec, name) for name in names}, returns=sorted(rec.returns.items()),
-                           pis=sorted(rec.pis.items())) for rec in k.workers.values()]
+    # Built unchecked (model_construct): a WorkerRecord's fields have their types already, and checking each
+    # worker's every round again made this the largest part of a 1,024-worker root's round (load checks it all).
+    workers = [SavedWorker.model_construct(**{name: getattr(rec, name) for name in names},
+                                           returns=sorted(rec.returns.items()), pis=sorted(rec.pis.items()))
+               for rec in k.workers.values()]
     last = sorted(k.answers)[-ANSWERS_SAVED:]
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,

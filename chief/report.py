@@ -33,6 +33,8 @@ from runtime.storage import storage_errors
 log = logging.getLogger(__name__)
 
 Line = EpisodeRecord | StepRecord | RoundRecord
+#: The most workers the learning curve names in its legend (beyond: one entry for them all).
+LEGEND_WORKERS = 32
 
 
 class RecordSink(Protocol):
@@ -68,8 +70,15 @@ class MetricsLog:
 
     @property
     def offset(self) -> int:
-        """Bytes written so far (what a saved state covers)."""
+        """Bytes written so far, on disk (what a saved state covers)."""
+        self.flush()
         return self._file.tell()
+
+    def flush(self) -> None:
+        """Hand what was appended to the file system (the chief does after every message it handles: one write
+        for an edge's partial of many records, not one per record)."""
+        with storage_errors(self.path):
+            self._file.flush()
 
     def episode(self, record: EpisodeRecord | StepRecord | Mapping[str, Any]) -> None:
         """An accepted submission (``type: episode``, or ``step`` for a later step of a per-step strategy); only what
@@ -119,7 +128,6 @@ class MetricsLog:
         self._note(record)
         with storage_errors(self.path):
             self._file.write(line(record) + "\n")
-            self._file.flush()
         if isinstance(record, RefusedRecord):
             return
         for sink in self.sinks:
@@ -191,9 +199,16 @@ def plot_learning_curves(
         log.warning("no episodes recorded; skipping learning_curve.png")
         return None
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=110)
-    for worker_id in sorted(curves):
-        points = sorted(curves[worker_id])
-        ax.plot([p[0] for p in points], [p[1] for p in points], label=worker_id, linewidth=1.4)
+    if len(curves) <= LEGEND_WORKERS:
+        for worker_id in sorted(curves):
+            points = sorted(curves[worker_id])
+            ax.plot([p[0] for p in points], [p[1] for p in points], label=worker_id, linewidth=1.4)
+    else:  # one collection, one legend entry: a thousand lines and names would take the chief seconds to draw
+        from matplotlib.collections import LineCollection
+
+        ax.add_collection(LineCollection([sorted(c) for c in curves.values()], linewidths=0.5, alpha=0.5,
+                                         label=f"{len(curves)} workers, one line each"))
+        ax.autoscale_view()
     ax.axhline(tc, color="black", linestyle=":", linewidth=1.5, label=f"TC = {tc:g}")
     ax.set_xlabel("episode")
     ax.set_ylabel("average return of the last 10 episodes (PI)")

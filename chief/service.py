@@ -322,8 +322,8 @@ class ChiefService:
 
     def _federate(self) -> bool:
         """Run rounds until the run is over (True), or another chief's claim beats this one's (False)."""
-        keeper = self.keeper
-        assert keeper is not None
+        keeper, metrics = self.keeper, self.metrics
+        assert keeper is not None and metrics is not None
         idle_since: float | None = None
         while not keeper.done:
             if self._interrupt.is_set():
@@ -351,8 +351,9 @@ class ChiefService:
                 self._close_rounds(outcomes)
             elif self._must_save:
                 self._save()
+            metrics.flush()
             self._flush()
-            if keeper.ids_in("active", "lagging"):
+            if keeper.any_in("active", "lagging"):
                 idle_since = None
             elif idle_since is None:
                 idle_since = now

@@ -20,8 +20,10 @@ import queue
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -53,71 +55,127 @@ def balance_action(obs: np.ndarray) -> int:
     return 2 if u > 20 else (0 if u < -20 else 1)
 
 
+class AnsweredRig:
+    """A simulated rig in real time (``python -m services.qube_sim --clock realtime``, its own process) on ``url``,
+    its states answered from a thread of this process the way a worker does: the learner's forward pass (timed)
+    then a balancing rule's action, until ``ticks`` states are answered or ``stop``. Also what bench.scale attaches
+    to a federation under load."""
+
+    def __init__(self, url: str, rig_id: str, algo: str = names.DEFAULT, ticks: int | None = None) -> None:
+        self.rig_id, self.ticks = rig_id, ticks
+        self.rig = subprocess.Popen([sys.executable, "-m", "services.qube_sim", "--broker", url, "--rig-id", rig_id,
+                                     "--clock", "realtime", "--log-level", "WARNING"])
+        self.conn = MqttConnection(BrokerAddress.parse(url), client_id=f"bench-worker-{rig_id}").start()
+        self.telemetry: queue.Queue[QubeTelemetry] = queue.Queue()
+        self.conn.subscribe(topics.rig(rig_id, topics.TELEMETRY),
+                            lambda t, p: self.telemetry.put(decode(p, QubeTelemetry)), qos=0)
+        self.env = QubeMqttEnv(self.conn, rig_id, reset_timeout_s=60)
+        self.learner = learners.get(algo).build(self.env.observation_space, self.env.action_space,
+                                                learners_config(algo), seed=0)
+        self.compute: list[float] = []
+        self.answered = self.episodes = 0
+        self.error: BaseException | None = None
+        self._stop = threading.Event()
+        self.t0 = time.monotonic()
+        self.thread = threading.Thread(target=self._answer, name=f"answer-{rig_id}", daemon=True)
+        self.thread.start()
+
+    def _done(self) -> bool:
+        return self._stop.is_set() or (self.ticks is not None and self.answered >= self.ticks)
+
+    def _answer(self) -> None:
+        try:
+            while not self._done():
+                obs, _ = self.env.reset()
+                self.episodes += 1
+                while not self._done():
+                    c0 = time.perf_counter()
+                    self.learner.act(obs)  # the worker's forward pass, timed
+                    action = balance_action(obs)
+                    self.compute.append(time.perf_counter() - c0)
+                    obs, _, terminated, truncated, _ = self.env.step(action)
+                    self.answered += 1
+                    if terminated or truncated:
+                        break
+        except BaseException as exc:  # reported by finish()
+            self.error = exc
+
+    def answering(self, timeout: float = 120.0) -> None:
+        """Until the first state is answered (the rig's first reset done); TimeoutError after ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while self.answered == 0:
+            if self.error is not None or time.monotonic() > deadline:
+                raise TimeoutError(f"rig {self.rig_id}: no state answered within {timeout:.0f} s ({self.error!r})")
+            time.sleep(0.05)
+
+    def wait(self) -> None:
+        """Until ``ticks`` states are answered."""
+        self.thread.join()
+
+    def finish(self) -> dict[str, Any]:
+        """Stop answering, read the rig's last telemetry report, stop the rig: the measurement."""
+        self._stop.set()
+        self.thread.join(120)
+        wall = time.monotonic() - self.t0
+        time.sleep(1.5)  # one more telemetry report from the rig
+        last = None
+        while not self.telemetry.empty():
+            last = self.telemetry.get()
+        self.conn.stop()
+        self.rig.terminate()
+        self.rig.wait(10)
+        if self.error is not None:
+            raise RuntimeError(f"answering rig {self.rig_id} failed: {self.error!r}") from self.error
+        if last is None:
+            raise RuntimeError(f"no telemetry from rig {self.rig_id}")
+        answered_ticks = last.latency_ms["n"] + last.deadline_misses
+        return {
+            "ticks_answered": self.answered,
+            "episodes": self.episodes,
+            "wall_s": round(wall, 1),
+            "latency_ms": last.latency_ms,
+            "tick_jitter_ms": last.jitter_ms,
+            "read_to_motor_ms": last.motor_ms,
+            "tick_period_ms": last.period_ms,
+            "deadline_misses": last.deadline_misses,
+            "late_actions": last.late_actions,
+            "late_at_motor": last.late_at_motor,
+            "miss_rate": round(last.deadline_misses / answered_ticks, 6) if answered_ticks else None,
+            "env_timeouts": self.env.timeouts,
+            "worker_forward_pass_ms": percentiles(self.compute),
+        }
+
+    def kill(self) -> None:
+        """Stop everything without measuring (a failed run)."""
+        self._stop.set()
+        self.conn.stop()
+        if self.rig.poll() is None:
+            self.rig.kill()
+            self.rig.wait()
+
+
 def measure(broker_name: str, ticks: int, workdir: Path, stress: int = 0, algo: str = names.DEFAULT) -> dict:
     if broker_name == "mosquitto":
         broker, port = mosquitto.start(workdir, max_packet_size=None)
     else:
         broker, port = start_broker_process(stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     url = f"mqtt://127.0.0.1:{port}"
-    rig_id = f"bench-{broker_name}"
-    rig = subprocess.Popen([sys.executable, "-m", "services.qube_sim", "--broker", url, "--rig-id", rig_id,
-                            "--clock", "realtime", "--log-level", "WARNING"])
-    conn = MqttConnection(BrokerAddress.parse(url), client_id="bench-worker").start()
     hogs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(stress)]
-    telemetry: queue.Queue[QubeTelemetry] = queue.Queue()
-    conn.subscribe(topics.rig(rig_id, topics.TELEMETRY), lambda t, p: telemetry.put(decode(p, QubeTelemetry)), qos=0)
+    rig = None
     try:
-        env = QubeMqttEnv(conn, rig_id, reset_timeout_s=60)
-        learner = learners.get(algo).build(env.observation_space, env.action_space,
-                                           learners_config(algo), seed=0)
-        compute: list[float] = []
-        answered, episodes, t0 = 0, 0, time.monotonic()
-        while answered < ticks:
-            obs, _ = env.reset()
-            episodes += 1
-            while answered < ticks:
-                c0 = time.perf_counter()
-                learner.act(obs)  # the worker's forward pass, timed
-                action = balance_action(obs)
-                compute.append(time.perf_counter() - c0)
-                obs, _, terminated, truncated, _ = env.step(action)
-                answered += 1
-                if terminated or truncated:
-                    break
-        wall = time.monotonic() - t0
-        time.sleep(1.5)  # one more telemetry report from the rig
-        last = None
-        while not telemetry.empty():
-            last = telemetry.get()
+        rig = AnsweredRig(url, f"bench-{broker_name}", algo, ticks)
+        rig.wait()
+        result = rig.finish()
+    except BaseException:
+        if rig is not None:
+            rig.kill()
+        raise
     finally:
         for hog in hogs:
             hog.kill()
             hog.wait()
-        conn.stop()
-        rig.terminate()
-        rig.wait(10)
         stop_process(broker)
-    if last is None:
-        raise RuntimeError(f"no telemetry from the rig over {broker_name}")
-    answered_ticks = last.latency_ms["n"] + last.deadline_misses
-    return {
-        "broker": broker_name,
-        "algo": algo,
-        "stress_processes": stress,
-        "ticks_answered": answered,
-        "episodes": episodes,
-        "wall_s": round(wall, 1),
-        "latency_ms": last.latency_ms,
-        "tick_jitter_ms": last.jitter_ms,
-        "read_to_motor_ms": last.motor_ms,
-        "tick_period_ms": last.period_ms,
-        "deadline_misses": last.deadline_misses,
-        "late_actions": last.late_actions,
-        "late_at_motor": last.late_at_motor,
-        "miss_rate": round(last.deadline_misses / answered_ticks, 6) if answered_ticks else None,
-        "env_timeouts": env.timeouts,
-        "worker_forward_pass_ms": percentiles(compute),
-    }
+    return {"broker": broker_name, "algo": algo, "stress_processes": stress, **result}
 
 
 def main(argv: list[str] | None = None) -> int:

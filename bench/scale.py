@@ -14,7 +14,12 @@ device publishes its update at once and waits for the answer. Per point, over th
 - ``root_bytes_per_round``: the bytes the root's connection received per round (the kernel's TCP counters);
 - ``round_ms``: round latency, from the first device's publish until the last device has the answer (median);
 - ``broker_msgs_per_s``: the broker's messages received and sent per second over the measured rounds (its $SYS
-  counters); ``update_bytes``: one device's update message.
+  counters); ``update_bytes``: one device's update message;
+- with ``--rigs R`` (default 1): R simulated QUBE rigs in real time on the same broker during the rounds, from their
+  first answered state until the last round (bench.latency.AnsweredRig: the bridge's 7 ms loop in its own process,
+  its states answered as a worker does):
+  ``rig_state_to_action_p99_ms`` (the worst rig's p99 of state-publish -> action-arrival, from its telemetry),
+  ``rig_deadline_misses`` and ``rig_ticks`` (summed over the rigs).
 
 The audit (python -m chief.audit) checks every point's run folder. Hosts: one machine and one broker; the devices
 and the root chief on 127.0.0.1, each edge chief in its own network namespace acting as a host (a veth pair to this
@@ -40,7 +45,8 @@ from typing import Any
 import numpy as np
 
 from bench.cost import RUN, actor_arrays
-from bench.fleets import SpreadFleet
+from bench.fleets import PER_PROCESS, SpreadFleet
+from bench.latency import AnsweredRig
 from chief.audit import audit
 from chief.records import EpisodeRecord, RoundRecord, read_metrics
 from protocol.codec import encode
@@ -150,9 +156,10 @@ def root_times(run_dir: Path) -> list[float]:
 
 
 def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str, Any], folder: Path,
-          netns: bool = True) -> dict[str, Any]:
+          netns: bool = True, rigs: int = 0, per_process: int = PER_PROCESS) -> dict[str, Any]:
     """One federation of ``devices`` simulated devices, flat or behind ``edges`` edge chiefs (each in its own
-    network namespace with ``netns``, where they can be made), for ``rounds``."""
+    network namespace with ``netns``, where they can be made), for ``rounds``; ``rigs`` simulated rigs answered
+    meanwhile; at most ``per_process`` devices per process."""
     name = f"{topology}-{devices}" + (f"-{edges}e" if edges else "")
     work = folder / name
     work.mkdir()
@@ -174,11 +181,16 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
         [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}"],
         stdout=logs[k + 1], stderr=subprocess.STDOUT) for k in range(edges)]
     fleet = counters = None
+    answered: list[AnsweredRig] = []
+    rig_stats: list[dict[str, Any]] = []
     try:
         print(f"scale: {name}: connecting {devices} devices", flush=True)
         counters = BrokerCounters(broker)
-        fleet = SpreadFleet(broker, devices, arrays, edges=edges)
+        fleet = SpreadFleet(broker, devices, arrays, edges=edges, per_process=per_process)
         fleet.join(timeout=600)
+        answered = [AnsweredRig(broker, f"scale-rig{k}") for k in range(rigs)]
+        for r in answered:
+            r.answering()  # the rounds start once every rig is balancing: its latencies are those of the rounds
         times, cpu, read = [], [], []
         stats = proc_stats(root.pid, port)
         msgs, began = counters.total(), time.monotonic()
@@ -193,11 +205,15 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
                 msgs, began = counters.total(), time.monotonic()
         time.sleep(1.5)
         msgs_per_s = (counters.total() - msgs) / (time.monotonic() - began)
+        rig_stats = [r.finish() for r in answered]
+        answered = []
         root.wait(120)
         for p in edge_procs:
             p.wait(120)
         report = audit(run_dir)
     finally:
+        for r in answered:
+            r.kill()
         if fleet is not None:
             fleet.stop()
         if counters is not None:
@@ -223,6 +239,9 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
             "round_ms": round(1000 * statistics.median(t["last_s"] for t in times[steady]), 1),
             "broker_msgs_per_s": {"core": round(msgs_per_s, 1)},
             "edge_hosts": "network namespaces" if hosts else ("127.0.0.1" if edges else None),
+            **({"rigs": rigs, "rig_state_to_action_p99_ms": max(r["latency_ms"]["p99"] for r in rig_stats),
+                "rig_deadline_misses": sum(r["deadline_misses"] for r in rig_stats),
+                "rig_ticks": sum(r["ticks_answered"] for r in rig_stats)} if rig_stats else {}),
             "audit": str(report)}
 
 
@@ -234,6 +253,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rounds", type=int, default=ROUNDS, help=f"rounds per point (default {ROUNDS})")
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--no-netns", action="store_true", help="every edge on 127.0.0.1 (no network namespaces)")
+    parser.add_argument("--rigs", type=int, default=1,
+                        help="simulated rigs in real time answered during each point's rounds (default 1; 0: none)")
     args = parser.parse_args(argv)
     points = [(int(n), topology, int(rest[0]) if rest else 0) for n, topology, *rest in
               (p.split(":") for p in args.point)] if args.point else (QUICK if args.quick else FULL)
@@ -245,16 +266,19 @@ def main(argv: list[str] | None = None) -> int:
     with tempfile.TemporaryDirectory(prefix="fedrl-scale-") as tmp:
         for n, topology, edges in points:
             try:
-                r = point(n, topology, edges, args.rounds, arrays, Path(tmp), netns=not args.no_netns)
+                r = point(n, topology, edges, args.rounds, arrays, Path(tmp), netns=not args.no_netns,
+                          rigs=args.rigs)
             except Exception as exc:  # one failed point (a device's connection timed out, say) is a row saying so
                 failed += 1
                 rows.append({"n": n, "topology": topology, "edges": edges, "error": f"{type(exc).__name__}: {exc}"})
                 print(f"scale: {n} devices {topology} ({edges} edges) FAILED: {rows[-1]['error']}", flush=True)
             else:
                 rows.append(r)
+                rig = (f", rigs' state-to-action p99 {r['rig_state_to_action_p99_ms']} ms" if "rigs" in r else "")
                 print(f"scale: {r['n']} devices {r['topology']} ({r['edges']} edges): root {r['root_ms_per_round']} "
-                      f"ms and {r['root_bytes_per_round']} B per round, round {r['round_ms']} ms, broker "
-                      f"{r['broker_msgs_per_s']['core']} msg/s; audit {r['audit']}", flush=True)
+                      f"ms ({r['root_cpu_ms_per_round']} ms CPU) and {r['root_bytes_per_round']} B per round, round "
+                      f"{r['round_ms']} ms, broker {r['broker_msgs_per_s']['core']} msg/s{rig}; audit {r['audit']}",
+                      flush=True)
             write(args.out, rows, load, began, argv)  # after every point: a later failure keeps what was measured
     print(f"scale: {len(rows)} points in {args.out} ({round(time.monotonic() - began, 1)} s), {failed} failed")
     return 1 if failed else 0

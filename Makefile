@@ -95,7 +95,7 @@ scale: $(STAMP)
 	$(BIN)/python -m bench.scale
 
 scale-quick: $(STAMP)
-	$(BIN)/python -m bench.scale --quick
+	$(BIN)/python -m bench.scale --quick --out bench/results/scale-quick.json
 
 k8s-check: $(STAMP)
 	$(BIN)/python -m pytest -q tests/deploy/test_k8s.py

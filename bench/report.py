@@ -244,6 +244,57 @@ def cost_section(cost: dict[str, Any]) -> list[str]:
     return lines
 
 
+def scale_section(results: Path, readme_dir: Path) -> list[str]:
+    """Flat against tiered (bench/scale.py's scale.json and scale-quick.json) and one straggler in 16
+    (bench/stragglers.py), where they were measured."""
+    lines: list[str] = []
+    for name in ("scale.json", "scale-quick.json"):
+        path = results / name
+        if not path.exists():
+            continue
+        scale = json.loads(path.read_text())
+        rows = scale["points"]
+        lines += [f"**Scale** (`{scale['command']}`, [`{name}`]({_rel(name, results, readme_dir)}); "
+                  f"{scale['cores']} cores, load average {scale['load_average_at_start']:.1f} at the start, "
+                  f"{scale['wall_s']:.0f} s; {scale['hosts']}). Simulated devices with real-size CartPole-v0 updates; "
+                  "per round, medians over the rounds after the first; the root's time from its records (first "
+                  "submission counted to the round's record, waiting for the last edge included) and its CPU time; "
+                  "bytes the root received; round latency from the first publish to the last device holding the "
+                  "answer; the simulated rigs' state-to-action p99 during the rounds:", "",
+                  "| devices | topology | root ms | root CPU ms | root bytes (updates' worth) | round ms "
+                  "| broker msg/s | rig p99 ms (deadline misses, states answered) | audit |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for r in rows:
+            if "error" in r:
+                lines.append(f"| {r['n']} | {r['topology']} {r['edges'] or ''} | failed: {r['error']} | | | | | | |")
+                continue
+            topo = f"{r['edges']} edges" if r["edges"] else "flat"
+            rig = (f"{r['rig_state_to_action_p99_ms']:.1f} ({r['rig_deadline_misses']}, {r['rig_ticks']})"
+                   if "rigs" in r else "-")
+            audit = "passed" if "rounds" in r["audit"] else r["audit"]
+            lines.append(f"| {r['n']:,} | {topo} | {r['root_ms_per_round']:,.0f} | {r['root_cpu_ms_per_round']:,.0f} | "
+                         f"{r['root_bytes_per_round']:,} ({r['root_bytes_per_round'] / r['update_bytes']:.1f}) | "
+                         f"{r['round_ms']:,.0f} | {r['broker_msgs_per_s']['core']:,.0f} | {rig} | {audit} |")
+        lines.append("")
+    path = results / "stragglers.json"
+    if path.exists():
+        st = json.loads(path.read_text())
+        runs = {r["name"]: r for r in st["runs"]}
+        base = runs.get("baseline", {}).get("s_per_round")
+        lines += [f"**One straggler in 16** (`python -m bench.stragglers`, [`stragglers.json`]"
+                  f"({_rel('stragglers.json', results, readme_dir)}); {st['env']}, seed {st['seed']}, {st['episodes']} "
+                  f"episodes, {st['straggler']} {st['slowdown']:g} times slower; {st.get('note', '')}):", "",
+                  "| run | workers | quorum | s per round | against 15 alone | rounds closed without the straggler | "
+                  "audit |", "| --- | --- | --- | --- | --- | --- | --- |"]
+        for r in st["runs"]:
+            rel = f"{r['s_per_round'] / base - 1:+.1%}" if base else "-"
+            audit = "passed" if "rounds" in r["audit"] else "FAILED"
+            lines.append(f"| {r['name']} | {r['workers']} | {r['quorum'] or '-'} | {r['s_per_round']:.2f} | {rel} | "
+                         f"{r['rounds_without']} of {r['rounds']} | {audit} |")
+        lines.append("")
+    return lines
+
+
 def _secs(v: float | None) -> str:
     return "-" if v is None else f"{v * 1000:.1f} ms"
 
@@ -318,7 +369,9 @@ def write_docs(folders: list[Path], page: Path = DOCS_PAGE, links_from: Path = P
     """Write the results page: every folder's tables. Its links are relative to ``links_from``: by default the
     repository root, which the docs folder mirrors for the results (docs/bench/results links to bench/results)."""
     page.parent.mkdir(parents=True, exist_ok=True)
-    page.write_text(PAGE_HEAD + render(folders, links_from, heading="##"))
+    scale = scale_section(Path("bench/results"), links_from)
+    page.write_text(PAGE_HEAD + render(folders, links_from, heading="##")
+                    + ("\n## Scale: edges, 1,024 devices, stragglers\n\n" + "\n".join(scale) if scale else ""))
 
 
 def main(argv: list[str] | None = None) -> int:

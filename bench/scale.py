@@ -61,7 +61,7 @@ OUT = Path("bench/results/scale.json")
 HOST = "127.0.0.1"
 #: (devices, topology, edges) of ``make scale`` and ``make scale-quick``.
 FULL = [(4, "flat", 0), (16, "flat", 0), (64, "flat", 0), (256, "flat", 0), (16, "tiered", 4), (64, "tiered", 4),
-        (256, "tiered", 16), (1024, "tiered", 16)]
+        (256, "tiered", 16), (1024, "tiered", 16), (1024, "flat", 0)]
 QUICK = [(4, "flat", 0), (16, "flat", 0), (64, "flat", 0), (256, "tiered", 4)]
 ROUNDS = 6
 #: The flat chief's round at 64 workers over Mosquitto (bench/results/cost.json, round_s median): the target.

@@ -68,6 +68,7 @@ class EdgeService:
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
+        self.sent: dict[int, bytes] = {}  # round -> the partial sent for it, until the root's answer comes
         self.partials = 0
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
 
@@ -147,6 +148,7 @@ class EdgeService:
             leaf = topics.AGGREGATE if isinstance(msg, ChiefAggregate) else topics.TRANSFER
             self.answers[msg.round] = (leaf, payload)
             self.answers.pop(msg.round - ANSWERS_KEPT, None)
+            self.sent.pop(msg.round, None)
             self._relay(leaf, payload)
             return
         keeper = self.keeper
@@ -192,9 +194,17 @@ class EdgeService:
                 self._relay(topics.ACK, encode(signed(ChiefAck(
                     worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=False,
                     reason=ack.reason[:2000], session=self.start.session), self.key)))
+        if verdict.reason not in ("duplicate", "stale"):
+            return
         answer = self.answers.get(verdict.round)
-        if answer is not None and verdict.reason in ("duplicate", "stale"):
+        if answer is not None:
             self._relay(*answer)
+        elif verdict.round in self.sent:
+            # No answer to a round whose partial went out: the partial or the answer was lost on the way (a broker
+            # that died holding it). The root counts the partial once and answers its round again.
+            log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
+                     msg.worker_id, verdict.round)
+            self._publish_partial(self.sent[verdict.round])
 
     def _forward(self, outcomes: list[RoundOutcome]) -> None:
         """Each of its closed rounds as one EdgePartial to the root."""
@@ -215,7 +225,14 @@ class EdgeService:
             self.partials += 1
 
     def _partial(self, msg: EdgePartial) -> None:
-        self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), encode(msg), qos=1)
+        """Send a round's partial to the root, and keep it until the root's answer to that round comes."""
+        payload = encode(msg)
+        self.sent[msg.round] = payload
+        self.sent.pop(msg.round - ANSWERS_KEPT, None)
+        self._publish_partial(payload)
+
+    def _publish_partial(self, payload: bytes) -> None:
+        self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), payload, qos=1)
 
     def _relay(self, leaf: str, payload: bytes) -> None:
         """A root's message (or an edge's refusal in the root's name) to this edge's workers, as it came."""

@@ -3,7 +3,8 @@
 One broker node dies (``kill -9``: it saves nothing more) and comes back on its port. The bridges queue what crosses
 while the other side is down; what the dead node had taken and not passed on, the processes send again (a worker
 resends an unanswered update, the chief answers a closed round again), and each side applies a message once. The
-federation ends as the uninterrupted one, and its audit passes.
+federation ends as the uninterrupted one, and its audit passes. The same with edge chiefs at the sites (a tiered run):
+an edge whose worker sends an unanswered round again sends that round's partial again.
 """
 
 from __future__ import annotations
@@ -13,10 +14,12 @@ import queue
 import time
 from pathlib import Path
 
+import msgpack
 import pytest
 
 from chief.audit import audit
 from deploy.sites import CORE, LoopbackSites
+from protocol import topics
 from protocol.mqtt import BrokerAddress, MqttConnection
 from tests.conftest import mosquitto_available
 from tests.federations import federate_through, per_worker
@@ -97,3 +100,84 @@ def test_a_broker_node_dies_and_no_update_is_lost_or_applied_twice(
     assert not any("going on alone" in text for text in logs.values())
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["end_reason"] != "aborted"
+
+
+EDGES = 2
+
+
+@pytest.fixture(scope="module")
+def uninterrupted_tiered(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, int, int]]:
+    """The same tiered federation (w0 behind edge e0, w1 behind e1) without a fault, in one process: the same
+    per-worker episodes as over MQTT (the tiered partial sums are float32, so the reference is tiered too)."""
+    from deploy.inprocess import run_federation
+
+    run_dir = tmp_path_factory.mktemp("uninterrupted-tiered") / "run"
+    run_federation("CartPole-v0", "weighted", SEED, WORKERS, EPISODES, run_dir, plot=False, tensorboard_files=False,
+                   models=False, edges=EDGES)
+    return per_worker(run_dir)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("dies", ["a", CORE], ids=["site-broker", "core-broker"])
+def test_an_edge_broker_dies_and_no_partial_is_lost_or_counted_twice(
+        tmp_path: Path, uninterrupted_tiered: list[tuple[str, int, int]], dies: str) -> None:
+    """A tiered run at sites (``--edges 2 --site-brokers a,b --witness``): edge chief e0 and its worker w0 at site a,
+    e1 and w1 at site b, the root on the core. Once round 10 has closed, one broker dies (``kill -9``) and comes back
+    on its port a second later from no save at all (no sessions, no queues), so that what it held is gone.
+    Site a dies as e0's next partial reaches the core and stays down until the root has answered that round: the
+    answer, queued at the core for the site's bridge, reaches the new site broker before e0 has subscribed again and
+    is lost. w0 sends its round again; e0, holding no answer, sends its partial again; the root counts it once (a
+    duplicate) and answers the round again. The core dies first and comes back once e0's next partial waits for it
+    at site a: whatever the new core drops before the root and the bridges are subscribed again (a race) goes the
+    same way. The run ends as the uninterrupted tiered one, the audit's tiered checks pass, nobody went on alone."""
+    run = "sites"
+    with LoopbackSites(tmp_path / "brokers", ["a", "b"], autosave=3600) as sites:
+        # Watching from a broker that stays up: e0's partials and the root's messages at the core, or e0's at site a.
+        spy, seen = listen(sites.url("a" if dies == CORE else CORE), "spy", topics.edge(run, "e0", topics.PARTIAL))
+        spy.subscribe(topics.chief(run, "+"), lambda t, payload: seen.put(payload))
+
+        def fault() -> None:
+            while not seen.empty():
+                seen.get_nowait()
+            if dies == CORE:  # down first: e0's next partial waits at site a, for a core that comes back empty
+                sites.kill(CORE)
+            while partial_round(seen.get(timeout=30), "e0") is None:
+                pass
+            if dies != CORE:  # down as the partial reaches the root: the root's answer finds the site dead
+                sites.kill(dies)
+                while not answered(seen.get(timeout=30)):
+                    pass
+            time.sleep(1.0)
+            sites.start(dies)
+
+        try:
+            run_dir = federate_through(
+                tmp_path, fault, ["--workers", str(WORKERS), "--edges", str(EDGES), "--witness", "--seed", str(SEED),
+                                  "--max-episodes", str(EPISODES), "--broker", sites.url(CORE),
+                                  "--site-brokers", f"{sites.url('a')},{sites.url('b')}", "--dashboard-port", "off"],
+                {}, name=run)
+        finally:
+            spy.stop()
+    assert per_worker(run_dir) == uninterrupted_tiered
+    report = audit(run_dir)  # among its invariants: nothing counted twice, each edge summed its own workers
+    assert report.rounds == report.tiered == EPISODES  # every root aggregate the flat Eq. 9 within the bound
+    assert report.submissions == WORKERS * EPISODES
+    logs = {p.stem: p.read_text() for p in (run_dir / "logs").glob("*.log")}
+    noticed = sorted(name for name, text in logs.items() if "lost the broker" in text)
+    assert noticed == (["chief"] if dies == CORE else ["edge-e0", "worker-w0"])  # only the dead node's own clients
+    assert not any("going on alone" in text or "timed out after" in text for text in logs.values())
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["end_reason"] != "aborted"
+    if dies != CORE:  # the answer was lost: the partial came again, and counted once
+        assert "sending its partial again" in logs["edge-e0"] and summary["duplicates"] >= 1
+
+
+def partial_round(payload: bytes, edge: str) -> int | None:
+    """The round of ``edge``'s EdgePartial, None for any other message."""
+    msg = msgpack.unpackb(payload, raw=False)
+    return msg["round"] if msg.get("kind") == "partial" and msg.get("edge_id") == edge else None
+
+
+def answered(payload: bytes) -> bool:
+    """Whether a message is one of the root's answers to a round."""
+    return msgpack.unpackb(payload, raw=False).get("kind") in ("aggregate", "transfer")

@@ -50,6 +50,14 @@ class FederationSettings(Settings):
         return self
 
 
+def tiered_problem(edges: int, quorum: int, policy: str) -> str | None:
+    """Why a run cannot have ``edges`` edge chiefs with these settings (None: it can, or it runs flat anyway)."""
+    if edges and quorum and tiers.decomposable(strategies.get(policy)):
+        return ("--quorum runs flat: an edge waits for all of its workers (a quorum across edges is not built yet); "
+                "use --edges 0 or --quorum 0")
+    return None
+
+
 class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     """The chief of a federated RL run (paper Algorithm 1)."""
 
@@ -80,10 +88,10 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
             raise ValueError("--edge-id goes with --role edge, and --role edge needs one")
         if self.role == "edge" and self.edges:
             raise ValueError("--edges is the root chief's setting, not an edge's")
-        if self.edges and self.quorum:
-            raise ValueError("--quorum runs flat: an edge waits for all of its workers (a quorum across edges is not "
-                             "built yet)")
         if self.edges and not tiers.decomposable(strategies.get(self.policy)):
             raise ValueError(f"--edges {self.edges}: {tiers.why_flat(strategies.get(self.policy))}")
+        problem = tiered_problem(self.edges, self.quorum, self.policy)
+        if problem is not None:
+            raise ValueError(problem)
         return self
 

@@ -28,7 +28,7 @@ from chief import strategies, tiers
 from chief.edge import EdgeService
 from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
-from chief.settings import ChiefSettings
+from chief.settings import ChiefSettings, tiered_problem
 from deploy.settings import InprocessSettings
 from deploy.witness import Witness
 from protocol import topics
@@ -76,6 +76,9 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     if edges and not tiers.decomposable(strategies.get(policy)):
         print(f"note: {tiers.why_flat(strategies.get(policy))}", file=sys.stderr)
         edges = 0
+    problem = tiered_problem(edges, quorum, policy)
+    if problem is not None:  # before anything starts
+        raise ValueError(problem)
     hub = Hub()
     key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)
     chief_conn: list[_Timed] = []

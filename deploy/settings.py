@@ -15,7 +15,7 @@ from pydantic import (
     model_validator,
 )
 
-from chief.settings import FederationSettings
+from chief.settings import FederationSettings, tiered_problem
 from deploy import sites
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
@@ -89,6 +89,13 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
                              "site (edge k at site k, worker i at both's i mod n)")
         return self
 
+    @model_validator(mode="after")
+    def _tiered_fits(self) -> LocalRunSettings:
+        problem = tiered_problem(self.edges, self.quorum, self.policy)  # before a broker starts
+        if problem is not None:
+            raise ValueError(problem)
+        return self
+
     @field_validator("run_id")
     @classmethod
     def _run_id(cls, value: str | None) -> str | None:
@@ -110,6 +117,13 @@ class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettin
         if value == "qube":
             raise ValueError("the in-process mode has no MQTT for rigs: use --env qube-local")
         return value
+
+    @model_validator(mode="after")
+    def _tiered_fits(self) -> InprocessSettings:
+        problem = tiered_problem(self.edges, self.quorum, self.policy)
+        if problem is not None:
+            raise ValueError(problem)
+        return self
 
 
 class DockerSettings(DeviceNoiseSettings, FederationSettings):

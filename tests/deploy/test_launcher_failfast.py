@@ -1,4 +1,5 @@
-"""``make run`` against a broker nobody can reach ends at once: one line and exit code 1, no processes started."""
+"""``make run`` against a broker nobody can reach ends at once: one line and exit code 1, no processes started. A
+quorum with edge chiefs, which no launcher runs, ends the same way before anything starts (exit code 2)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,8 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
 
 
 def _closed_port() -> int:
@@ -27,3 +30,16 @@ def test_an_unreachable_broker_is_one_line_and_exit_1(tmp_path: Path) -> None:
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "cannot reach the MQTT broker" in lines[0], done.stderr
     assert not (tmp_path / "run" / "logs" / "chief.log").exists()
+
+
+@pytest.mark.parametrize("launcher", ["deploy.run_local", "deploy.inprocess"])
+def test_a_quorum_with_edges_is_one_line_and_exit_2_before_anything_starts(tmp_path: Path, launcher: str) -> None:
+    """Edges wait for all of their workers: --quorum with --edges is refused by the launcher itself, before a broker,
+    a run folder or a thread exists (not by the chief's settings after the embedded broker started)."""
+    run_dir = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", launcher, "--workers", "4", "--edges", "2", "--quorum", "3",
+                           "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--quorum runs flat" in lines[0] and "--edges 0 or --quorum 0" in lines[0], done.stderr
+    assert not run_dir.exists()

@@ -68,7 +68,8 @@ class EdgeService:
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
-        self.sent: dict[int, bytes] = {}  # round -> the partial sent for it, until the root's answer comes
+        self.sent: dict[int, bytes] = {}  # round -> the partial sent for it (the last ANSWERS_KEPT rounds)
+        self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
 
@@ -142,13 +143,14 @@ class EdgeService:
             return
         if isinstance(msg, ChiefAck):
             if self.keeper is not None and msg.worker_id in self.keeper.workers:
+                self.acks = {k: v for k, v in self.acks.items() if k[1] > msg.round - ANSWERS_KEPT}
+                self.acks[(msg.worker_id, msg.round)] = payload
                 self._relay(topics.ACK, payload)
             return
         if isinstance(msg, ChiefAggregate | ChiefTransfer):
             leaf = topics.AGGREGATE if isinstance(msg, ChiefAggregate) else topics.TRANSFER
             self.answers[msg.round] = (leaf, payload)
             self.answers.pop(msg.round - ANSWERS_KEPT, None)
-            self.sent.pop(msg.round, None)
             self._relay(leaf, payload)
             return
         keeper = self.keeper
@@ -199,9 +201,12 @@ class EdgeService:
         answer = self.answers.get(verdict.round)
         if answer is not None:
             self._relay(*answer)
-        elif verdict.round in self.sent:
-            # No answer to a round whose partial went out: the partial or the answer was lost on the way (a broker
-            # that died holding it). The root counts the partial once and answers its round again.
+        acked = self.acks.get((msg.worker_id, verdict.round)) if isinstance(msg, MatureParams) else None
+        if acked is not None:
+            self._relay(topics.ACK, acked)
+        if (answer is None or (isinstance(msg, MatureParams) and acked is None)) and verdict.round in self.sent:
+            # What the worker waits for never came though the partial went out: the partial or the root's answer was
+            # lost on the way (a broker that died holding it). The root counts the partial once and answers again.
             log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
                      msg.worker_id, verdict.round)
             self._publish_partial(self.sent[verdict.round])
@@ -225,7 +230,7 @@ class EdgeService:
             self.partials += 1
 
     def _partial(self, msg: EdgePartial) -> None:
-        """Send a round's partial to the root, and keep it until the root's answer to that round comes."""
+        """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
         payload = encode(msg)
         self.sent[msg.round] = payload
         self.sent.pop(msg.round - ANSWERS_KEPT, None)

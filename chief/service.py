@@ -456,6 +456,11 @@ class ChiefService:
         elif outcome.finished:
             log.info("round %d: %s finished (no transfer: %s)", outcome.round, ", ".join(outcome.finished),
                      "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
+        for edge in sorted({self.edge_of[w] for w in outcome.timed_out if w in self.edge_of} - set(outcome.edges)):
+            behind = sorted(w for w in outcome.timed_out if self.edge_of.get(w) == edge)
+            log.warning("round %d: nothing came from edge %s within %.0f s (%s timed out): its edge chief, its broker "
+                        "or all of its workers are down; they are lagging until it sends again (an edge chief is "
+                        "not replaced mid-run)", outcome.round, edge, self.cfg.round_timeout, ", ".join(behind))
 
     def _progress(self, now: float, force: bool = False) -> None:
         if not force and (not self.outputs.progress or now - self._last_progress < PROGRESS_INTERVAL):

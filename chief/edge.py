@@ -15,6 +15,7 @@ run folder (the root's records cover every submission).
 from __future__ import annotations
 
 import logging
+import math
 import queue
 import time
 from typing import Any
@@ -49,6 +50,9 @@ log = logging.getLogger("edge")
 EXIT_OK, EXIT_NOT_STARTED = 0, 3
 #: Closed rounds whose root answers an edge keeps, to answer a worker again that missed one.
 ANSWERS_KEPT = 32
+#: Seconds between two further copies of one round's partial: the workers of an edge that send a round again (all at
+#: once after their broker came back, or each every resend_interval while the round waits) cost the root one copy.
+RESEND_GAP = 2.0
 
 Root = RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck
 
@@ -69,6 +73,7 @@ class EdgeService:
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
         self.sent: dict[int, bytes] = {}  # round -> the partial sent for it (the last ANSWERS_KEPT rounds)
+        self.resent: dict[int, float] = {}  # round -> when its partial last went again
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
@@ -204,12 +209,15 @@ class EdgeService:
         acked = self.acks.get((msg.worker_id, verdict.round)) if isinstance(msg, MatureParams) else None
         if acked is not None:
             self._relay(topics.ACK, acked)
-        if (answer is None or (isinstance(msg, MatureParams) and acked is None)) and verdict.round in self.sent:
+        r, now = verdict.round, time.monotonic()
+        if (answer is None or (isinstance(msg, MatureParams) and acked is None)) and r in self.sent:
             # What the worker waits for never came though the partial went out: the partial or the root's answer was
             # lost on the way (a broker that died holding it). The root counts the partial once and answers again.
-            log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
-                     msg.worker_id, verdict.round)
-            self._publish_partial(self.sent[verdict.round])
+            if now - self.resent.get(r, -math.inf) >= RESEND_GAP:
+                log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
+                         msg.worker_id, r)
+                self.resent[r] = now
+                self._publish_partial(self.sent[r])
 
     def _forward(self, outcomes: list[RoundOutcome]) -> None:
         """Each of its closed rounds as one EdgePartial to the root."""
@@ -231,10 +239,10 @@ class EdgeService:
 
     def _partial(self, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
-        payload = encode(msg)
-        self.sent[msg.round] = payload
+        self.sent[msg.round] = encode(msg)
         self.sent.pop(msg.round - ANSWERS_KEPT, None)
-        self._publish_partial(payload)
+        self.resent.pop(msg.round - ANSWERS_KEPT, None)
+        self._publish_partial(self.sent[msg.round])
 
     def _publish_partial(self, payload: bytes) -> None:
         self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), payload, qos=1)

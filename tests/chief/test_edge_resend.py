@@ -1,7 +1,7 @@
 """An edge chief (chief/edge.py) on an in-memory hub, with a scripted root and worker: when its worker sends a
 round again that the edge closed, the edge passes on the root's answer (and acknowledgement) it holds, and sends the
 round's partial to the root again when what the worker waits for never came (a broker lost the partial or the
-answer); never when it came."""
+answer), at most once every RESEND_GAP seconds; never when it came."""
 
 from __future__ import annotations
 
@@ -116,6 +116,9 @@ def test_an_unanswered_round_sent_again_sends_its_partial_again_and_an_answered_
     assert decode(first, EdgePartial).round == 1
     scene.worker(topics.UPDATE, update)  # no answer came: the same partial again, byte for byte
     assert scene.partials.get(timeout=10) == first
+    for _ in range(3):  # more copies within RESEND_GAP (a site's workers all back at once): no further partial
+        scene.worker(topics.UPDATE, update)
+    assert quiet(scene.partials)
     reply = answer(1)
     scene.root(topics.AGGREGATE, reply)
     assert decode(scene.relayed_next(topics.AGGREGATE), ChiefAggregate).round == 1

@@ -7,6 +7,10 @@ tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of 
 transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 
+A worker that sends a closed round again missed something: the edge passes on the root's answer and acknowledgement
+it holds for that round, and sends the round's partial again when it holds none (a broker lost the partial or the
+answer; the root counts it once and answers again).
+
 It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
 workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
 run folder (the root's records cover every submission).

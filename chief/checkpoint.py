@@ -9,9 +9,11 @@ confirmed to a worker is never lost. Tensors are stored as raw float32 bytes in 
 is data, and loading one runs no code. Its layout is chief.records.ChiefState (validated when written and read);
 workers' records are restored field by field, by name.
 
-What is not kept (and need not be): gradients accepted since the last write. Workers send a submission again when
-the chief comes back (they see its RunStart), and everything is idempotent by worker and episode, so the resumed
-chief counts each episode once and records it once (``metrics.jsonl`` is cut back to the written position).
+A root of edges (docs/explanation/tiered.md) also keeps the edges' partial sums of its open rounds and which edge
+each worker is behind. What is not kept (and need not be): gradients accepted since the last write. Workers send a
+submission again when the chief comes back (they see its RunStart), and everything is idempotent by worker and
+episode, so the resumed chief counts each episode once and records it once (``metrics.jsonl`` is cut back to the
+written position). Behind an edge, the worker's edge sends its partial of that round again (chief/edge.py).
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
+from chief import tiers
 from chief.records import ChiefState, KeeperState, SavedWorker, ServiceState
 from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
 from protocol.rounds import RoundShape
@@ -89,7 +92,19 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
         pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
-        done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted)
+        done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted, tier=k.tier,
+        partials=[_partial(r, e, *held) for r, by_edge in sorted(k.partials.items())
+                  for e, held in sorted(by_edge.items())])
+
+
+def _partial(r: int, edge: str, p: tiers.Partial, contributors: list[str], clipped: dict[str, float]) -> dict[str, Any]:
+    return {"round": r, "edge": edge, "gradient": _arrays(p.gradient), "critic": _arrays(p.critic), "total": p.total,
+            "count": p.count, "uniform": p.uniform, "contributors": contributors, "clipped": clipped}
+
+
+def _unpartial(d: dict[str, Any]) -> tuple[tiers.Partial, list[str], dict[str, float]]:
+    return (tiers.Partial(_unarrays(d["gradient"]), d["total"], d["count"], d["uniform"], _unarrays(d["critic"])),
+            list(d["contributors"]), dict(d["clipped"]))
 
 
 #: WorkerRecord's per-episode maps, saved as sorted (episode, value) pairs.
@@ -117,7 +132,7 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
     k = RoundKeeper([w.worker_id for w in state.workers], state.policy, task, state.max_episodes,
                     state.round_timeout, actor_spec=_unspec(state.actor_spec), critic_spec=_unspec(state.critic_spec),
                     shape=RoundShape(per_episode=state.rounds_per_episode), max_staleness=state.max_staleness,
-                    quorum=state.quorum)
+                    tier=state.tier, quorum=state.quorum)
     k.workers.update((w.worker_id, restore_worker(w)) for w in state.workers)
     k.round = state.round
     k.pending = {s["worker_id"]: _unsubmission(s) for s in state.pending}
@@ -127,6 +142,8 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
     k.counted = {(w, e) for w, e in state.counted}
     k.answers = {o.round: o for o in map(_unoutcome, state.answers)}
     k.done_reason, k.aborted, k.interrupted = state.done_reason, state.aborted, state.interrupted
+    for d in state.partials:
+        k.partials.setdefault(d["round"], {})[d["edge"]] = _unpartial(d)
     return k
 
 

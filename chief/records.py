@@ -353,6 +353,8 @@ class KeeperState(Record):
     done_reason: str | None
     aborted: bool
     interrupted: bool = False  # ended by Ctrl-C or SIGTERM: a chief started again resumes it
+    tier: Literal["flat", "root"] = "flat"  # a root of edges (docs/explanation/tiered.md) or a flat chief
+    partials: list[dict[str, Any]] = Field(default_factory=list)  # a root's: the edges' partials of open rounds
 
 
 class ServiceState(Record):
@@ -371,6 +373,7 @@ class ServiceState(Record):
     init_model_known: bool = False
     claimed_since: float = 0.0  # when this session first claimed the run (chief/claim.py); 0: a state from before
     algo: str = "ppo"  # the run's learner (protocol/learners.py); a state from before learners had names ran PPO
+    edges: dict[str, str] = Field(default_factory=dict)  # a root's workers: the edge each is behind
 
 
 class ChiefState(Record):

@@ -129,9 +129,10 @@ class ChiefService:
                              "use the same --run-id to resume it, or another --run-dir")
         if not keeper.resumable:
             raise ValueError(f"the run in {self.cfg.run_dir} is over ({keeper.done_reason}); choose another --run-dir")
-        if self.cfg.edges:
-            raise ValueError(f"{self.cfg.run_dir} holds a started run, and a tiered root does not resume one yet (the "
-                             "edges' partials of its open round are not saved); choose another --run-dir")
+        if keeper.tier != ("root" if self.cfg.edges else "flat"):
+            raise ValueError(f"the saved run is {'tiered' if keeper.tier == 'root' else 'flat'}: resume it "
+                             + ("with --edges (the same number of edges)" if keeper.tier == "root" else
+                                "without --edges"))
         if keeper.policy != self.cfg.policy:
             raise ValueError(f"the saved run uses policy {keeper.policy!r}, not {self.cfg.policy!r}")
 
@@ -235,6 +236,7 @@ class ChiefService:
             self.roster.init_model = service["init_model"]["digest"]
             self.roster.init_model_path = service["init_model"]["path"]
         self.rejects.restore(service["rejects"])
+        self.edge_of = dict(service.get("edges", {}))
         self.metrics = MetricsLog(self.cfg.run_dir, resume_at=service["metrics_bytes"])
         self.t0 = time.monotonic() - service["elapsed_s"]
         log.warning("resuming run %s from %s at round %d (%d workers, %d finished)", self.cfg.run_id,
@@ -253,7 +255,7 @@ class ChiefService:
             "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
             "elapsed_s": time.monotonic() - self.t0, "init_model": self._init_model(),
             "init_model_known": self.roster.init_model_known, "claimed_since": self.claim.claim.since,
-            "algo": self.roster.algo})
+            "algo": self.roster.algo, "edges": self.edge_of})
 
     def _init_model(self) -> dict[str, str] | None:
         """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""

@@ -77,6 +77,52 @@ def test_a_killed_chief_resumes_with_the_same_result(tmp_path: Path, runs: Runs)
     assert per_worker(run_dir) == per_worker(uninterrupted)
 
 
+def root_pid(run_id: str) -> int:
+    """The run's root chief (not its edge chiefs, which run ``python -m chief`` too, with FEDRL_ROLE=edge)."""
+    [pid] = [p for p in chief_pids(run_id) if b"FEDRL_ROLE=edge" not in Path(f"/proc/{p}/environ").read_bytes()]
+    return pid
+
+
+@pytest.mark.xdist_group("e2e")
+def test_a_killed_root_of_edges_resumes_with_the_same_result(tmp_path: Path) -> None:
+    """A tiered run (two edge chiefs, the wire witnessed): its root is killed twice and resumed by the launcher. The
+    edges' partials of the open round come again (the workers send their unanswered round again, and an edge holding
+    no answer sends its partial again), the resumed root counts them once, and the run ends as the same tiered
+    federation in one process does; the audit's tiered checks pass on every round."""
+    from deploy.inprocess import run_federation
+
+    run_id, edges = "resume-tiered", 2
+    reference = tmp_path / "reference"
+    run_federation(fed.ENV, "weighted", fed.SEED, fed.WORKERS, fed.MAX_EPISODES, reference, plot=False,
+                   tensorboard_files=False, models=False, edges=edges)
+    run_dir = tmp_path / "run"
+    launcher = subprocess.Popen(
+        [sys.executable, "-m", "deploy.run_local", "--workers", str(fed.WORKERS), "--edges", str(edges), "--witness",
+         "--seed", str(fed.SEED), "--policy", "weighted", "--env", fed.ENV, "--max-episodes", str(fed.MAX_EPISODES),
+         "--run-dir", str(run_dir), "--run-id", run_id, "--dashboard-port", "off"],
+        stdout=(tmp_path / "launcher.log").open("wb"), stderr=subprocess.STDOUT)
+    try:
+        for at_round in (8, 30):
+            deadline = time.monotonic() + 300
+            while rounds_closed(run_dir / "metrics.jsonl") < at_round:
+                assert time.monotonic() < deadline and launcher.poll() is None, (tmp_path / "launcher.log").read_text()
+                time.sleep(0.02)
+            os.kill(root_pid(run_id), signal.SIGKILL)
+        assert launcher.wait(timeout=400) == 0, (tmp_path / "launcher.log").read_text()[-3000:]
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    assert (tmp_path / "launcher.log").read_text().count("the chief died (exit code -9); restarting it") == 2
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["restarts"] == 2 and summary["rejected_messages"] == {}
+    report = audit(run_dir)  # nothing lost or counted twice; every root aggregate the flat Eq. 9 within the bound
+    rounds = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()
+              if '"type":"round"' in line]
+    assert report.tiered == sum(1 for r in rounds if r["kind"] == "aggregate" and r["digest"]) > 0  # sums only
+    assert report.transfers > 0
+    assert per_worker(run_dir) == per_worker(reference)
+
+
 def chief_in(run_dir: Path, run_id: str = RUN) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "chief", "--run-dir", str(run_dir), "--run-id", run_id,
                            "--broker", "mqtt://127.0.0.1:9"], capture_output=True, text=True, timeout=60)

@@ -667,9 +667,12 @@ class RoundKeeper:
             self._finish(self.workers[w], subs[w].episode)
         return outcome
 
-    def excuse(self, workers: list[str], now: float) -> list[RoundOutcome]:
-        """A root stops waiting in the open round for workers their edge timed out (marked lagging, as ``tick``
-        does); the outcomes of the rounds that closes."""
+    def excuse(self, r: int, workers: list[str], now: float) -> list[RoundOutcome]:
+        """A root stops waiting in round ``r`` for workers their edge timed out in it (marked lagging, as ``tick``
+        does), when ``r`` is the open round (a late copy of an earlier round's partial, which an edge sends again,
+        excuses nobody now); the outcomes of the rounds that closes."""
+        if r != self.round:
+            return []
         for w in workers:
             rec = self.workers.get(w)
             if rec is not None and w not in self.pending:

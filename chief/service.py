@@ -405,7 +405,7 @@ class ChiefService:
             verdict = keeper.submit(submission_of(sub), now)
             self._answer(verdict, now)
             outcomes += verdict.outcomes
-        return outcomes + keeper.excuse(list(msg.timed_out), now)
+        return outcomes + keeper.excuse(msg.round, list(msg.timed_out), now)
 
     def _answer(self, verdict: Verdict, now: float) -> None:
         """Record what was accepted, count what was not, acknowledge mature actors, answer again a round a worker

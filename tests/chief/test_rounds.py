@@ -535,3 +535,27 @@ def test_a_root_s_saved_state_keeps_its_tier_and_the_edges_partials_of_its_open_
     [(p, contributors, clipped)] = back.partials[1].values()
     assert (p.total, p.count, p.uniform, contributors, clipped) == (2.0, 1, False, ["w0"], {"w0": 0.5})
     assert p.gradient is not None and p.gradient["g"].tolist() == [0.5]
+
+
+def test_a_late_copy_of_a_partial_excuses_nobody_in_a_later_round() -> None:
+    """An edge sends a round's partial again when its answer went missing; a copy that reaches the root after the
+    round closed must not excuse, in the open round, the workers that edge had timed out back then (one of them is
+    back and the open round waits for it)."""
+    import dataclasses
+
+    k = RoundKeeper(["w0", "w1"], "weighted", CARTPOLE, max_episodes=10, round_timeout=10.0, actor_spec=SPEC,
+                    tier="root")
+    w = fakes("w0", "w1")
+
+    def header(worker: str, episode: int) -> Submission:  # a root takes submissions without their tensors
+        return dataclasses.replace(w[worker].sub(episode, 20.0), gradient=None)
+
+    k.submit(header("w0", 1), 0.0)
+    [closed] = k.excuse(1, ["w1"], 0.1)  # w1's edge timed it out in round 1
+    assert closed.round == 1 and k.workers["w1"].excused
+    k.submit(header("w1", 2), 0.2)  # w1 is back
+    [closed] = outcomes(k.submit(header("w0", 2), 0.3))
+    assert closed.round == 2 and not k.workers["w1"].excused
+    k.submit(header("w0", 3), 0.4)
+    assert k.excuse(1, ["w1"], 0.5) == []  # the late copy of round 1's partial
+    assert k.round == 3 and k.waiting_for() == ["w1"]

@@ -155,6 +155,26 @@ def root_times(run_dir: Path) -> list[float]:
     return [closed[r] - first[r] for r in sorted(closed) if r in first]
 
 
+def measured_rounds(fleet: SpreadFleet, root: subprocess.Popen[bytes], port: int, counters: BrokerCounters,
+                    rounds: int) -> tuple[list[dict[str, float]], list[float], list[int], float]:
+    """The rounds: each one's latencies, the root's CPU seconds and received bytes, and the broker's messages per
+    second after the first round."""
+    times, cpu, read = [], [], []
+    stats = proc_stats(root.pid, port)
+    msgs, began = counters.total(), time.monotonic()
+    for episode in range(1, rounds + 1):
+        times.append(fleet.round(episode, timeout=600))
+        now = proc_stats(root.pid, port) if root.poll() is None else stats
+        cpu.append(now[0] - stats[0])
+        read.append(now[1] - stats[1])
+        stats = now
+        if episode == 1:  # the measurement starts after the first round
+            time.sleep(1.5)  # let the $SYS counters catch up
+            msgs, began = counters.total(), time.monotonic()
+    time.sleep(1.5)
+    return times, cpu, read, (counters.total() - msgs) / (time.monotonic() - began)
+
+
 def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str, Any], folder: Path,
           netns: bool = True, rigs: int = 0, per_process: int = PER_PROCESS) -> dict[str, Any]:
     """One federation of ``devices`` simulated devices, flat or behind ``edges`` edge chiefs (each in its own
@@ -191,20 +211,7 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
         answered = [AnsweredRig(broker, f"scale-rig{k}") for k in range(rigs)]
         for r in answered:
             r.answering()  # the rounds start once every rig is balancing: its latencies are those of the rounds
-        times, cpu, read = [], [], []
-        stats = proc_stats(root.pid, port)
-        msgs, began = counters.total(), time.monotonic()
-        for episode in range(1, rounds + 1):
-            times.append(fleet.round(episode, timeout=600))
-            now = proc_stats(root.pid, port) if root.poll() is None else stats
-            cpu.append(now[0] - stats[0])
-            read.append(now[1] - stats[1])
-            stats = now
-            if episode == 1:  # the measurement starts after the first round
-                time.sleep(1.5)  # let the $SYS counters catch up
-                msgs, began = counters.total(), time.monotonic()
-        time.sleep(1.5)
-        msgs_per_s = (counters.total() - msgs) / (time.monotonic() - began)
+        times, cpu, read, msgs_per_s = measured_rounds(fleet, root, port, counters, rounds)
         rig_stats = [r.finish() for r in answered]
         answered = []
         root.wait(120)

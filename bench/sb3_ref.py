@@ -91,9 +91,10 @@ ZOO = ZOOS["ppo"]
 
 
 def reference(learner: str, env_id: str) -> str | None:
-    """The SB3 algorithm beside our ``learner`` on ``env_id``: PPO beside PPO; beside SAC, SAC where the zoo has a SAC
-    entry (continuous actions) and else DQN where it has a DQN entry (discrete actions); None without an entry."""
-    for algo in {"ppo": ("ppo",), "sac": ("sac", "dqn")}.get(learner, ()):
+    """The SB3 algorithm beside our ``learner`` on ``env_id``: PPO beside PPO, DQN beside DQN; beside SAC, SAC where
+    the zoo has a SAC entry (continuous actions) and else DQN where it has a DQN entry (discrete actions); None without
+    an entry."""
+    for algo in {"ppo": ("ppo",), "sac": ("sac", "dqn"), "dqn": ("dqn",)}.get(learner, ()):
         if env_id in ZOOS[algo]:
             return algo
     return None

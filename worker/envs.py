@@ -57,6 +57,7 @@ import numpy as np
 
 from protocol.tasks import TASKS, TaskSpec
 from worker import learners
+from worker.dqn import DQNConfig
 from worker.ppo import PPOConfig
 from worker.qube_env import make_qube_env, make_qube_local_env
 from worker.sac import SACConfig
@@ -281,7 +282,17 @@ def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, re
 
 # The paper's configuration with a lower actor learning rate: at 1e-3 the actor collapses to a deterministic
 # policy (entropy 0, it never recovers) on 4 of 12 seeds; at 3e-4 all 12 solved (table above).
-register_env(_task("CartPole-v0", config=PPOConfig(actor_lr=3e-4), noise_target="force"))
+# DQN (issue 16), tuned for 4 workers under ``sync`` on tuning seeds 1-3 only (python -m bench.tune CartPole-v0 sync
+# --algo dqn --max-episodes 60; bench/results/tuning.jsonl lines 7-9, line 6 is K = 50): learning from 64 transitions
+# on (the default 500 is about 25 early episodes of one worker), epsilon down to 0.02 within the first 500 env steps,
+# K = 200 gradient steps per episode (K = 50: stuck near return 100, unsolved at 60 episodes), the target network
+# copied every 200 steps, batches of 128 (64 left seed 2 unsolved at 50 episodes in a quick replica of sync outside
+# the federation, not logged). Last worker's episodes, seeds 1-3: 19, 56, 38. utd_ratio (per-episode strategies and
+# independent workers) keeps its default 1.0, untuned.
+CARTPOLE_DQN = DQNConfig(learning_starts=64, eps_decay_steps=500, eps_end=0.02, update_epochs=200,
+                         target_update_interval=200, batch_size=128)
+register_env(_task("CartPole-v0", config=PPOConfig(actor_lr=3e-4), noise_target="force",
+                   presets={"dqn": CARTPOLE_DQN}))
 
 # Returns of -1 per step (down to -500) are far from the critic's initial 0: with the L1 loss of Eq. 3 the
 # critic needs many episodes to catch up, the advantages are noise meanwhile, and some seeds collapse to a

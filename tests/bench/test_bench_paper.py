@@ -229,3 +229,6 @@ def test_a_new_learner_merges_into_an_old_ppo_only_report(tmp_path: Path) -> Non
     assert merged["learners"]["ppo"]["summary"] == old["summary"]
     assert merged["learners"]["ppo"]["config"]["command"] == "python -m bench.paper --quick"
     assert merged["learners"]["sac"]["target"]["target"] == {"episodes": 15}
+    dqn_run = {**_run("federation", "sync", 101, 20), "algo": "dqn"}
+    dqn = paper.task_report("CartPole-v0", [dqn_run], {**cfg, "algos": ["dqn"]})
+    assert dqn["learners"]["dqn"]["target"]["target"] == {"episodes": 15}

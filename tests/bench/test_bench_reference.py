@@ -88,6 +88,8 @@ def test_each_learner_has_its_sb3_reference() -> None:
     assert {t: sb3_ref.reference("sac", t) for t in sb3_ref.ZOO} == {
         "CartPole-v0": "dqn", "Acrobot-v1": "dqn", "Pendulum-v1": "sac", "MountainCarContinuous-v0": "sac"}
     assert sb3_ref.reference("ppo", "Acrobot-v1") == "ppo" and sb3_ref.reference("sac", "qube-local") is None
+    assert {t: sb3_ref.reference("dqn", t) for t in sb3_ref.ZOO} == {
+        "CartPole-v0": "dqn", "Acrobot-v1": "dqn", "Pendulum-v1": None, "MountainCarContinuous-v0": None}
     pytest.importorskip("stable_baselines3")
     sac, entry = sb3_ref.build("MountainCarContinuous-v0", seed=101, algo="sac")
     assert entry.kwargs["ent_coef"] == 0.1 and sac.use_sde and sac.batch_size == 512

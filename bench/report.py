@@ -254,7 +254,7 @@ def scale_section(results: Path, readme_dir: Path) -> list[str]:
             continue
         scale = json.loads(path.read_text())
         rows = scale["points"]
-        lines += [f"**Scale** (`{scale['command']}`, [`{name}`]({_rel(name, results, readme_dir)}); "
+        lines += [f"**Scale** (`{scale['command'].strip()}`, [`{name}`]({_rel(name, results, readme_dir)}); "
                   f"{scale['cores']} cores, load average {scale['load_average_at_start']:.1f} at the start, "
                   f"{scale['wall_s']:.0f} s; {scale['hosts']}). Simulated devices with real-size CartPole-v0 updates; "
                   "per round, medians over the rounds after the first; the root's time from its records (first "
@@ -273,7 +273,7 @@ def scale_section(results: Path, readme_dir: Path) -> list[str]:
                    if "rigs" in r else "-")
             audit = "passed" if "rounds" in r["audit"] else r["audit"]
             lines.append(f"| {r['n']:,} | {topo} | {r['root_ms_per_round']:,.0f} | {r['root_cpu_ms_per_round']:,.0f} | "
-                         f"{r['root_bytes_per_round']:,} ({r['root_bytes_per_round'] / r['update_bytes']:.1f}) | "
+                         f"{r['root_bytes_per_round']:,} ({r['root_bytes_per_round'] / r['update_bytes']:,.1f}) | "
                          f"{r['round_ms']:,.0f} | {r['broker_msgs_per_s']['core']:,.0f} | {rig} | {audit} |")
         lines.append("")
     path = results / "stragglers.json"

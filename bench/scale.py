@@ -299,7 +299,7 @@ def write(out: Path, rows: list[dict[str, Any]], load: float, began: float, argv
                  else "on 127.0.0.1" if spread else "(no edges)"),
               "cores": os.cpu_count(), "load_average_at_start": load, "wall_s": round(time.monotonic() - began, 1),
               "flat_64_ms_cost_json": FLAT_64_MS,
-              "command": "python -m bench.scale " + " ".join(argv if argv is not None else sys.argv[1:])}
+              "command": " ".join(["python -m bench.scale", *(argv if argv is not None else sys.argv[1:])])}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")
 

@@ -41,7 +41,21 @@ class WarmStartSettings(Settings):
                                       "folder: its first worker to solve); unset: from scratch", metavar="PATH")
 
 
-class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettings):
+class TieredSettings(FederationSettings):
+    """A federation that may run tiered: ``edges`` edge chiefs between the workers and the root (launchers redefine
+    the field for their help text; the check is this one)."""
+
+    edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md); 0: flat")
+
+    @model_validator(mode="after")
+    def _tiered_fits(self) -> TieredSettings:
+        problem = tiered_problem(self.edges, self.quorum, self.policy)  # before a launcher starts anything
+        if problem is not None:
+            raise ValueError(problem)
+        return self
+
+
+class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
     """A federation on this machine: embedded MQTT broker, chief and N workers as separate processes (make run)."""
 
     workers: PositiveInt | None = setting(None, "number of workers (unset: 4, or 3 for qube as in the paper)")
@@ -89,20 +103,13 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, FederationSetting
                              "site (edge k at site k, worker i at both's i mod n)")
         return self
 
-    @model_validator(mode="after")
-    def _tiered_fits(self) -> LocalRunSettings:
-        problem = tiered_problem(self.edges, self.quorum, self.policy)  # before a broker starts
-        if problem is not None:
-            raise ValueError(problem)
-        return self
-
     @field_validator("run_id")
     @classmethod
     def _run_id(cls, value: str | None) -> str | None:
         return check_id(value, "run id") if value else None
 
 
-class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettings):
+class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
     """A whole federation in one process, for sweeps: make run's chief and worker services on an in-memory hub."""
 
     workers: int = setting(4, "number of workers", ge=1)
@@ -117,13 +124,6 @@ class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, FederationSettin
         if value == "qube":
             raise ValueError("the in-process mode has no MQTT for rigs: use --env qube-local")
         return value
-
-    @model_validator(mode="after")
-    def _tiered_fits(self) -> InprocessSettings:
-        problem = tiered_problem(self.edges, self.quorum, self.policy)
-        if problem is not None:
-            raise ValueError(problem)
-        return self
 
 
 class DockerSettings(DeviceNoiseSettings, FederationSettings):

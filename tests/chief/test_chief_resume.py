@@ -12,7 +12,6 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
 
 import pytest
 
@@ -41,20 +40,6 @@ def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
 #: the first finisher and after the first transfers; the last worker (84) goes on alone after that, which the
 #: uninterrupted run covers.
 EPISODES = 36
-
-
-def records_up_to(run_dir: Path, episodes: int) -> tuple[dict[str, list[tuple[Any, ...]]], list[tuple[Any, ...]]]:
-    """Each worker's accepted episodes (episode, return, steps, PI) and the chief's rounds (round, kind, contributors,
-    PIs, weights, digest of the answer's tensors, source, keep-weights, finished) up to ``episodes``, without times."""
-    subs: dict[str, list[tuple[Any, ...]]] = {}
-    rounds: list[tuple[Any, ...]] = []
-    for r in map(json.loads, (run_dir / "metrics.jsonl").read_text().splitlines()):
-        if r["type"] == "episode" and r["episode"] <= episodes:
-            subs.setdefault(r["worker"], []).append((r["episode"], r["return"], r["steps"], r["pi"]))
-        elif r["type"] == "round" and r["round"] <= episodes:
-            rounds.append((r["round"], r["kind"], r["contributors"], r["pis"], r["weights"], r["digest"], r["source"],
-                           r["keep_weights"], r["finished"]))
-    return {w: sorted(eps) for w, eps in sorted(subs.items())}, rounds
 
 
 @pytest.mark.xdist_group("e2e")
@@ -96,9 +81,9 @@ def test_a_killed_chief_resumes_with_the_same_result(tmp_path: Path, runs: Runs)
         rebuild(run_dir)
         assert read_board(run_dir) == live and len(live) == 4
     uninterrupted = runs["weighted"]
-    subs, rounds = records_up_to(uninterrupted, EPISODES)
-    assert records_up_to(run_dir, EPISODES) == (subs, rounds)  # every submission and round, answers bit for bit
-    assert per_worker(run_dir) == [(w, len(eps), sum(e[2] for e in eps)) for w, eps in subs.items()]
+    # Every submission and round up to the cap, answers bit for bit; worker by worker its episodes and steps.
+    assert fed.records_up_to(run_dir, EPISODES) == fed.records_up_to(uninterrupted, EPISODES)
+    assert per_worker(run_dir) == fed.per_worker_up_to(uninterrupted, EPISODES)
     finishers = {w["id"]: w["episodes"] for w in json.loads((uninterrupted / "summary.json").read_text())["workers"]}
     assert {w["id"]: w["episodes"] for w in summary["workers"] if w["solved"]} == {
         w: e for w, e in finishers.items() if e <= EPISODES} != {}

@@ -15,6 +15,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 SEED = 3
 WORKERS = 4
@@ -22,17 +23,40 @@ ENV = "CartPole-v0"
 MAX_EPISODES = 600
 
 
-def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None) -> Path:
-    """One federation through the launcher, to the end; its run folder (asserted: exit 0, all workers solved)."""
+def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None, max_episodes: int = MAX_EPISODES
+             ) -> Path:
+    """One federation through the launcher, to the end; its run folder (asserted: exit 0, all workers solved, or
+    ended by ``max_episodes`` when that is given)."""
     run_dir = tmp_path / name
     argv = [sys.executable, "-m", "deploy.run_local", "--workers", str(WORKERS), "--env", ENV, "--policy", policy,
-            "--seed", str(SEED), "--max-episodes", str(MAX_EPISODES), "--run-dir", str(run_dir), "--run-id", name]
+            "--seed", str(SEED), "--max-episodes", str(max_episodes), "--run-dir", str(run_dir), "--run-id", name]
     if broker:
         argv += ["--broker", broker]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
-    assert "all workers solved" in proc.stdout
+    assert ("all workers solved" if max_episodes == MAX_EPISODES else
+            f"reached the maximum of {max_episodes} episodes") in proc.stdout, proc.stdout[-3000:]
     return run_dir
+
+
+def records_up_to(run_dir: Path, episodes: int) -> tuple[dict[str, list[tuple[Any, ...]]], list[tuple[Any, ...]]]:
+    """Each worker's accepted episodes (episode, return, steps, PI) and the chief's rounds (round, kind, contributors,
+    PIs, weights, digest of the answer's tensors, source, keep-weights, finished) up to ``episodes`` (a strategy of
+    one round per episode), without times: a run capped there is the uncapped one's beginning record by record."""
+    subs: dict[str, list[tuple[Any, ...]]] = {}
+    rounds: list[tuple[Any, ...]] = []
+    for r in map(json.loads, (run_dir / "metrics.jsonl").read_text().splitlines()):
+        if r["type"] == "episode" and r["episode"] <= episodes:
+            subs.setdefault(r["worker"], []).append((r["episode"], r["return"], r["steps"], r["pi"]))
+        elif r["type"] == "round" and r["round"] <= episodes:
+            rounds.append((r["round"], r["kind"], r["contributors"], r["pis"], r["weights"], r["digest"], r["source"],
+                           r["keep_weights"], r["finished"]))
+    return {w: sorted(eps) for w, eps in sorted(subs.items())}, rounds
+
+
+def per_worker_up_to(run_dir: Path, episodes: int) -> list[tuple[str, int, int]]:
+    """Each worker's (id, episodes, steps) in a run capped at ``episodes``, from an uncapped run's records."""
+    return [(w, len(eps), sum(e[2] for e in eps)) for w, eps in records_up_to(run_dir, episodes)[0].items()]
 
 
 def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:

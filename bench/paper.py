@@ -222,7 +222,7 @@ def significance(by_strategy: dict[str, list[dict[str, Any]]], max_episodes: int
 
 
 def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[str, Any], workers: int,
-                    seeds: list[int], algo: str = learners.DEFAULT) -> dict[str, Any]:
+                    seeds: list[int], algo: str = learners.DEFAULT, max_episodes: int = 2000) -> dict[str, Any]:
     """The project's target for this task and learner: the best strategy's median against it, and against half of the
     same learner's independent."""
     target = TARGETS.get(algo, {}).get(task)
@@ -252,9 +252,20 @@ def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[s
     base = summary.get(BASELINE, {}).get("last_worker_episodes", {}).get("median")
     test = tests.get(best, {}).get("episodes", {})
     result["independent_median_episodes"] = base
-    result["half_of_independent"] = (med_eps is not None and (base is None or med_eps <= 0.5 * base)
-                                     and bool(test.get("significant")) and test.get("direction") == "fewer")
+    result["half_of_independent"] = half_of(med_eps, base, max_episodes,
+                                            bool(test.get("significant")) and test.get("direction") == "fewer")
     return result
+
+
+def half_of(median: float | None, independent: float | None, max_episodes: int, significant: bool) -> bool | None:
+    """Whether a median of ``median`` episodes is at most half of ``independent``'s, and significantly fewer; None
+    when the runs cannot tell: ``independent``'s median is unfinished (past M episodes, by how much unknown) and
+    ``median`` is above M / 2."""
+    if median is None or not significant:
+        return False
+    if independent is not None:
+        return median <= 0.5 * independent
+    return True if median <= 0.5 * max_episodes else None
 
 
 def learner_report(task: str, mine: list[dict[str, Any]], cfg: dict[str, Any], algo: str) -> dict[str, Any]:
@@ -275,7 +286,8 @@ def learner_report(task: str, mine: list[dict[str, Any]], cfg: dict[str, Any], a
                     refs[kind][key] = next((r[key] for r in runs if key in r), None)
     return {"algo": algo, "config": cfg, "workers": workers, "max_episodes": cfg["max_episodes"],
             "seeds": cfg["seeds"], "strategies": names, "summary": summary, "significance": tests,
-            "references": refs, "target": evaluate_target(task, summary, tests, workers, cfg["seeds"]["report"], algo)}
+            "references": refs, "target": evaluate_target(task, summary, tests, workers, cfg["seeds"]["report"], algo,
+                                                     cfg["max_episodes"])}
 
 
 def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -> dict[str, Any]:

@@ -167,7 +167,8 @@ def targets_section(index: dict[str, Any]) -> list[str]:
             got += f" ({_num(t['median_balance_s'])} s of balance)" if t["median_balance_s"] is not None else ""
         if "solved_share" in t:
             got += f", {t['solved_share']:.0%} solved"
-        half = "yes" if t["half_of_independent"] else "no"
+        half = {True: "yes", False: "no"}.get(t["half_of_independent"],
+                                             f"unknown (`independent` unfinished within M = {block['max_episodes']})")
         comparable = "" if t["comparable"] else " (not the target's setting: fewer seeds or another worker count)"
         sig = (block.get("significance") or {}).get(t["best_strategy"], {}).get("episodes", {})
         p = "-" if sig.get("p") is None else f"{sig['p']:.3g}"

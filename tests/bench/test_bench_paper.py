@@ -192,6 +192,16 @@ def test_statistics_and_target_on_the_fixture(tmp_path: Path) -> None:
     assert rep["references"]["single"]["finished"] == 3 and rep["references"]["sb3"]["zoo_entry"] == "CartPole-v1"
 
 
+@pytest.mark.parametrize(("median", "independent", "significant", "half"), [
+    (40, 100, True, True), (60, 100, True, False), (40, 100, False, False),
+    (40, None, True, True),  # independent's median is past M = 80: more than twice 40
+    (56, None, True, None),  # past 80, but not known to be past 112: the runs cannot tell
+    (56, None, False, False), (None, None, True, False)])
+def test_half_of_independent_is_claimed_only_where_the_runs_show_it(
+        median: float | None, independent: float | None, significant: bool, half: bool | None) -> None:
+    assert paper.half_of(median, independent, 80, significant) is half
+
+
 @pytest.mark.parametrize("old_format", [False, True])
 def test_figures_and_readme_from_the_fixture(tmp_path: Path, old_format: bool) -> None:
     index = fixture_results(tmp_path, old_format)

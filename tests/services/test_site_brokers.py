@@ -125,11 +125,11 @@ def test_an_edge_broker_dies_and_no_partial_is_lost_or_counted_twice(
     e1 and w1 at site b, the root on the core. Once round 10 has closed, one broker dies (``kill -9``) and comes back
     on its port a second later from no save at all (no sessions, no queues), so that what it held is gone.
     Site a dies as e0's next partial reaches the core and stays down until the root has answered that round: the
-    answer, queued at the core for the site's bridge, reaches the new site broker before e0 has subscribed again and
-    is lost. w0 sends its round again; e0, holding no answer, sends its partial again; the root counts it once (a
-    duplicate) and answers the round again. The core dies first and comes back once e0's next partial waits for it
-    at site a: whatever the new core drops before the root and the bridges are subscribed again (a race) goes the
-    same way. The run ends as the uninterrupted tiered one, the audit's tiered checks pass, nobody went on alone."""
+    answer, queued at the core for the site's bridge, mostly reaches the new site broker before e0 has subscribed
+    again and is lost. w0 sends its round again; e0, holding no answer, sends its partial again; the root counts it
+    once (a duplicate) and answers the round again. The core dies first and comes back once e0's next partial waits
+    for it at site a: whatever the new core drops before the root and the bridges are subscribed again (a race) goes
+    the same way. The run ends as the uninterrupted tiered one, the audit's tiered checks pass, nobody went on alone."""
     run = "sites"
     with LoopbackSites(tmp_path / "brokers", ["a", "b"], autosave=3600) as sites:
         # Watching from a broker that stays up: e0's partials and the root's messages at the core, or e0's at site a.
@@ -168,8 +168,11 @@ def test_an_edge_broker_dies_and_no_partial_is_lost_or_counted_twice(
     assert not any("going on alone" in text or "timed out after" in text for text in logs.values())
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["end_reason"] != "aborted"
-    if dies != CORE:  # the answer was lost: the partial came again, and counted once
-        assert "sending its partial again" in logs["edge-e0"] and summary["duplicates"] >= 1
+    if "sending its partial again" in logs["edge-e0"]:  # the answer was lost: the partial came again, counted once
+        assert summary["duplicates"] >= 1
+    # Whether site a's new broker drops the answer is a race (its bridge against e0 subscribing again; in one of
+    # several runs e0 won and nothing was lost); either way the run is the uninterrupted one (above). The resend path
+    # itself is tested without a race in tests/chief/test_edge_resend.py.
 
 
 def partial_round(payload: bytes, edge: str) -> int | None:

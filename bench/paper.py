@@ -222,7 +222,7 @@ def significance(by_strategy: dict[str, list[dict[str, Any]]], max_episodes: int
 
 
 def evaluate_target(task: str, summary: dict[str, dict[str, Any]], tests: dict[str, Any], workers: int,
-                    seeds: list[int], algo: str = learners.DEFAULT, max_episodes: int = 2000) -> dict[str, Any]:
+                    seeds: list[int], algo: str = learners.DEFAULT, *, max_episodes: int) -> dict[str, Any]:
     """The project's target for this task and learner: the best strategy's median against it, and against half of the
     same learner's independent."""
     target = TARGETS.get(algo, {}).get(task)
@@ -287,7 +287,7 @@ def learner_report(task: str, mine: list[dict[str, Any]], cfg: dict[str, Any], a
     return {"algo": algo, "config": cfg, "workers": workers, "max_episodes": cfg["max_episodes"],
             "seeds": cfg["seeds"], "strategies": names, "summary": summary, "significance": tests,
             "references": refs, "target": evaluate_target(task, summary, tests, workers, cfg["seeds"]["report"], algo,
-                                                     cfg["max_episodes"])}
+                                                     max_episodes=cfg["max_episodes"])}
 
 
 def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -> dict[str, Any]:

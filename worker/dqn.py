@@ -34,6 +34,7 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from worker.adam import Adam
 from worker.ppo import (
     _GLOBAL_RNG,
     StepGradients,
@@ -164,7 +165,7 @@ class DQNLearner:
             self.actor = mlp(obs_dim, cfg.hidden_sizes, self.n_actions, cfg.activation, ortho=False, out_gain=1.0)
         self.critic = nn.Module()  # DQN has no critic: nothing of it travels
         self.target = copy.deepcopy(self.actor).requires_grad_(False)
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.actor_optimizer = Adam(self.actor.parameters(), lr=cfg.actor_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
         self.env_steps = self.gradient_steps = 0
         self._finite = FiniteTransitions("DQN")

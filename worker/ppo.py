@@ -30,6 +30,8 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from worker.adam import Adam
+
 VALUE_LOSSES = ("l1", "huber", "mse")
 #: Held while a learner seeds its networks from torch's process-wide RNG, so that learners built in several threads at
 #: once (deploy/inprocess.py) each draw from their own seed.
@@ -398,8 +400,8 @@ class PPOLearner:
                 raise ValueError(f"obs_scale has {len(self.config.obs_scale)} entries for observations of shape "
                                  f"{self.obs_shape}")
             self._obs_scale = torch.tensor(self.config.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=self.config.actor_lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=self.config.critic_lr)
+        self.actor_optimizer = Adam(self.actor.parameters(), lr=self.config.actor_lr)
+        self.critic_optimizer = Adam(self.critic.parameters(), lr=self.config.critic_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
         # trajectory memory: (s_t, a_t, r_{t+1}, s_{t+1}, terminated, truncated), oldest first
         self.memory: deque[tuple[np.ndarray, Any, float, np.ndarray, bool, bool]] = deque(
@@ -530,7 +532,7 @@ class PPOLearner:
                              critic_loss=critic_loss.item(), entropy=entropy.mean().item(), approx_kl=approx_kl,
                              clip_fraction=clip_fraction)
 
-    def _gradients(self, loss: torch.Tensor, net: nn.Module, optimizer: torch.optim.Optimizer
+    def _gradients(self, loss: torch.Tensor, net: nn.Module, optimizer: Adam
                    ) -> dict[str, np.ndarray] | None:
         """Backward and optional gradient-norm clipping; the gradients, or None when the loss or a gradient is not
         finite (so a numerical blow-up never reaches the parameters or the chief)."""
@@ -680,7 +682,7 @@ def blend(net: nn.Module, params: Mapping[str, Any], keep_weight: float) -> None
 
 
 def take_optimizers(state: Mapping[str, Any],
-                    optimizers: Iterable[tuple[str, torch.optim.Optimizer, float]]) -> None:
+                    optimizers: Iterable[tuple[str, Adam, float]]) -> None:
     """A warm start's optimizers: each (key, optimizer, lr) takes the Adam moments of ``state[key]`` when the model
     has them, and keeps this learner's learning rate ``lr``."""
     for name, optimizer, lr in optimizers:

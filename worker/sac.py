@@ -46,6 +46,7 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from worker.adam import Adam
 from worker.ppo import (
     _GLOBAL_RNG,
     StepGradients,
@@ -373,9 +374,9 @@ class SACLearner:
             low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
             self._action_center, self._action_half = (high + low) / 2.0, (high - low) / 2.0
         self.log_alpha = torch.tensor(math.log(cfg.init_alpha), dtype=torch.float32, requires_grad=True)
-        self.actor_optimizer = torch.optim.Adam(self.actor.parameters(), lr=cfg.actor_lr)
-        self.critic_optimizer = torch.optim.Adam(self.critic.parameters(), lr=cfg.critic_lr)
-        self.alpha_optimizer = torch.optim.Adam([self.log_alpha], lr=cfg.alpha_lr)
+        self.actor_optimizer = Adam(self.actor.parameters(), lr=cfg.actor_lr)
+        self.critic_optimizer = Adam(self.critic.parameters(), lr=cfg.critic_lr)
+        self.alpha_optimizer = Adam([self.log_alpha], lr=cfg.alpha_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
         self._alloc_replay(cfg.replay_size)
         self._episode_gradient: dict[str, np.ndarray] | None = None
@@ -589,7 +590,7 @@ class SACLearner:
         return out
 
     @staticmethod
-    def _step(net: nn.Module, optimizer: torch.optim.Optimizer, grads: Mapping[str, np.ndarray] | None) -> bool:
+    def _step(net: nn.Module, optimizer: Adam, grads: Mapping[str, np.ndarray] | None) -> bool:
         """One optimizer step of ``net`` with ``grads``; none (False) for None or all zeros: no worker had a
         gradient (every one before ``learning_starts``), and Adam's step count and moments stay as they are."""
         if grads is None or not any(np.any(g) for g in grads.values()):

@@ -33,6 +33,7 @@ from chief.claim import EXIT_CLAIMED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy import sites
+from deploy.forked import ForkedProcess
 from deploy.settings import LocalRunSettings
 from deploy.witness import Witness
 from protocol.codec import RejectCounter
@@ -63,15 +64,21 @@ def load(argv: list[str] | None = None) -> LocalRunSettings:
 class Fleet:
     """The child processes of one run; stops them all on exit."""
 
-    def __init__(self, log_dir: Path) -> None:
+    def __init__(self, log_dir: Path, fork_workers: bool = False) -> None:
         self.log_dir = log_dir
-        self.procs: dict[str, subprocess.Popen] = {}
+        self.fork_workers = fork_workers
+        self.procs: dict[str, subprocess.Popen | ForkedProcess] = {}
         self._files: list[IO[bytes]] = []
 
     def start(self, name: str, module: str, settings: Settings, stream: bool = False) -> subprocess.Popen:
         """``python -m module`` with ``settings`` as its FEDRL_* variables, in its own process group (a Ctrl-C in
         the terminal reaches the launcher only, which decides who hears of it). Logs are appended to: a resumed
-        run keeps the first part's."""
+        run keeps the first part's. With ``fork_workers``, a worker is forked from the fork server instead
+        (deploy/forked.py)."""
+        if self.fork_workers and module == "worker" and not stream:
+            forked = ForkedProcess(module, {**to_env(settings), "PYTHONUNBUFFERED": "1"}, self.log_dir / f"{name}.log")
+            self.procs[name] = forked
+            return forked  # type: ignore[return-value]  # Popen's interface, as far as the launcher uses it
         out: int | IO[bytes] = subprocess.PIPE
         if not stream:
             fh = (self.log_dir / f"{name}.log").open("ab")
@@ -82,7 +89,7 @@ class Fleet:
         self.procs[name] = proc
         return proc
 
-    def add(self, name: str, proc: subprocess.Popen) -> None:
+    def add(self, name: str, proc: subprocess.Popen | ForkedProcess) -> None:
         self.procs[name] = proc
 
     def stop(self, grace: float = 10.0) -> None:
@@ -110,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
-    fleet = Fleet(log_dir)
+    fleet = Fleet(log_dir, fork_workers=s.fork_workers)
     t0 = time.monotonic()
     worker_ids = [f"w{i}" for i in range(s.workers)]
     rigs = {i: f"rig{i}" for i in range(s.workers)} if s.env == "qube" else {}

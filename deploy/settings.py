@@ -76,6 +76,9 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
     edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), each its own "
                                     "process (python -m chief --role edge), worker i behind edge e<i mod N>; 0: flat. "
                                     "A strategy that cannot be split (median, trimmed) runs flat")
+    fork_workers: bool = setting(True, "fork the workers from one process that imported torch once (deploy/forked.py): "
+                                 "about 3 s of CPU less per worker at start, and its memory shared; false: each "
+                                 "worker its own python -m worker")
     witness: bool = setting(False, "with --edges: an observer keeps every worker's gradient and every root aggregate "
                             "in the run folder (gradients.npz), so that python -m chief.audit checks the root's "
                             "Eq. 9 against the flat one (docs/explanation/tiered.md)")

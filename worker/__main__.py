@@ -6,7 +6,6 @@ import sys
 
 from runtime.cli import run_service, setup_logging, stop_on_signals
 from runtime.settings import returns_code
-from worker.service import WorkerService, auto_worker_id
 from worker.settings import WorkerSettings
 
 DESCRIPTION = (
@@ -22,6 +21,8 @@ DESCRIPTION = (
 @returns_code
 def main(argv: list[str] | None = None) -> int:
     s = WorkerSettings.load(argv, prog="python -m worker", description=DESCRIPTION)
+    from worker.service import WorkerService, auto_worker_id  # torch: after --help and the settings' checks
+
     if s.worker_id == "auto":
         s = s.model_copy(update={"worker_id": auto_worker_id()})
     setup_logging(s.log_level, f"worker[{s.worker_id}]")

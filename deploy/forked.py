@@ -3,9 +3,10 @@
 Each ``python -m worker`` spends about 3 s of CPU importing torch and gymnasium before it does anything, and holds
 its own copy of them in memory. A launcher of N workers on one machine pays that N times. Here a ``multiprocessing``
 fork server imports the worker's modules once; each worker is a fork of it and runs ``python -m worker``'s main
-exactly as a process of its own would: its settings in its environment (FEDRL_*), its output appended to its log,
-its own process group (a Ctrl-C in the terminal reaches the launcher only), its exit code. ``ForkedProcess`` answers
-what the launcher asks of a ``subprocess.Popen`` (poll, wait, terminate, kill, send_signal, pid, returncode).
+exactly as a process of its own would: its environment (the launcher's, with its FEDRL_* settings), its output
+appended to its log, its own process group (a Ctrl-C in the terminal reaches the launcher only), its exit code.
+``ForkedProcess`` answers what the launcher asks of a ``subprocess.Popen`` (poll, wait, terminate, kill,
+send_signal, pid, returncode).
 
 What differs from a process of its own: ``ps`` shows the fork server's command line for it, and it shares the fork
 server's hash seed.
@@ -29,8 +30,9 @@ _CONTEXT.set_forkserver_preload(PRELOAD)
 
 
 def _run_module(module: str, env: dict[str, str], log_path: str) -> None:
-    """In the fork: become ``python -m module`` with ``env`` added, writing to ``log_path``."""
+    """In the fork: become ``python -m module`` with environment ``env``, writing to ``log_path``."""
     os.setpgid(0, 0)
+    os.environ.clear()  # the fork server's is the launcher's environment when it started, not now
     os.environ.update(env)
     fd = os.open(log_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
     os.dup2(fd, 1)

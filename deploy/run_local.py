@@ -76,7 +76,8 @@ class Fleet:
         run keeps the first part's. With ``fork_workers``, a worker is forked from the fork server instead
         (deploy/forked.py)."""
         if self.fork_workers and module == "worker" and not stream:
-            forked = ForkedProcess(module, {**to_env(settings), "PYTHONUNBUFFERED": "1"}, self.log_dir / f"{name}.log")
+            env = {**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"}
+            forked = ForkedProcess(module, env, self.log_dir / f"{name}.log")
             self.procs[name] = forked
             return forked  # type: ignore[return-value]  # Popen's interface, as far as the launcher uses it
         out: int | IO[bytes] = subprocess.PIPE

@@ -15,7 +15,7 @@ from deploy.forked import ForkedProcess
 def test_a_fork_runs_the_module_with_its_environment_log_and_exit_code(tmp_path: Path) -> None:
     log = tmp_path / "probe.log"
     log.write_text("earlier part\n")  # appended to, as a resumed run's log
-    proc = ForkedProcess("tests.forked_probe", {"FEDRL_PROBE": "hello", "FEDRL_PROBE_CODE": "7"}, log)
+    proc = ForkedProcess("tests.forked_probe", {"FEDRL_PROBE": "hello", "FEDRL_PROBE_CODE": "7"}, log)  # all of it
     assert proc.wait(60) == 7 and proc.poll() == 7 and proc.returncode == 7
     lines = log.read_text().splitlines()
     assert lines[0] == "earlier part"

@@ -38,7 +38,7 @@ def _run_module(module: str, env: dict[str, str], log_path: str) -> None:
     os.dup2(fd, 1)
     os.dup2(fd, 2)
     os.close(fd)
-    # Line-buffered and written through, as PYTHONUNBUFFERED gives a process of its own.
+    # Line-buffered, so that the log keeps up as with PYTHONUNBUFFERED (which only a starting interpreter reads).
     sys.stdout = open(1, "w", buffering=1, closefd=False, encoding="utf-8", errors="backslashreplace")
     sys.stderr = open(2, "w", buffering=1, closefd=False, encoding="utf-8", errors="backslashreplace")
     sys.argv = [module]

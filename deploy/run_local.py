@@ -75,18 +75,19 @@ class Fleet:
         the terminal reaches the launcher only, which decides who hears of it). Logs are appended to: a resumed
         run keeps the first part's. With ``fork_workers``, a worker is forked from the fork server instead
         (deploy/forked.py)."""
+        env = {**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"}
+        log = self.log_dir / f"{name}.log"
         if self.fork_workers and module == "worker" and not stream:
-            env = {**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"}
-            forked = ForkedProcess(module, env, self.log_dir / f"{name}.log")
+            forked = ForkedProcess(module, env, log)
             self.procs[name] = forked
             return forked  # type: ignore[return-value]  # Popen's interface, as far as the launcher uses it
         out: int | IO[bytes] = subprocess.PIPE
         if not stream:
-            fh = (self.log_dir / f"{name}.log").open("ab")
+            fh = log.open("ab")
             self._files.append(fh)
             out = fh
-        proc = subprocess.Popen([sys.executable, "-m", module], stdout=out, stderr=subprocess.STDOUT,
-                                env={**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"}, process_group=0)
+        proc = subprocess.Popen([sys.executable, "-m", module], stdout=out, stderr=subprocess.STDOUT, env=env,
+                                process_group=0)
         self.procs[name] = proc
         return proc
 

@@ -168,10 +168,12 @@ def test_an_edge_broker_dies_and_no_partial_is_lost_or_counted_twice(
     assert not any("going on alone" in text or "timed out after" in text for text in logs.values())
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["end_reason"] != "aborted"
-    if "sending its partial again" in logs["edge-e0"]:  # the answer was lost: the partial came again, counted once
-        assert summary["duplicates"] >= 1
-    # Whether site a's new broker drops the answer is a race (its bridge against e0 subscribing again; in one of
-    # several runs e0 won and nothing was lost); either way the run is the uninterrupted one (above). The resend path
+    if dies != CORE and "sending its partial again" in logs["edge-e0"]:
+        assert summary["duplicates"] >= 1  # the root had the partial (the spy saw it at the core), its answer was lost
+    # Whether a new broker drops a message is a race (site a's bridge against e0 subscribing again; in one of several
+    # runs e0 won and nothing was lost). When the core dies, what it drops may be e0's partial itself, before the root
+    # had it: e0's resend is then the first copy the root counts, not a duplicate (CI saw 0 duplicates after a resend).
+    # Either way the run is the uninterrupted one and the audit finds nothing counted twice (above). The resend path
     # itself is tested without a race in tests/chief/test_edge_resend.py.
 
 

@@ -26,6 +26,9 @@ the gradients of both Q networks (``critic`` = q1 and q2). What never leaves the
 temperature (log alpha and its optimizer; its step is always local, after the shared critic and actor steps) and the
 replay buffer.
 
+Exploration: SAC's acting noise is white (a fresh Gaussian draw each step); ``noise_beta`` > 0 colours it in time
+(``colored_noise``), which reaches MountainCarContinuous-v0's goal where white noise does not.
+
 Randomness (network init, action sampling, replay mini-batch draws, the policy samples inside the losses) comes from
 the learner's own seed, so a run is reproducible given the seed and the environment, and the learner never touches
 the global RNGs.
@@ -104,6 +107,10 @@ class SACConfig:
     # Fixed per-dimension input scale, the same on every worker (see PPOConfig.obs_scale).
     obs_scale: tuple[float, ...] | None = None
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
+    # Box only: the colour of the acting noise, power spectrum 1/f^beta (Eberhard et al. 2023): 0 is SAC's white
+    # noise, 1 pink, 2 red; the policy's marginal distribution is the same, only its correlation in time changes.
+    noise_beta: float = 0.0
+    noise_horizon: int = 1000  # length of one noise sequence (one per episode; a longer episode draws another)
 
     def __post_init__(self) -> None:
         self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
@@ -128,6 +135,10 @@ class SACConfig:
             problems.append("target_entropy_ratio must be in [0, 1]")
         if self.max_grad_norm is not None and not self.max_grad_norm > 0:
             problems.append("max_grad_norm must be > 0 or None")
+        if not 0.0 <= self.noise_beta <= 4.0:
+            problems.append("noise_beta must be in [0, 4]")
+        if self.noise_horizon < 2:
+            problems.append("noise_horizon must be >= 2")
         if problems:
             raise ValueError("invalid SACConfig: " + "; ".join(problems))
 
@@ -139,6 +150,33 @@ class SACConfig:
         if unknown:
             raise ValueError(f"unknown SACConfig keys: {sorted(unknown)}")
         return cls(**dict(values))
+
+
+# ----------------------------------------------------------------------------------------------------
+# Exploration noise
+# ----------------------------------------------------------------------------------------------------
+
+
+def colored_noise(beta: float, shape: tuple[int, ...], generator: torch.Generator) -> torch.Tensor:
+    """Gaussian noise of unit variance along the last axis (length T), power spectral density proportional to
+    1/f^beta (Eberhard et al. 2023, "Pink Noise Is All You Need", ICLR; generated in the frequency domain as in
+    Timmer and Koenig 1995). Frequencies below 1/T get the power of 1/T, so the sequence has no unbounded drift.
+
+    Each Fourier coefficient k of the real signal is s_k (a_k + i b_k) with a_k, b_k ~ N(0, 1) and s_k = f_k^(-beta/2);
+    the zero and (even T) Nyquist coefficients are real, with twice the variance, so that beta = 0 is white. The
+    inverse transform x_t = (1/T) sum_k X_k e^(2 pi i k t / T) then has Var x_t = (2 s_0^2 + 4 sum_mid s_k^2 + 2 s_N^2)
+    / T^2 for every t, which the result is divided by."""
+    length = shape[-1]
+    freqs = torch.fft.rfftfreq(length, dtype=torch.float64).clamp(min=1.0 / length)
+    s = freqs ** (-beta / 2.0)
+    real = torch.randn((*shape[:-1], s.numel()), generator=generator, dtype=torch.float64)
+    imag = torch.randn((*shape[:-1], s.numel()), generator=generator, dtype=torch.float64)
+    edges = [0] + ([s.numel() - 1] if length % 2 == 0 else [])
+    imag[..., edges] = 0.0
+    real[..., edges] *= math.sqrt(2.0)
+    x = torch.fft.irfft(torch.complex(real * s, imag * s), n=length)
+    power = 4.0 * (s**2).sum() - 2.0 * (s[edges] ** 2).sum()
+    return (x / (power.sqrt() / length)).to(torch.float32)
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -191,11 +229,15 @@ class SACActor(nn.Module):
         log_det = (2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))).sum(-1)
         return torch.tanh(u), log_normal - log_det
 
-    def sample(self, obs: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
-        """Draw actions with ``generator``: action indices (Discrete) or squashed actions in [-1, 1] (Box)."""
+    def sample(self, obs: torch.Tensor, generator: torch.Generator, eps: torch.Tensor | None = None) -> torch.Tensor:
+        """Draw actions with ``generator``: action indices (Discrete) or squashed actions in [-1, 1] (Box); a Box
+        action takes the standard normal ``eps`` when given (coloured noise) instead of a fresh draw."""
         if self.discrete:
             return torch.multinomial(torch.softmax(self(obs), dim=-1), 1, generator=generator).squeeze(-1)
-        return self.rsample(obs, generator)[0]
+        if eps is None:
+            return self.rsample(obs, generator)[0]
+        mean, std = self.gaussian(obs)
+        return torch.tanh(mean + std * eps)
 
     def greedy(self, obs: torch.Tensor) -> torch.Tensor:
         """The deterministic action: arg-max logit, or tanh of the Gaussian mean."""
@@ -383,6 +425,8 @@ class SACLearner:
         # the latest mini-batch's mean log pi estimate, for the temperature step of apply_step
         self._alpha_term: torch.Tensor | None = None
         self._finite = FiniteTransitions("SAC")
+        self._noise: torch.Tensor | None = None  # this episode's coloured noise, shape (dim(A), noise_horizon)
+        self._noise_pos = 0
 
     @property
     def rejected_transitions(self) -> int:
@@ -439,10 +483,23 @@ class SACLearner:
         scaled = self._action_center + self._action_half * action.double().numpy().reshape(self.actor.action_shape)
         return scaled.astype(np.float32)
 
+    def _next_eps(self) -> torch.Tensor | None:
+        """The standard normal noise of this step when the acting noise is coloured (None: white, drawn by
+        ``sample``). A sequence is drawn at an episode's first action, and again if the episode outlasts it."""
+        if self.actor.discrete or self.config.noise_beta == 0.0:
+            return None
+        if self._noise is None or self._noise_pos >= self._noise.shape[-1]:
+            self._noise = colored_noise(self.config.noise_beta, (self.actor.action_dim, self.config.noise_horizon),
+                                        self.generator)
+            self._noise_pos = 0
+        eps = self._noise[:, self._noise_pos]
+        self._noise_pos += 1
+        return eps
+
     @torch.no_grad()
     def act(self, obs: Any) -> Any:
         """Sample a_t ~ pi_theta(.|s_t): a numpy int64 (Discrete) or a float32 array within the Box bounds."""
-        return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator)[0])
+        return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator, self._next_eps())[0])
 
     @torch.no_grad()
     def act_greedy(self, obs: Any) -> Any:
@@ -457,6 +514,8 @@ class SACLearner:
 
         A transition with a value that is not finite (reward, observations or action) is refused, counted in
         ``rejected_transitions`` and logged (FiniteTransitions)."""
+        if terminated or truncated:
+            self._noise = None  # the next episode draws its own noise sequence
         if not self._finite.admit(reward, obs, next_obs, action):
             return
         i = self._pos

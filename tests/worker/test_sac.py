@@ -12,7 +12,15 @@ import pytest
 import torch
 from gymnasium import spaces
 
-from worker.sac import SACConfig, SACLearner, polyak_update, soft_q_target, soft_state_value, temperature_loss
+from worker.sac import (
+    SACConfig,
+    SACLearner,
+    colored_noise,
+    polyak_update,
+    soft_q_target,
+    soft_state_value,
+    temperature_loss,
+)
 
 OBS = spaces.Box(-1.0, 1.0, (3,), dtype=np.float32)
 SPACES = {"box": spaces.Box(-2.0, 2.0, (1,), dtype=np.float32), "discrete": spaces.Discrete(3)}
@@ -164,6 +172,40 @@ def test_actions_fit_the_space(kind: str) -> None:
     obs = np.zeros(3, np.float32)
     for action in (sac.act(obs), sac.act_greedy(obs)):
         assert SPACES[kind].contains(action)
+
+
+@pytest.mark.parametrize("length", [999, 1000])
+def test_coloured_noise_has_unit_variance_and_its_colour_sets_the_correlation_in_time(length: int) -> None:
+    lag1 = {}
+    for beta in (0.0, 1.0, 2.0):
+        x = colored_noise(beta, (400, length), torch.Generator().manual_seed(0))
+        assert x.shape == (400, length) and x.dtype == torch.float32
+        assert abs(float(x.var()) - 1.0) < 0.05  # the marginal is the policy's N(0, 1) whatever the colour
+        lag1[beta] = float((x[:, 1:] * x[:, :-1]).mean() / x.var())
+    assert abs(lag1[0.0]) < 0.02 and 0.7 < lag1[1.0] < 0.85 and lag1[2.0] > 0.99  # white, pink (~0.78), red
+    again = colored_noise(1.0, (400, length), torch.Generator().manual_seed(0))
+    assert torch.equal(again, colored_noise(1.0, (400, length), torch.Generator().manual_seed(0)))
+
+
+def test_coloured_acting_noise_is_correlated_within_an_episode_and_redrawn_for_the_next() -> None:
+    obs = np.zeros(3, np.float32)
+    white, pink = learner("box", seed=4), learner("box", seed=4, noise_beta=1.0, noise_horizon=64)
+    twin = torch.Generator().set_state(white.generator.get_state())
+    mean, std = white.actor.gaussian(white._obs_tensor(obs))
+    expected = 2.0 * torch.tanh(mean + std * torch.randn(mean.shape, generator=twin))  # the Box is [-2, 2]
+    assert float(white.act(obs)[0]) == pytest.approx(float(expected[0, 0]), abs=1e-6)  # beta 0: a fresh draw a step
+
+    def episode(sac: SACLearner, n: int) -> np.ndarray:
+        acts = np.array([float(sac.act(obs)[0]) for _ in range(n)])
+        sac.remember(obs, acts[-1:].astype(np.float32), 0.0, obs, terminated=False, truncated=True)
+        return acts
+
+    corr = {name: np.corrcoef(a[1:], a[:-1])[0, 1]
+            for name, a in (("white", episode(white, 200)), ("pink", episode(pink, 200)))}
+    assert abs(corr["white"]) < 0.2 and corr["pink"] > 0.4  # 200 actions outlast one 64-step sequence: redrawn
+    first, second = episode(pink, 20), episode(pink, 20)
+    assert not np.allclose(first, second)  # a truncation ends the sequence: the next episode has its own noise
+    assert all(SPACES["box"].contains(np.float32([a])) for a in first)
 
 
 @pytest.mark.parametrize("bad", ["reward", "obs", "next_obs", "action"])

@@ -25,7 +25,10 @@ Per worker, from the run folder:
 
 from __future__ import annotations
 
+import contextlib
+import fcntl
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -65,6 +68,32 @@ class Job:
         return name if self.algo == "ppo" else f"{name}-{self.algo}"
 
 
+class RunFolderBusy(RuntimeError):
+    """Another process is running the same job into the same runs folder."""
+
+
+@contextlib.contextmanager
+def run_folder_lock(runs_dir: Path, name: str) -> Any:
+    """Hold ``runs_dir/.locks/<name>.lock`` (an advisory ``flock``, released when this process ends, however it
+    ends) while a run writes its folder, so two benchmark processes never write the same run folder at once (they
+    would clobber each other's metrics.jsonl and fail its audit); RunFolderBusy names the holder."""
+    path = runs_dir / ".locks" / f"{name}.lock"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "unknown"
+            raise RunFolderBusy(f"{runs_dir / name} is being written by another process (pid {holder}); "
+                                f"give each benchmark process its own --runs-dir or its own seeds") from None
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, str(os.getpid()).encode(), 0)
+        yield
+    finally:
+        os.close(fd)
+
+
 def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
     """Run one job (in this process, or its launcher as a child process); never raises: errors are results."""
     t0 = time.monotonic()
@@ -76,15 +105,16 @@ def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
             result["mode"] = "in-process"
         else:
             run_dir = runs_dir / job.name
-            shutil.rmtree(run_dir, ignore_errors=True)
-            if job.mode == "inprocess":
-                from deploy.inprocess import run_federation
+            with run_folder_lock(runs_dir, job.name):
+                shutil.rmtree(run_dir, ignore_errors=True)
+                if job.mode == "inprocess":
+                    from deploy.inprocess import run_federation
 
-                run_federation(job.task, job.strategy, job.seed, job.workers, job.max_episodes, run_dir,
-                               plot=False, tensorboard_files=False, algo=job.algo)
-            else:
-                _run_mqtt(job, run_dir)
-            result = collect(run_dir, job)
+                    run_federation(job.task, job.strategy, job.seed, job.workers, job.max_episodes, run_dir,
+                                   plot=False, tensorboard_files=False, algo=job.algo)
+                else:
+                    _run_mqtt(job, run_dir)
+                result = collect(run_dir, job)
     except Exception as err:  # a failed run is reported, never dropped
         result = {"kind": job.kind, "task": job.task, "strategy": job.strategy, "seed": job.seed,
                   "workers": job.workers, "max_episodes": job.max_episodes, "finished": False, "algo": job.algo,

@@ -4,13 +4,14 @@ figure generation on a fixture."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
 import pytest
 
 from bench import figures, paper, report
-from bench.runs import Job, _modelled_times, _mqtt_times, learning_curve
+from bench.runs import Job, _modelled_times, _mqtt_times, execute, learning_curve, run_folder_lock
 from chief.records import EpisodeRecord, RoundRecord
 
 
@@ -242,3 +243,19 @@ def test_a_new_learner_merges_into_an_old_ppo_only_report(tmp_path: Path) -> Non
     dqn_run = {**_run("federation", "sync", 101, 20), "algo": "dqn"}
     dqn = paper.task_report("CartPole-v0", [dqn_run], {**cfg, "algos": ["dqn"]})
     assert dqn["learners"]["dqn"]["target"]["target"] == {"episodes": 15}
+
+
+def test_a_run_folder_being_written_by_another_process_is_refused_and_left_alone(tmp_path: Path) -> None:
+    """Two benchmark processes over the same seeds and runs folder once clobbered a run's metrics.jsonl (its audit
+    then failed): the second one now reports the job as an error and leaves the folder to the first."""
+    job = Job("federation", "CartPole-v0", "weighted", 1, 2, 3)
+    folder = tmp_path / job.name
+    folder.mkdir()
+    (folder / "metrics.jsonl").write_text("the first process's records\n")
+    with run_folder_lock(tmp_path, job.name):  # held as another process would hold it (flock is per open file)
+        result = execute(job, tmp_path)
+    assert result["finished"] is False and "being written by another process" in result["error"]
+    assert str(os.getpid()) in result["error"]
+    assert (folder / "metrics.jsonl").read_text() == "the first process's records\n"
+    with run_folder_lock(tmp_path, job.name):  # released when its holder is done
+        pass

@@ -8,6 +8,7 @@ BENCHES = {
     "bench.cost": "bytes per round; chief time per round for 4, 16, 64 workers over Mosquitto and amqtt",
     "bench.latency": "state-to-action latency through the real-time bridge loop, per broker",
     "bench.reset": "swing-up reset success over pendulum damping x rig spread x Coulomb friction",
+    "bench.exploration": "how often SAC's untrained policy reaches MountainCarContinuous-v0's goal, per noise colour",
     "bench.loop_cost": "per-tick cost of the bridge loop (SPI transfer, sense, publish, wait, write)",
     "bench.sim2real": "sim-to-real: lab rigs from scratch, warm-started from an ideal or a randomised pretrain, "
                       "zero-shot; the last rig's episodes, balance steps and rig minutes",

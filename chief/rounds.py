@@ -624,15 +624,20 @@ class RoundKeeper:
             self._combine(outcome, r, learners)
         elif learners:
             progress = {w: self.progress(subs[w].pi) for w in learners}
-            grads, outcome.clipped = bound_norms({w: subs[w].gradient for w in learners})  # type: ignore[misc]
+            grads, outcome.clipped = self._bounded({w: subs[w].gradient for w in learners})  # type: ignore[misc]
             agg = self.strategy.aggregate(grads, progress)
             outcome.gradient, outcome.weights = agg.gradient, agg.weights or {}
             if self.shape.per_step and agg.gradient is not None:
-                critics, _ = bound_norms({w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
+                critics, _ = self._bounded({w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
                 outcome.critic_gradient = self.strategy.aggregate(critics, progress).gradient
         for w in finished:
             self._finish(self.workers[w], subs[w].episode)
         return outcome
+
+    def _bounded(self, gradients: Gradients) -> tuple[Gradients, dict[str, float]]:
+        """``bound_norms`` for a strategy that shares; a strategy that shares nothing (``independent``) bounds
+        nothing: no gradient of its reaches anyone."""
+        return bound_norms(gradients) if self.strategy.shares else (dict(gradients), {})
 
     def _combine(self, outcome: RoundOutcome, r: int, learners: list[str]) -> None:
         """A root's Eq. 9: the edges' partials of round ``r`` combined (chief/tiers.py), in edge order; Eq. 8's
@@ -658,8 +663,8 @@ class RoundKeeper:
         outcome = self._outcome(r, "partial", subs)
         outcome.finished = finished
         learners = sorted(w for w in subs if not subs[w].mature)
-        grads, outcome.clipped = bound_norms({w: subs[w].gradient for w in learners})  # type: ignore[misc]
-        critics = (bound_norms({w: subs[w].critic_gradient for w in learners})[0]  # type: ignore[misc]
+        grads, outcome.clipped = self._bounded({w: subs[w].gradient for w in learners})  # type: ignore[misc]
+        critics = (self._bounded({w: subs[w].critic_gradient for w in learners})[0]  # type: ignore[misc]
                    if self.shape.per_step and learners else None)
         outcome.partial = tiers.partial(self.strategy, grads, {w: self.progress(subs[w].pi) for w in learners},
                                         critics)

@@ -60,6 +60,9 @@ class Strategy:
     #: A worker that finished keeps playing and sharing (without transferring anything) until every worker has
     #: finished; its own solve episode stays the one it finished at.
     finishers_help: bool = False
+    #: Whether a worker's gradient reaches anyone else. False (``independent``): the chief neither bounds nor
+    #: aggregates what it is sent, so an honest outlier of a worker learning alone is never scaled or logged.
+    shares: bool = True
     #: s_n, a contributor's unnormalised weight from its progress alone, when ``aggregate`` is Eq. 9's normalised
     #: sum g_bar = sum s_n g_n / sum s_n (uniform when every s_n is 0): then edges can close their workers' part of
     #: a round (chief/tiers.py). None: not a weighted sum (a median), which runs flat.

@@ -9,4 +9,5 @@ STRATEGY = Strategy(
     keep_weight=lambda progress: None,
     tolerates=lambda n: n,
     robustness="nothing is shared, so nothing a worker sends reaches another",
+    shares=False,
 )

@@ -373,6 +373,16 @@ def test_one_huge_gradient_is_scaled_to_ten_times_the_median_norm() -> None:
     assert out.record()["clipped"] == out.clipped
 
 
+def test_a_strategy_that_shares_nothing_bounds_nothing(caplog: pytest.LogCaptureFixture) -> None:
+    """``independent`` shares no gradient, so its workers' outliers are neither scaled nor logged (an off-policy
+    learner's honest norms spread far past ten times the median: thousands of such lines per run before)."""
+    k, w = keeper(["w0", "w1", "w2", "w3"], policy="independent"), fakes("w0", "w1", "w2", "w3")
+    for f, gv in zip(w.values(), [1.0, 2.0, 3.0, 1e5], strict=True):
+        v = k.submit(f.sub(1, 100.0, gv=gv), now=0.0)
+    [out] = outcomes(v)
+    assert out.clipped == {} and out.gradient is None and "scaled by" not in caplog.text
+
+
 def test_honest_spread_is_not_clipped_and_float32_cannot_overflow() -> None:
     k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
     k.submit(w["w0"].sub(1, 100.0, gv=1.0), now=0.0)

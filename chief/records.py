@@ -116,9 +116,10 @@ class RoundRecord(Record):
     in a round where a worker finished, the learners the chief knew were offline and left out of the transfer
     (absent when none). ``edges``: in a tiered run (docs/explanation/tiered.md), each edge whose partial the root
     combined, with the contributors it summed (absent in a flat run). ``late``: in a run with a quorum, the workers
-    the round closed without (absent when none)."""
+    the round closed without (absent when none). ``critic_clipped``: under a per-step strategy, the factors the
+    critics' gradients were scaled by, as ``clipped`` for the actors' (absent when none)."""
 
-    OPTIONAL = frozenset({"offline", "edges", "late"})
+    OPTIONAL = frozenset({"critic_clipped", "offline", "edges", "late"})
 
     type: Literal["round"] = "round"
     round: int
@@ -137,6 +138,7 @@ class RoundRecord(Record):
     finished: list[str] = Field(default_factory=list)
     timed_out: list[str] = Field(default_factory=list)
     clipped: dict[str, float] = Field(default_factory=dict)
+    critic_clipped: dict[str, float] | None = None  # per-step strategies: the factors of the critics' gradients
     t: float = 0.0
     offline: list[str] | None = None
     edges: dict[str, list[str]] | None = None

@@ -162,6 +162,7 @@ class RoundOutcome:
     finished: list[str] = field(default_factory=list)
     timed_out: list[str] = field(default_factory=list)
     clipped: dict[str, float] = field(default_factory=dict)  # worker -> factor its gradient was scaled by
+    critic_clipped: dict[str, float] = field(default_factory=dict)  # the same for its critic's (per-step strategies)
     offline: list[str] = field(default_factory=list)  # learners left out of a finishing round's transfer: offline
     edges: dict[str, list[str]] = field(default_factory=dict)  # a root's round: edge -> its partial's contributors
     late: list[str] = field(default_factory=list)  # a quorum's round: the waited-on workers it closed without
@@ -181,6 +182,7 @@ class RoundOutcome:
                 "weights": self.weights, "digest": self.digest, "source": self.source_worker,
                 "source_pi": self.source_pi, "keep_weights": self.keep_weights, "recipient_pis": self.recipient_pis,
                 "finished": self.finished, "timed_out": self.timed_out, "clipped": self.clipped,
+                **({"critic_clipped": self.critic_clipped} if self.critic_clipped else {}),
                 **({"offline": self.offline} if self.offline else {}),
                 **({"edges": self.edges} if self.edges else {}),
                 **({"late": self.late} if self.late else {})}
@@ -628,7 +630,8 @@ class RoundKeeper:
             agg = self.strategy.aggregate(grads, progress)
             outcome.gradient, outcome.weights = agg.gradient, agg.weights or {}
             if self.shape.per_step and agg.gradient is not None:
-                critics, _ = self._bounded({w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
+                critics, outcome.critic_clipped = self._bounded(
+                    {w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
                 outcome.critic_gradient = self.strategy.aggregate(critics, progress).gradient
         for w in finished:
             self._finish(self.workers[w], subs[w].episode)

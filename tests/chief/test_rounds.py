@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from chief.records import RoundRecord
 from chief.rounds import AHEAD_WINDOW, RoundKeeper, Submission, Verdict
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, task
@@ -569,3 +570,24 @@ def test_a_late_copy_of_a_partial_excuses_nobody_in_a_later_round() -> None:
     k.submit(header("w0", 3), 0.4)
     assert k.excuse(1, ["w1"], 0.5) == []  # the late copy of round 1's partial
     assert k.round == 3 and k.waiting_for() == ["w1"]
+
+
+def test_a_scaled_critic_gradient_is_recorded_beside_the_actors() -> None:
+    """Under a per-step strategy the critics' gradients are bounded too; the round record says by how much (an
+    honest off-policy critic can exceed ten times the median: docs/explanation/faults.md)."""
+    from dataclasses import replace
+
+    ids = ["w0", "w1", "w2", "w3"]
+    k = RoundKeeper(ids, "sync", CARTPOLE, max_episodes=2, round_timeout=10.0, actor_spec=SPEC,
+                    critic_spec={"c": (1,)}, shape=RoundShape(per_episode=2))
+    w = fakes(*ids)
+    for f, cv in zip(w.values(), [1.0, 2.0, 3.0, 1e5], strict=True):
+        v = k.submit(replace(f.sub(1, 20.0), step=0, critic_gradient={"c": np.array([cv], np.float32)}), now=0.0)
+    [out] = outcomes(v)
+    assert out.clipped == {} and out.critic_clipped == pytest.approx({"w3": 25.0 / 1e5})
+    np.testing.assert_allclose(out.critic_gradient["c"], [0.25 * (1 + 2 + 3 + 25)], rtol=1e-6)
+    record = out.record()
+    assert record["critic_clipped"] == out.critic_clipped
+    assert RoundRecord.model_validate(record).critic_clipped == out.critic_clipped
+    plain = replace(out, critic_clipped={}).record()
+    assert "critic_clipped" not in plain and "critic_clipped" not in RoundRecord.model_validate(plain).dump()

@@ -167,13 +167,16 @@ def targets_section(index: dict[str, Any]) -> list[str]:
             got += f" ({_num(t['median_balance_s'])} s of balance)" if t["median_balance_s"] is not None else ""
         if "solved_share" in t:
             got += f", {t['solved_share']:.0%} solved"
+        ran = "independent" in (block.get("summary") or {})
         half = {True: "yes", False: "no"}.get(t["half_of_independent"],
-                                             f"unknown (`independent` unfinished within M = {block['max_episodes']})")
+                                             f"unknown (`independent` unfinished within M = {block['max_episodes']})"
+                                             if ran else "unknown (`independent` not run)")
         comparable = "" if t["comparable"] else " (not the target's setting: fewer seeds or another worker count)"
         sig = (block.get("significance") or {}).get(t["best_strategy"], {}).get("episodes", {})
         p = "-" if sig.get("p") is None else f"{sig['p']:.3g}"
         rows.append(f"| {task} | `{algo}` | {want} | `{t['best_strategy']}`: {got}{comparable} | "
-                    f"{'met' if t['met'] else '**missed**'} | {_num(t['independent_median_episodes'])} | {half} "
+                    f"{'met' if t['met'] else '**missed**'} | "
+                    f"{_num(t['independent_median_episodes']) if ran else 'not run'} | {half} "
                     f"(p = {p}) |")
     if not rows:
         return []

@@ -350,6 +350,7 @@ QUBE_CONFIG = PPOConfig(obs_scale=QUBE_OBS_SCALE, actor_lr=3e-4)
 # DQN on the QUBE (its three actions): the same scale and CartPole-v0's DQN values, with epsilon falling over 2,000
 # env steps (a falling pendulum's episodes are short). One tuning run, 3 rigs under sync, seed 1: every rig solved at
 # episode 62, the last after 51,737 steps (about 6 minutes of rig time); PPO's report median under plain is 50,040.
+# Report seeds 101-105 under sync: 45 episodes, 26,162 balance steps (4 of 5 solved; docs/results.md).
 # A SAC try with Pendulum-v1's smaller networks (64x64, lr 1e-3, batch 128, K = 200) was still at PI 50 after 89
 # episodes and was stopped.
 QUBE_PRESETS = {"sac": SACConfig(obs_scale=QUBE_OBS_SCALE),

@@ -15,10 +15,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import sys
 from pathlib import Path
 from typing import Any
+
+from bench.output import write_report
 
 RESULTS = Path("bench/results")
 
@@ -62,11 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         row = goal_rate(args.task, beta, args.episodes)
         print(json.dumps(row), flush=True)
         rows.append(row)
-    report = {"command": " ".join(["python -m bench.exploration", *(argv if argv is not None else sys.argv[1:])]),
-              "task": args.task, "machine": platform.platform(), "results": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.out}")
+    write_report(args.out, "bench.exploration", argv, {"task": args.task, "results": rows})
     return 0
 
 

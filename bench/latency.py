@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import platform
 import queue
 import subprocess
 import sys
@@ -28,6 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from bench.output import write_report
 from protocol import learners as names
 from protocol import topics
 from protocol.codec import decode
@@ -203,11 +203,8 @@ def main(argv: list[str] | None = None) -> int:
                     result = measure(name, args.ticks, Path(workdir), stress, algo)
                 print(json.dumps(result), flush=True)
                 results.append(result)
-    report = {"command": " ".join(["python -m bench.latency", *(argv if argv is not None else sys.argv[1:])]),
-              "period_ms": 7.0, "deadline_ms": 7.0, "ticks_per_broker": args.ticks, "machine": platform.platform(),
-              "cpus": __import__("os").cpu_count(), "results": results}
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    write_report(args.out, "bench.latency", argv, {"period_ms": 7.0, "deadline_ms": 7.0,
+                                                     "ticks_per_broker": args.ticks, "results": results}, indent=2)
     return 0
 
 

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import platform
 import shutil
 import subprocess
@@ -33,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bench.output import write_report
 from protocol import qube
 from protocol.codec import decode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
@@ -217,12 +217,8 @@ def main(argv: list[str] | None = None) -> int:
                 result = run_broker(mode, args.ticks, Path(workdir))
         print(json.dumps(result), flush=True)
         results.append(result)
-    report = {"command": " ".join(["python -m bench.loop_cost", *(argv if argv is not None else sys.argv[1:])]),
-              "period_ms": 7.0, "deadline_ms": 7.0, "machine": platform.platform(), "cpus": os.cpu_count(),
-              "python": platform.python_version(), "results": results}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.out}")
+    write_report(args.out, "bench.loop_cost", argv, {"period_ms": 7.0, "deadline_ms": 7.0,
+                                                       "python": platform.python_version(), "results": results})
     return 0
 
 

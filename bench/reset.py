@@ -12,11 +12,11 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
-import platform
 import sys
 import time
 from pathlib import Path
 
+from bench.output import write_report
 from services.qube_sim.trials import Condition, run_condition, summary
 
 RESULTS = Path("bench/results")
@@ -52,12 +52,8 @@ def main(argv: list[str] | None = None) -> int:
                "cpu_s": round(time.monotonic() - t0, 1)}
         print(json.dumps(row), flush=True)
         rows.append(row)
-    report = {"command": " ".join(["python -m bench.reset", *(argv if argv is not None else sys.argv[1:])]),
-              "trials_per_condition": args.trials, "coulomb_nm": list(COULOMB), "machine": platform.platform(),
-              "results": rows}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=1) + "\n")
-    print(f"wrote {args.out}")
+    write_report(args.out, "bench.reset", argv,
+                 {"trials_per_condition": args.trials, "coulomb_nm": list(COULOMB), "results": rows})
     return 0
 
 

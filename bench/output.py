@@ -1,0 +1,23 @@
+"""How a benchmark writes its JSON: the command that made it and the machine it ran on, beside its own fields."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+from typing import Any
+
+
+def command(module: str, argv: list[str] | None) -> str:
+    """The command line that reproduces this invocation: ``python -m <module> <args>``."""
+    return " ".join([f"python -m {module}", *(argv if argv is not None else sys.argv[1:])])
+
+
+def write_report(out: Path, module: str, argv: list[str] | None, fields: dict[str, Any], indent: int = 1) -> None:
+    """Write ``{"command", "machine", "cpus", **fields}`` to ``out`` (its folder made) and say so."""
+    report = {"command": command(module, argv), "machine": platform.platform(), "cpus": os.cpu_count(), **fields}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(report, indent=indent) + "\n")
+    print(f"wrote {out}")

@@ -36,14 +36,15 @@ def goal_rate(task: str, beta: float, episodes: int) -> dict[str, Any]:
     reached, lengths = 0, []
     for episode in range(episodes):
         obs, _ = env.reset(seed=episode)
-        for step in range(1, 1_000_000):
+        terminated = truncated = False
+        steps = 0
+        while not (terminated or truncated):  # as a worker plays: the episode's end also ends its noise sequence
             action = learner.act(obs)
-            obs, reward, terminated, truncated, _ = env.step(action)
-            if terminated or truncated:
-                learner.remember(obs, action, float(reward), obs, terminated, truncated)  # ends the noise sequence
-                reached += bool(terminated)
-                lengths.append(step)
-                break
+            next_obs, reward, terminated, truncated, _ = env.step(action)
+            learner.remember(obs, action, float(reward), next_obs, terminated, truncated)
+            obs, steps = next_obs, steps + 1
+        reached += bool(terminated)
+        lengths.append(steps)
     env.close()
     return {"beta": beta, "episodes": episodes, "reached_goal": reached, "share": reached / episodes,
             "mean_length": sum(lengths) / len(lengths)}

@@ -219,11 +219,15 @@ class SACActor(nn.Module):
         mean, log_std = self(obs).chunk(2, dim=-1)
         return mean, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX).exp()
 
-    def rsample(self, obs: torch.Tensor, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+    def rsample(self, obs: torch.Tensor, generator: torch.Generator, eps: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor]:
         """Box: a reparameterised sample a = tanh(mean + std * eps) in [-1, 1] and its log-density log pi(a|s),
-        with the tanh change of variables: log N(u) - sum log(1 - tanh(u)^2)."""
+        with the tanh change of variables: log N(u) - sum log(1 - tanh(u)^2). ``eps`` is drawn with ``generator``
+        unless given (coloured acting noise)."""
         mean, std = self.gaussian(obs)
-        u = mean + std * torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        if eps is None:
+            eps = torch.randn(mean.shape, generator=generator, dtype=mean.dtype)
+        u = mean + std * eps
         log_normal = torch.distributions.Normal(mean, std).log_prob(u).sum(-1)
         # log(1 - tanh(u)^2) = 2 (log 2 - u - softplus(-2u)), stable for large |u|
         log_det = (2.0 * (math.log(2.0) - u - nn.functional.softplus(-2.0 * u))).sum(-1)
@@ -234,10 +238,7 @@ class SACActor(nn.Module):
         action takes the standard normal ``eps`` when given (coloured noise) instead of a fresh draw."""
         if self.discrete:
             return torch.multinomial(torch.softmax(self(obs), dim=-1), 1, generator=generator).squeeze(-1)
-        if eps is None:
-            return self.rsample(obs, generator)[0]
-        mean, std = self.gaussian(obs)
-        return torch.tanh(mean + std * eps)
+        return self.rsample(obs, generator, eps)[0]
 
     def greedy(self, obs: torch.Tensor) -> torch.Tensor:
         """The deterministic action: arg-max logit, or tanh of the Gaussian mean."""

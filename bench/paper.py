@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any
 
 from bench import stats
+from bench.output import command
 from bench.runs import Job, algo_of, execute, outcome
 from chief import strategies as registry
 from protocol import learners
@@ -382,8 +383,7 @@ def main(argv: list[str] | None = None) -> int:
            "algos": args.algos,
            "tasks": args.tasks, "seeds": seeds_block(args.seeds), "workers": args.workers,
            "max_episodes": args.max_episodes, "jobs": args.jobs, "references": args.references,
-           "baseline": BASELINE, "command": "python -m bench.paper " + " ".join(argv if argv is not None
-                                                                                 else sys.argv[1:]),
+           "baseline": BASELINE, "command": command("bench.paper", argv),
            "machine": {"cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}}
     if cfg["seeds"]["report_seeds_used_for_tuning"]:
         print(f"WARNING: seeds {cfg['seeds']['report_seeds_used_for_tuning']} were used for tuning", file=sys.stderr)

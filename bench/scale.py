@@ -44,6 +44,7 @@ from typing import Any
 
 import numpy as np
 
+from bench import output
 from bench.cost import RUN, actor_arrays
 from bench.fleets import PER_PROCESS, SpreadFleet
 from bench.latency import AnsweredRig
@@ -299,7 +300,7 @@ def write(out: Path, rows: list[dict[str, Any]], load: float, began: float, argv
                  else "on 127.0.0.1" if spread else "(no edges)"),
               "cores": os.cpu_count(), "load_average_at_start": load, "wall_s": round(time.monotonic() - began, 1),
               "flat_64_ms_cost_json": FLAT_64_MS,
-              "command": " ".join(["python -m bench.scale", *(argv if argv is not None else sys.argv[1:])])}
+              "command": output.command("bench.scale", argv)}
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1) + "\n")
 

@@ -21,6 +21,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench.output import command
 from chief.audit import audit
 from deploy.inprocess import run_federation
 
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
               "runs": runs, "quorum_slowdown_pct": round(100 * (runs[1]["s_per_round"] / base - 1), 1),
               **({"unbounded_slowdown_pct": round(100 * (runs[2]["s_per_round"] / base - 1), 1)}
                  if len(runs) > 2 else {}),
-              "command": "python -m bench.stragglers " + " ".join(argv if argv is not None else sys.argv[1:])}
+              "command": command("bench.stragglers", argv)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     for r in runs:

@@ -21,6 +21,7 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -56,6 +57,21 @@ def broker_config(host: str, port: int, max_connections: int = 256, password_fil
     }
 
 
+class SnapshotSubscriptions(dict[str, list[Any]]):
+    """amqtt's subscriptions (topic filter -> [(session, qos)]), walked as a snapshot.
+
+    amqtt 0.12 awaits each subscriber's topic check while it walks its live subscriptions to broadcast a message, and
+    when a client subscribed or left meanwhile, the walk raised and the message was dropped for everyone not reached
+    yet (tests/services/test_broker_churn.py). A walk over this dict goes over a copy, each subscriber list included.
+    """
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(list(super().keys()))
+
+    def items(self) -> list[tuple[str, list[Any]]]:  # type: ignore[override]
+        return [(topic, list(subscribers)) for topic, subscribers in super().items()]
+
+
 def install_packet_limit(max_bytes: int) -> None:
     """Make amqtt close a connection whose next packet announces more than ``max_bytes`` (before reading it)."""
     from amqtt.mqtt.packet import MQTTFixedHeader
@@ -87,6 +103,7 @@ async def serve(host: str, port: int, stop: asyncio.Event, password_file: Path |
     install_packet_limit(max_packet_size)
     install_wildcard_close()
     broker = Broker(broker_config(host, port, password_file=password_file, acl=acl))
+    broker._subscriptions = SnapshotSubscriptions(broker._subscriptions)  # amqtt walks them while it awaits
     await broker.start()
     log.info("amqtt broker listening on %s:%d", host, port)
     print(f"broker ready on {host}:{port}", flush=True)

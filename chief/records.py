@@ -3,7 +3,7 @@
 One writer (chief/report.py, chief/checkpoint.py) and every reader (chief/audit.py, chief/tensorboard.py,
 bench/) go through these models, so a record's fields are declared once. On disk the files keep their keys: a line
 is the model's fields in declared order, compact JSON, without the optional fields a record does not carry
-(``recent_returns`` only on a mature actor's record, ``ppo`` only where PPO statistics were sent), so an existing
+(``recent_returns`` only on a mature actor's record, ``stats`` only where update statistics were sent), so an existing
 run folder still reads. Unknown fields are errors (a reader says which line is bad rather than guessing).
 """
 
@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, TypeAdapter
 
 from protocol.messages import Played, Receipt
 from runtime.storage import atomic_write
@@ -52,13 +52,14 @@ class Record(BaseModel):
 
 class EpisodeRecord(Record):
     """A worker's counted episode (its submission for step 0 of the episode's rounds): an update, or its mature
-    actor (``kind: mature``, with the ``recent_returns`` its PI is the mean of). ``ppo``: the PPO statistics the
-    update carried (None values where not sent; absent for a mature actor). The rig-time fields (protocol/rigtime.py;
+    actor (``kind: mature``, with the ``recent_returns`` its PI is the mean of). ``stats``: the learner's update
+    statistics (protocol.messages.STAT_BOUNDS; None values where not sent; absent for a mature actor; run folders
+    from before learners had names call them ``ppo``, read as ``stats``). The rig-time fields (protocol/rigtime.py;
     QUBE-Servo 2 tasks only, absent otherwise): the episode's balance steps and seconds, its reset seconds and the
     worker's measured idle seconds since its last submission (absent when its rig's clock is simulated). ``played``:
     what the worker had played when it sent this (protocol.messages.Played; absent when it did not say)."""
 
-    OPTIONAL = frozenset({"recent_returns", "ppo", "played", "balance_steps", "balance_s", "reset_s", "idle_s",
+    OPTIONAL = frozenset({"recent_returns", "stats", "played", "balance_steps", "balance_s", "reset_s", "idle_s",
                           "earlier_receipts"})
 
     type: Literal["episode"] = "episode"
@@ -73,7 +74,7 @@ class EpisodeRecord(Record):
     t: float = 0.0
     earlier_receipts: list[Receipt] | None = None
     recent_returns: list[float] | None = None
-    ppo: dict[str, float | None] | None = None
+    stats: dict[str, float | None] | None = Field(default=None, validation_alias=AliasChoices("stats", "ppo"))
     played: Played | None = None
     balance_steps: int | None = Field(default=None, ge=0)
     balance_s: float | None = Field(default=None, ge=0)
@@ -93,7 +94,7 @@ def _receipts(earlier: list[Receipt] | None, last: Receipt | None) -> list[Recei
 class StepRecord(Record):
     """A counted later mini-batch step (``step`` >= 1) of a per-step strategy's episode."""
 
-    OPTIONAL = frozenset({"ppo", "earlier_receipts"})
+    OPTIONAL = frozenset({"stats", "earlier_receipts"})
 
     type: Literal["step"] = "step"
     worker: str
@@ -103,7 +104,7 @@ class StepRecord(Record):
     receipt: Receipt | None = None
     t: float = 0.0
     earlier_receipts: list[Receipt] | None = None
-    ppo: dict[str, float | None] | None = None
+    stats: dict[str, float | None] | None = Field(default=None, validation_alias=AliasChoices("stats", "ppo"))
 
     @property
     def receipts(self) -> list[Receipt]:

@@ -96,9 +96,10 @@ class Submission:
     ``receipt`` is what it did with the last answer it applied (see protocol.messages.Receipt), ``earlier_receipts``
     the answers it applied before that one since its last submission (only under a bounded staleness).
     ``step`` is the mini-batch step of a per-step strategy (0 otherwise); ``critic_gradient`` its critic's gradient.
-    ``stats`` are the PPO statistics it reported (protocol.messages.STAT_BOUNDS, None where not usable): they decide
-    nothing and are only recorded. ``rig`` is the episode's rig time (protocol/rigtime.py: balance steps and seconds,
-    reset seconds, measured idle seconds; None for the gymnasium tasks): recorded and summed, deciding nothing.
+    ``stats`` are the learner's update statistics it reported (protocol.messages.STAT_BOUNDS, None where not usable):
+    they decide nothing and are only recorded. ``rig`` is the episode's rig time (protocol/rigtime.py: balance steps
+    and seconds, reset seconds, measured idle seconds; None for the gymnasium tasks): recorded and summed, deciding
+    nothing.
     ``played`` is what the worker has played so far (protocol.messages.Played: life, episodes, env steps), counted
     or not: recorded, even when the submission is refused, deciding nothing.
     """
@@ -204,7 +205,8 @@ class Verdict:
 
     def record(self, t: float) -> dict[str, Any]:
         """An accepted submission's line in metrics.jsonl: the episode (at its step 0) or one later step, with the
-        PPO statistics it carried (``ppo``, null where not sent; absent for a mature actor, which had no update)."""
+        learner's update statistics it carried (``stats``, null where not sent; absent for a mature actor, which had no
+        update)."""
         sub = self.submission
         assert sub is not None and self.status == "accepted"
         line: dict[str, Any]
@@ -220,7 +222,7 @@ class Verdict:
         if sub.mature:
             line["recent_returns"] = list(sub.recent_returns)
         elif sub.stats is not None:
-            line["ppo"] = dict(sub.stats)
+            line["stats"] = dict(sub.stats)
         if sub.step == 0 and sub.played is not None:
             line["played"] = dict(sub.played)
         if sub.step == 0 and sub.rig is not None:

@@ -5,8 +5,9 @@ steps so far, as counted by the chief (its accepted episodes' ``steps``). Tags, 
 
 - ``charts/episodic_return``, ``charts/episodic_length``, ``charts/performance_index``: every accepted episode;
 - ``losses/policy_loss``, ``losses/value_loss``, ``losses/entropy``, ``losses/approx_kl``, ``losses/clipfrac``: the
-  PPO statistics the worker sent with its update (the means over the episode's K mini-batch steps; under a per-step
-  strategy the mean of the steps' own); none for the episode it finished with (no update) or what it did not send;
+  update statistics the worker sent with its update (the means over the episode's K mini-batch steps; under a
+  per-step strategy the mean of the steps' own); none for the episode it finished with (no update) or what it did
+  not send (SAC and DQN send no ``approx_kl`` or ``clip_fraction``, which are PPO's, and DQN no entropy);
 - ``federation/contribution_weight``: its weight w_n in each aggregate it contributed to (Eq. 8 for ``weighted``;
   under a per-step strategy the mean over the episode's K rounds); ``federation/keep_weight``: its w_T in each
   transfer it received (Eq. 10); ``federation/transfers``: how many transfers it has received. These are drawn at
@@ -101,8 +102,8 @@ class Translator:
             return self._episode(record)
         if isinstance(record, StepRecord):
             w = self.workers[record.worker]
-            if record.ppo is not None:
-                w.pending.append(record.ppo)
+            if record.stats is not None:
+                w.pending.append(record.stats)
             if record.step >= self.rounds_per_episode - 1:
                 return self._flush(record.worker)
             return []
@@ -126,7 +127,7 @@ class Translator:
         points.append(self._point(worker, LENGTH_TAG, record.steps, t))
         points.append(self._point(worker, RETURN_TAG, record.return_, t))
         points.append(self._point(worker, PI_TAG, record.pi, t))
-        w.pending = [record.ppo] if record.ppo is not None else []
+        w.pending = [record.stats] if record.stats is not None else []
         w.pending_at = (w.env_steps, t)
         if self.rounds_per_episode == 1:
             points += self._flush(worker)

@@ -34,10 +34,11 @@ LearnerId = Annotated[str, StringConstraints(min_length=1, max_length=32, patter
 #: PI is the mean of at most this many recent returns (protocol.tasks.PI_WINDOW).
 RecentReturns = Annotated[tuple[float, ...], Field(min_length=1, max_length=PI_WINDOW)]
 
-#: The largest magnitude of a PPO training statistic on the wire (every float is also finite).
+#: The largest magnitude of a training statistic on the wire (every float is also finite).
 STAT_LIMIT = 1e9
-#: The PPO statistics a WorkerUpdate may carry, with their bounds (the fields below use the same ones): a worker
-#: sends None for a value outside them, and the chief refuses a message that carries one.
+#: The update statistics a WorkerUpdate may carry, with their bounds (the fields below use the same ones): a worker
+#: sends None for a value outside them or one its learner lacks (PPO's names), and the chief refuses a message that
+#: carries one outside them.
 STAT_BOUNDS: dict[str, tuple[float, float]] = {
     "actor_loss": (-STAT_LIMIT, STAT_LIMIT),
     "critic_loss": (0.0, STAT_LIMIT),

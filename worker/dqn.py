@@ -256,8 +256,8 @@ class DQNLearner:
                     grad_sum[name] += g
         self._episode_gradient = {k: (g / max(taken, 1)).astype(np.float32) for k, g in grad_sum.items()}
         loss = float(np.mean(losses)) if losses else 0.0
-        return UpdateStats(actor_loss=loss, critic_loss=loss, entropy=math.nan, approx_kl=0.0, clip_fraction=0.0,
-                           memory_size=batch.n, skipped_steps=steps - taken)
+        return UpdateStats(actor_loss=loss, critic_loss=loss, entropy=math.nan, approx_kl=math.nan,
+                           clip_fraction=math.nan, memory_size=batch.n, skipped_steps=steps - taken)
 
     def prepare(self) -> SACBatch:
         """The K steps of this episode draw from the replay as it is now (no step below ``learning_starts``)."""
@@ -271,7 +271,7 @@ class DQNLearner:
         cfg = self.config
         if batch.n < max(cfg.learning_starts, 1):
             return StepGradients(critic={}, actor=None, actor_loss=math.nan, critic_loss=math.nan,
-                                 entropy=math.nan, approx_kl=0.0, clip_fraction=0.0)
+                                 entropy=math.nan, approx_kl=math.nan, clip_fraction=math.nan)
         idx = torch.randint(0, min(batch.n, len(self._replay)), (cfg.batch_size,), generator=self.generator)
         size = len(self._replay)
         rows = [self._replay[(self._pos + i) % size] for i in idx.tolist()]  # logical index i: the i-th oldest
@@ -294,7 +294,7 @@ class DQNLearner:
             if not all(bool(np.isfinite(g).all()) for g in grads.values()):
                 grads = None
         return StepGradients(critic={}, actor=grads, actor_loss=loss.item(), critic_loss=loss.item(),
-                             entropy=math.nan, approx_kl=0.0, clip_fraction=0.0)
+                             entropy=math.nan, approx_kl=math.nan, clip_fraction=math.nan)
 
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         """One Q-network step with ``actor`` (None or all zeros: none), counting it; every ``target_update_interval``

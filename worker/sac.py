@@ -372,7 +372,7 @@ class SACBatch:
 @dataclass
 class SACUpdateStats(UpdateStats):
     """Means over the gradient steps of one ``update()`` (zeros when it took none). actor_loss is J_pi, critic_loss
-    J_Q, entropy the policy's mean entropy estimate; approx_kl and clip_fraction are PPO's and always 0.0 here."""
+    J_Q, entropy the policy's mean entropy estimate; approx_kl and clip_fraction are PPO's and NaN here (not sent)."""
 
     alpha: float = 0.0  # the temperature after the update
     gradient_steps: int = 0
@@ -563,8 +563,8 @@ class SACLearner:
             name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True) for name, g in grad_sum.items()
         }
         means = {key: value / max(steps, 1) for key, value in totals.items()}
-        return SACUpdateStats(**means, approx_kl=0.0, clip_fraction=0.0, memory_size=batch.n, skipped_steps=skipped,
-                              alpha=self.alpha, gradient_steps=steps)
+        return SACUpdateStats(**means, approx_kl=math.nan, clip_fraction=math.nan, memory_size=batch.n,
+                              skipped_steps=skipped, alpha=self.alpha, gradient_steps=steps)
 
     def prepare(self) -> SACBatch:
         """The K = ``update_epochs`` steps of this episode draw from the replay as it is now: its size (they take no
@@ -591,12 +591,12 @@ class SACLearner:
         target of the target critics) and the actor's of J_pi (with the critic's current parameters), each after
         optional norm clipping; None where the loss or a gradient is not finite, and both None (losses NaN) while the
         replay holds fewer than ``learning_starts`` transitions. Nothing is applied: ``apply_step`` does that (with
-        these, or with a federation's mean of them). approx_kl and clip_fraction are 0.0 (PPO's)."""
+        these, or with a federation's mean of them). approx_kl and clip_fraction are NaN (PPO's: not sent)."""
         cfg = self.config
         if batch.n < max(cfg.learning_starts, 1):  # no gradients yet: shared as zeros, and a step of zeros is none
             self._alpha_term = None
             return StepGradients(critic=None, actor=None, actor_loss=math.nan, critic_loss=math.nan,
-                                 entropy=math.nan, approx_kl=0.0, clip_fraction=0.0)
+                                 entropy=math.nan, approx_kl=math.nan, clip_fraction=math.nan)
         obs, actions, rewards, next_obs, terminated = self._sample(batch.n)
         alpha = self.log_alpha.detach().exp()
         discrete = self.actor.discrete
@@ -629,8 +629,8 @@ class SACLearner:
         actor_grad = self._gradients(a_loss, self.actor)
         self._alpha_term = log_pi_per_state.mean()
         return StepGradients(critic=critic_grad, actor=actor_grad, actor_loss=a_loss.item(),
-                             critic_loss=c_loss.item(), entropy=-self._alpha_term.item(), approx_kl=0.0,
-                             clip_fraction=0.0)
+                             critic_loss=c_loss.item(), entropy=-self._alpha_term.item(),
+                             approx_kl=math.nan, clip_fraction=math.nan)
 
     def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
         """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is

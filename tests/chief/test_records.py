@@ -45,9 +45,11 @@ def test_every_line_reads_back_as_written(tmp_path: Path, policy: str) -> None:
 
 def test_optional_fields_appear_only_when_carried() -> None:
     step = StepRecord(worker="w0", round=2, episode=1, step=1, t=0.5)
-    assert "ppo" not in line(step) and '"receipt":null' in line(step)
-    with_stats = parse_record({**step.dump(), "ppo": {"entropy": None}})
-    assert line(with_stats).endswith('"ppo":{"entropy":null}}')
+    assert "stats" not in line(step) and '"receipt":null' in line(step)
+    with_stats = parse_record({**step.dump(), "stats": {"entropy": None}})
+    assert line(with_stats).endswith('"stats":{"entropy":null}}')
+    old = parse_record({**step.dump(), "ppo": {"entropy": 0.5}})  # a run folder from before learners had names
+    assert old == with_stats.model_copy(update={"stats": {"entropy": 0.5}}) and '"ppo"' not in line(old)
 
 
 def test_a_bad_line_is_named(tmp_path: Path) -> None:

@@ -63,8 +63,8 @@ def expected_board(lines: list[dict[str, Any]]) -> dict[str, Scalars]:
             env_steps[w] += r["steps"]
             out[w]["charts/episodic_return"].append((env_steps[w], r["return"]))
             for stat, tag in LOSS_TAGS.items():
-                if r["kind"] == "update" and r["ppo"][stat] is not None:
-                    out[w][tag].append((env_steps[w], r["ppo"][stat]))
+                if r["kind"] == "update" and r["stats"][stat] is not None:
+                    out[w][tag].append((env_steps[w], r["stats"][stat]))
         elif r["type"] == "round":
             for w, weight in r["weights"].items():
                 out[w]["federation/contribution_weight"].append((env_steps[w], weight))
@@ -104,7 +104,7 @@ def test_every_worker_gets_cleanrl_tags_that_match_the_records(weighted_run: Pat
         updates = [r for r in episodes if r["kind"] == "update"]
         assert len(updates) == len(episodes) - 1  # it finished with a MatureParams: no PPO update in that one
         for stat, tag in LOSS_TAGS.items():
-            assert [v for _, v in scalars[tag]] == f32([r["ppo"][stat] for r in updates])
+            assert [v for _, v in scalars[tag]] == f32([r["stats"][stat] for r in updates])
     expected = expected_board(lines)
     for w in board:
         for tag, points in expected[w].items():
@@ -208,7 +208,7 @@ def test_a_per_step_strategy_draws_each_episode_once(tmp_path: Path) -> None:
         assert len(episodes) == 4 and len(scalars["charts/episodic_return"]) == 4
         x = np.cumsum([r["steps"] for r in episodes])
         for stat, tag in LOSS_TAGS.items():
-            means = [np.mean([r["ppo"][stat] for r in mine if r["episode"] == e["episode"]]) for e in episodes]
+            means = [np.mean([r["stats"][stat] for r in mine if r["episode"] == e["episode"]]) for e in episodes]
             assert [p[0] for p in scalars[tag]] == list(x)
             assert [p[1] for p in scalars[tag]] == pytest.approx(means, rel=1e-6, abs=1e-7)
         rounds = [r for r in lines if r["type"] == "round"]
@@ -250,11 +250,11 @@ def test_the_chief_records_the_statistics_it_accepted(tmp_path: Path) -> None:
     sent = WorkerUpdate(worker_id="w0", episode=1, episode_return=20.0, pi=20.0, recent_returns=[20.0], steps=20,
                         gradient=gradient, **stats)
     verdict = keeper.submit(submission_of(decode(encode(sent), WorkerUpdate)), now=0.0)
-    assert verdict.status == "accepted" and verdict.record(0.0)["ppo"] == stats
+    assert verdict.status == "accepted" and verdict.record(0.0)["stats"] == stats
     older = WorkerUpdate(worker_id="w1", episode=1, episode_return=30.0, pi=30.0, recent_returns=[30.0], steps=30,
                          gradient=gradient, actor_loss=0.1)
     verdict = keeper.submit(submission_of(decode(encode(older), WorkerUpdate)), now=0.0)
-    assert verdict.record(0.0)["ppo"] == {**dict.fromkeys(STAT_BOUNDS), "actor_loss": 0.1}
+    assert verdict.record(0.0)["stats"] == {**dict.fromkeys(STAT_BOUNDS), "actor_loss": 0.1}
     lying = WorkerUpdate(worker_id="w0", episode=2, episode_return=20.0, pi=99.0, recent_returns=[20.0, 20.0],
                          steps=20, gradient=gradient, **stats)
     assert keeper.submit(submission_of(lying), now=1.0).status == "rejected"  # never recorded (pi_mismatch)

@@ -191,7 +191,8 @@ def test_coloured_acting_noise_is_correlated_within_an_episode_and_redrawn_for_t
     obs = np.zeros(3, np.float32)
     white, pink = learner("box", seed=4), learner("box", seed=4, noise_beta=1.0, noise_horizon=64)
     twin = torch.Generator().set_state(white.generator.get_state())
-    mean, std = white.actor.gaussian(white._obs_tensor(obs))
+    with torch.no_grad():
+        mean, std = white.actor.gaussian(white._obs_tensor(obs))
     expected = 2.0 * torch.tanh(mean + std * torch.randn(mean.shape, generator=twin))  # the Box is [-2, 2]
     assert float(white.act(obs)[0]) == pytest.approx(float(expected[0, 0]), abs=1e-6)  # beta 0: a fresh draw a step
 

@@ -28,7 +28,7 @@ import numpy as np
 
 from chief import tiers
 from chief.records import ChiefState, KeeperState, SavedWorker, ServiceState
-from chief.rounds import RoundKeeper, RoundOutcome, Submission, WorkerRecord
+from chief.rounds import HeldPartial, RoundKeeper, RoundOutcome, Submission, WorkerRecord
 from protocol.rounds import RoundShape
 from protocol.tasks import TaskSpec
 from protocol.tensors import TensorBlob
@@ -93,18 +93,22 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
         done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted, tier=k.tier,
-        partials=[_partial(r, e, *held) for r, by_edge in sorted(k.partials.items())
+        partials=[_partial(r, e, held) for r, by_edge in sorted(k.partials.items())
                   for e, held in sorted(by_edge.items())])
 
 
-def _partial(r: int, edge: str, p: tiers.Partial, contributors: list[str], clipped: dict[str, float]) -> dict[str, Any]:
+def _partial(r: int, edge: str, held: HeldPartial) -> dict[str, Any]:
+    p = held.partial
     return {"round": r, "edge": edge, "gradient": _arrays(p.gradient), "critic": _arrays(p.critic), "total": p.total,
-            "count": p.count, "uniform": p.uniform, "contributors": contributors, "clipped": clipped}
+            "count": p.count, "uniform": p.uniform, "contributors": held.contributors, "clipped": held.clipped,
+            "critic_clipped": held.critic_clipped}
 
 
-def _unpartial(d: dict[str, Any]) -> tuple[tiers.Partial, list[str], dict[str, float]]:
-    return (tiers.Partial(_unarrays(d["gradient"]), d["total"], d["count"], d["uniform"], _unarrays(d["critic"])),
-            list(d["contributors"]), dict(d["clipped"]))
+def _unpartial(d: dict[str, Any]) -> HeldPartial:
+    """A held partial (a state saved before critics' factors travelled has none)."""
+    return HeldPartial(tiers.Partial(_unarrays(d["gradient"]), d["total"], d["count"], d["uniform"],
+                                     _unarrays(d["critic"])),
+                       list(d["contributors"]), dict(d["clipped"]), dict(d.get("critic_clipped", {})))
 
 
 #: WorkerRecord's per-episode maps, saved as sorted (episode, value) pairs.

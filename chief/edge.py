@@ -237,7 +237,7 @@ class EdgeService:
                 gradient=None if part.gradient is None else pack_arrays(part.gradient),
                 critic_gradient=None if part.critic is None else pack_arrays(part.critic),
                 total=part.total, count=part.count, uniform=part.uniform, clipped=outcome.clipped,
-                timed_out=tuple(outcome.timed_out))
+                critic_clipped=outcome.critic_clipped, timed_out=tuple(outcome.timed_out))
             self._partial(signed(msg, self.key))
             self.partials += 1
 

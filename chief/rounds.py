@@ -189,6 +189,17 @@ class RoundOutcome:
                 **({"late": self.late} if self.late else {})}
 
 
+@dataclass(frozen=True)
+class HeldPartial:
+    """An edge's part of a round as a root holds it until the round closes: its partial sum, its contributors, and
+    the factors the edge scaled their actors' and (per-step strategies) critics' gradients by."""
+
+    partial: tiers.Partial
+    contributors: list[str]
+    clipped: dict[str, float]
+    critic_clipped: dict[str, float] = field(default_factory=dict)
+
+
 @dataclass
 class Verdict:
     """What ``submit`` decided: ``accepted`` (counted), ``duplicate`` (already counted) or ``rejected``.
@@ -298,9 +309,8 @@ class RoundKeeper:
                              f"{policy!r}: every worker must apply each step's mean with its own), and a flat run")
         self.quorum = quorum  # k: a round closes when k of its waited-on workers submitted (0: all of them)
         self.tier = tier
-        #: A root's partials: round -> edge -> (its Partial, its contributors, the factors it clipped their
-        #: gradients by).
-        self.partials: dict[int, dict[str, tuple[tiers.Partial, list[str], dict[str, float]]]] = {}
+        #: A root's partials: round -> edge -> what it sent.
+        self.partials: dict[int, dict[str, HeldPartial]] = {}
         self.policy = policy
         self.task = task
         self.max_episodes = max_episodes
@@ -598,7 +608,7 @@ class RoundKeeper:
             if mature:
                 outcome.offline = self._offline_learners(mature)
         if self.tier == "root":
-            outcome.edges = {e: held[1] for e, held in sorted(self.partials.get(r, {}).items())}
+            outcome.edges = {e: held.contributors for e, held in sorted(self.partials.get(r, {}).items())}
         outcome.late = late
         self.answers[r] = outcome
         self.answers.pop(r - ANSWERS_KEPT, None)
@@ -649,18 +659,20 @@ class RoundKeeper:
         weights over all of the round's learners."""
         held = self.partials.get(r, {})
         edges = sorted(held)
-        outcome.gradient, outcome.critic_gradient = tiers.combine([held[e][0] for e in edges])
+        outcome.gradient, outcome.critic_gradient = tiers.combine([held[e].partial for e in edges])
         if outcome.gradient is not None:
             outcome.weights = tiers.weights(tiers.shares(self.strategy, {w: self.progress(self.pending[w].pi)
                                                                           for w in learners}))
         for e in edges:
-            outcome.clipped.update(held[e][2])
+            outcome.clipped.update(held[e].clipped)
+            outcome.critic_clipped.update(held[e].critic_clipped)
 
     def add_partial(self, r: int, edge: str, partial: tiers.Partial, contributors: list[str],
-                    clipped: dict[str, float]) -> None:
+                    clipped: dict[str, float], critic_clipped: dict[str, float] | None = None) -> None:
         """A root keeps an edge's partial of round ``r`` (before its contributors' submissions, whose last closes
-        the round), and notes which of the round's contributors it holds."""
-        self.partials.setdefault(r, {})[edge] = (partial, sorted(contributors), clipped)
+        the round), and notes which of the round's contributors it holds and the factors the edge scaled by."""
+        self.partials.setdefault(r, {})[edge] = HeldPartial(partial, sorted(contributors), clipped,
+                                                            dict(critic_clipped or {}))
 
     def _partial(self, r: int, subs: dict[str, Submission], finished: list[str]) -> RoundOutcome:
         """An edge's round: its learners' (bounded) gradients summed into one Partial for the root (chief/tiers.py);
@@ -669,8 +681,10 @@ class RoundKeeper:
         outcome.finished = finished
         learners = sorted(w for w in subs if not subs[w].mature)
         grads, outcome.clipped = self._bounded({w: subs[w].gradient for w in learners})  # type: ignore[misc]
-        critics = (self._bounded({w: subs[w].critic_gradient for w in learners})[0]  # type: ignore[misc]
-                   if self.shape.per_step and learners else None)
+        critics = None
+        if self.shape.per_step and learners:
+            critics, outcome.critic_clipped = self._bounded(
+                {w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
         outcome.partial = tiers.partial(self.strategy, grads, {w: self.progress(subs[w].pi) for w in learners},
                                         critics)
         for w in finished:

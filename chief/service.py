@@ -399,7 +399,7 @@ class ChiefService:
         subs: list[WorkerUpdate | MatureParams] = [*msg.updates, *msg.matures]
         if msg.round >= keeper.round:
             keeper.add_partial(msg.round, msg.edge_id, partial_of(msg), [s.worker_id for s in subs],
-                               dict(msg.clipped))
+                               dict(msg.clipped), dict(msg.critic_clipped))
         outcomes: list[RoundOutcome] = []
         for sub in subs:
             verdict = keeper.submit(submission_of(sub), now)

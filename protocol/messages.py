@@ -302,8 +302,8 @@ class EdgePartial(Message):
     finisher's MatureParams whole (``matures``), and the unnormalised Eq. 9 sum of their (bounded) gradients: the
     sum of share_n g_n (``gradient``, float32), the share total ``total`` and the count ``count`` (``uniform``: the
     plain sum, every share being 0), the critic's under a per-step strategy. ``clipped``: the factor a gradient was
-    scaled by (chief/rounds.py bound_norms, against the edge's own median); ``timed_out``: the edge's workers it
-    stopped waiting for."""
+    scaled by (chief/rounds.py bound_norms, against the edge's own median), ``critic_clipped`` the same for the
+    critics' under a per-step strategy; ``timed_out``: the edge's workers it stopped waiting for."""
 
     kind: Literal["partial"] = "partial"
     edge_id: Ident
@@ -318,6 +318,7 @@ class EdgePartial(Message):
     count: int = Field(default=0, ge=0)
     uniform: bool = False
     clipped: dict[Ident, Annotated[float, Field(gt=0.0, le=1.0)]] = Field(default_factory=dict)
+    critic_clipped: dict[Ident, Annotated[float, Field(gt=0.0, le=1.0)]] = Field(default_factory=dict)
     timed_out: tuple[Ident, ...] = ()
     tag: Tag = ""
 

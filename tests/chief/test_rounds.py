@@ -528,14 +528,14 @@ def test_a_fleet_is_drawn_as_one_collection_with_one_legend_entry(tmp_path: Path
 
 def test_a_root_s_saved_state_keeps_its_tier_and_the_edges_partials_of_its_open_round(tmp_path) -> None:
     """A root of edges saved mid-round comes back a root, holding the partial sums, contributors and clipping factors
-    it had; which edge each worker is behind is part of the service's state."""
+    (actors' and critics') it had; which edge each worker is behind is part of the service's state."""
     from chief import checkpoint, tiers
     from chief.records import ServiceState
 
     k = RoundKeeper(["w0", "w1"], "weighted", CARTPOLE, max_episodes=10, round_timeout=10.0, actor_spec=SPEC,
                     tier="root")
     part = tiers.Partial({"g": np.array([0.5], np.float32)}, 2.0, 1)
-    k.add_partial(1, "e0", part, ["w0"], {"w0": 0.5})
+    k.add_partial(1, "e0", part, ["w0"], {"w0": 0.5}, {"w0": 0.25})
     service = ServiceState(run_id="r", session="0" * 16, epoch=0, duplicates=0, hosts={}, update_steps=0, rejects={},
                            metrics_bytes=0, elapsed_s=0.0, edges={"w0": "e0", "w1": "e1"})
     checkpoint.save(tmp_path, k, service)
@@ -543,8 +543,10 @@ def test_a_root_s_saved_state_keeps_its_tier_and_the_edges_partials_of_its_open_
     assert loaded is not None
     back, saved = loaded
     assert back.tier == "root" and saved["edges"] == {"w0": "e0", "w1": "e1"}
-    [(p, contributors, clipped)] = back.partials[1].values()
-    assert (p.total, p.count, p.uniform, contributors, clipped) == (2.0, 1, False, ["w0"], {"w0": 0.5})
+    [held] = back.partials[1].values()
+    p = held.partial
+    assert (p.total, p.count, p.uniform) == (2.0, 1, False)
+    assert (held.contributors, held.clipped, held.critic_clipped) == (["w0"], {"w0": 0.5}, {"w0": 0.25})
     assert p.gradient is not None and p.gradient["g"].tolist() == [0.5]
 
 

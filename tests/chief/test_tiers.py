@@ -132,3 +132,36 @@ def test_edge_and_root_keepers_close_the_flat_round() -> None:
         assert got.gradient is not None and expected.gradient is not None
         learners = {x: subs[x].gradient for x in ids}
         assert tiers.excess(learners, got.weights, 2, expected.gradient, got.gradient) <= 1.0  # type: ignore[arg-type]
+
+
+def test_the_root_records_the_factors_its_edges_scaled_critics_by() -> None:
+    """Under a per-step strategy an edge bounds its workers' critics as a flat chief does (chief/rounds.py
+    bound_norms, against the edge's median); its partial carries the factors, and the root's round says them as a
+    flat round would (``critic_clipped``), beside the actors' (``clipped``)."""
+    from chief.rounds import RoundKeeper, RoundShape
+    from protocol.messages import EdgePartial
+    from tests.chief.test_rounds import CARTPOLE, SPEC, fakes
+
+    ids = ["w0", "w1", "w2", "w3", "w4", "w5"]
+    behind = {"e0": ["w0", "w1", "w2"], "e1": ["w3", "w4", "w5"]}
+
+    def make(workers: list[str], tier: str) -> RoundKeeper:
+        return RoundKeeper(workers, "sync", CARTPOLE, 2, 10.0, actor_spec=dict(SPEC), critic_spec={"c": (1,)},
+                           shape=RoundShape(per_episode=2), tier=tier)  # type: ignore[arg-type]
+
+    root, edges, w = make(ids, "root"), {e: make(ws, "edge") for e, ws in behind.items()}, fakes(*ids)
+    critic = dict(zip(ids, [1.0, 2.0, 1e5, 1.0, 1.0, 1.0], strict=True))  # w2's critic: far above its edge's median
+    subs = {x: replace(w[x].sub(1, 20.0), step=0, critic_gradient={"c": np.array([critic[x]], np.float32)})
+            for x in ids}
+    outs = []
+    for e, ws in behind.items():
+        [part] = [o for x in ws for o in edges[e].submit(subs[x], 0.0).outcomes]
+        assert part.critic_clipped == (pytest.approx({"w2": 20.0 / 1e5}) if e == "e0" else {})
+        wire = EdgePartial(edge_id=e, round=1, episode=1, clipped=part.clipped, critic_clipped=part.critic_clipped)
+        assert EdgePartial.model_validate(wire.model_dump()).critic_clipped == part.critic_clipped
+        assert part.partial is not None
+        root.add_partial(1, e, part.partial, part.contributors, part.clipped, wire.critic_clipped)
+        outs += [o for x in ws for o in root.submit(replace(subs[x], gradient={}, critic_gradient=None), 0.0).outcomes]
+    [got] = outs
+    assert got.clipped == {} and got.critic_clipped == pytest.approx({"w2": 20.0 / 1e5})
+    assert got.record()["critic_clipped"] == got.critic_clipped

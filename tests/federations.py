@@ -39,6 +39,13 @@ def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None, 
     return run_dir
 
 
+def warnings_of(run_dir: Path, limit: int = 40) -> str:
+    """The warnings and errors of a run's processes (logs/*.log), for a failed assertion to show why."""
+    lines = [f"{log.stem}: {line}" for log in sorted((run_dir / "logs").glob("*.log"))
+             for line in log.read_text(errors="replace").splitlines() if " WARNING " in line or " ERROR " in line]
+    return "\n".join(lines[:limit]) or "no warnings in the logs"
+
+
 def records_up_to(run_dir: Path, episodes: int) -> tuple[dict[str, list[tuple[Any, ...]]], list[tuple[Any, ...]]]:
     """Each worker's accepted episodes (episode, return, steps, PI) and the chief's rounds (round, kind, contributors,
     PIs, weights, digest of the answer's tensors, source, keep-weights, finished) up to ``episodes`` (a strategy of

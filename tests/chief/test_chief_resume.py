@@ -67,7 +67,7 @@ def test_a_killed_chief_resumes_with_the_same_result(tmp_path: Path, runs: Runs)
     log = (tmp_path / "launcher.log").read_text()
     assert log.count("the chief died (exit code -9); restarting it") == 2
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["restarts"] == 2 and summary["rejected_messages"] == {}
+    assert summary["restarts"] == 2 and summary["rejected_messages"] == {}, fed.warnings_of(run_dir)
     assert summary["end_reason"] == f"reached the maximum of {EPISODES} episodes"
     assert (run_dir / FILENAME).exists()
     report = audit(run_dir)  # no round lost, none counted twice, every worker confirmed every answer
@@ -126,7 +126,7 @@ def test_a_killed_root_of_edges_resumes_with_the_same_result(tmp_path: Path) -> 
             launcher.kill()
     assert (tmp_path / "launcher.log").read_text().count("the chief died (exit code -9); restarting it") == 2
     summary = json.loads((run_dir / "summary.json").read_text())
-    assert summary["restarts"] == 2 and summary["rejected_messages"] == {}
+    assert summary["restarts"] == 2 and summary["rejected_messages"] == {}, fed.warnings_of(run_dir)
     report = audit(run_dir)  # nothing lost or counted twice; every root aggregate the flat Eq. 9 within the bound
     rounds = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()
               if '"type":"round"' in line]

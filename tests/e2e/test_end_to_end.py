@@ -14,7 +14,7 @@ import pytest
 
 from chief import strategies
 from chief.audit import AuditFailure, audit
-from tests.federations import WORKERS, Runs, cpu_load, federate, per_worker_up_to, records_up_to
+from tests.federations import WORKERS, Runs, cpu_load, federate, per_worker_up_to, records_up_to, warnings_of
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("e2e")]  # one process computes the shared runs
 
@@ -36,7 +36,7 @@ def test_four_workers_learn_and_the_audit_passes(runs: Runs, policy: str) -> Non
     run_dir = runs[policy]
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["policy"] == policy and all(w["solved"] for w in summary["workers"])
-    assert summary["rejected_messages"] == {}
+    assert summary["rejected_messages"] == {}, warnings_of(run_dir)
     assert sorted(p.name for p in (run_dir / "models").iterdir()) == [f"w{i}.pt" for i in range(WORKERS)]
     assert (run_dir / "learning_curve.png").stat().st_size > 1000
     report = audit(run_dir)  # raises AuditFailure naming the first violated invariant

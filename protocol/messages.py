@@ -154,9 +154,11 @@ class WorkerUpdate(WorkerSubmission):
     a worker sends K of them per episode, ``step`` 0..K-1, each with that mini-batch step's actor and critic
     gradients; the episode's fields are repeated.
 
-    The PPO statistics (``actor_loss`` = -L^CLIP minus the entropy bonus, ``critic_loss`` = L^V, ``entropy``,
-    ``approx_kl``, ``clip_fraction``) are the means over the episode's K mini-batch steps (that step's own under a
-    per-step strategy); None when not usable (not finite, or outside STAT_BOUNDS).
+    The update statistics, PPO's names (``actor_loss`` = -L^CLIP minus the entropy bonus, ``critic_loss`` = L^V,
+    ``entropy``, ``approx_kl``, ``clip_fraction``; SAC's J_pi, J_Q and entropy estimate, DQN's TD loss as both
+    losses), are the means over the episode's K mini-batch steps (that step's own under a per-step strategy); None
+    when not usable (not finite, outside STAT_BOUNDS, or not the learner's: SAC and DQN send no ``approx_kl`` or
+    ``clip_fraction``, DQN no ``entropy``).
     """
 
     kind: Literal["update"] = "update"

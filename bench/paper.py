@@ -38,7 +38,7 @@ from typing import Any
 
 from bench import stats
 from bench.output import command
-from bench.runs import Job, algo_of, execute, outcome
+from bench.runs import Job, algo_of, code_fingerprint, execute, outcome
 from chief import strategies as registry
 from protocol import learners
 from protocol.qube import PERIOD_S
@@ -129,18 +129,33 @@ def _init_worker() -> None:
 
 def run_jobs(jobs: list[Job], parallel: int, runs_dir: Path, resume: bool = False) -> list[dict[str, Any]]:
     """Run every job, ``parallel`` at a time (1: in this process); results in the jobs' order. Each result is also
-    appended to ``runs_dir/results.jsonl`` as it comes (``resume`` reuses those of the same jobs)."""
+    appended to ``runs_dir/results.jsonl`` as it comes. ``resume`` reuses those of the same jobs made by the same
+    code (bench.runs.code_fingerprint); one made by other code runs again, and one from before results carried a
+    fingerprint is reused and counted (the report says how many)."""
     runs_dir.mkdir(parents=True, exist_ok=True)
     log_path = runs_dir / "results.jsonl"
     done: dict[tuple[Any, ...], dict[str, Any]] = {}
+    other_code: set[tuple[Any, ...]] = set()
     if resume and log_path.exists():
         for line in log_path.read_text().splitlines():
             rec = json.loads(line)
-            if "error" not in rec:
-                done[Job(**rec["job"]).key] = rec
+            if "error" in rec:
+                continue
+            job = Job(**rec["job"])
+            if rec.get("code", code_fingerprint(job.kind)) != code_fingerprint(job.kind):
+                other_code.add(job.key)
+                done.pop(job.key, None)
+            else:
+                done[job.key] = rec
+                other_code.discard(job.key)
     todo = [j for j in jobs if j.key not in done]
     todo.sort(key=lambda j: -_COST.get(j.task, 1.0) * (1 if j.kind == "federation" else 0.5))
-    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} reused, {len(todo)} to run, {parallel} at a time", flush=True)
+    stale = sum(1 for j in todo if j.key in other_code)
+    unstamped = sum(1 for j in jobs if j.key in done and "code" not in done[j.key])
+    print(f"{len(jobs)} runs, {len(jobs) - len(todo)} reused, {len(todo)} to run, {parallel} at a time"
+          + (f"; {stale} of them made by other code before" if stale else "")
+          + (f"; {unstamped} reused without a code fingerprint (made before results carried one)" if unstamped
+             else ""), flush=True)
     t0 = time.monotonic()
     with log_path.open("a") as log:
         def record(result: dict[str, Any]) -> None:
@@ -391,6 +406,7 @@ def main(argv: list[str] | None = None) -> int:
                 args.references, QUICK["sb3_tasks"] if args.quick else None, args.algos)
     results = run_jobs(jobs, args.jobs, args.runs_dir, resume=args.resume)
     cfg["runs_wall_s"] = round(time.monotonic() - started, 1)
+    cfg["unfingerprinted"] = sum(1 for r in results if "code" not in r)  # reused, made before results carried one
     args.out.mkdir(parents=True, exist_ok=True)
     reports = {task: task_report(task, results, cfg) for task in args.tasks}
     for task, rep in reports.items():

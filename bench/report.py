@@ -62,6 +62,8 @@ def markdown(index: dict[str, Any], results: Path, readme_dir: Path | None = Non
                      f"{c['machine']['cores']} cores"
                      + (" (--resume: runs already in the runs folder were reused, not run again)"
                         if "--resume" in c["command"] else "")
+                     + (f" ({c['unfingerprinted']} of its results reused from before results carried the "
+                        "fingerprint of the code that made them)" if c.get("unfingerprinted") else "")
                      + f", M = {c['max_episodes']}, report seeds {', '.join(map(str, c['seeds']['report']))}"
                      for c, tasks in invocations(index, results))
     lines = [

@@ -21,12 +21,18 @@ Per worker, from the run folder:
   1 - own_s / wall_s in process; over MQTT the time from its submission to the round's answer, over that plus own_s,
   for the rounds it took part in before finishing;
 - ``steps_per_s``: env steps per second of its own time.
+
+Every result carries ``code``, the fingerprint of the code that made it (``code_fingerprint``), so that reusing it
+(``bench.paper --resume``) is refused once that code changed.
 """
 
 from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
+import hashlib
+import importlib.metadata
 import json
 import os
 import shutil
@@ -42,6 +48,26 @@ from chief.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_
 
 #: Most points a run's learning curve keeps (evenly spaced, the last one always).
 CURVE_POINTS = 250
+#: The packages whose code decides what a run of ours does (the benchmark's own code only measures it).
+RUN_CODE = ("chief", "deploy", "protocol", "runtime", "services", "worker")
+ROOT = Path(__file__).resolve().parent.parent
+
+
+@functools.cache
+def code_fingerprint(kind: str) -> str:
+    """16 hex digits of SHA-256 over what decides a run's result: for ours (``federation``, ``single``) every
+    Python source of RUN_CODE, path and content; for an SB3 reference (``sb3``) bench/sb3_ref.py and the installed
+    stable-baselines3's version. Any change to them, even one meant to keep behaviour, gives another."""
+    digest = hashlib.sha256()
+    if kind == "sb3":
+        files = [ROOT / "bench" / "sb3_ref.py"]
+        with contextlib.suppress(importlib.metadata.PackageNotFoundError):
+            digest.update(importlib.metadata.version("stable-baselines3").encode())
+    else:
+        files = sorted(p for package in RUN_CODE for p in (ROOT / package).rglob("*.py"))
+    for path in files:
+        digest.update(path.relative_to(ROOT).as_posix().encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:16]
 
 
 @dataclass(frozen=True)
@@ -96,7 +122,7 @@ def run_folder_lock(runs_dir: Path, name: str) -> Any:
 
 def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
     """Run one job (in this process, or its launcher as a child process); never raises: errors are results."""
-    t0 = time.monotonic()
+    t0, code = time.monotonic(), code_fingerprint(job.kind)  # of the code as the run starts
     try:
         if job.kind == "sb3":
             from bench import sb3_ref
@@ -121,6 +147,7 @@ def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
                   "error": f"{type(err).__name__}: {err}", "traceback": traceback.format_exc()[-3000:]}
     result["job"] = asdict(job)
     result["algo"] = job.algo
+    result["code"] = code
     result["run_wall_s"] = round(time.monotonic() - t0, 2)
     return result
 

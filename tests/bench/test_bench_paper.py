@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -259,3 +260,31 @@ def test_a_run_folder_being_written_by_another_process_is_refused_and_left_alone
     assert (folder / "metrics.jsonl").read_text() == "the first process's records\n"
     with run_folder_lock(tmp_path, job.name):  # released when its holder is done
         pass
+
+
+def test_resume_reuses_only_what_this_code_made(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                capsys: pytest.CaptureFixture[str]) -> None:
+    """A result made by other code (its fingerprint differs) runs again; one from before results carried a
+    fingerprint is reused and counted; one made by this code is reused."""
+    from bench import runs as bench_runs
+
+    jobs = paper.plan(["CartPole-v0"], ["weighted"], [101, 102, 103], 2, 12, "inprocess", [])
+    here = bench_runs.code_fingerprint("federation")
+    old = [{"job": asdict(jobs[0]), "code": here, "made": "before"},
+           {"job": asdict(jobs[1]), "code": "0" * 16, "made": "before"},
+           {"job": asdict(jobs[2]), "made": "before"}]
+    (tmp_path / "results.jsonl").write_text("".join(json.dumps(r) + "\n" for r in old))
+    ran: list[int] = []
+
+    def fake(job: Job, runs_dir: Path) -> dict:
+        ran.append(job.seed)
+        return {"job": asdict(job), "code": here, "made": "now", "task": job.task, "kind": job.kind,
+                "strategy": job.strategy, "seed": job.seed, "finished": False, "end_reason": "fake", "last_worker": {},
+                "audit": {"passed": True}}
+
+    monkeypatch.setattr(paper, "execute", fake)
+    results = paper.run_jobs(jobs, 1, tmp_path, resume=True)
+    assert ran == [102] and [r["made"] for r in results] == ["before", "now", "before"]
+    assert "1 of them made by other code before; 1 reused without a code fingerprint" in capsys.readouterr().out
+    again = paper.run_jobs(jobs, 1, tmp_path, resume=True)  # the new result, last in the file, is the one reused
+    assert ran == [102] and [r["made"] for r in again] == ["before", "now", "before"]

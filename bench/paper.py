@@ -134,20 +134,14 @@ def run_jobs(jobs: list[Job], parallel: int, runs_dir: Path, resume: bool = Fals
     fingerprint is reused and counted (the report says how many)."""
     runs_dir.mkdir(parents=True, exist_ok=True)
     log_path = runs_dir / "results.jsonl"
-    done: dict[tuple[Any, ...], dict[str, Any]] = {}
-    other_code: set[tuple[Any, ...]] = set()
+    latest: dict[tuple[Any, ...], dict[str, Any]] = {}  # each job's last result without an error
     if resume and log_path.exists():
-        for line in log_path.read_text().splitlines():
-            rec = json.loads(line)
-            if "error" in rec:
-                continue
-            job = Job(**rec["job"])
-            if rec.get("code", code_fingerprint(job.kind)) != code_fingerprint(job.kind):
-                other_code.add(job.key)
-                done.pop(job.key, None)
-            else:
-                done[job.key] = rec
-                other_code.discard(job.key)
+        for rec in map(json.loads, log_path.read_text().splitlines()):
+            if "error" not in rec:
+                latest[Job(**rec["job"]).key] = rec
+    done = {key: rec for key, rec in latest.items()  # made by this code, or before results carried a fingerprint
+            if rec.get("code") in (None, code_fingerprint(rec["job"]["kind"]))}
+    other_code = latest.keys() - done.keys()
     todo = [j for j in jobs if j.key not in done]
     todo.sort(key=lambda j: -_COST.get(j.task, 1.0) * (1 if j.kind == "federation" else 0.5))
     stale = sum(1 for j in todo if j.key in other_code)

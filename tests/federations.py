@@ -107,6 +107,43 @@ class Runs:
         return self._made[policy]
 
 
+def over_mqtt(url: str, run_id: str, run_dir: Path, env: str, policy: str, seed: int, workers: int,
+              max_episodes: int, algo: str = "ppo") -> None:
+    """A federation whose chief and workers each have their own MQTT connection to the broker at ``url``, in threads
+    of this process (the services deploy.inprocess runs on its in-memory hub), to its end."""
+    from chief.service import ChiefService, Outputs
+    from chief.settings import ChiefSettings
+    from worker.service import WorkerService
+    from worker.settings import WorkerSettings
+
+    chief = ChiefService(ChiefSettings.given(broker=url, run_id=run_id, workers=workers, env=env, policy=policy,
+                                             seed=seed, max_episodes=max_episodes, round_timeout=600.0,
+                                             run_dir=run_dir, algo=algo),
+                         outputs=Outputs(tensorboard=False, plot=False, progress=False))
+    services = [chief] + [WorkerService(WorkerSettings.given(broker=url, run_id=run_id, worker_id=f"w{i}", env=env,
+                                                             algo=algo))
+                          for i in range(workers)]
+    run_in_threads([s.run for s in services], timeout=900)
+
+
+def all_records(run_dir: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The submissions' records per worker and round, and the round records in order; without their times and
+    the workers' life tokens."""
+    lines = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    for line in lines:
+        line.pop("t")
+        if isinstance(line.get("played"), dict):
+            line["played"].pop("life")  # a random token per worker process (protocol.messages.Played)
+    subs = sorted((r for r in lines if r["type"] != "round"), key=lambda r: (r["worker"], r["round"]))
+    return subs, [r for r in lines if r["type"] == "round"]
+
+
+def per_worker_final(run_dir: Path) -> list[tuple[Any, ...]]:
+    """Each worker's (id, episodes, steps, final PI, state) from summary.json."""
+    summary = json.loads((run_dir / "summary.json").read_text())
+    return [(w["id"], w["episodes"], w["steps"], w["final_pi"], w["state"]) for w in summary["workers"]]
+
+
 def run_in_threads(services: Sequence[Callable[[], int]], timeout: float) -> None:
     """Run each service (a chief's or a worker's ``run``) in a thread of this process; assert each returned 0."""
     codes: dict[int, int] = {}

@@ -5,22 +5,16 @@ under every strategy. The benchmarks' numbers come from the in-process runs: thi
 
 from __future__ import annotations
 
-import json
 import subprocess
 from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
 
 import pytest
 
 from chief import strategies
 from chief.audit import audit
-from chief.service import ChiefService, Outputs
-from chief.settings import ChiefSettings
 from services.broker.embedded import start_broker_process, stop_process
-from tests.federations import run_in_threads
-from worker.service import WorkerService
-from worker.settings import WorkerSettings
+from tests.federations import all_records, over_mqtt, per_worker_final
 
 pytestmark = pytest.mark.slow
 
@@ -39,44 +33,51 @@ def broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
         log.close()
 
 
-def over_mqtt(url: str, policy: str, run_dir: Path) -> None:
-    """The chief and the workers, each on its own MQTT connection to the broker, in threads of this process."""
-    run_id = f"eq-{policy}"
-    chief = ChiefService(ChiefSettings.given(broker=url, run_id=run_id, workers=WORKERS, env=ENV, policy=policy,
-                                             seed=SEED, max_episodes=EPISODES, round_timeout=600.0, run_dir=run_dir),
-                         outputs=Outputs(tensorboard=False, plot=False, progress=False))
-    services = [chief] + [WorkerService(WorkerSettings.given(broker=url, run_id=run_id, worker_id=f"w{i}", env=ENV))
-                          for i in range(WORKERS)]
-    run_in_threads([s.run for s in services], timeout=900)
-
-
-def records(run_dir: Path) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
-    """The submissions' records per worker and round, and the round records in order; without their times and
-    the workers' life tokens."""
-    lines = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
-    for line in lines:
-        line.pop("t")
-        if isinstance(line.get("played"), dict):
-            line["played"].pop("life")  # a random token per worker process (protocol.messages.Played)
-    subs = sorted((r for r in lines if r["type"] != "round"), key=lambda r: (r["worker"], r["round"]))
-    return subs, [r for r in lines if r["type"] == "round"]
-
-
-def per_worker(run_dir: Path) -> list[tuple[Any, ...]]:
-    summary = json.loads((run_dir / "summary.json").read_text())
-    return [(w["id"], w["episodes"], w["steps"], w["final_pi"], w["state"]) for w in summary["workers"]]
-
-
 @pytest.mark.parametrize("policy", strategies.names())
 def test_in_process_and_over_mqtt_give_the_same_federation(broker: str, tmp_path: Path, policy: str) -> None:
     from deploy.inprocess import run_federation
 
-    over_mqtt(broker, policy, tmp_path / "mqtt")
+    over_mqtt(broker, f"eq-{policy}", tmp_path / "mqtt", ENV, policy, SEED, WORKERS, EPISODES)
     summary = run_federation(ENV, policy, SEED, WORKERS, EPISODES, tmp_path / "inprocess", plot=False,
                              tensorboard_files=False)
     assert summary["mode"] == "in-process"
-    assert per_worker(tmp_path / "inprocess") == per_worker(tmp_path / "mqtt")
-    subs, rounds = records(tmp_path / "inprocess")
-    assert (subs, rounds) == records(tmp_path / "mqtt")
+    assert per_worker_final(tmp_path / "inprocess") == per_worker_final(tmp_path / "mqtt")
+    subs, rounds = all_records(tmp_path / "inprocess")
+    assert (subs, rounds) == all_records(tmp_path / "mqtt")
     assert len(rounds) == summary["rounds"] > 0
     assert audit(tmp_path / "inprocess").transfers == audit(tmp_path / "mqtt").transfers
+
+
+#: Off-policy learners (worker/sac.py, worker/dqn.py) on their presets' tasks: (learner, task, strategy, seed, M).
+#: SAC on Pendulum-v1 under weighted, seed 102: w0 solves at 17 and hands its actor to w1, which solves at 18.
+OFF_POLICY = [("sac", "Pendulum-v1", "weighted", 102, 18), ("dqn", "CartPole-v0", "sync", 101, 2),
+              ("dqn", "Acrobot-v1", "median", 101, 3)]
+
+
+@pytest.mark.parametrize(("algo", "env", "policy", "seed", "episodes"), OFF_POLICY)
+def test_off_policy_learners_in_process_and_over_mqtt_give_the_same_federation(
+    broker: str, tmp_path: Path, algo: str, env: str, policy: str, seed: int, episodes: int
+) -> None:
+    """The learner travels with the run (ChiefSettings.algo, WorkerSettings.algo): over MQTT the same records as
+    in process, the per-step rounds of sync, and a soft transfer of a SAC actor that the audit checks."""
+    from deploy.inprocess import run_federation
+    from worker.envs import env_spec
+
+    over_mqtt(broker, f"eq-{algo}-{policy}", tmp_path / "mqtt", env, policy, seed, WORKERS, episodes, algo=algo)
+    summary = run_federation(env, policy, seed, WORKERS, episodes, tmp_path / "inprocess", plot=False,
+                             tensorboard_files=False, algo=algo)
+    assert summary["algo"] == algo
+    assert per_worker_final(tmp_path / "inprocess") == per_worker_final(tmp_path / "mqtt")
+    subs, rounds = all_records(tmp_path / "inprocess")
+    assert (subs, rounds) == all_records(tmp_path / "mqtt")
+    if policy == "sync":
+        assert len(rounds) == episodes * env_spec(env).learner_config(algo).update_epochs
+    else:  # every round an aggregate of both workers until the first finisher hands over its actor
+        first = min((r["round"] for r in rounds if r["kind"] == "transfer"), default=episodes + 1)
+        assert all(r["kind"] == "aggregate" and len(r["contributors"]) == WORKERS for r in rounds
+                   if r["round"] < first)
+    reports = audit(tmp_path / "inprocess"), audit(tmp_path / "mqtt")
+    assert reports[0].transfers == reports[1].transfers == (1 if algo == "sac" else 0)
+    if algo == "sac":
+        transfer = next(r for r in rounds if r["kind"] == "transfer")
+        assert transfer["finished"] == ["w0"] and list(transfer["keep_weights"]) == ["w1"]

@@ -103,14 +103,15 @@ def default_workers(task: str) -> int:
 def plan(tasks: Iterable[str], strategy_names: Iterable[str], seeds: Iterable[int], workers: int | None,
          max_episodes: int, mode: str, references: Iterable[str], sb3_tasks: Iterable[str] | None = None,
          algos: Iterable[str] = (learners.DEFAULT,)) -> list[Job]:
-    """Every run of the experiment, per task and learner: federations, then the references."""
+    """Every run of the experiment, per task and learner: federations, then the references. A learner that cannot
+    act in a task's action space (DQN on a continuous one, protocol/learners.py misfit) runs nothing there."""
     from bench import sb3_ref
 
     jobs: list[Job] = []
     refs = set(references)
     for task in tasks:
         n = workers or default_workers(task)
-        for algo in algos:
+        for algo in (a for a in algos if learners.misfit(a, task) is None):
             sb3 = sb3_ref.reference(algo, task) if sb3_tasks is None or task in sb3_tasks else None
             for seed in seeds:
                 jobs += [Job("federation", task, s, seed, n, max_episodes, mode, algo) for s in strategy_names]
@@ -396,6 +397,8 @@ def main(argv: list[str] | None = None) -> int:
            "machine": {"cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}}
     if cfg["seeds"]["report_seeds_used_for_tuning"]:
         print(f"WARNING: seeds {cfg['seeds']['report_seeds_used_for_tuning']} were used for tuning", file=sys.stderr)
+    for task, algo in ((t, a) for t in args.tasks for a in args.algos if learners.misfit(a, t)):
+        print(f"skipping {algo} on {task}: {learners.misfit(algo, task)}", flush=True)
     jobs = plan(args.tasks, args.strategies, args.seeds, args.workers, args.max_episodes, args.mode,
                 args.references, QUICK["sb3_tasks"] if args.quick else None, args.algos)
     results = run_jobs(jobs, args.jobs, args.runs_dir, resume=args.resume)

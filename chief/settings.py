@@ -12,7 +12,16 @@ from protocol import learners
 from protocol.rounds import STALENESS_LIMIT
 from protocol.topics import check_id
 from runtime.model_file import ModelPath
-from runtime.settings import LearnerName, OneOf, RunKeySettings, RunMqttSettings, Settings, TaskName, setting
+from runtime.settings import (
+    LearnerName,
+    OneOf,
+    RunKeySettings,
+    RunMqttSettings,
+    Settings,
+    TaskName,
+    fits_task,
+    setting,
+)
 
 PolicyName = Annotated[str, OneOf(strategies.names)]
 
@@ -34,6 +43,11 @@ class FederationSettings(Settings):
     quorum: int = setting(0, "k of a k-of-n round: it closes when k of the workers it waits for submitted; a later "
                           "submission for it is dropped (refused as late, its worker applies the round's answer); 0: "
                           "every worker (docs/explanation/tiered.md). Per-episode strategies, flat runs", ge=0)
+
+    @model_validator(mode="after")
+    def _learner_fits(self) -> FederationSettings:
+        fits_task(self.algo, self.env)
+        return self
 
     @model_validator(mode="after")
     def _quorum_fits(self) -> FederationSettings:

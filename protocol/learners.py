@@ -8,6 +8,8 @@ learner. Experience never leaves the device: a learner's trajectory memory or re
 
 from __future__ import annotations
 
+from protocol.tasks import TASKS
+
 #: The paper's learner (Section III): every default names it.
 DEFAULT = "ppo"
 
@@ -22,6 +24,10 @@ LEARNERS: dict[str, str] = {
 }
 
 
+#: The learners that act only in a discrete action space.
+DISCRETE_ONLY = frozenset({"dqn"})
+
+
 def names() -> list[str]:
     return list(LEARNERS)
 
@@ -31,3 +37,12 @@ def check(name: str) -> str:
     if name not in LEARNERS:
         raise ValueError(f"unknown learner {name!r}; choose one of {', '.join(LEARNERS)}")
     return name
+
+
+def misfit(name: str, env_id: str) -> str | None:
+    """Why learner ``name`` cannot learn task ``env_id`` (None: it can, or the task does not state its actions)."""
+    spec = TASKS.get(env_id)
+    if name in DISCRETE_ONLY and spec is not None and spec.discrete is False:
+        fits = ", ".join(n for n in LEARNERS if n not in DISCRETE_ONLY)
+        return f"learner {name!r} needs discrete actions and {env_id}'s are continuous; use {fits}"
+    return None

@@ -24,31 +24,35 @@ class TaskSpec:
     r_ceiling: float
     max_steps: int
     note: str = ""
+    #: The action space: True discrete, False continuous, None not stated (a registered extension task); the
+    #: launchers refuse a learner that cannot act in it (protocol/learners.py misfit) before any process starts.
+    discrete: bool | None = None
 
 
 TASKS: dict[str, TaskSpec] = {
     t.env_id: t
     for t in (
-        TaskSpec("CartPole-v0", tc=195.0, r_floor=0.0, r_ceiling=200.0, max_steps=200),
+        TaskSpec("CartPole-v0", tc=195.0, r_floor=0.0, r_ceiling=200.0, max_steps=200, discrete=True),
         TaskSpec(
             "MountainCarContinuous-v0",
             tc=90.0,
             r_floor=-99.9,
             r_ceiling=100.0,
             max_steps=999,
+            discrete=False,
             note="gym's own reward (+100 at the goal minus 0.1*a^2 per step) never exceeds 100, so the paper's "
             "TC of 200 is unreachable; 90 is gym's reward_threshold. Floor: -0.1 * 1^2 * 999 steps.",
         ),
-        TaskSpec("Acrobot-v1", tc=-100.0, r_floor=-500.0, r_ceiling=0.0, max_steps=500),
-        TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, r_ceiling=0.0, max_steps=200,
+        TaskSpec("Acrobot-v1", tc=-100.0, r_floor=-500.0, r_ceiling=0.0, max_steps=500, discrete=True),
+        TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, r_ceiling=0.0, max_steps=200, discrete=False,
                  note="floor: 200 steps at the largest cost pi^2 + 0.1*8^2 + 0.001*2^2 (paper Eq. 12)"),
         TaskSpec("qube", tc=float(qube.MAX_RETURN), r_floor=0.0, r_ceiling=float(qube.MAX_RETURN),
-                 max_steps=qube.MAX_RETURN,
+                 max_steps=qube.MAX_RETURN, discrete=True,
                  note=f"QUBE-Servo 2 balance: +1 per {qube.PERIOD_S * 1e3:g} ms step while |alpha| <= "
                  f"{math.degrees(qube.BALANCE_BAND):g} deg (paper Section V-B-2), on a rig reached over MQTT (a real "
                  "one behind rpi_bridge, or services.qube_sim)"),
         TaskSpec("qube-local", tc=float(qube.MAX_RETURN), r_floor=0.0, r_ceiling=float(qube.MAX_RETURN),
-                 max_steps=qube.MAX_RETURN,
+                 max_steps=qube.MAX_RETURN, discrete=True,
                  note="the same balance task on the simulated rig in the worker's own process (no MQTT)"),
     )
 }

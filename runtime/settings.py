@@ -114,6 +114,15 @@ def _words(value: Any) -> Any:
 #: A task of protocol/tasks.py.
 TaskName = Annotated[str, OneOf(lambda: sorted(TASKS))]
 LearnerName = Annotated[str, OneOf(learners.names)]
+
+
+def fits_task(algo: str, env: str) -> None:
+    """A ValueError when learner ``algo`` cannot act in task ``env``'s action space (for the settings' validators:
+    refused with one line before a process starts, not by a worker that dies while its chief waits)."""
+    if (problem := learners.misfit(algo, env)) is not None:
+        raise ValueError(problem)
+
+
 #: A list given as ``a,b,c`` (or spaces) in a variable and as separate words on the command line.
 Words = Annotated[list[str], NoDecode, BeforeValidator(_words)]
 Counts = Annotated[list[PositiveInt], NoDecode, BeforeValidator(_words), Field(min_length=1)]

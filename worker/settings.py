@@ -21,6 +21,7 @@ from runtime.settings import (
     RunMqttSettings,
     Settings,
     TaskName,
+    fits_task,
     setting,
 )
 
@@ -70,6 +71,11 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     init_model: ModelPath | None = setting(
         None, "warm start: begin from this model (a models/<id>.pt, or a run folder: its first worker to solve); "
         "unset: from scratch", metavar="PATH")
+
+    @model_validator(mode="after")
+    def _learner_fits(self) -> WorkerSettings:
+        fits_task(self.algo, self.env)
+        return self
 
     @field_validator("worker_id")
     @classmethod
@@ -150,6 +156,7 @@ class TrainLocalSettings(DeviceNoiseSettings):
 
     @model_validator(mode="after")
     def _overrides_parse(self) -> TrainLocalSettings:
+        fits_task(self.algo, self.env)
         for text in self.overrides:
             parse_override(text, self.algo)
         return self

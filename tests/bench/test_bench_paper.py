@@ -73,6 +73,13 @@ def test_plan_has_the_learner_dimension_and_each_learners_sb3_reference() -> Non
     assert paper.parse_args([]).algos == ["ppo", "sac"] and paper.parse_args(["--quick"]).algos == ["ppo"]
 
 
+def test_plan_runs_dqn_only_where_actions_are_discrete() -> None:
+    jobs = paper.plan(["CartPole-v0", "Pendulum-v1"], ["sync"], [101], None, 50, "inprocess", ["single"],
+                      algos=["dqn", "sac"])
+    assert sorted({(j.task, j.algo) for j in jobs}) == [("CartPole-v0", "dqn"), ("CartPole-v0", "sac"),
+                                                         ("Pendulum-v1", "sac")]
+
+
 def test_plan_covers_every_strategy_and_the_references() -> None:
     jobs = paper.plan(["CartPole-v0", "qube-local"], ["independent", "weighted"], [101, 102], None, 50, "inprocess",
                       ["single", "sb3"])

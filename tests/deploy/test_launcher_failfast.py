@@ -1,5 +1,7 @@
 """``make run`` against a broker nobody can reach ends at once: one line and exit code 1, no processes started. A
-quorum with edge chiefs, which no launcher runs, ends the same way before anything starts (exit code 2)."""
+quorum with edge chiefs, which no launcher runs, ends the same way before anything starts (exit code 2), and so does
+a learner that cannot act in the task (DQN on continuous actions), which once left the chief waiting for workers
+that had died at their first step."""
 
 from __future__ import annotations
 
@@ -42,4 +44,17 @@ def test_a_quorum_with_edges_is_one_line_and_exit_2_before_anything_starts(tmp_p
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "--quorum runs flat" in lines[0] and "--edges 0 or --quorum 0" in lines[0], done.stderr
+    assert not run_dir.exists()
+
+
+@pytest.mark.parametrize("launcher", ["deploy.run_local", "deploy.inprocess", "worker", "worker.train_local"])
+def test_a_learner_that_cannot_act_in_the_task_is_one_line_and_exit_2(tmp_path: Path, launcher: str) -> None:
+    run_dir = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", launcher, "--algo", "dqn", "--env", "Pendulum-v1"],
+                          env={**os.environ, "FEDRL_RUN_DIR": str(run_dir)}, capture_output=True, text=True,
+                          timeout=60)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].endswith(
+        "learner 'dqn' needs discrete actions and Pendulum-v1's are continuous; use ppo, sac"), done.stderr
     assert not run_dir.exists()

@@ -8,18 +8,21 @@ from pathlib import Path
 
 import pytest
 from gymnasium import spaces
+from pydantic import ValidationError
 
 from chief.roster import Roster
 from chief.service import ChiefService, Outputs
-from chief.settings import ChiefSettings
+from chief.settings import ChiefSettings, FederationSettings
+from deploy.settings import DockerSettings, InprocessSettings, LocalRunSettings
 from protocol import learners as names
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import WorkerHello
+from protocol.tasks import TASKS
 from runtime.model_file import ModelFileError
 from worker import learners, model
 from worker.episode import build_learner_and_env
 from worker.ppo import PPOLearner
-from worker.settings import TrainLocalSettings, parse_override
+from worker.settings import TrainLocalSettings, WorkerSettings, parse_override
 
 
 def test_the_wire_and_the_worker_name_the_same_learners() -> None:
@@ -75,6 +78,33 @@ def test_each_learner_builds_for_discrete_and_continuous_tasks(env_id: str) -> N
         assert learner.actor_spec() and (learner.critic_spec() or name == "dqn")  # DQN has no critic
         assert learners.recorded(learner.state_dict()) == name
         env.close()
+
+
+def test_misfit_says_what_building_the_learner_finds() -> None:
+    """protocol/learners.py misfit (torch-free, for the launchers) against the learners themselves, on every task
+    whose env this process can make (qube drives a rig over MQTT: qube-local has its spaces)."""
+    for env_id, spec in TASKS.items():
+        assert spec.discrete is not None, f"{env_id} must say whether its actions are discrete"
+        made = "qube-local" if env_id == "qube" else env_id
+        for name in names.names():
+            problem = names.misfit(name, env_id)
+            try:
+                env, _ = build_learner_and_env(made, seed=3, device_noise=0.0, algo=name)
+                env.close()
+            except ValueError:
+                assert problem is not None, (name, env_id)
+            else:
+                assert problem is None, (name, env_id)
+    assert names.misfit("dqn", "an-extension-task") is None  # a registered task that does not say: not refused
+
+
+@pytest.mark.parametrize("settings", [ChiefSettings, FederationSettings, LocalRunSettings, InprocessSettings,
+                                      DockerSettings, WorkerSettings, TrainLocalSettings])
+def test_every_settings_refuse_dqn_on_continuous_actions(settings: type, tmp_path: Path) -> None:
+    needed = {"run_dir": tmp_path} if settings is InprocessSettings else {}
+    with pytest.raises(ValidationError, match="learner 'dqn' needs discrete actions and MountainCarContinuous-v0's"):
+        settings.given(env="MountainCarContinuous-v0", algo="dqn", **needed)
+    assert settings.given(env="Acrobot-v1", algo="dqn", **needed).algo == "dqn"
 
 
 def test_a_model_of_another_learner_is_one_line(tmp_path: Path) -> None:

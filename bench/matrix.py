@@ -29,8 +29,8 @@ from pathlib import Path
 from typing import Any
 
 from bench.output import write_report
-from bench.runs import Job, collect
 from chief import strategies
+from chief.audit import AuditFailure, audit
 from protocol import learners
 
 TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1", "qube-local")
@@ -109,9 +109,12 @@ def run_cell(cell: Cell, m: int, workers: int, seed: int, runs_dir: Path, round_
         return {**row, "ok": ok, "problems": [] if ok else [f"expected one line ending {misfit!r}: {done.stderr}"]}
     if done.returncode != 0 or not (run_dir / "summary.json").exists():
         return {**row, "ok": False, "problems": [f"launcher exited {done.returncode}: {done.stderr[-1500:]}"]}
-    result = collect(run_dir, Job("federation", cell.task, cell.strategy, seed, workers, m, cell.mode, cell.algo))
+    try:
+        passed, detail = True, str(audit(run_dir))
+    except AuditFailure as failure:
+        passed, detail = False, str(failure)
     summary = json.loads((run_dir / "summary.json").read_text())
-    found = problems(cell, summary, result["audit"]["passed"], result["audit"]["detail"], m)
+    found = problems(cell, summary, passed, detail, m)
     return {**row, "ok": not found, "problems": found, "rounds": summary["rounds"],
             "rounds_per_episode": summary["rounds_per_episode"],
             "episodes": {w["id"]: w["episodes"] for w in summary["workers"]}}

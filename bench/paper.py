@@ -397,8 +397,9 @@ def main(argv: list[str] | None = None) -> int:
            "machine": {"cores": os.cpu_count(), "python": platform.python_version(), "platform": platform.platform()}}
     if cfg["seeds"]["report_seeds_used_for_tuning"]:
         print(f"WARNING: seeds {cfg['seeds']['report_seeds_used_for_tuning']} were used for tuning", file=sys.stderr)
-    for task, algo in ((t, a) for t in args.tasks for a in args.algos if learners.misfit(a, t)):
-        print(f"skipping {algo} on {task}: {learners.misfit(algo, task)}", flush=True)
+    for task, algo, why in ((t, a, learners.misfit(a, t)) for t in args.tasks for a in args.algos):
+        if why:
+            print(f"skipping {algo} on {task}: {why}", flush=True)
     jobs = plan(args.tasks, args.strategies, args.seeds, args.workers, args.max_episodes, args.mode,
                 args.references, QUICK["sb3_tasks"] if args.quick else None, args.algos)
     results = run_jobs(jobs, args.jobs, args.runs_dir, resume=args.resume)

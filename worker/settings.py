@@ -155,8 +155,12 @@ class TrainLocalSettings(DeviceNoiseSettings):
     print_every: int = setting(10, "print every N episodes", aliases=["--every"], ge=1)
 
     @model_validator(mode="after")
-    def _overrides_parse(self) -> TrainLocalSettings:
+    def _learner_fits(self) -> TrainLocalSettings:
         fits_task(self.algo, self.env)
+        return self
+
+    @model_validator(mode="after")
+    def _overrides_parse(self) -> TrainLocalSettings:
         for text in self.overrides:
             parse_override(text, self.algo)
         return self

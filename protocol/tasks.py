@@ -85,3 +85,8 @@ def worker_seed(base_seed: int, index: int) -> int:
     Spaced by 1000 so that runs with base seeds 1, 2, 3 ... share no worker seed (up to 1000 workers).
     """
     return base_seed * 1000 + index
+
+
+def worker_index(seed: int) -> int:
+    """The index of the worker (and of its rig) whose seed is ``seed``: the inverse of :func:`worker_seed`."""
+    return seed % 1000

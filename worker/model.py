@@ -64,7 +64,7 @@ def provenance(task: str, env_options: dict[str, Any], seed: int, run_seed: int 
     if profile is not None or task == "qube-local":
         from services.qube_sim.profile import load_profile
 
-        loaded = load_profile(profile or "ideal")
+        loaded = load_profile(profile or "ideal", seed)
         rig = {"given": str(profile or "ideal"), "profile": loaded.model_dump(mode="json")}
     return {
         "task": task, "rig": rig, "randomize": env_options.get("randomize"), "seed": seed, "run_seed": run_seed,

@@ -364,7 +364,7 @@ def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, r
 
     if qube_clock not in LOCAL_CLOCKS:
         raise ValueError(f"qube-local runs on a simulated clock ({' or '.join(LOCAL_CLOCKS)}), not {qube_clock!r}")
-    profile = rig_profile if isinstance(rig_profile, RigProfile) else load_profile(rig_profile or "ideal")
+    profile = rig_profile if isinstance(rig_profile, RigProfile) else load_profile(rig_profile or "ideal", seed)
     timing = None
     if qube_clock == "delayed":
         lo, hi = profile.loop_delay_ms

@@ -63,8 +63,9 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     state_dir: Path | None = setting(None, "when the chief interrupts the run, save this worker's resumable state "
                                      "here as <run>.<id>.state.pt, and take it up when the run resumes (unset: "
                                      "--model-dir; neither: not saved, a resumed run starts this worker afresh)")
-    rig_profile: str | None = setting(None, "--env qube-local: the simulated rig's profile, a built-in (ideal, lab) "
-                                      "or a JSON file (default ideal; a qube_sim rig has its own)", metavar="NAME|FILE")
+    rig_profile: str | None = setting(None, "--env qube-local: the simulated rig's profile, a built-in (ideal, lab), "
+                                      "a JSON file or a folder of them, one per worker (worker i takes its i-th "
+                                      "file; default ideal; a qube_sim rig has its own)", metavar="NAME|FILE|DIR")
     randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
                                       "each reset from +-FRACTION of the profile's values (unset: the profile's)",
                                       ge=0, le=0.5, metavar="FRACTION")

@@ -18,6 +18,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from protocol.tasks import worker_index
 from services.qube_sim.dynamics import QubeParams
 
 #: Profile field -> QubeParams field of the parameters that ``spread`` scales per rig (QubeParams.varied).
@@ -187,14 +188,36 @@ LAB = RigProfile(
 BUILTIN: dict[str, RigProfile] = {"ideal": IDEAL, "lab": LAB}
 
 
-def load_profile(source: str | Path) -> RigProfile:
-    """A built-in profile by name, or a JSON file of one; ProfileError with one clear line otherwise."""
+def load_profile(source: str | Path, seed: int | None = None) -> RigProfile:
+    """A built-in profile by name, a JSON file of one, or a folder of them, one per rig: its ``*.json`` files in name
+    order, the rig of seed S taking file ``worker_index(S)`` (rig i of a run, whose seed is ``worker_seed(base, i)``:
+    protocol/tasks.py). Without ``seed``, every file of a folder is checked and the first returned. ProfileError with
+    one clear line otherwise."""
     text = str(source)
     if text in BUILTIN:
         return BUILTIN[text]
     path = Path(text)
+    if path.is_dir():
+        profiles = [_read_profile(file) for file in profile_files(path)]
+        index = 0 if seed is None else worker_index(seed)
+        if index >= len(profiles):
+            raise ProfileError(f"rig profile folder {path}: rig {index} (seed {seed}) has no profile; the folder holds "
+                               f"{len(profiles)} (rigs 0-{len(profiles) - 1}, its *.json files in name order)")
+        return profiles[index]
     if not path.is_file():
-        raise ProfileError(f"rig profile {text!r} is neither a built-in ({', '.join(BUILTIN)}) nor a file")
+        raise ProfileError(f"rig profile {text!r} is neither a built-in ({', '.join(BUILTIN)}), a file nor a folder")
+    return _read_profile(path)
+
+
+def profile_files(folder: Path) -> list[Path]:
+    """The per-rig profiles of a folder, in the order rigs take them (ProfileError for a folder without any)."""
+    files = sorted(folder.glob("*.json"))
+    if not files:
+        raise ProfileError(f"rig profile folder {folder}: no *.json profile in it")
+    return files
+
+
+def _read_profile(path: Path) -> RigProfile:
     try:
         data = json.loads(path.read_text())
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import field_validator
+from pydantic import field_validator, model_validator
 
 from protocol.rigtime import Clock
 from rpi_bridge.runner import InjectedTiming
@@ -26,8 +26,10 @@ class SimRigSettings(MqttSettings, LoopSettings):
     qube_miss_rate: float | None = setting(None, "clock 'delayed': fraction of actions lost (the safe action "
                                            "instead; unset: the rig profile's loop_miss_rate)",
                                            aliases=["--miss-rate"], ge=0, lt=1)
-    rig_profile: str = setting("ideal", "the rig's physics and non-ideal effects: a built-in profile (ideal, lab) "
-                               "or a JSON file (see --show-profile and docs/rig-profiles.md)", metavar="NAME|FILE")
+    rig_profile: str = setting("ideal", "the rig's physics and non-ideal effects: a built-in profile (ideal, lab), "
+                               "a JSON file, or a folder of them, one per rig (the rig of seed S takes its "
+                               "(S mod 1000)-th file; see --show-profile and docs/rig-profiles.md)",
+                               metavar="NAME|FILE|DIR")
     randomize: float | None = setting(None, "domain randomisation: draw the rig's parameters at each reset from "
                                       "+-FRACTION of the profile's values (unset: the profile's)", ge=0, le=0.5,
                                       metavar="FRACTION")
@@ -47,12 +49,17 @@ class SimRigSettings(MqttSettings, LoopSettings):
             InjectedTiming.parse(value, 0.0)
         return value
 
-    @field_validator("rig_profile", "show_profile")
+    @field_validator("show_profile")
     @classmethod
     def _profile(cls, value: str | None) -> str | None:
         if value is not None:
             load_profile(value)
         return value
 
+    @model_validator(mode="after")
+    def _rig_has_profile(self) -> SimRigSettings:
+        self.profile()  # a folder must hold this rig's file
+        return self
+
     def profile(self) -> RigProfile:
-        return load_profile(self.rig_profile)
+        return load_profile(self.rig_profile, self.seed)

@@ -269,3 +269,31 @@ def test_a_fixed_plant_that_cannot_be_swung_up_fails_after_its_attempts() -> Non
     with pytest.raises(ResetFailed):
         env.reset()
     assert env.redrawn == 0 and env.failed_resets == RESET_ATTEMPTS
+
+
+def test_a_folder_gives_each_rig_its_own_profile(tmp_path: Path) -> None:
+    """Rig i of a run (seed worker_seed(base, i)) takes the folder's i-th file in name order, in every entry point
+    that builds a simulated rig: the qube_sim rig over MQTT and the qube-local env."""
+    from protocol.tasks import worker_seed
+    from services.qube_sim import families
+    from services.qube_sim.settings import SimRigSettings
+
+    rigs = [families.combined(), families.course(), families.family("Dp", 10)]
+    for i, profile in enumerate(rigs):
+        (tmp_path / f"rig{i}.json").write_text(profile.to_json())
+    for i, profile in enumerate(rigs):
+        seed = worker_seed(7, i)
+        assert load_profile(tmp_path, seed) == profile
+        sim = SimRigSettings.load(["--rig-profile", str(tmp_path), "--seed", str(seed)], prog="qube_sim")
+        assert sim.profile() == profile
+        env = make_env("qube-local", seed, rig_profile=str(tmp_path))
+        assert env.unwrapped.profile == profile  # type: ignore[attr-defined]
+    assert load_profile(tmp_path) == rigs[0]  # no seed: every file checked, the first one returned
+    with pytest.raises(ProfileError, match=r"rig 3 \(seed 7003\) has no profile; the folder holds 3"):
+        load_profile(tmp_path, worker_seed(7, 3))
+    (tmp_path / "rig9.json").write_text("{")
+    with pytest.raises(ProfileError, match=r"rig9\.json: not readable JSON"):
+        load_profile(tmp_path, worker_seed(7, 0))  # a bad file anywhere in the folder is refused
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ProfileError, match=r"no \*\.json profile"):
+        load_profile(tmp_path / "empty")

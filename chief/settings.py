@@ -15,11 +15,13 @@ from runtime.model_file import ModelPath
 from runtime.settings import (
     LearnerName,
     OneOf,
+    QubeActions,
     RunKeySettings,
     RunMqttSettings,
     Settings,
     TaskName,
     fits_task,
+    qube_actions_setting,
     setting,
 )
 
@@ -30,6 +32,7 @@ class FederationSettings(Settings):
     """What a run is: the task, the federation strategy, the seed and the limits of its rounds."""
 
     env: TaskName = setting("CartPole-v0", "task every worker learns")
+    qube_actions: QubeActions = qube_actions_setting()
     algo: LearnerName = setting(learners.DEFAULT, "learner every worker runs (python -m worker.learners lists them)")
     policy: PolicyName = setting(strategies.DEFAULT, "federation strategy (python -m chief.strategies describes them)")
     seed: int = setting(1, "base seed; worker i uses seed*1000 + i")
@@ -46,7 +49,7 @@ class FederationSettings(Settings):
 
     @model_validator(mode="after")
     def _learner_fits(self) -> FederationSettings:
-        fits_task(self.algo, self.env)
+        fits_task(self.algo, self.env, self.qube_actions)
         return self
 
     @model_validator(mode="after")

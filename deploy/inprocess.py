@@ -35,6 +35,7 @@ from protocol import topics
 from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import RunStop
+from protocol.tasks import TASKS
 from protocol.transport import Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
@@ -220,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
                                  device_noise=s.device_noise, progress=True, init_model=s.init_model,
-                                 max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum)
+                                 max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum,
+                                 env_options={"qube_actions": s.qube_actions} if TASKS[s.env].qube else None)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

@@ -176,7 +176,7 @@ def warm_start_fits(s: LocalRunSettings) -> bool:
 
     assert s.init_model is not None
     try:
-        init, _ = open_init_model(s.init_model, s.env, algo=s.algo)
+        init, _ = open_init_model(s.init_model, s.env, algo=s.algo, qube_actions=s.qube_actions)
     except ValueError as err:
         print(f"python -m deploy.run_local: {err}", file=sys.stderr)
         return False

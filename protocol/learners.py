@@ -8,6 +8,7 @@ learner. Experience never leaves the device: a learner's trajectory memory or re
 
 from __future__ import annotations
 
+from protocol import qube
 from protocol.tasks import TASKS
 
 #: The paper's learner (Section III): every default names it.
@@ -39,10 +40,15 @@ def check(name: str) -> str:
     return name
 
 
-def misfit(name: str, env_id: str) -> str | None:
-    """Why learner ``name`` cannot learn task ``env_id`` (None: it can, or the task does not state its actions)."""
+def misfit(name: str, env_id: str, qube_actions: str | None = None) -> str | None:
+    """Why learner ``name`` cannot learn task ``env_id`` (None: it can, or the task does not state its actions). On
+    the QUBE tasks the action set ``qube_actions`` (protocol/qube.py) decides whether the actions are discrete."""
     spec = TASKS.get(env_id)
-    if name in DISCRETE_ONLY and spec is not None and spec.discrete is False:
+    discrete = spec.discrete if spec is not None else None
+    if spec is not None and spec.qube and qube_actions is not None:
+        discrete = qube.action_set(qube_actions).discrete
+    if name in DISCRETE_ONLY and discrete is False:
         fits = ", ".join(n for n in LEARNERS if n not in DISCRETE_ONLY)
-        return f"learner {name!r} needs discrete actions and {env_id}'s are continuous; use {fits}"
+        which = f" with --qube-actions {qube_actions}" if spec is not None and spec.qube and qube_actions else ""
+        return f"learner {name!r} needs discrete actions and {env_id}'s are continuous{which}; use {fits}"
     return None

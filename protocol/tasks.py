@@ -27,6 +27,9 @@ class TaskSpec:
     #: The action space: True discrete, False continuous, None not stated (a registered extension task); the
     #: launchers refuse a learner that cannot act in it (protocol/learners.py misfit) before any process starts.
     discrete: bool | None = None
+    #: A QUBE-Servo 2 task: its actions are those of the run's action set (protocol/qube.py ACTION_SETS; ``discrete``
+    #: is the default set's).
+    qube: bool = False
 
 
 TASKS: dict[str, TaskSpec] = {
@@ -47,12 +50,12 @@ TASKS: dict[str, TaskSpec] = {
         TaskSpec("Pendulum-v1", tc=-400.0, r_floor=-200 * 16.2736044, r_ceiling=0.0, max_steps=200, discrete=False,
                  note="floor: 200 steps at the largest cost pi^2 + 0.1*8^2 + 0.001*2^2 (paper Eq. 12)"),
         TaskSpec("qube", tc=float(qube.MAX_RETURN), r_floor=0.0, r_ceiling=float(qube.MAX_RETURN),
-                 max_steps=qube.MAX_RETURN, discrete=True,
+                 max_steps=qube.MAX_RETURN, discrete=True, qube=True,
                  note=f"QUBE-Servo 2 balance: +1 per {qube.PERIOD_S * 1e3:g} ms step while |alpha| <= "
                  f"{math.degrees(qube.BALANCE_BAND):g} deg (paper Section V-B-2), on a rig reached over MQTT (a real "
                  "one behind rpi_bridge, or services.qube_sim)"),
         TaskSpec("qube-local", tc=float(qube.MAX_RETURN), r_floor=0.0, r_ceiling=float(qube.MAX_RETURN),
-                 max_steps=qube.MAX_RETURN, discrete=True,
+                 max_steps=qube.MAX_RETURN, discrete=True, qube=True,
                  note="the same balance task on the simulated rig in the worker's own process (no MQTT)"),
     )
 }

@@ -56,7 +56,7 @@ from pydantic_settings import (
     SettingsError,
 )
 
-from protocol import learners
+from protocol import learners, qube
 from protocol.auth import key_bytes
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 from protocol.tasks import TASKS
@@ -116,10 +116,21 @@ TaskName = Annotated[str, OneOf(lambda: sorted(TASKS))]
 LearnerName = Annotated[str, OneOf(learners.names)]
 
 
-def fits_task(algo: str, env: str) -> None:
+#: An action set of the QUBE tasks (protocol/qube.py ACTION_SETS).
+QubeActions = Annotated[str, OneOf(lambda: list(qube.ACTION_SETS))]
+
+
+def qube_actions_setting() -> Any:
+    """The ``qube_actions`` setting, the same in every process that builds or checks a QUBE task."""
+    return setting(qube.DEFAULT_ACTIONS, "--env qube/qube-local: the action set: paper (the paper's three actions of "
+                   "+-60 counts), levels (nine up to +-150 counts) or voltage (continuous up to +-150 counts; not "
+                   "DQN); docs/explanation/qube-actions.md")
+
+
+def fits_task(algo: str, env: str, qube_actions: str | None = None) -> None:
     """A ValueError when learner ``algo`` cannot act in task ``env``'s action space (for the settings' validators:
     refused with one line before a process starts, not by a worker that dies while its chief waits)."""
-    if (problem := learners.misfit(algo, env)) is not None:
+    if (problem := learners.misfit(algo, env, qube_actions)) is not None:
         raise ValueError(problem)
 
 

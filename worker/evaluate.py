@@ -37,6 +37,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
+from protocol import qube
 from protocol.mqtt import MqttConnection
 from runtime.cli import setup_logging
 from runtime.model_file import ModelFileError, provenance
@@ -100,7 +101,7 @@ def load_learner(path: Path, env_id: str, observation_space: gym.Space, action_s
         made_by = learners.recorded(state)
         kind = learners.get(algo or made_by)
         learner = kind.build(observation_space, action_space, kind.config_class.from_dict(state["config"]), seed=0)
-        model.check_fits(state, learner, env_id, path, kind.name)
+        model.check_fits(state, learner, env_id, path, kind.name, model.recorded_actions(state))
     except (TypeError, ValueError) as exc:
         raise EvalError(str(exc) if isinstance(exc, ModelFileError) else f"{path}: {exc}") from None
     try:
@@ -127,6 +128,15 @@ def task_of(path: Path, given: str | None, rig_id: str | None = None) -> str:
     if recorded == "qube" and rig_id is None:
         return "qube-local"
     return recorded
+
+
+def actions_of_model(path: Path) -> dict[str, Any]:
+    """The env option that gives a QUBE model's env the action set it was made with (empty for other tasks)."""
+    try:
+        actions = model.recorded_actions(model.load_state(path))
+    except ModelFileError as err:
+        raise EvalError(str(err)) from None
+    return {"qube_actions": actions} if actions is not None else {}
 
 
 # -- episodes ----------------------------------------------------------------------------------------------------
@@ -172,6 +182,8 @@ def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, see
         profile = load_profile(rig_profile or "ideal")
     except ProfileError as err:
         raise EvalError(str(err)) from None
+    if actions_of_model(model).get("qube_actions", qube.DEFAULT_ACTIONS) != qube.DEFAULT_ACTIONS:
+        raise EvalError("--rigs tests controllers of the paper's three actions; this model has another action set")
     probe = make_env(env_id, seed, probe=True)
     learner = load_learner(model, env_id, probe.observation_space, probe.action_space, algo)
     d = disturbances or rb.Disturbances()
@@ -203,6 +215,8 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
     extra: dict[str, Any] = {"rig_id": rig_id, "conn": conn} if spec.factory is not None else {}
     if rig_profile is not None:
         extra["rig_profile"] = rig_profile
+    if spec.factory is not None:
+        extra.update(actions_of_model(model))
     environment = make_env(env_id, seed, DeviceNoise(scale=device_noise),
                            render_mode="rgb_array" if video_dir is not None else None, **extra)
     videos: list[str] = []

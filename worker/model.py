@@ -22,6 +22,8 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+from protocol import qube
+from protocol.tasks import TASKS
 from runtime.model_file import InitModel, ModelFileError
 from worker import learners
 from worker.learners import Learner
@@ -67,7 +69,8 @@ def provenance(task: str, env_options: dict[str, Any], seed: int, run_seed: int 
         loaded = load_profile(profile or "ideal", seed)
         rig = {"given": str(profile or "ideal"), "profile": loaded.model_dump(mode="json")}
     return {
-        "task": task, "rig": rig, "randomize": env_options.get("randomize"), "seed": seed, "run_seed": run_seed,
+        "task": task, "rig": rig, "randomize": env_options.get("randomize"),
+        "qube_actions": actions_of(task, env_options), "seed": seed, "run_seed": run_seed,
         "episodes": episodes, "env_steps": env_steps, "worker_id": worker_id, "run_id": run_id,
         "code_version": code_version(),
         "init_model": None if init_model is None else {"path": init_model.given, "digest": init_model.digest},
@@ -91,6 +94,24 @@ def load_state(path: Path) -> dict[str, Any]:
     return state
 
 
+def actions_of(task: str, env_options: dict[str, Any]) -> str | None:
+    """The action set of a QUBE task's options (protocol/qube.py; None for another task)."""
+    spec = TASKS.get(task)
+    return (env_options.get("qube_actions") or qube.DEFAULT_ACTIONS) if spec is not None and spec.qube else None
+
+
+def recorded_actions(state: dict[str, Any]) -> str | None:
+    """The QUBE action set a model was made with (the paper's for a QUBE model saved before models recorded one;
+    None for another task)."""
+    prov = state.get("provenance")
+    actions = prov.get("qube_actions") if isinstance(prov, dict) else None
+    task = recorded_task(state)
+    if isinstance(actions, str):
+        return actions
+    spec = TASKS.get(task or "")
+    return qube.DEFAULT_ACTIONS if spec is not None and spec.qube else None
+
+
 def recorded_task(state: dict[str, Any]) -> str | None:
     """The task a model's provenance names (None for a model saved before models recorded one)."""
     prov = state.get("provenance")
@@ -98,13 +119,18 @@ def recorded_task(state: dict[str, Any]) -> str | None:
     return task if isinstance(task, str) else None
 
 
-def check_fits(state: dict[str, Any], learner: Learner, env_id: str, path: Path, algo: str = "ppo") -> None:
-    """A ModelFileError naming the first difference when the model was made for another task or by another learner
-    than ``algo``, or its networks do not have ``learner``'s shapes (the observation and action spaces) or
-    architecture."""
+def check_fits(state: dict[str, Any], learner: Learner, env_id: str, path: Path, algo: str = "ppo",
+               qube_actions: str | None = None) -> None:
+    """A ModelFileError naming the first difference when the model was made for another task, with another QUBE
+    action set than ``qube_actions`` (default the paper's) or by another learner than ``algo``, or its networks do
+    not have ``learner``'s shapes (the observation and action spaces) or architecture."""
     task = recorded_task(state)
     if task is not None and not same_task(task, env_id):
         raise ModelFileError(f"{path} was made for {task}, not {env_id}")
+    made_with, wanted = recorded_actions(state), actions_of(env_id, {"qube_actions": qube_actions})
+    if made_with is not None and wanted is not None and made_with != wanted:
+        raise ModelFileError(f"{path} was made with the QUBE action set {made_with}, not {wanted} (give "
+                             f"--qube-actions {made_with})")
     made_by = learners.recorded(state)
     if made_by != algo:
         raise ModelFileError(f"{path} was made by learner {made_by}, not {algo} (give --algo {made_by})")
@@ -126,9 +152,10 @@ def check_fits(state: dict[str, Any], learner: Learner, env_id: str, path: Path,
                                  f"{env_id}'s is {getattr(learner.config, key)!r}")
 
 
-def warm_start(learner: Learner, state: dict[str, Any], env_id: str, path: Path, algo: str = "ppo") -> None:
+def warm_start(learner: Learner, state: dict[str, Any], env_id: str, path: Path, algo: str = "ppo",
+               qube_actions: str | None = None) -> None:
     """Check the model against the task and learner (``check_fits``), then start ``learner`` from it."""
-    check_fits(state, learner, env_id, path, algo)
+    check_fits(state, learner, env_id, path, algo, qube_actions)
     try:
         learner.warm_start(state)
     except (KeyError, RuntimeError, ValueError) as exc:
@@ -136,14 +163,16 @@ def warm_start(learner: Learner, state: dict[str, Any], env_id: str, path: Path,
         raise ModelFileError(f"{path} could not be loaded for {env_id}: {first}") from None
 
 
-def open_init_model(path: Path, env_id: str, rig_id: str | None = None,
-                    algo: str = "ppo") -> tuple[InitModel, dict[str, Any]]:
-    """``--init-model PATH`` for task ``env_id`` and learner ``algo``: the model (resolved, digested) and its saved
-    dict, checked against the task's spaces and the learner; ModelFileError (one line, exit 2) otherwise."""
+def open_init_model(path: Path, env_id: str, rig_id: str | None = None, algo: str = "ppo",
+                    qube_actions: str | None = None) -> tuple[InitModel, dict[str, Any]]:
+    """``--init-model PATH`` for task ``env_id``, learner ``algo`` and QUBE action set ``qube_actions``: the model
+    (resolved, digested) and its saved dict, checked against the task's spaces and the learner; ModelFileError (one
+    line, exit 2) otherwise."""
     from worker.episode import build_learner_and_env
 
     init = InitModel.open(path)
     state = load_state(init.file)
-    _, probe = build_learner_and_env(env_id, seed=0, device_noise=0.0, rig_id=rig_id, spec_only=True, algo=algo)
-    check_fits(state, probe, env_id, init.file, algo)
+    _, probe = build_learner_and_env(env_id, seed=0, device_noise=0.0, rig_id=rig_id, spec_only=True, algo=algo,
+                                     env_options={"qube_actions": qube_actions} if qube_actions else None)
+    check_fits(state, probe, env_id, init.file, algo, qube_actions)
     return init, state

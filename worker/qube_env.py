@@ -1,9 +1,10 @@
 """The paper's QUBE-Servo 2 balance task (Section V-B-2) as gymnasium environments.
 
 Observation (pendulum angle, pendulum velocity, arm angle, arm velocity) in rad and rad/s, alpha = 0 upright.
-Actions {-60, 0, +60} SPI motor counts. Reward +1 per 7 ms step while |alpha| <= 7.5 deg; the episode ends when the
-pendulum leaves that band (or the rig faults) and is cut off at 2450 reward; learning is complete when the mean of
-the last 10 episodes reaches 2450 (protocol.tasks, "qube").
+Actions {-60, 0, +60} SPI motor counts (the paper's; ``qube_actions`` picks a set with more authority,
+protocol/qube.py ``ACTION_SETS``: nine levels, or a continuous command). Reward +1 per 7 ms step while |alpha| <= 7.5
+deg; the episode ends when the pendulum leaves that band (or the rig faults) and is cut off at 2450 reward; learning
+is complete when the mean of the last 10 episodes reaches 2450 (protocol.tasks, "qube").
 
 - ``QubeMqttEnv`` drives a rig over MQTT: a real QUBE behind ``python -m rpi_bridge`` or a simulated one behind
   ``python -m services.qube_sim``. ``reset`` asks the rig to swing the pendulum up and hold it, ``step`` answers
@@ -27,7 +28,7 @@ from gymnasium import spaces
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
-from protocol.qube import BALANCE_BAND, MAX_RETURN, PERIOD_S
+from protocol.qube import BALANCE_BAND, MAX_RETURN, PERIOD_S, ActionSet, action_set
 from protocol.rigtime import MEASURED_CLOCKS, EpisodeTime, ticks_to_s
 from protocol.routes import qos_of
 from rpi_bridge.control import ControlConfig, ControlCore, Sensed
@@ -35,7 +36,8 @@ from rpi_bridge.runner import InjectedTiming
 
 log = logging.getLogger("worker.qube")
 
-ACTIONS = (-60, 0, 60)  # SPI motor counts: turn left, stop, turn right
+#: The paper's actions in SPI motor counts (turn left, stop, turn right): the default action set's levels.
+ACTIONS: tuple[int, ...] = action_set(None).levels or ()
 #: Swing-ups tried (the pendulum let settle 3 s between them) before a reset counts as failed.
 RESET_ATTEMPTS = 5
 #: The clocks of ``qube-local`` (simulated time; protocol/rigtime.py): the rig time is never measured there.
@@ -61,11 +63,14 @@ class _QubeTask(gym.Env):
     """Spaces and bookkeeping shared by the two envs, with the rig time of the episode (protocol/rigtime.py)."""
 
     observation_space = spaces.Box(-np.inf, np.inf, shape=(4,), dtype=np.float32)
-    action_space = spaces.Discrete(len(ACTIONS))
     #: Whether this env's rig time is measured in wall seconds (else it comes from the simulated clock).
     measured = False
 
-    def __init__(self) -> None:
+    def __init__(self, actions: ActionSet | None = None) -> None:
+        self.actions = actions or action_set(None)
+        self.action_space: spaces.Space[Any] = (
+            spaces.Discrete(len(self.actions.levels)) if self.actions.levels is not None
+            else spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32))
         self.episode_return = 0.0
         self.balance_steps = 0
         self.reset_s = 0.0
@@ -96,13 +101,15 @@ class QubeMqttEnv(_QubeTask):
     """One rig reached through the broker (topics qube/<rig>/...)."""
 
     def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 10.0,
-                 reset_attempts: int = RESET_ATTEMPTS, settle_s: float = 3.0, qube_clock: str = "realtime") -> None:
+                 reset_attempts: int = RESET_ATTEMPTS, settle_s: float = 3.0, qube_clock: str = "realtime",
+                 actions: ActionSet | None = None) -> None:
         """``step_timeout_s``: a state that does not come within this many seconds of wall time ends the episode
         (a dead rig or link; a live rig reports a fault or goes offline long before). It must be long enough for a
         lockstep rig on a loaded machine, whose episodes would otherwise depend on wall time. ``qube_clock``: the
         rig's clock, which says whether rig time is measured or read from the simulated clock (the ticks between
-        the last state of an episode and the ``ready`` state of the next: a lockstep rig does not tick meanwhile)."""
-        super().__init__()
+        the last state of an episode and the ``ready`` state of the next: a lockstep rig does not tick meanwhile).
+        ``actions``: the action set (default the paper's)."""
+        super().__init__(actions)
         self.measured = qube_clock in MEASURED_CLOCKS
         self._end_seq: int | None = None  # seq of the last state of the episode before
         self.reset_attempts = reset_attempts
@@ -202,7 +209,7 @@ class QubeMqttEnv(_QubeTask):
         last = self._last
         if last is None:
             raise RuntimeError("call reset() first")
-        command = ACTIONS[int(action)]
+        command = self.actions.command(action)
         self.conn.publish(self._action_topic, encode(QubeAction(rig_id=self.rig_id, seq=last.seq, command=command)),
                           qos=self._action_qos)
         deadline = time.monotonic() + self.step_timeout_s
@@ -232,13 +239,14 @@ class QubeLocalEnv(_QubeTask):
     """The same task, rig and bridge code in process: ControlCore over a SimulatedQube on a virtual clock."""
 
     def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000, profile: Any = None,
-                 randomize: float | None = None, timing: InjectedTiming | None = None) -> None:
+                 randomize: float | None = None, timing: InjectedTiming | None = None,
+                 actions: ActionSet | None = None) -> None:
         """``profile`` (a services.qube_sim.profile.RigProfile) gives the rig's physics and non-ideal effects, spread
         by ``seed``; without one, the nominal plant spread by ``variation``. ``randomize`` (or the profile's) draws
         the physics again at every reset. ``timing``: the real loop's timing (the ``delayed`` clock): each action
         reaches the motor a random delay after its state's read, or is lost to the safe action; None: at the read
-        (``lockstep``)."""
-        super().__init__()
+        (``lockstep``). ``actions``: the action set (default the paper's)."""
+        super().__init__(actions)
         from services.qube_sim.clock import VirtualClock
         from services.qube_sim.dynamics import QubeParams
         from services.qube_sim.spi_peer import SimulatedQube
@@ -321,7 +329,7 @@ class QubeLocalEnv(_QubeTask):
         raise ResetFailed("simulated rig did not reset in time")
 
     def step(self, action: Any) -> tuple[np.ndarray, float, bool, bool, dict]:
-        command: int | None = ACTIONS[int(action)]
+        command: int | None = self.actions.command(action)
         delay = self.timing.draw() if self.timing is not None else None
         if self.timing is None or delay is None:  # lockstep: written at the read; delayed and lost: the safe action
             self.core.act(command if self.timing is None else None)
@@ -339,27 +347,31 @@ class QubeLocalEnv(_QubeTask):
 
 
 def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, conn: Any = None,
-                  probe: bool = False, qube_clock: str = "realtime", **_: Any) -> gym.Env:
+                  probe: bool = False, qube_clock: str = "realtime", qube_actions: str | None = None,
+                  **_: Any) -> gym.Env:
     """Factory for the ``qube`` task: the rig ``rig_id`` over the worker's MQTT connection.
 
     Per-device variation comes from the rig itself (each simulated rig draws its physics from its seed and its own
     rig profile; real rigs differ anyway), so the paper's simulated action noise is not added here.
     """
+    actions = action_set(qube_actions)
     if probe:
-        return _QubeTask()
+        return _QubeTask(actions)
     if conn is None or not rig_id:
         raise ValueError("env 'qube' drives a rig over MQTT: give the worker --rig-id (FEDRL_RIG_ID)")
-    return QubeMqttEnv(conn, rig_id, qube_clock=qube_clock)
+    return QubeMqttEnv(conn, rig_id, qube_clock=qube_clock, actions=actions)
 
 
 def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, rig_profile: Any = None,
-                        randomize: float | None = None, qube_clock: str = "lockstep", **_: Any) -> gym.Env:
+                        randomize: float | None = None, qube_clock: str = "lockstep", qube_actions: str | None = None,
+                        **_: Any) -> gym.Env:
     """Factory for the ``qube-local`` task: a simulated rig inside the worker, its physics drawn from ``seed`` around
     ``rig_profile`` (a name, a JSON file or a RigProfile; default ``ideal``), on the simulated clock ``qube_clock``:
     ``lockstep``, or ``delayed`` (the profile's ``loop_delay_ms`` and ``loop_miss_rate``, as ``python -m
     services.qube_sim --clock delayed`` applies them)."""
+    actions = action_set(qube_actions)
     if probe:
-        return _QubeTask()
+        return _QubeTask(actions)
     from services.qube_sim.profile import RigProfile, load_profile
 
     if qube_clock not in LOCAL_CLOCKS:
@@ -369,4 +381,4 @@ def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, r
     if qube_clock == "delayed":
         lo, hi = profile.loop_delay_ms
         timing = InjectedTiming((lo / 1e3, hi / 1e3), profile.loop_miss_rate, seed=seed)
-    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize, timing=timing)
+    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize, timing=timing, actions=actions)

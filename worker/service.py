@@ -93,7 +93,8 @@ class WorkerService:
         self.init_model: InitModel | None = None
         self.init_state: dict[str, Any] | None = None
         if cfg.init_model is not None:
-            self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id, cfg.algo)
+            self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id, cfg.algo,
+                                                                          cfg.qube_actions)
         self.key = cfg.key()  # the run's key: every chief message must carry its HMAC (protocol/auth.py)
         self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
         self.outbox: dict[int, tuple[bytes, float]] = {}  # staleness: owed rounds' payloads and when first sent
@@ -188,7 +189,7 @@ class WorkerService:
         """Say hello every second until the chief's RunStart names this worker."""
         cfg = self.cfg
         _, probe = build_learner_and_env(cfg.env, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
-                                         spec_only=True, algo=cfg.algo)
+                                         spec_only=True, algo=cfg.algo, env_options=cfg.env_options())
         hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env, actor_spec=probe.actor_spec(),
                             critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs, algo=cfg.algo,
                             host=socket.gethostname(), pid=os.getpid(),
@@ -226,7 +227,8 @@ class WorkerService:
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
                                              env_options=cfg.env_options(), algo=cfg.algo)
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
-            model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo)
+            model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo,
+                             cfg.qube_actions)
             log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])
         self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,

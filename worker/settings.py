@@ -9,7 +9,7 @@ from typing import Any
 from pydantic import field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
 
-from protocol import learners
+from protocol import learners, qube
 from protocol.rigtime import Clock
 from protocol.topics import check_id
 from runtime.model_file import ModelPath
@@ -17,11 +17,13 @@ from runtime.settings import (
     LearnerName,
     LogLevel,
     MqttSettings,
+    QubeActions,
     RunKeySettings,
     RunMqttSettings,
     Settings,
     TaskName,
     fits_task,
+    qube_actions_setting,
     setting,
 )
 
@@ -39,6 +41,7 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     worker_id: str = setting("auto", "worker id, unique in the run ('auto' = hostname plus a random suffix)",
                              aliases=["--id"])
     env: TaskName = setting("CartPole-v0", "task to learn; must match the chief's")
+    qube_actions: QubeActions = qube_actions_setting()
     algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them); must match the "
                                 "chief's")
     rig_id: str | None = setting(None, "QUBE-Servo 2 rig to drive when --env qube")
@@ -75,7 +78,7 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
 
     @model_validator(mode="after")
     def _learner_fits(self) -> WorkerSettings:
-        fits_task(self.algo, self.env)
+        fits_task(self.algo, self.env, self.qube_actions)
         return self
 
     @field_validator("worker_id")
@@ -98,11 +101,13 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
 
     def env_options(self) -> dict[str, Any]:
         """Options for the task's factory: the rig's clock of qube, the rig profile and randomisation of qube-local."""
+        actions = {"qube_actions": self.qube_actions} if self.qube_actions != qube.DEFAULT_ACTIONS else {}
         if self.env == "qube":
-            return {"qube_clock": self.qube_clock}
+            return {"qube_clock": self.qube_clock, **actions}
         if self.env != "qube-local":
             return {}
         options = {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}
+        options.update(actions)
         return {**options, "qube_clock": "delayed"} if self.qube_clock == "delayed" else options
 
 
@@ -147,6 +152,7 @@ class TrainLocalSettings(DeviceNoiseSettings):
     """One worker, no federation: Algorithm 2 without the chief, for experiments and tuning."""
 
     env: TaskName = setting("CartPole-v0", "task to learn")
+    qube_actions: QubeActions = qube_actions_setting()
     algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them)")
     seed: int = setting(1, "seed of the networks, the sampling and the env")
     max_episodes: int = setting(2000, "the most episodes (the paper's M)", aliases=["--episodes"], ge=1)
@@ -157,7 +163,7 @@ class TrainLocalSettings(DeviceNoiseSettings):
 
     @model_validator(mode="after")
     def _learner_fits(self) -> TrainLocalSettings:
-        fits_task(self.algo, self.env)
+        fits_task(self.algo, self.env, self.qube_actions)
         return self
 
     @model_validator(mode="after")

@@ -7,7 +7,7 @@ number of the round they answer (protocol/rounds.py) next to its episode and ste
 ChiefClaim is a chief's exclusive, retained claim of a run. EdgePartial is an edge chief's part of a round, for the root
 chief (a tiered run). Every chief message carries ``tag``: its HMAC-SHA256
 under the run's key (protocol/auth.py), empty when the run has no key.
-Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeStatus, QubeTelemetry.
+Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeIdentify, QubeRecording, QubeStatus, QubeTelemetry.
 """
 
 from __future__ import annotations
@@ -398,6 +398,30 @@ class QubeReset(Message):
     request_id: int = Field(ge=0)
 
 
+class QubeIdentify(Message):
+    """Ask a rig to run the identification protocol (rpi_bridge/identify.py) and send back what it recorded."""
+
+    kind: Literal["qube_identify"] = "qube_identify"
+    rig_id: Ident
+    request_id: int = Field(ge=0)
+
+
+#: The largest recording a rig sends (gzip JSON): a 3-minute protocol at 7 ms compresses to about 0.3 MB.
+MAX_RECORDING_BYTES = 3_500_000
+
+
+class QubeRecording(Message):
+    """A rig's answer to a QubeIdentify: ``outcome`` "complete" with the recording (rpi_bridge/identify.py
+    ``Recording`` as gzip-compressed JSON), or the one-line reason it has none (the protocol could not finish
+    safely, the start-up checks failed)."""
+
+    kind: Literal["qube_recording"] = "qube_recording"
+    rig_id: Ident
+    request_id: int = Field(ge=0)
+    outcome: str = Field(min_length=1, max_length=2000)
+    recording: bytes = Field(default=b"", max_length=MAX_RECORDING_BYTES)
+
+
 class QubeStatus(Message):
     """Rig state changes: start-up checks (calibrating, self_test), ready (after a reset), running, fault (amplifier
     disabled), reset failed."""
@@ -458,6 +482,8 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         QubeState,
         QubeAction,
         QubeReset,
+        QubeIdentify,
+        QubeRecording,
         QubeStatus,
         QubeTelemetry,
         Chunk,

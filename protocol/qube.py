@@ -20,7 +20,7 @@ MAX_RETURN = 2450
 
 #: A bridge's phases (rpi_bridge/control.py): a worker answers states in ``ready``/``running``; ``fallen`` and
 #: ``fault`` end an episode.
-Phase = Literal["calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault"]
+Phase = Literal["calibrating", "self_test", "idle", "resetting", "identifying", "ready", "running", "fallen", "fault"]
 #: What a rig's status reports: its phase, or a failed reset, or (its MQTT last will) offline.
 RigState = Literal[Phase, "reset_failed", "offline"]
 

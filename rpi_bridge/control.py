@@ -13,6 +13,8 @@ Phases:
 - ``ready``: the pendulum is held by the reset controller; states of the new episode are published, the first one
   already awaiting an action; the first action from the worker hands the rig over (if none comes, the hold
   continues);
+- ``identifying``: the identification protocol (rpi_bridge/identify.py) drives the arm and records; on its end
+  (complete or aborted) back to ``idle`` with :attr:`ControlCore.identification` holding the recording;
 - ``running``: the worker's action for each state is applied if it is written to the motor within the deadline of
   that state's read, else the safe action (a miss);
 - ``fallen``: the pendulum left the balance band; amplifier off until the next reset;
@@ -36,6 +38,7 @@ from protocol import qube
 from rpi_bridge.calibration import Calibration, CalibrationStore, decide, is_still
 from rpi_bridge.device import QubeDevice
 from rpi_bridge.frame import MAX_COMMAND, build_command, clamp_command, parse_reply
+from rpi_bridge.identify import Identification, IdentifyConfig
 from rpi_bridge.reset import ResetConfig, ResetController
 from rpi_bridge.selftest import SelfTest, SelfTestConfig
 from rpi_bridge.velocity import VelocityFilter
@@ -46,6 +49,7 @@ LEDS: dict[str, tuple[int, int, int]] = {
     "self_test": (999, 0, 999),  # magenta
     "idle": (0, 0, 999),  # blue
     "resetting": (999, 999, 0),  # yellow
+    "identifying": (600, 0, 999),  # violet
     "ready": (999, 999, 999),  # white
     "running": (0, 999, 0),  # green
     "fallen": (999, 300, 0),  # orange
@@ -54,7 +58,7 @@ LEDS: dict[str, tuple[int, int, int]] = {
 }
 
 #: Phases in which the amplifier is enabled.
-DRIVEN = ("self_test", "resetting", "ready", "running")
+DRIVEN = ("self_test", "resetting", "identifying", "ready", "running")
 
 
 def check_max_command(counts: int) -> int:
@@ -82,6 +86,7 @@ class ControlConfig:
     hang_tolerance_counts: int = 6  # a stored calibration must read the resting pendulum within this of hanging
     self_test: SelfTestConfig = field(default_factory=SelfTestConfig)
     reset: ResetConfig = field(default_factory=ResetConfig)
+    identify: IdentifyConfig | None = None  # None: the protocol's defaults at this period, max_command and soft limit
 
     def __post_init__(self) -> None:
         if not self.period_s > 0:
@@ -177,6 +182,8 @@ class ControlCore:
         self._theta = 0.0  # the last arm angle read, and its rate
         self._theta_dot = 0.0
         self._return_limit = 0.0  # a reset that starts past the arm limit may bring the arm back from there
+        self._pending_identify: int | None = None
+        self.identification: Identification | None = None  # the last identification run (its recording, failure)
 
     # -- requests (the runner calls these between ticks) -------------------------------------------------------
 
@@ -189,6 +196,21 @@ class ControlCore:
         if self.phase in ("calibrating", "self_test") and self._pending_reset != request_id:
             self.events.append((self.phase, request_id, f"reset {request_id} waits for the start-up checks"))
         self._pending_reset = request_id
+
+    def request_identify(self, request_id: int) -> None:
+        """Run the identification protocol once the start-up checks have passed (from idle, fallen or a cleared
+        fault, as a reset); its recording is :attr:`identification` once the phase is back to idle. A repeat of the
+        request last served is ignored."""
+        if request_id == self.request_id or request_id == self._pending_identify:
+            return
+        if self.phase in ("calibrating", "self_test"):
+            self.events.append((self.phase, request_id, f"identification {request_id} waits for the start-up checks"))
+        self._pending_identify = request_id
+
+    @property
+    def identify_pending(self) -> bool:
+        """An identification request waits to be served at the next tick."""
+        return self._pending_identify is not None
 
     @property
     def reset_pending(self) -> bool:
@@ -203,9 +225,10 @@ class ControlCore:
         self.counters.ticks += 1
         self.seq += 1
         self._serve_pending_reset()
+        self._serve_pending_identify()
         enable = self.phase in DRIVEN
-        frame = build_command(clamp_command(self._hold_command, MAX_COMMAND) if enable else 0, enable=enable,
-                              leds=LEDS[self.phase])
+        written = clamp_command(self._hold_command, MAX_COMMAND) if enable else 0
+        frame = build_command(written, enable=enable, leds=LEDS[self.phase])
         now = self.clock()
         reading = parse_reply(self.device.transfer(frame))
         dt = cfg.period_s if self._read_at is None or not now > self._read_at else now - self._read_at
@@ -241,6 +264,8 @@ class ControlCore:
             self._calibrate(counts)
         elif self.phase == "self_test":
             self._run_self_test(counts)
+        elif self.phase == "identifying":
+            self._run_identification(state, dt, written)
         elif self.phase == "resetting":
             command, ctl_phase = self._reset_ctl.step(state, dt)
             self._hold_command = command
@@ -394,7 +419,44 @@ class ControlCore:
         if self._pending_reset is not None:
             self._serve_pending_reset()
 
+    def _serve_pending_identify(self) -> None:
+        request = self._pending_identify
+        if request is None or self.phase in ("calibrating", "self_test"):
+            return
+        if self._pending_reset is not None:  # a reset asked for since supersedes it
+            self._pending_identify = None
+            self.events.append(("idle", request, f"identification {request} superseded by a reset request"))
+            return
+        self._pending_identify = None
+        if self.refusal or not self.started:
+            why = f"the bridge refuses to run: {self.refusal}" if self.refusal else "the start-up checks did not pass"
+            self.events.append(("idle", request, f"identification {request} refused: {why}"))
+            return
+        cfg = self.cfg
+        config = cfg.identify or IdentifyConfig(period_s=cfg.period_s, max_command=cfg.max_command,
+                                                arm_soft_limit=cfg.reset.arm_soft_limit,
+                                                brake_accel=cfg.reset.brake_accel)
+        self.request_id = request
+        self.fault_reason = ""
+        self.phase = "identifying"
+        self.identification = Identification(config)
+        self._hold_command = 0
+        self.events.append(("identifying", request, ""))
+
+    def _run_identification(self, state: tuple[float, float, float, float], dt: float, written: int) -> None:
+        ident = self.identification
+        assert ident is not None
+        self._hold_command = ident.step(state, dt, written)
+        if ident.done:
+            self._hold_command = 0
+            self.phase = "idle"
+            detail = (f"identification aborted: {ident.failure}" if ident.failure else
+                      f"identification complete: {ident.t[-1]:.1f} s recorded")
+            self.events.append(("idle", self.request_id, detail))
+
     def _start_reset(self, request_id: int) -> None:
+        if self.phase == "identifying" and self.identification is not None:
+            self.identification.abort(f"a reset ({request_id}) was requested")
         self.request_id = request_id
         if abs(self._theta) > self.cfg.arm_limit:
             outward = max(0.0, math.copysign(1.0, self._theta) * self._theta_dot)
@@ -407,6 +469,8 @@ class ControlCore:
         self.events.append(("resetting", request_id, ""))
 
     def _fault(self, reason: str) -> None:
+        if self.phase == "identifying" and self.identification is not None:
+            self.identification.abort(f"fault: {reason}")
         if self.phase != "fault":
             self.counters.faults += 1
             self.events.append(("fault", self.request_id, reason))

@@ -21,6 +21,8 @@ import math
 import random
 from dataclasses import dataclass, fields, replace
 
+import numpy as np
+
 from rpi_bridge.velocity import wrap_angle
 
 
@@ -134,6 +136,52 @@ def derivatives(
     friction_p = friction(p.Cp, p.Sp, alpha_dot, p) if p.Cp or p.Sp else 0.0
     s, c = math.sin(alpha), math.cos(alpha)
     s2 = 2.0 * s * c  # sin(2 alpha)
+    P = 4.0 * p.Jp + Lp * Lp * mp
+    Q = 4.0 * p.Jr + Lp * Lp * mp * s * s + 4.0 * Lr * Lr * mp
+    D = 4.0 * Lp * Lp * Lr * Lr * mp * mp * c * c - P * Q
+    A = -8.0 * (p.Dp * alpha_dot + friction_p) + Lp * Lp * mp * theta_dot * theta_dot * s2 + 4.0 * Lp * p.g * mp * s
+    B = (
+        4.0 * p.Dr * theta_dot
+        + Lp * Lp * mp * alpha_dot * theta_dot * s2
+        + 2.0 * Lp * Lr * mp * alpha_dot * alpha_dot * s
+        - 4.0 * tau
+    )
+    theta_ddot = (-Lp * Lr * mp * A * c + P * B) / D
+    alpha_ddot = (2.0 * Lp * Lr * mp * B * c - 0.5 * Q * A) / D
+    return theta_ddot, alpha_ddot
+
+
+# -- the same equations of motion on numpy arrays (many states at once: the identification fit's windows) ---------
+# Kept beside the scalar functions above, term for term; tests/services/test_identify.py checks they agree. The scalar
+# path stays pure Python: numpy on one state is several times slower.
+
+
+def motor_torque_array(p: QubeParams, voltage: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
+    """:func:`motor_torque` on arrays."""
+    if p.voltage_offset or p.deadzone:
+        voltage = voltage + p.voltage_offset
+        voltage = np.sign(voltage) * np.maximum(0.0, np.abs(voltage) - p.deadzone)
+    return -p.kt * (voltage + p.km * theta_dot) / p.Rm
+
+
+def friction_array(coulomb: float, static: float, speed: np.ndarray, p: QubeParams) -> np.ndarray:
+    """:func:`friction` on arrays."""
+    level: np.ndarray | float = coulomb
+    if static > coulomb:
+        level = coulomb + (static - coulomb) * np.exp(-((speed / p.stribeck_speed) ** 2))
+    return level * np.tanh(speed / p.coulomb_speed)
+
+
+def derivatives_array(
+    p: QubeParams, theta_dot: np.ndarray, alpha: np.ndarray, alpha_dot: np.ndarray, tau: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`derivatives` on arrays of states (same parameters for all)."""
+    mp, Lp, Lr = p.mp, p.Lp, p.Lr
+    if p.Cr or p.Sr:
+        tau = tau - friction_array(p.Cr, p.Sr, theta_dot, p)
+    friction_p = friction_array(p.Cp, p.Sp, alpha_dot, p) if p.Cp or p.Sp else 0.0
+    s, c = np.sin(alpha), np.cos(alpha)
+    s2 = 2.0 * s * c
     P = 4.0 * p.Jp + Lp * Lp * mp
     Q = 4.0 * p.Jr + Lp * Lp * mp * s * s + 4.0 * Lr * Lr * mp
     D = 4.0 * Lp * Lp * Lr * Lr * mp * mp * c * c - P * Q

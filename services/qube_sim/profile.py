@@ -41,6 +41,25 @@ def _f(default: float, description: str, ge: float = 0.0, le: float | None = Non
     return Field(default, description=description, ge=ge, le=le, allow_inf_nan=False)
 
 
+class Identified(BaseModel):
+    """How a profile was identified from a rig (services/qube_sim/identify.py): the fitted values, each one's 1-sigma
+    (relative, a fraction of the value; ``delay_ms``'s in ms), the fit's RMS angle errors and where it came from."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    fitted: dict[str, float] = Field(description="fitted name -> value (profile units; motor: km = kt; delay_ms: "
+                                     "a command's delay after its read)")
+    sigma: dict[str, float] = Field(description="fitted name -> 1-sigma, relative (delay_ms: in ms)")
+    train_rms_deg: float = Field(ge=0, description="RMS angle prediction error on the fitted windows, deg")
+    heldout_rms_deg: float = Field(ge=0, description="RMS angle prediction error on the held-out block, deg")
+    rig_seconds: float = Field(ge=0, description="rig time of the identification protocol, s")
+    fitted_at: str = Field(description="UTC time of the fit (ISO 8601)")
+    source: str = Field("", description="the recording it was fitted from")
+    base: str = Field("", description="the profile of every value not fitted")
+    rig: str = Field("", description="the rig the recording came from")
+    fit_wall_s: float = Field(0.0, ge=0, description="wall seconds of the fit")
+
+
 class RigProfile(BaseModel):
     """A family of simulated rigs (see the module docstring). Units: SI, except volts, milliseconds and counts."""
 
@@ -94,6 +113,8 @@ class RigProfile(BaseModel):
     ranges: dict[str, tuple[float, float]] = Field(default_factory=dict, description="domain randomisation: at each "
                                                    "reset, draw these parameters uniformly from [lo, hi] (absolute "
                                                    "values; 'motor' is a factor on km and kt)")
+    identified: Identified | None = Field(None, description="set on a profile fitted to a rig's identification "
+                                          "recording (docs/how-to/identify.md)")
 
     @model_validator(mode="after")
     def _consistent(self) -> RigProfile:
@@ -165,7 +186,8 @@ class RigProfile(BaseModel):
                 "missed_actions": self.missed_actions}
 
     def to_json(self) -> str:
-        return json.dumps(self.model_dump(mode="json"), indent=2) + "\n"
+        exclude = {"identified"} if self.identified is None else None  # a profile that was not identified: as before
+        return json.dumps(self.model_dump(mode="json", exclude=exclude), indent=2) + "\n"
 
 
 IDEAL = RigProfile(name="ideal", description="The simulated rigs as they were before profiles: the manual's plant, "

@@ -1,0 +1,355 @@
+"""The host's fit of an identification recording (rpi_bridge/identify.py) to a rig profile, with scipy.optimize.
+
+Multiple shooting: the recording is cut into windows of ``window_s``; each starts from the recorded angles with
+non-causal velocity estimates (Savitzky-Golay, ``savgol``), all windows are simulated at once with the vectorised
+equations of motion (services/qube_sim/dynamics.py, ``derivatives_array``: the simulator's own, RK4 in ``substeps``
+per tick) under the recorded commands, and ``scipy.optimize.least_squares`` minimises the angle prediction error
+(theta and alpha, rad) over the parameters in :data:`FITTED` (log space; the loop's delay linear). Each command acts
+from its read plus the fitted ``delay_ms`` (the previous command before). The rest comes from a base profile.
+
+Trust: the fit is refused (:class:`FitRefused`, one line; nothing written) unless the optimiser converged, the
+recording moved the arm, each parameter in :data:`GATED` has a relative 1-sigma (the sandwich covariance in log
+space, clustered by window: :func:`_covariance`) of at most ``max_sigma``, and the
+RMS angle error on the held-out block (the last ``holdout`` of the recording's ``prbs`` segment, contiguous in time,
+never fitted) is at most ``max_heldout_deg`` and at most ``max_heldout_ratio`` times the training RMS.
+
+``python -m services.qube_sim.identify RECORDING --out PROFILE.json [--base lab]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
+from pathlib import Path
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import savgol_filter
+
+from rpi_bridge.frame import VOLTS_PER_COUNT
+from rpi_bridge.identify import Recording, RecordingError
+from services.qube_sim.dynamics import QubeParams, derivatives_array, motor_torque_array
+from services.qube_sim.profile import Identified, ProfileError, RigProfile, load_profile
+
+#: Fitted quantities: name -> (lower, upper) bound of its value. ``static_ratio`` is static_arm / coulomb_arm,
+#: ``motor`` km = kt, ``delay_ms`` the command's delay after its read (fitted linearly; everything else in log space).
+FITTED: dict[str, tuple[float, float]] = {
+    "Dr": (1e-6, 0.05), "Dp": (1e-7, 0.01), "coulomb_arm": (1e-5, 0.05), "static_ratio": (1.0, 5.0),
+    "coulomb_pendulum": (1e-7, 0.01), "motor": (0.005, 0.2), "deadzone_v": (1e-3, 3.0), "mr": (0.005, 2.0),
+    "delay_ms": (0.0, 7.0),
+}
+#: Parameters whose uncertainty decides whether the fit is trusted (the ones that decide control).
+GATED = ("Dr", "Dp", "coulomb_arm", "motor", "mr")
+
+
+class FitRefused(RuntimeError):
+    """A fit that is not to be trusted (its message is the one-line reason)."""
+
+
+@dataclass(frozen=True)
+class FitConfig:
+    window_s: float = 0.35
+    substeps: int = 2  # RK4 steps per tick (3.5 ms at 7 ms: the simulator uses 1 ms; see the docs for the effect)
+    savgol: int = 11  # samples in the velocity estimate's window (polynomial of order 3)
+    holdout: float = 0.25  # fraction of the prbs segment, at its end, held out
+    max_nfev: int = 60
+    max_sigma: float = 0.25
+    max_heldout_deg: float = 2.0
+    max_heldout_ratio: float = 2.5
+    min_arm_travel_deg: float = 10.0  # a recording whose arm moved less than this is no identification
+
+
+@dataclass
+class Windows:
+    """Windows of one recording: start states (n, 4), commands (n, L + 1: the one before each tick first), tick
+    durations (n, L) and the measured angles after each tick (n, L, 2)."""
+
+    x0: np.ndarray
+    commands: np.ndarray
+    dt: np.ndarray
+    measured: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.x0)
+
+
+@dataclass
+class Fit:
+    values: dict[str, float]
+    sigma: dict[str, float]  # relative 1-sigma (delay_ms: absolute, ms)
+    train_rms_deg: float
+    heldout_rms_deg: float
+    iterations: int
+    converged: bool
+    message: str
+    wall_s: float
+    params: QubeParams
+    windows: tuple[int, int] = (0, 0)  # (training, held-out)
+    extra: dict[str, float] = field(default_factory=dict)
+
+
+def cut(rec: Recording, cfg: FitConfig) -> tuple[Windows, Windows]:
+    """(training, held-out) windows of ``rec``."""
+    t = np.asarray(rec.t)
+    theta = np.asarray(rec.theta)
+    alpha = np.unwrap(np.asarray(rec.alpha))
+    u = np.asarray(rec.command, dtype=float)
+    n = len(t)
+    length = max(2, round(cfg.window_s / rec.period_s))
+    win = min(cfg.savgol, n - (1 - n % 2)) | 1
+    if n < length + 1 or win < 5:
+        raise FitRefused(f"the recording has {n} ticks: too short to fit")
+    theta_dot = savgol_filter(theta, win, 3, deriv=1, delta=rec.period_s)
+    alpha_dot = savgol_filter(alpha, win, 3, deriv=1, delta=rec.period_s)
+    prbs = [(a, b) for label, a, b in rec.segments if label == "prbs"]
+    hold_from = n
+    if prbs:
+        a, b = prbs[-1]
+        hold_from = b - round(cfg.holdout * (b - a))
+    starts = range(1, n - length, length)
+    train = [s for s in starts if s + length <= hold_from]
+    held = [s for s in starts if s >= hold_from and s + length <= (prbs[-1][1] if prbs else n)]
+
+    def build(sel: list[int]) -> Windows:
+        idx = np.asarray(sel, dtype=int)
+        steps = idx[:, None] + np.arange(length)[None, :]
+        return Windows(x0=np.stack([theta[idx], alpha[idx], theta_dot[idx], alpha_dot[idx]], axis=1),
+                       commands=np.concatenate([u[idx - 1][:, None], u[steps]], axis=1),
+                       dt=t[steps + 1] - t[steps],
+                       measured=np.stack([theta[steps + 1], alpha[steps + 1]], axis=2))
+
+    if not train or not held:
+        raise FitRefused("the recording has no prbs segment long enough for both a fit and a held-out block")
+    return build(train), build(held)
+
+
+def simulate(p: QubeParams, w: Windows, delay_s: float, substeps: int) -> np.ndarray:
+    """Predicted (theta, alpha) after each tick of every window, (n, L, 2): RK4 with ``substeps`` per tick; over
+    each sub-step the voltage is the time average of the previous command (until ``delay_s`` into the tick) and this
+    tick's."""
+    theta, alpha, theta_dot, alpha_dot = (w.x0[:, i].copy() for i in range(4))
+    volts = w.commands * VOLTS_PER_COUNT
+    n, length = w.dt.shape
+    out = np.empty((n, length, 2))
+    for k in range(length):
+        dt = w.dt[:, k]
+        h = dt / substeps
+        before, now = volts[:, k], volts[:, k + 1]
+        for i in range(substeps):
+            f = np.clip((delay_s - i * h) / h, 0.0, 1.0)
+            v = f * before + (1.0 - f) * now
+
+            def rates(th: np.ndarray, al: np.ndarray, thd: np.ndarray, ald: np.ndarray,
+                      v: np.ndarray = v) -> tuple[np.ndarray, ...]:
+                tau = motor_torque_array(p, v, thd)
+                if p.cable_stiffness:
+                    tau = tau - p.cable_stiffness * (th - p.cable_rest)
+                tdd, add = derivatives_array(p, thd, al, ald, tau)
+                return thd, ald, tdd, add
+
+            x = (theta, alpha, theta_dot, alpha_dot)
+            k1 = rates(*x)
+            k2 = rates(*(xi + 0.5 * h * ki for xi, ki in zip(x, k1, strict=True)))
+            k3 = rates(*(xi + 0.5 * h * ki for xi, ki in zip(x, k2, strict=True)))
+            k4 = rates(*(xi + h * ki for xi, ki in zip(x, k3, strict=True)))
+            theta, alpha, theta_dot, alpha_dot = (
+                xi + h / 6.0 * (a + 2.0 * b + 2.0 * c + d) for xi, a, b, c, d in zip(x, k1, k2, k3, k4, strict=True))
+        out[:, k, 0] = theta
+        out[:, k, 1] = alpha
+    return out
+
+
+def _covariance(jac: np.ndarray, residuals: np.ndarray, windows: int) -> np.ndarray:
+    """Covariance of the fitted (log) parameters, robust to the residuals of one window being correlated (they
+    share its start state's error): the sandwich (J^T J)^-1 (sum over windows of J_w^T r_w r_w^T J_w) (J^T J)^-1,
+    windows as independent clusters. Infinite where J^T J is singular (a parameter the recording does not see)."""
+    k = jac.shape[1]
+    try:
+        bread = np.linalg.inv(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        return np.full((k, k), np.inf)
+    scores = (jac * residuals[:, None]).reshape(windows, -1, k).sum(axis=1)  # (windows, k)
+    meat = scores.T @ scores * windows / max(1, windows - k)
+    cov = bread @ meat @ bread
+    return np.where(np.isfinite(cov), cov, np.inf)
+
+
+def _params(base: QubeParams, values: dict[str, float], static_pendulum_ratio: float) -> QubeParams:
+    cr = values["coulomb_arm"]
+    cp = values["coulomb_pendulum"]
+    return replace(base, Dr=values["Dr"], Dp=values["Dp"], Cr=cr, Sr=cr * values["static_ratio"], Cp=cp,
+                   Sp=cp * static_pendulum_ratio, km=values["motor"], kt=values["motor"], deadzone=values["deadzone_v"],
+                   mr=values["mr"])
+
+
+def _initial(base: RigProfile) -> dict[str, float]:
+    guess = {"Dr": base.Dr, "Dp": base.Dp, "coulomb_arm": base.coulomb_arm or 1e-3,
+             "static_ratio": base.static_arm / base.coulomb_arm if base.coulomb_arm and base.static_arm else 1.3,
+             "coulomb_pendulum": base.coulomb_pendulum or 1e-4, "motor": base.km, "deadzone_v": base.deadzone_v or 0.05,
+             "mr": base.mr, "delay_ms": 1.0}
+    return {k: min(FITTED[k][1], max(FITTED[k][0], v)) for k, v in guess.items()}
+
+
+def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
+        progress: Callable[[str], None] | None = None) -> Fit:
+    """Fit ``rec`` from ``base``'s values (the starting point and everything not fitted). FitRefused when the
+    recording cannot be fitted at all; an untrusted fit is returned (see :func:`check`)."""
+    cfg = cfg or FitConfig()
+    began = time.perf_counter()
+    if not rec.complete:
+        raise FitRefused(f"the recording is incomplete ({rec.outcome})")
+    travel = math.degrees(max(rec.theta) - min(rec.theta))
+    if travel < cfg.min_arm_travel_deg:
+        raise FitRefused(f"the arm moved {travel:.1f} deg over the whole recording (at least "
+                         f"{cfg.min_arm_travel_deg:.0f} needed): the rig did not respond to the protocol")
+    train, held = cut(rec, cfg)
+    names = list(FITTED)
+    linear = {"delay_ms"}
+    to_z = {k: (lambda v: v / 7.0) if k in linear else math.log for k in names}
+    lo = np.array([to_z[k](FITTED[k][0]) for k in names])
+    hi = np.array([to_z[k](FITTED[k][1]) for k in names])
+    start = _initial(base)
+    z0 = np.clip(np.array([to_z[k](start[k]) for k in names]), lo + 1e-9, hi - 1e-9)
+    nominal = base.params()
+    sp_ratio = base.static_pendulum / base.coulomb_pendulum if base.coulomb_pendulum and base.static_pendulum else 0.0
+
+    def values_of(z: np.ndarray) -> dict[str, float]:
+        return {k: (float(zi) * 7.0 if k in linear else math.exp(zi)) for k, zi in zip(names, z, strict=True)}
+
+    def residuals(z: np.ndarray, w: Windows) -> np.ndarray:
+        v = values_of(z)
+        pred = simulate(_params(nominal, v, sp_ratio), w, v["delay_ms"] / 1e3, cfg.substeps)
+        r = (pred - w.measured).ravel()
+        return np.where(np.isfinite(r), r, 10.0)
+
+    evaluations = [0]
+
+    def counted(z: np.ndarray) -> np.ndarray:
+        evaluations[0] += 1
+        r = residuals(z, train)
+        if progress is not None and evaluations[0] % (len(names) + 1) == 1:
+            rms = math.degrees(float(np.sqrt(np.mean(r * r))))
+            progress(f"fit evaluation {evaluations[0]}: training RMS {rms:.3f} deg")
+        return r
+
+    result = least_squares(counted, z0, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-3,
+                           max_nfev=cfg.max_nfev, xtol=1e-6, ftol=1e-8)
+    values = values_of(result.x)
+    r_train = result.fun
+    r_held = residuals(result.x, held)
+    cov = _covariance(np.asarray(result.jac), r_train, len(train))
+    var = np.diag(cov)
+    sigma = {}
+    for i, name in enumerate(names):
+        sd = math.sqrt(var[i]) if var[i] >= 0 else math.inf
+        sigma[name] = sd * 7.0 if name in linear else sd
+    i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
+    v_static = var[i_c] + var[i_r] + 2 * cov[i_c, i_r]
+    sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
+    values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
+    return Fit(values=values, sigma=sigma,
+               train_rms_deg=math.degrees(float(np.sqrt(np.mean(r_train**2)))),
+               heldout_rms_deg=math.degrees(float(np.sqrt(np.mean(r_held**2)))),
+               iterations=int(result.nfev), converged=result.status > 0, message=str(result.message),
+               wall_s=time.perf_counter() - began, params=_params(nominal, values, sp_ratio),
+               windows=(len(train), len(held)))
+
+
+def check(result: Fit, cfg: FitConfig | None = None) -> None:
+    """FitRefused (one line) unless the fit is to be trusted (see the module docstring)."""
+    cfg = cfg or FitConfig()
+    if not result.converged:
+        raise FitRefused(f"the fit did not converge in {result.iterations} evaluations ({result.message})")
+    loose = [f"{k} +-{result.sigma[k]:.0%}" for k in GATED if not result.sigma[k] <= cfg.max_sigma]
+    if loose:
+        raise FitRefused(f"the fit is too uncertain: {', '.join(loose)} (at most +-{cfg.max_sigma:.0%} trusted): "
+                         "the recording does not determine them")
+    for k in GATED:
+        lo, hi = FITTED[k]
+        if not lo * 1.01 < result.values[k] < hi * 0.99:
+            raise FitRefused(f"the fit put {k} at its bound ({result.values[k]:.3g}): no rig this model describes")
+    if not result.heldout_rms_deg <= cfg.max_heldout_deg:
+        raise FitRefused(f"held-out RMS angle error {result.heldout_rms_deg:.2f} deg exceeds "
+                         f"{cfg.max_heldout_deg:.1f} deg: the fitted model does not predict the rig")
+    if not result.heldout_rms_deg <= cfg.max_heldout_ratio * result.train_rms_deg:
+        raise FitRefused(f"held-out RMS angle error {result.heldout_rms_deg:.2f} deg is more than "
+                         f"{cfg.max_heldout_ratio:g}x the training error ({result.train_rms_deg:.2f} deg): overfitted")
+
+
+def to_profile(result: Fit, base: RigProfile, rec: Recording, source: str, name: str | None = None) -> RigProfile:
+    """``base`` with the fitted values, no spread (it is one rig), and what it was fitted from."""
+    v = result.values
+    delay = max(0.0, min(7.0 - base.action_jitter_ms,
+                         v["delay_ms"] - base.sensing_latency_ms - base.action_jitter_ms / 2))
+    identified = Identified(
+        fitted={k: v[k] for k in (*FITTED, "static_arm") if k != "static_ratio"},
+        sigma={k: result.sigma[k] for k in (*FITTED, "static_arm") if k != "static_ratio"},
+        train_rms_deg=result.train_rms_deg, heldout_rms_deg=result.heldout_rms_deg, rig_seconds=rec.rig_seconds,
+        fitted_at=datetime.now(UTC).isoformat(timespec="seconds"), source=source, base=base.name,
+        rig=rec.rig, fit_wall_s=result.wall_s)
+    data = {**base.model_dump(), "name": name or f"{rec.rig or base.name}-identified",
+            "description": f"identified from {source} ({rec.rig_seconds:.0f} s of rig time) over {base.name}",
+            "Dr": v["Dr"], "Dp": v["Dp"], "coulomb_arm": v["coulomb_arm"], "static_arm": v["static_arm"],
+            "coulomb_pendulum": v["coulomb_pendulum"],
+            "static_pendulum": result.params.Sp, "km": v["motor"], "kt": v["motor"], "deadzone_v": v["deadzone_v"],
+            "mr": v["mr"], "action_delay_ms": delay, "spread": 0.0, "spread_nonideal": 0.0, "randomize": 0.0,
+            "ranges": {}, "identified": identified.model_dump()}
+    return RigProfile.model_validate(data)
+
+
+def summary(result: Fit) -> str:
+    """One line per fitted value with its 1-sigma, then the errors."""
+    lines = []
+    for k, v in result.values.items():
+        if k == "static_ratio":
+            continue
+        sd = f"+-{result.sigma[k]:.2f} ms" if k == "delay_ms" else f"+-{result.sigma[k]:.1%}"
+        lines.append(f"  {k:17s} {v:.4g} {sd}")
+    lines.append(f"  RMS angle error: training {result.train_rms_deg:.3f} deg ({result.windows[0]} windows), "
+                 f"held out {result.heldout_rms_deg:.3f} deg ({result.windows[1]} windows); {result.iterations} "
+                 f"evaluations, {result.wall_s:.1f} s")
+    return "\n".join(lines)
+
+
+def fit_and_write(rec: Recording, base: RigProfile, out: Path, source: str, cfg: FitConfig | None = None,
+                  progress: Callable[[str], None] | None = None) -> tuple[Fit, RigProfile]:
+    """Fit, check and write the profile (only a trusted one); FitRefused otherwise."""
+    result = fit(rec, base, cfg, progress)
+    if progress is not None:
+        progress(summary(result))
+    check(result, cfg)
+    profile = to_profile(result, base, rec, source)
+    out.write_text(profile.to_json())
+    return result, profile
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m services.qube_sim.identify",
+                                     description="Fit a rig profile to a bridge's identification recording "
+                                                 "(python -m rpi_bridge --identify OUT); writes it only if trusted.")
+    parser.add_argument("recording", type=Path)
+    parser.add_argument("--out", type=Path, required=True, help="the profile JSON to write")
+    parser.add_argument("--base", default="lab", help="profile of everything not fitted (built-in name or file)")
+    args = parser.parse_args(argv)
+    try:
+        base = load_profile(args.base)
+        rec = Recording.load(args.recording)
+    except (ProfileError, RecordingError) as err:
+        print(f"identify: {err}", file=sys.stderr)
+        return 2
+    try:
+        _, profile = fit_and_write(rec, base, args.out, str(args.recording), progress=print)
+    except FitRefused as err:
+        print(f"identify: refused: {err}", file=sys.stderr)
+        return 1
+    print(f"wrote {args.out}: profile {profile.name!r} from {rec.rig_seconds:.0f} s of rig time")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -32,13 +32,14 @@ import math
 import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from protocol import qube
 from rpi_bridge.calibration import Calibration, CalibrationStore, decide, is_still
 from rpi_bridge.device import QubeDevice
 from rpi_bridge.frame import MAX_COMMAND, build_command, clamp_command, parse_reply
 from rpi_bridge.identify import Identification, IdentifyConfig
+from rpi_bridge.plant import PlantModel
 from rpi_bridge.reset import ResetConfig, ResetController
 from rpi_bridge.selftest import SelfTest, SelfTestConfig
 from rpi_bridge.velocity import VelocityFilter
@@ -106,6 +107,13 @@ class ControlConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.still_counts < 0 or self.hang_tolerance_counts < 0:
             raise ValueError("still_counts and hang_tolerance_counts must be >= 0")
+
+
+def with_model(config: ControlConfig, model: PlantModel) -> ControlConfig:
+    """``config`` for a rig of ``model`` (an identified one; rpi_bridge/plant.py): the reset's swing-up, hold gains
+    and friction compensation and the self-test's first pulse come from it."""
+    return replace(config, reset=replace(config.reset, model=model),
+                   self_test=SelfTestConfig.for_model(model, config.self_test))
 
 
 @dataclass(frozen=True)
@@ -184,6 +192,8 @@ class ControlCore:
         self._return_limit = 0.0  # a reset that starts past the arm limit may bring the arm back from there
         self._pending_identify: int | None = None
         self.identification: Identification | None = None  # the last identification run (its recording, failure)
+        self.reset_failures = 0  # resets in a row that did not reach ready: the next one's strategy (reset.py)
+        self._reset_open = False  # a reset started and not ready yet
 
     # -- requests (the runner calls these between ticks) -------------------------------------------------------
 
@@ -271,6 +281,7 @@ class ControlCore:
             self._hold_command = command
             if ctl_phase == "ready":
                 self.phase = "ready"
+                self.reset_failures, self._reset_open = 0, False
                 self.episode = self.request_id
                 self._since_action = 0.0
                 self.events.append(("ready", self.request_id, ""))
@@ -458,15 +469,18 @@ class ControlCore:
         if self.phase == "identifying" and self.identification is not None:
             self.identification.abort(f"a reset ({request_id}) was requested")
         self.request_id = request_id
+        if self._reset_open:  # the reset before did not reach ready (failed, faulted or given up)
+            self.reset_failures += 1
+        self._reset_open = True
         if abs(self._theta) > self.cfg.arm_limit:
             outward = max(0.0, math.copysign(1.0, self._theta) * self._theta_dot)
             stopping = outward * outward / (2.0 * self.cfg.reset.brake_accel)
             self._return_limit = abs(self._theta) + stopping + math.radians(3.0)
         self.fault_reason = ""
         self.phase = "resetting"
-        self._reset_ctl.reset()
+        self._reset_ctl.reset(self.reset_failures)
         self._hold_command = 0
-        self.events.append(("resetting", request_id, ""))
+        self.events.append(("resetting", request_id, f"strategy '{self._reset_ctl.strategy}'"))
 
     def _fault(self, reason: str) -> None:
         if self.phase == "identifying" and self.identification is not None:

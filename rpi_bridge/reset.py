@@ -37,80 +37,23 @@ rigs spread +-15 % and 5x pendulum damping; ``python -m bench.reset`` measures t
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
-from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT, clamp_command
+from rpi_bridge.frame import MAX_COMMAND, clamp_command
+from rpi_bridge.plant import PlantModel, lqr_gains
 from rpi_bridge.velocity import VelocityFilter, wrap_angle
 
-# Discrete LQR at T = 7 ms for x = (theta, alpha, theta_dot, alpha_dot), u in SPI counts (1 count = 24/999 V),
-# on the linearised gym_brt plant with braking back-EMF (services.qube_sim.dynamics.linearize, nominal
-# parameters), Q = diag(1, 10, 0, 0), R = 5e-3 per count^2. Chosen among LQR designs for the largest catch
-# region with the one-tick actuation delay and the alpha_dot filter in the loop: spectral radius of that
-# closed loop 0.985 with the 100 rad/s filter (<= 0.988 over +-5 % rigs); more aggressive designs (R <= 1e-3)
-# go unstable with 50 rad/s.
+# The hold's gains before they were computed from a model: discrete LQR at T = 7 ms for x = (theta, alpha,
+# theta_dot, alpha_dot), u in counts, on the nominal plant, Q = diag(1, 10, 0, 0), R = 5e-3 per count^2, designed
+# without the actuation delay. rpi_bridge.plant.lqr_gains reproduces them from PlantModel() without the delay to
+# 4 digits (tests/rpi_bridge/test_reset_model.py); the hold now uses the design with the delay in the state.
 LQR_GAINS = (12.7, -563.3, 13.3, -39.0)
-
-
-@dataclass(frozen=True)
-class PlantModel:
-    """Nominal QUBE-Servo 2 ([UM] Table 2.2, gym_brt damping) for the energy and the computed-torque command.
-    Kept here because rpi_bridge must not import services/."""
-
-    Rm: float = 8.4
-    km: float = 0.042
-    mr: float = 0.095
-    Lr: float = 0.085
-    mp: float = 0.024
-    Lp: float = 0.129
-    Dr: float = 0.00027
-    Dp: float = 0.00005
-    g: float = 9.81
-    volts_per_count: float = VOLTS_PER_COUNT
-
-    @property
-    def swing_depth(self) -> float:
-        """2*mp*g*l: the energy from hanging at rest to upright at rest (J)."""
-        return self.mp * self.g * self.Lp
-
-    def pendulum_energy(self, alpha: float, alpha_dot: float) -> float:
-        """E = Jp_pivot*alpha_dot^2/2 + mp*g*(Lp/2)*(cos(alpha) - 1), Jp_pivot = mp*Lp^2/3 (rod about its
-        end)."""
-        j_pivot = self.mp * self.Lp * self.Lp / 3.0
-        return 0.5 * j_pivot * alpha_dot * alpha_dot + 0.5 * self.mp * self.g * self.Lp * (
-            math.cos(alpha) - 1.0
-        )
-
-    def command_for_arm_accel(
-        self, theta_ddot: float, alpha: float, theta_dot: float, alpha_dot: float
-    ) -> float:
-        """Motor counts that give the arm acceleration ``theta_ddot``: gym_brt's equations of motion
-        (services.qube_sim.dynamics) as M @ (theta_ddot, alpha_ddot) = (tau + r1, r2), the pendulum row
-        eliminated, with tau = -km*(V + km*theta_dot)/Rm."""
-        mp, Lp, Lr = self.mp, self.Lp, self.Lr
-        s, c = math.sin(alpha), math.cos(alpha)
-        s2 = 2.0 * s * c
-        m11 = self.mr * Lr * Lr / 12.0 + mp * Lr * Lr + mp * Lp * Lp * s * s / 4.0
-        m12 = -0.5 * mp * Lp * Lr * c
-        m22 = mp * Lp * Lp / 3.0
-        r1 = -(
-            self.Dr * theta_dot
-            + 0.25 * Lp * Lp * mp * alpha_dot * theta_dot * s2
-            + 0.5 * Lp * Lr * mp * alpha_dot * alpha_dot * s
-        )
-        r2 = (
-            -self.Dp * alpha_dot
-            + 0.125 * Lp * Lp * mp * theta_dot * theta_dot * s2
-            + 0.5 * Lp * self.g * mp * s
-        )
-        tau = (m11 - m12 * m12 / m22) * theta_ddot + m12 / m22 * r2 - r1
-        volts = -tau * self.Rm / self.km - self.km * theta_dot
-        return volts / self.volts_per_count
 
 
 @dataclass(frozen=True)
 class ResetConfig:
     """Tunables of :class:`ResetController` (angles in rad, times in s, accelerations in rad/s^2, commands in SPI
-    counts)."""
+    counts). The model gives the energy, the computed torque, the hold's gains and its friction compensation."""
 
     balance_band: float = math.radians(5.0)
     hold_time_s: float = 0.5
@@ -126,18 +69,29 @@ class ResetConfig:
     arm_wn: float = 4.0  # rad/s: arm centering during swing-up (critically damped acceleration PD)
     prediction_ticks: float = 1.75  # swing-up acts on the state predicted this many ticks ahead
     # adaptive energy target E0 (fractions of swing_depth)
+    initial_energy: float = 0.0  # E0 at the start of an attempt
     boost_gain: float = 0.6  # E0 += boost_gain * (1 - cos(alpha))/2 at a turnaround short of the top
     boost_min_angle: float = math.radians(22.0)  # turnarounds closer to the top than this do not boost
+    low_boost_gain: float = 0.1  # E0 += low_boost_gain * (the energy lacking) at a turnaround below horizontal
     boost_max: float = 0.8
     overshoot_gain: float = 0.5  # E0 -= overshoot_gain * (excess - overshoot_margin) on a pass over the top
     overshoot_margin: float = 0.1
+    # settling before the swing-up (a retry's strategy)
+    settle_first: bool = False  # centre the arm and let the pendulum calm down before pumping
+    settle_energy: float = -0.9  # ... until its energy is below this (fraction of swing_depth; -1 is at rest)
+    settle_max_s: float = 5.0  # ... or this long at most
     # the arm's travel
     arm_soft_limit: float = math.radians(80.0)  # the swing-up keeps the arm inside (the bridge faults at 110)
     brake_accel: float = 100.0  # braking assumed available at full voltage
     brake_delay_ticks: float = 1.3  # latency between a reading and the command acting
     catch_abandon: float = 0.75  # fraction of the braking budget a catch may use before it is abandoned
-    # hold
-    gains: tuple[float, float, float, float] = LQR_GAINS
+    # hold: LQR from the model (rpi_bridge.plant.lqr_gains) with the delay and the arm angle's integral in the state
+    gains: tuple[float, ...] | None = None  # (theta, alpha, theta_dot, alpha_dot[, u_prev, integral]); None: model
+    period_s: float = 0.007  # the hold's design period (the bridge's tick)
+    integral_weight: float = 1.0  # LQR weight of the arm angle's integral (rad^2 s^2)
+    integral_limit: float = 60.0  # counts: the integral's share of the command is bounded by this (anti-windup)
+    friction_compensation: float = 0.8  # fraction of the model's arm friction and deadzone fed forward
+    stick_speed: float = 0.05  # rad/s: slower than this the arm counts as stuck (breakaway feed-forward)
     theta_error_limit: float = 0.6  # rad: the hold controller sees at most this arm error
     velocity_cutoff: float | None = 100.0  # own alpha_dot filter (rad/s); None: use the alpha_dot passed in
     model: PlantModel = field(default_factory=PlantModel)
@@ -149,24 +103,63 @@ class ResetConfig:
             raise ValueError("need 0 < catch_angle < boost_min_angle < pi/2")
         if not 0 < self.arm_soft_limit < math.pi:
             raise ValueError(f"arm_soft_limit must be in (0, pi), got {self.arm_soft_limit}")
-        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon"):
+        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon", "period_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.gains is not None and len(self.gains) not in (4, 6):
+            raise ValueError(f"gains must have 4 or 6 entries, got {len(self.gains)}")
+        if not 0 <= self.friction_compensation <= 1.5 or self.integral_limit < 0 or self.integral_weight < 0:
+            raise ValueError("need 0 <= friction_compensation <= 1.5, integral_limit >= 0 and integral_weight >= 0")
+
+    def hold_gains(self) -> tuple[float, float, float, float, float, float]:
+        """(k_theta, k_alpha, k_theta_dot, k_alpha_dot, k_u_prev, k_integral): ``gains``, or designed from the
+        model."""
+        k = self.gains if self.gains is not None else lqr_gains(self.model, self.period_s,
+                                                               q_integral=self.integral_weight)
+        return (*k, 0.0, 0.0) if len(k) == 4 else tuple(k)  # type: ignore[return-value]
+
+
+#: The retry strategies: attempt n after n - 1 failures in a row on one rig uses STRATEGIES[n - 1] (the last one
+#: from then on). Each is (name, changes to the ResetConfig; "timeout_factor" scales its timeout_s). A settle first
+#: brings a drifted arm back and lets a messy swing die down; "wide" catches earlier and starts with energy to spare;
+#: "patient" gives a heavily damped pendulum time and adapts faster; "strong" pumps harder and compensates all of
+#: the model's friction.
+STRATEGIES: tuple[tuple[str, dict[str, object]], ...] = (
+    ("standard", {}),
+    ("settle", {"settle_first": True, "timeout_factor": 4 / 3}),
+    ("wide", {"settle_first": True, "catch_angle": math.radians(26.0), "boost_min_angle": math.radians(30.0),
+              "initial_energy": 0.15, "timeout_factor": 4 / 3}),
+    ("patient", {"settle_first": True, "timeout_factor": 2.0, "boost_gain": 0.9, "low_boost_gain": 0.25,
+                 "boost_max": 1.2}),
+    ("strong", {"settle_first": True, "timeout_factor": 2.0, "swing_accel": 110.0, "initial_energy": 0.3,
+                "boost_max": 1.2, "friction_compensation": 1.0}),
+)
+
+
+def strategy(config: ResetConfig, failures: int) -> tuple[str, ResetConfig]:
+    """The strategy (name, config) of an attempt after ``failures`` failed attempts in a row."""
+    name, changes = STRATEGIES[min(max(0, failures), len(STRATEGIES) - 1)]
+    changes = dict(changes)
+    factor = float(changes.pop("timeout_factor", 1.0))  # type: ignore[arg-type]
+    return name, replace(config, timeout_s=config.timeout_s * factor, **changes)  # type: ignore[arg-type]
 
 
 class ResetController:
     """Swing-up, catch and hold; call :meth:`step` every control tick."""
 
     def __init__(self, config: ResetConfig | None = None) -> None:
-        self.config = config or ResetConfig()
+        self.base_config = config or ResetConfig()
         self.reset()
 
-    def reset(self) -> None:
-        """Start a new reset attempt (clears the timer, the energy target and a latched failure)."""
+    def reset(self, failures: int = 0) -> None:
+        """Start a new reset attempt (clears the timer, the energy target and a latched failure); ``failures``:
+        attempts that failed in a row before this one on this rig, which choose its strategy (:data:`STRATEGIES`)."""
+        self.strategy, self.config = strategy(self.base_config, failures)
+        self._gains = self.config.hold_gains()
         self.elapsed = 0.0
         self.in_band_time = 0.0
-        self.phase = "swing_up"
-        self.energy_target = 0.0
+        self.phase = "settle" if self.config.settle_first else "swing_up"
+        self.energy_target = self.config.initial_energy
         self.failure = ""
         self.catches = 0  # catches started this attempt
         self._arrival_energy = 0.0  # pendulum energy when the current catch started
@@ -174,6 +167,8 @@ class ResetController:
         self._alpha_filter: VelocityFilter | None = None
         self._last_alpha: float | None = None
         self._last_alpha_dot = 0.0
+        self._integral = 0.0  # the hold's integral of the arm angle (rad s)
+        self._u_prev = 0.0  # the hold's last linear command, still on its way to the motor (counts)
 
     # -- the pieces ----------------------------------------------------------------------------------------------
 
@@ -195,14 +190,23 @@ class ResetController:
                 return direction
         return 0
 
+    def centre_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
+        """The arm centering PD alone (settling): an arm acceleration through the model."""
+        cfg = self.config
+        accel = -cfg.arm_wn**2 * theta - 2.0 * cfg.arm_wn * theta_dot
+        return clamp_command(cfg.model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command)
+
     def swing_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
         """Energy pump plus arm centering, as an arm acceleration turned into counts through the model; never
         outwards past the soft limit."""
         cfg, model = self.config, self.config.model
-        shortfall = self.energy_target - self.normalised_energy(alpha, alpha_dot)
+        energy = self.normalised_energy(alpha, alpha_dot)
+        shortfall = self.energy_target - energy
         s = alpha_dot * math.cos(alpha)
-        if abs(s) < cfg.kick_threshold and shortfall > 0.9:
-            pump = cfg.swing_accel  # hanging (almost) at rest: kick it to get a swing going
+        if abs(s) < cfg.kick_threshold and energy < -0.9:
+            # hanging (almost) at rest: kick it to get a swing going (on the energy, not the shortfall: a raised
+            # target must not turn a turnaround near horizontal into a kick the wrong way)
+            pump = cfg.swing_accel
         else:
             pump = max(-cfg.swing_accel, min(cfg.swing_accel, cfg.energy_gain * shortfall * s))
         accel = pump - cfg.arm_wn**2 * theta - 2.0 * cfg.arm_wn * theta_dot
@@ -210,20 +214,48 @@ class ResetController:
             accel = 0.0
         return clamp_command(model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command)
 
-    def hold_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
-        """Linear state feedback -K.x around upright (arm error clipped to ``theta_error_limit``)."""
+    def friction_feedforward(self, theta_dot: float, command: float) -> float:
+        """Counts that cancel ``friction_compensation`` of the model's arm friction and deadzone: the Coulomb level
+        along a moving arm, the breakaway (static) level towards ``command`` on a stuck one, and the deadzone in
+        the direction of the command."""
+        cfg, model = self.config, self.config.model
+        if not cfg.friction_compensation:
+            return 0.0
+        if abs(theta_dot) > cfg.stick_speed:  # +command drives theta negative: along the motion is -sign(theta_dot)
+            torque = -math.copysign(model.coulomb_arm, theta_dot)
+        else:
+            torque = max(model.static_arm, model.coulomb_arm) * math.tanh(command / 4.0)
+        volts = torque * model.volts_per_newton_metre + model.deadzone_v * math.tanh(command / 2.0)
+        return cfg.friction_compensation * volts / model.volts_per_count
+
+    def hold_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float, dt: float = 0.0) -> int:
+        """LQR -K.z around upright (arm error clipped to ``theta_error_limit``; the command still on its way to the
+        motor and the arm angle's integral in z), plus the friction feed-forward. The integral advances by ``dt``
+        and stops while the command saturates outwards; its share is bounded by ``integral_limit``."""
         cfg = self.config
-        k_theta, k_alpha, k_theta_dot, k_alpha_dot = cfg.gains
+        k_theta, k_alpha, k_theta_dot, k_alpha_dot, k_u, k_int = self._gains
         theta_err = max(-cfg.theta_error_limit, min(cfg.theta_error_limit, theta))
-        u = -(k_theta * theta_err + k_alpha * alpha + k_theta_dot * theta_dot + k_alpha_dot * alpha_dot)
-        return clamp_command(u, cfg.max_command)
+        linear = -(k_theta * theta_err + k_alpha * alpha + k_theta_dot * theta_dot + k_alpha_dot * alpha_dot
+                   + k_u * self._u_prev)
+        integral = 0.0
+        if k_int:
+            bound = cfg.integral_limit / abs(k_int)
+            stepped = max(-bound, min(bound, self._integral + theta_err * dt))
+            integral = -k_int * stepped
+            if abs(linear + integral) < cfg.max_command or abs(stepped) < abs(self._integral):
+                self._integral = stepped  # anti-windup: no integration into a saturated command
+        u = linear + integral
+        self._u_prev = max(-cfg.max_command, min(cfg.max_command, u))
+        return clamp_command(u + self.friction_feedforward(theta_dot, u), cfg.max_command)
 
     def _adapt(self, alpha: float, alpha_dot: float) -> None:
-        """Raise E0 after a turnaround short of the top, lower it after a pass over the top."""
+        """Raise E0 after a turnaround short of the top (strongly above horizontal, weakly below), lower it after a
+        pass over the top."""
         cfg = self.config
-        if alpha_dot * self._last_alpha_dot < 0.0 and cfg.boost_min_angle < abs(alpha) < math.pi / 2:
-            self.energy_target = min(cfg.boost_max,
-                                     self.energy_target + cfg.boost_gain * (1.0 - math.cos(alpha)) / 2.0)
+        if alpha_dot * self._last_alpha_dot < 0.0 and cfg.boost_min_angle < abs(alpha):
+            lacking = (1.0 - math.cos(alpha)) / 2.0
+            gain = cfg.boost_gain if abs(alpha) < math.pi / 2 else cfg.low_boost_gain
+            self.energy_target = min(cfg.boost_max, self.energy_target + gain * lacking)
         last = self._last_alpha
         if last is not None and abs(alpha) < 0.3 and alpha * last < 0.0:
             excess = self.normalised_energy(0.0, alpha_dot) - cfg.overshoot_margin
@@ -254,6 +286,16 @@ class ResetController:
 
         brake = self.must_brake(theta, theta_dot, dt)
         self.max_arm = max(self.max_arm, abs(theta))
+        if self.phase == "settle":
+            calm = (self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy and abs(theta) < 0.2
+                    and abs(theta_dot) < 0.5)
+            if calm or self.elapsed >= cfg.settle_max_s:
+                self.phase = "swing_up"
+            else:
+                self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
+                command = brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot,
+                                                                                    alpha_dot)
+                return command, "swing_up"
         caught = self.phase in ("catch", "holding", "ready")
         catchable = (
             abs(alpha) < cfg.catch_angle
@@ -264,7 +306,8 @@ class ResetController:
             if not caught:
                 self.catches += 1
                 self._arrival_energy = self.normalised_energy(alpha, alpha_dot)
-            command = self.hold_command(theta, alpha, theta_dot, alpha_dot)
+                self._integral, self._u_prev = 0.0, 0.0
+            command = self.hold_command(theta, alpha, theta_dot, alpha_dot, dt)
             inside = abs(alpha) <= cfg.balance_band and abs(theta) <= cfg.arm_band
             self.in_band_time = self.in_band_time + dt if inside else 0.0
             if self.in_band_time >= cfg.hold_time_s - 1e-9:
@@ -287,9 +330,9 @@ class ResetController:
         self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 
         if self.phase != "ready" and self.elapsed >= cfg.timeout_s:
-            return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s ({self.catches} catches "
-                              f"started, arm up to {math.degrees(self.max_arm):.0f} deg, energy target "
-                              f"{self.energy_target:+.2f})")
+            return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s (strategy "
+                              f"'{self.strategy}', {self.catches} catches started, arm up to "
+                              f"{math.degrees(self.max_arm):.0f} deg, energy target {self.energy_target:+.2f})")
         return command, self.phase
 
     def _fail(self, reason: str) -> tuple[int, str]:

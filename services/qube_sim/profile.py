@@ -19,6 +19,7 @@ from typing import Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from protocol.tasks import worker_index
+from rpi_bridge.plant import PlantModel
 from services.qube_sim.dynamics import QubeParams
 
 #: Profile field -> QubeParams field of the parameters that ``spread`` scales per rig (QubeParams.varied).
@@ -141,6 +142,11 @@ class RigProfile(BaseModel):
                           Sr=self.static_arm, Sp=self.static_pendulum, deadzone=self.deadzone_v,
                           voltage_offset=self.voltage_offset_v, cable_stiffness=self.cable_stiffness,
                           cable_rest=self.cable_rest_rad)
+
+    def plant_model(self) -> PlantModel:
+        """The bridge's model of this profile's nominal rig (rpi_bridge.plant.PlantModel.from_profile of its JSON
+        fields): what an identified rig gives the reset and the self-test."""
+        return PlantModel.from_profile(self.model_dump())
 
     def rig_params(self, seed: int) -> QubeParams:
         """Rig ``seed``'s plant: the profile spread by ``spread`` (exactly QubeParams.varied, so ``ideal`` gives the

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import random
 from dataclasses import dataclass, replace
+from typing import Any
 
 from protocol import qube
 from rpi_bridge.control import ControlConfig, ControlCore
@@ -62,14 +63,20 @@ class TrialResult:
     seconds: float  # from the reset request to ready (or to the end of the trial)
     max_arm_deg: float  # largest |theta| of the simulated arm during the reset
     hit_end_stop: bool
-    outcome: str  # "ready", "reset_failed: <detail>", "fault: <reason>" or "timeout"
+    outcome: str  # "ready", "reset_failed: <detail>", "fault: <reason>" or "timeout" (of the last attempt)
+    attempts: int = 1  # reset requests made
 
 
 def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = None,
-              max_seconds: float = 16.0) -> TrialResult:
-    """One reset from ``start`` on a rig with ``params`` (see the module docstring)."""
+              max_seconds: float = 16.0, device_options: dict[str, Any] | None = None, attempts: int = 1,
+              settle_s: float = 3.0) -> TrialResult:
+    """One reset from ``start`` on a rig with ``params`` (see the module docstring); ``device_options``: a rig
+    profile's sensing and actuation (RigProfile.device_options). With ``attempts`` > 1, as the worker does
+    (worker/qube_env.py RESET_ATTEMPTS): a failed attempt is followed by ``settle_s`` idle and a new request (the
+    core picks the next strategy), up to ``attempts`` requests; ``max_seconds`` is per attempt, ``seconds`` counts
+    every attempt and settle."""
     clock = VirtualClock()
-    device = SimulatedQube(params, seed=0, period_s=0, clock=clock, arm_limit=END_STOP)
+    device = SimulatedQube(params, seed=0, period_s=0, clock=clock, arm_limit=END_STOP, **(device_options or {}))
     # the simulated rig is exactly at rest: a short stillness window is enough (the bridge uses 1 s)
     config = replace(config or ControlConfig(period_s=PERIOD_S), calibration_window_s=0.05)
     core = ControlCore(device, config, clock=clock)
@@ -85,28 +92,38 @@ def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = N
     for _ in range(10):  # idle while the velocity filters catch up with the new state
         core.sense()
         clock.advance(PERIOD_S)
-    core.events.clear()
-    core.request_reset(1)
-    max_arm, hit, outcome, elapsed = 0.0, False, "timeout", 0.0
-    for _ in range(round(max_seconds / PERIOD_S)):
-        sensed = core.sense()
-        theta = device.state[0]
-        max_arm = max(max_arm, abs(theta))
-        hit = hit or abs(theta) >= END_STOP - 1e-9
-        if sensed.awaits_action:
-            outcome = "ready"
+    max_arm, hit, outcome, elapsed, attempt = 0.0, False, "timeout", 0.0, 0
+    while attempt < attempts:
+        attempt += 1
+        core.events.clear()
+        core.request_reset(attempt)
+        outcome = "timeout"
+        for _ in range(round(max_seconds / PERIOD_S)):
+            sensed = core.sense()
+            theta = device.state[0]
+            max_arm = max(max_arm, abs(theta))
+            hit = hit or abs(theta) >= END_STOP - 1e-9
+            if sensed.awaits_action:
+                outcome = "ready"
+                break
+            failed = [e for e in core.events if e[0] == "reset_failed"]
+            if failed:
+                outcome = f"reset_failed: {failed[0][2]}"
+                break
+            if core.phase == "fault":
+                outcome = f"fault: {core.fault_reason}"
+                break
+            core.act(None)
+            clock.advance(PERIOD_S)
+            elapsed += PERIOD_S
+        if outcome == "ready" or attempt == attempts:
             break
-        failed = [e for e in core.events if e[0] == "reset_failed"]
-        if failed:
-            outcome = f"reset_failed: {failed[0][2]}"
-            break
-        if core.phase == "fault":
-            outcome = f"fault: {core.fault_reason}"
-            break
-        core.act(None)
-        clock.advance(PERIOD_S)
-        elapsed += PERIOD_S
-    return TrialResult(outcome == "ready", round(elapsed, 3), math.degrees(max_arm), hit, outcome)
+        for _ in range(round(settle_s / PERIOD_S)):  # as the worker: the pendulum settles before the next request
+            core.sense()
+            core.act(None)
+            clock.advance(PERIOD_S)
+            elapsed += PERIOD_S
+    return TrialResult(outcome == "ready", round(elapsed, 3), math.degrees(max_arm), hit, outcome, attempt)
 
 
 def run_condition(condition: Condition, trials: int = 50, config: ControlConfig | None = None) -> list[TrialResult]:
@@ -120,6 +137,8 @@ def summary(results: list[TrialResult]) -> dict[str, float | int]:
     return {
         "trials": len(results),
         "ready": len(ready),
+        "first_attempt": sum(r.ready and r.attempts == 1 for r in results),
+        "median_s": round(times[len(times) // 2], 2) if times else 0.0,
         "max_arm_deg": round(max((r.max_arm_deg for r in results), default=0.0), 1),
         "past_110_deg": sum(r.max_arm_deg > 110.0 for r in results),
         "end_stop_hits": sum(r.hit_end_stop for r in results),

@@ -116,7 +116,10 @@ def test_self_test_sequence_is_a_small_doublet_and_stops_on_a_failure() -> None:
     while verdict is None:
         _, verdict = failing.step(0, 0)  # nothing moves
         ticks += 1
-    assert not verdict.ok and ticks == 1 + 2 * cfg.pulse_ticks + cfg.observe_ticks  # no return pulse
+    # every level tried (2, 3, 4, 5 V; each next one's baseline is the last reading of the one before), no return pulse
+    levels = len(cfg.pulses())
+    assert levels == 4 and not verdict.ok and ticks == levels * (2 * cfg.pulse_ticks + cfg.observe_ticks) + 1
+    assert "did not move on a 208-count pulse (5.0 V after 2.0, 3.0, 4.0 V" in verdict.detail
 
 
 # -- through the control core -----------------------------------------------------------------------------------

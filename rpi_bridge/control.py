@@ -192,6 +192,9 @@ class ControlCore:
         self._return_limit = 0.0  # a reset that starts past the arm limit may bring the arm back from there
         self._pending_identify: int | None = None
         self.identification: Identification | None = None  # the last identification run (its recording, failure)
+        #: Answers to identification requests for the runner to send: (request id, the finished run or None, its
+        #: outcome: "complete" or the one-line reason it has no recording).
+        self.identify_answers: list[tuple[int, Identification | None, str]] = []
         self.reset_failures = 0  # resets in a row that did not reach ready: the next one's strategy (reset.py)
         self._reset_open = False  # a reset started and not ready yet
 
@@ -436,12 +439,12 @@ class ControlCore:
             return
         if self._pending_reset is not None:  # a reset asked for since supersedes it
             self._pending_identify = None
-            self.events.append(("idle", request, f"identification {request} superseded by a reset request"))
+            self._answer_identify(request, None, f"identification {request} superseded by a reset request")
             return
         self._pending_identify = None
         if self.refusal or not self.started:
             why = f"the bridge refuses to run: {self.refusal}" if self.refusal else "the start-up checks did not pass"
-            self.events.append(("idle", request, f"identification {request} refused: {why}"))
+            self._answer_identify(request, None, f"identification {request} refused: {why}")
             return
         cfg = self.cfg
         config = cfg.identify or IdentifyConfig(period_s=cfg.period_s, max_command=cfg.max_command,
@@ -464,10 +467,17 @@ class ControlCore:
             detail = (f"identification aborted: {ident.failure}" if ident.failure else
                       f"identification complete: {ident.t[-1]:.1f} s recorded")
             self.events.append(("idle", self.request_id, detail))
+            self.identify_answers.append((self.request_id, ident, ident.failure or "complete"))
+
+    def _answer_identify(self, request: int, ident: Identification | None, outcome: str) -> None:
+        self.events.append(("idle", request, outcome))
+        self.identify_answers.append((request, ident, outcome))
 
     def _start_reset(self, request_id: int) -> None:
         if self.phase == "identifying" and self.identification is not None:
-            self.identification.abort(f"a reset ({request_id}) was requested")
+            reason = f"a reset ({request_id}) was requested"
+            self.identification.abort(reason)
+            self.identify_answers.append((self.request_id, self.identification, reason))
         self.request_id = request_id
         if self._reset_open:  # the reset before did not reach ready (failed, faulted or given up)
             self.reset_failures += 1
@@ -485,6 +495,7 @@ class ControlCore:
     def _fault(self, reason: str) -> None:
         if self.phase == "identifying" and self.identification is not None:
             self.identification.abort(f"fault: {reason}")
+            self.identify_answers.append((self.request_id, self.identification, f"fault: {reason}"))
         if self.phase != "fault":
             self.counters.faults += 1
             self.events.append(("fault", self.request_id, reason))

@@ -18,6 +18,7 @@ until the deadline, and reports loop timing.
 
 from __future__ import annotations
 
+import gzip
 import logging
 import random
 import threading
@@ -27,9 +28,10 @@ from collections.abc import Callable
 
 from protocol import qube, topics
 from protocol.codec import encode
-from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
+from protocol.messages import MAX_RECORDING_BYTES, QubeAction, QubeRecording, QubeState, QubeStatus, QubeTelemetry
 from protocol.routes import qos_of
 from rpi_bridge.control import ControlCore
+from rpi_bridge.identify import Identification
 
 log = logging.getLogger("rpi_bridge")
 
@@ -188,6 +190,7 @@ class BridgeRunner:
         self._state_qos = qos_of(self._state_topic)  # looked up once: states go out every tick
         self._status_topic = topics.rig(rig_id, topics.STATUS)
         self._telemetry_topic = topics.rig(rig_id, topics.TELEMETRY)
+        self._recording_topic = topics.rig(rig_id, topics.RECORDING)
         self._last_telemetry = clock()
         self._reports = 0
 
@@ -199,6 +202,11 @@ class BridgeRunner:
 
     def on_reset(self, request_id: int) -> None:
         self.core.request_reset(request_id)
+        self.slot.cancel()
+        self._requested.set()
+
+    def on_identify(self, request_id: int) -> None:
+        self.core.request_identify(request_id)
         self.slot.cancel()
         self._requested.set()
 
@@ -242,7 +250,7 @@ class BridgeRunner:
         simulated time stands still however long the worker takes (a round of the federation, a PPO update)."""
         while not stop.is_set():
             self._requested.clear()
-            if self.core.reset_pending:
+            if self.core.reset_pending or self.core.identify_pending:
                 return
             self._requested.wait(POLL_S)
 
@@ -282,6 +290,8 @@ class BridgeRunner:
     # -- reporting -------------------------------------------------------------------------------------------
 
     def _drain_events(self) -> None:
+        while self.core.identify_answers:
+            self._publish_recording(*self.core.identify_answers.pop(0))
         while self.core.events:
             state, request_id, detail = self.core.events.pop(0)
             if state == "fault":
@@ -291,6 +301,20 @@ class BridgeRunner:
             elif state == "reset_failed":
                 log.warning("rig %s reset %d failed: %s", self.rig_id, request_id, detail)
             self._publish_status(state, detail, request_id)
+
+    def _publish_recording(self, request_id: int, ident: Identification | None, outcome: str) -> None:
+        """The answer to an identification request: the recording (gzip JSON) when it is complete, else the reason
+        there is none."""
+        payload = b""
+        if ident is not None and outcome == "complete":
+            payload = gzip.compress(ident.recording(self.rig_id).model_dump_json().encode())
+            if len(payload) > MAX_RECORDING_BYTES:
+                outcome = f"the recording is {len(payload)} bytes compressed, over the {MAX_RECORDING_BYTES} allowed"
+                payload = b""
+        log.info("rig %s: identification %d: %s", self.rig_id, request_id, outcome)
+        msg = QubeRecording(rig_id=self.rig_id, request_id=max(0, request_id), outcome=outcome[:2000],
+                            recording=payload)
+        self.publish(self._recording_topic, encode(msg), qos_of(self._recording_topic))
 
     def _publish_status(self, state: str, detail: str = "", request_id: int = -1) -> None:
         msg = QubeStatus(rig_id=self.rig_id, state=state, request_id=request_id, episode=self.core.episode,

@@ -16,7 +16,7 @@ from typing import TypeVar
 
 from protocol import qube, topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
-from protocol.messages import Message, QubeAction, QubeReset, QubeStatus
+from protocol.messages import Message, QubeAction, QubeIdentify, QubeReset, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.routes import qos_of
 from rpi_bridge.calibration import CalibrationStore
@@ -76,6 +76,13 @@ class BridgeService:
         if msg is not None:
             self.runner.on_action(msg)
 
+    def _on_identify(self, topic: str, payload: bytes) -> None:
+        msg = self._decode(topic, payload, QubeIdentify)
+        if msg is None:
+            return
+        log.info("rig %s: identification %d requested", self.rig_id, msg.request_id)
+        self.runner.on_identify(msg.request_id)
+
     def _on_reset(self, topic: str, payload: bytes) -> None:
         msg = self._decode(topic, payload, QubeReset)
         if msg is None:
@@ -87,7 +94,8 @@ class BridgeService:
         """Connect (waiting up to ``connect_timeout_s`` for the broker: a rig starts with the broker, on a loaded
         machine too), then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
         self.conn.start(timeout=connect_timeout_s)
-        for leaf, handler in ((topics.ACTION, self._on_action), (topics.RESET, self._on_reset)):
+        for leaf, handler in ((topics.ACTION, self._on_action), (topics.RESET, self._on_reset),
+                              (topics.IDENTIFY, self._on_identify)):
             topic = topics.rig(self.rig_id, leaf)
             self.conn.subscribe(topic, handler, qos=qos_of(topic))
         status = topics.rig(self.rig_id, topics.STATUS)

@@ -82,8 +82,10 @@ write_acl() {
     echo "pattern write qube/%u/state"
     echo "pattern write qube/%u/telemetry"
     echo "pattern write qube/%u/status"
+    echo "pattern write qube/%u/recording"
     echo "pattern read qube/%u/action"
     echo "pattern read qube/%u/reset"
+    echo "pattern read qube/%u/identify"
     echo
     if [ "$CHIEF" = 1 ]; then
         echo "# Only the chief publishes the aggregate, transfer, start and stop messages and claims the run (retained,"
@@ -124,6 +126,7 @@ write_acl() {
             rig="$RPREFIX$i"
             echo "topic write qube/$rig/action"
             echo "topic write qube/$rig/reset"
+            echo "topic write qube/$rig/identify"
             echo "topic read qube/$rig/#"
         fi
     done

@@ -163,7 +163,8 @@ def run_acl(run_id: str, workers: list[str], rigs: dict[str, str], edges: dict[s
         subscribe[e] = [f"{run}/chief/#", f"{run}/worker/#"]
     for w in workers:
         rig = rigs.get(w)
-        publish[w] = [f"{run}/worker/{w}/#"] + ([f"qube/{rig}/action", f"qube/{rig}/reset"] if rig else [])
+        commands = [f"qube/{rig}/{leaf}" for leaf in ("action", "reset", "identify")] if rig else []
+        publish[w] = [f"{run}/worker/{w}/#", *commands]
         answers = f"{run}/edge/{edges[w]}/chief/#" if w in edges else f"{run}/chief/#"
         subscribe[w] = [answers] + ([f"qube/{rig}/#"] if rig else [])
     for rig in rigs.values():

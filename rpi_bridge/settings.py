@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import replace
 from pathlib import Path
 from typing import Annotated, ClassVar
 
-from pydantic import AfterValidator, ValidationInfo, field_validator
+from pydantic import AfterValidator, ValidationInfo, field_validator, model_validator
 
 from protocol.topics import check_id
-from rpi_bridge.control import ControlConfig, check_max_command
+from rpi_bridge.control import ControlConfig, check_max_command, with_model
 from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT
+from rpi_bridge.plant import PlantModel
+from runtime.rigfiles import rig_file
 from runtime.settings import ENV_FILE_VAR, MqttSettings, Settings, setting
 
 #: The core's defaults, which the settings below start from (each stated once, in rpi_bridge/control.py).
@@ -32,6 +35,11 @@ class LoopSettings(Settings):
                                    lt=180)
     action_timeout: float = setting(_CORE.action_timeout_s, "watchdog: seconds without an action while running "
                                     "before the amplifier is disabled", gt=0)
+    rig_model: Path | None = setting(None, "the rig's identified profile (JSON: python -m worker.identify, "
+                                     "services.qube_sim.identify or deploy.lab write it), or a folder of them, one "
+                                     "per rig: the reset's swing-up and hold and the self-test are computed from it "
+                                     "(unset: the nominal QUBE-Servo 2)", metavar="FILE|DIR")
+
 
     @field_validator("rig_id")
     @classmethod
@@ -46,10 +54,34 @@ class LoopSettings(Settings):
             raise ValueError(f"must be in (0, --period-ms {period:g}]")
         return value
 
+    @model_validator(mode="after")
+    def _model_reads(self) -> LoopSettings:
+        self.plant_model()
+        return self
+
+    def plant_model(self) -> PlantModel | None:
+        """The model of ``--rig-model`` (None: unset); a ValueError with one line for a file it cannot read."""
+        if self.rig_model is None:
+            return None
+        try:
+            path = rig_file(self.rig_model, self._seed(), "rig model")
+            data = json.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+            raise ValueError(f"rig model {self.rig_model}: not readable JSON ({err})") from None
+        if not isinstance(data, dict):
+            raise ValueError(f"rig model {path}: expected a JSON object (a rig profile)")
+        return PlantModel.from_profile(data)
+
+    def _seed(self) -> int | None:
+        """The seed that picks this rig's file from a --rig-model folder (a simulated rig's; a bridge: None)."""
+        return None
+
     def control(self) -> ControlConfig:
-        """The control core's limits: these settings over the core's own defaults."""
-        return replace(_CORE, period_s=self.period_ms / 1e3, max_command=self.max_command,
-                       arm_limit=math.radians(self.arm_limit_deg), action_timeout_s=self.action_timeout)
+        """The control core's limits: these settings over the core's own defaults, and the rig's model if given."""
+        config = replace(_CORE, period_s=self.period_ms / 1e3, max_command=self.max_command,
+                         arm_limit=math.radians(self.arm_limit_deg), action_timeout_s=self.action_timeout)
+        model = self.plant_model()
+        return config if model is None else with_model(config, model)
 
 
 class BridgeSettings(MqttSettings, LoopSettings):

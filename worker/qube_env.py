@@ -31,7 +31,7 @@ from protocol.messages import QubeAction, QubeReset, QubeState, QubeStatus
 from protocol.qube import BALANCE_BAND, MAX_RETURN, PERIOD_S, ActionSet, action_set
 from protocol.rigtime import MEASURED_CLOCKS, EpisodeTime, ticks_to_s
 from protocol.routes import qos_of
-from rpi_bridge.control import ControlConfig, ControlCore, Sensed
+from rpi_bridge.control import ControlConfig, ControlCore, Sensed, with_model
 from rpi_bridge.runner import InjectedTiming
 
 log = logging.getLogger("worker.qube")
@@ -240,12 +240,13 @@ class QubeLocalEnv(_QubeTask):
 
     def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000, profile: Any = None,
                  randomize: float | None = None, timing: InjectedTiming | None = None,
-                 actions: ActionSet | None = None) -> None:
+                 actions: ActionSet | None = None, control: ControlConfig | None = None) -> None:
         """``profile`` (a services.qube_sim.profile.RigProfile) gives the rig's physics and non-ideal effects, spread
         by ``seed``; without one, the nominal plant spread by ``variation``. ``randomize`` (or the profile's) draws
         the physics again at every reset. ``timing``: the real loop's timing (the ``delayed`` clock): each action
         reaches the motor a random delay after its state's read, or is lost to the safe action; None: at the read
-        (``lockstep``). ``actions``: the action set (default the paper's)."""
+        (``lockstep``). ``actions``: the action set (default the paper's); ``control``: the bridge's configuration
+        (default: the nominal rig's, at the task's period)."""
         super().__init__(actions)
         from services.qube_sim.clock import VirtualClock
         from services.qube_sim.dynamics import QubeParams
@@ -258,7 +259,7 @@ class QubeLocalEnv(_QubeTask):
             params, options = QubeParams.varied(seed, scale=variation) if variation > 0 else QubeParams(), {}
         self.clock = VirtualClock()
         self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock, **options)
-        self.core = ControlCore(self.device, ControlConfig(period_s=PERIOD_S), clock=self.clock)
+        self.core = ControlCore(self.device, control or ControlConfig(period_s=PERIOD_S), clock=self.clock)
         self.reset_ticks = reset_ticks
         self.timing = timing
         self.failed_resets = 0
@@ -364,11 +365,12 @@ def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, c
 
 def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, rig_profile: Any = None,
                         randomize: float | None = None, qube_clock: str = "lockstep", qube_actions: str | None = None,
-                        **_: Any) -> gym.Env:
+                        rig_model: Any = None, **_: Any) -> gym.Env:
     """Factory for the ``qube-local`` task: a simulated rig inside the worker, its physics drawn from ``seed`` around
     ``rig_profile`` (a name, a JSON file or a RigProfile; default ``ideal``), on the simulated clock ``qube_clock``:
     ``lockstep``, or ``delayed`` (the profile's ``loop_delay_ms`` and ``loop_miss_rate``, as ``python -m
-    services.qube_sim --clock delayed`` applies them)."""
+    services.qube_sim --clock delayed`` applies them). ``rig_model``: the bridge's model of the rig (an identified
+    profile, a file or a folder with one per worker; as ``--rig-model`` of the bridge), else the nominal one."""
     actions = action_set(qube_actions)
     if probe:
         return _QubeTask(actions)
@@ -381,4 +383,9 @@ def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, r
     if qube_clock == "delayed":
         lo, hi = profile.loop_delay_ms
         timing = InjectedTiming((lo / 1e3, hi / 1e3), profile.loop_miss_rate, seed=seed)
-    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize, timing=timing, actions=actions)
+    control = None
+    if rig_model is not None:
+        model = (rig_model if isinstance(rig_model, RigProfile) else load_profile(rig_model, seed)).plant_model()
+        control = with_model(ControlConfig(period_s=PERIOD_S), model)
+    return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize, timing=timing, actions=actions,
+                        control=control)

@@ -69,6 +69,10 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     rig_profile: str | None = setting(None, "--env qube-local: the simulated rig's profile, a built-in (ideal, lab), "
                                       "a JSON file or a folder of them, one per worker (worker i takes its i-th "
                                       "file; default ideal; a qube_sim rig has its own)", metavar="NAME|FILE|DIR")
+    rig_model: str | None = setting(None, "--env qube-local: the bridge's model of the simulated rig for its resets "
+                                    "(an identified profile, or a folder with one per worker; unset: the nominal "
+                                    "rig); a rig over MQTT has its own (python -m rpi_bridge --rig-model)",
+                                    metavar="FILE|DIR")
     randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
                                       "each reset from +-FRACTION of the profile's values (unset: the profile's)",
                                       ge=0, le=0.5, metavar="FRACTION")
@@ -86,7 +90,7 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     def _worker_id(cls, value: str) -> str:
         return value if value == "auto" else check_id(value, "worker id")
 
-    @field_validator("rig_profile")
+    @field_validator("rig_profile", "rig_model")
     @classmethod
     def _profile(cls, value: str | None) -> str | None:
         if value is not None:
@@ -106,7 +110,8 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
             return {"qube_clock": self.qube_clock, **actions}
         if self.env != "qube-local":
             return {}
-        options = {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize)) if v is not None}
+        options = {k: v for k, v in (("rig_profile", self.rig_profile), ("randomize", self.randomize),
+                                     ("rig_model", self.rig_model)) if v is not None}
         options.update(actions)
         return {**options, "qube_clock": "delayed"} if self.qube_clock == "delayed" else options
 

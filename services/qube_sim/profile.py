@@ -18,8 +18,8 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from protocol.tasks import worker_index
 from rpi_bridge.plant import PlantModel
+from runtime.rigfiles import RigFileError, folder_files, rig_file
 from services.qube_sim.dynamics import QubeParams
 
 #: Profile field -> QubeParams field of the parameters that ``spread`` scales per rig (QubeParams.varied).
@@ -226,23 +226,14 @@ def load_profile(source: str | Path, seed: int | None = None) -> RigProfile:
         return BUILTIN[text]
     path = Path(text)
     if path.is_dir():
-        profiles = [_read_profile(file) for file in profile_files(path)]
-        index = 0 if seed is None else worker_index(seed)
-        if index >= len(profiles):
-            raise ProfileError(f"rig profile folder {path}: rig {index} (seed {seed}) has no profile; the folder holds "
-                               f"{len(profiles)} (rigs 0-{len(profiles) - 1}, its *.json files in name order)")
-        return profiles[index]
+        try:
+            profiles = {file: _read_profile(file) for file in folder_files(path)}  # every file checked
+            return profiles[rig_file(path, seed)]
+        except RigFileError as err:
+            raise ProfileError(str(err)) from None
     if not path.is_file():
         raise ProfileError(f"rig profile {text!r} is neither a built-in ({', '.join(BUILTIN)}), a file nor a folder")
     return _read_profile(path)
-
-
-def profile_files(folder: Path) -> list[Path]:
-    """The per-rig profiles of a folder, in the order rigs take them (ProfileError for a folder without any)."""
-    files = sorted(folder.glob("*.json"))
-    if not files:
-        raise ProfileError(f"rig profile folder {folder}: no *.json profile in it")
-    return files
 
 
 def _read_profile(path: Path) -> RigProfile:

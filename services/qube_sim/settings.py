@@ -61,5 +61,8 @@ class SimRigSettings(MqttSettings, LoopSettings):
         self.profile()  # a folder must hold this rig's file
         return self
 
+    def _seed(self) -> int | None:
+        return self.seed
+
     def profile(self) -> RigProfile:
         return load_profile(self.rig_profile, self.seed)

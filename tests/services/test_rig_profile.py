@@ -289,11 +289,11 @@ def test_a_folder_gives_each_rig_its_own_profile(tmp_path: Path) -> None:
         env = make_env("qube-local", seed, rig_profile=str(tmp_path))
         assert env.unwrapped.profile == profile  # type: ignore[attr-defined]
     assert load_profile(tmp_path) == rigs[0]  # no seed: every file checked, the first one returned
-    with pytest.raises(ProfileError, match=r"rig 3 \(seed 7003\) has no profile; the folder holds 3"):
+    with pytest.raises(ProfileError, match=r"rig 3 \(seed 7003\) has no file; the folder holds 3"):
         load_profile(tmp_path, worker_seed(7, 3))
     (tmp_path / "rig9.json").write_text("{")
     with pytest.raises(ProfileError, match=r"rig9\.json: not readable JSON"):
         load_profile(tmp_path, worker_seed(7, 0))  # a bad file anywhere in the folder is refused
     (tmp_path / "empty").mkdir()
-    with pytest.raises(ProfileError, match=r"no \*\.json profile"):
+    with pytest.raises(ProfileError, match=r"no \*\.json file"):
         load_profile(tmp_path / "empty")

@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.reset", description=__doc__.splitlines()[0])
     parser.add_argument("--resets", type=int, default=50, help="resets per family and model (default 50)")
     parser.add_argument("--rig-seed", type=int, default=10_000, help="rig i's seed is this + i (default 10000)")
-    parser.add_argument("--start", type=int, default=100, help="reset i starts from varied start this + i (default 100)")
+    parser.add_argument("--start", type=int, default=100, help="reset i starts from start this + i (default 100)")
     parser.add_argument("--models", nargs="+", choices=MODELS, default=list(MODELS))
     parser.add_argument("--only", nargs="+", default=None, help="family names to run (default all)")
     parser.add_argument("--out", type=Path, default=RESULTS / "reset.json")

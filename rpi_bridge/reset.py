@@ -289,6 +289,9 @@ class ResetController:
         if self.phase == "settle":
             calm = (self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy and abs(theta) < 0.2
                     and abs(theta_dot) < 0.5)
+            if self.elapsed >= cfg.timeout_s:
+                return self._fail(f"the pendulum did not settle within {cfg.timeout_s:.0f} s (strategy "
+                                  f"'{self.strategy}')")
             if calm or self.elapsed >= cfg.settle_max_s:
                 self.phase = "swing_up"
             else:

@@ -1,0 +1,152 @@
+"""The model-based reset and self-test (rpi_bridge/plant.py, reset.py, selftest.py) on rigs outside ``lab``
+(services/qube_sim/families.py): the LQR design, the hold against a sticky arm, a heavily damped swing-up, retries that
+change strategy, and a self-test that passes sticky and heavy arms but still names every wiring fault."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from protocol import qube
+from rpi_bridge.control import ControlConfig, ControlCore, with_model
+from rpi_bridge.frame import build_command, parse_reply
+from rpi_bridge.plant import PlantModel, delayed, lqr_gains, zoh
+from rpi_bridge.reset import LQR_GAINS, STRATEGIES, ResetConfig, ResetController
+from rpi_bridge.velocity import VelocityFilter
+from services.qube_sim import families
+from services.qube_sim.clock import VirtualClock
+from services.qube_sim.spi_peer import SimulatedQube
+
+TICK = qube.PERIOD_S
+
+
+def test_lqr_design_on_the_nominal_model_gives_the_gains_of_before() -> None:
+    nominal = PlantModel()
+    no_delay = lqr_gains(nominal, TICK, delay=False)
+    assert no_delay[:4] == pytest.approx(LQR_GAINS, abs=0.05)  # LQR_GAINS has one decimal and no_delay[4] == 0.0
+    k = lqr_gains(nominal, TICK, q_integral=1.0)  # what the hold uses: the delay and the integral in the state
+    assert len(k) == 6 and k[5] > 0 and k[1] < 0
+    # the closed loop of the delayed, integrating design is stable
+    ad, bd = delayed(*zoh(*nominal.linearized(), TICK))
+    az = np.zeros((6, 6))
+    az[:5, :5], az[5, 0], az[5, 5] = ad, TICK, 1.0
+    bz = np.vstack([bd, [[0.0]]])
+    assert max(abs(np.linalg.eigvals(az - bz @ np.array([k])))) < 1.0
+
+
+def test_model_from_a_profile() -> None:
+    course = families.course()
+    model = course.plant_model()
+    assert model == PlantModel.from_profile(course.model_dump())
+    assert (model.Dr, model.Dp, model.coulomb_arm, model.deadzone_v) == (1.5e-3, 5e-4, 0.0015, 0.05)
+    assert PlantModel.from_profile({"name": "x", "km": 0.05}).kt == 0.05  # unknown keys ignored, kt follows km
+    with pytest.raises(ValueError, match="mr must be positive"):
+        PlantModel.from_profile({"mr": 0})
+    with pytest.raises(ValueError, match="Dp must be a number"):
+        PlantModel.from_profile({"Dp": "high"})
+
+
+def hold_from(sim: SimulatedQube, ctl: ResetController, seconds: float) -> list[float]:
+    """The reset controller on the rig for ``seconds``; the true arm angles."""
+    tf, af = VelocityFilter(TICK), VelocityFilter(TICK)
+    command, arm = 0, []
+    for _ in range(round(seconds / TICK)):
+        r = parse_reply(sim.transfer(build_command(command)))
+        command, _ = ctl.step((r.theta, r.alpha, tf.update(r.theta), af.update(r.alpha)), TICK)
+        arm.append(sim.state[0])
+    return arm
+
+
+def test_the_hold_brings_a_sticky_arm_back_inside_the_arm_band() -> None:
+    """Arm friction 2.5x lab's, caught upright with the arm at 0.5 rad: friction compensation and the integral bring
+    it back to the middle; without them it stays out where the LQR's arm feedback cannot move it."""
+    profile = families.family("arm_friction", 2.5)
+
+    def run(**changes: float) -> list[float]:
+        sim = SimulatedQube(profile.rig_params(0), period_s=TICK)
+        sim.reset_state(theta=0.5, alpha=0.03)
+        return hold_from(sim, ResetController(ResetConfig(model=profile.plant_model(), **changes)), 4.0)
+
+    arm = run()
+    assert max(abs(a) for a in arm) < math.radians(45) and abs(arm[-1]) < 0.15
+    bare = run(friction_compensation=0.0, integral_weight=0.0)
+    assert abs(bare[-1]) > 0.3
+
+
+def test_a_heavily_damped_pendulum_swings_up() -> None:
+    """Pendulum damping 5x lab's: the energy target rises on turnarounds below horizontal too."""
+    profile = families.family("Dp", 5.0)
+    sim = SimulatedQube(profile.rig_params(0), period_s=TICK, **profile.device_options())
+    ctl = ResetController(ResetConfig(model=profile.plant_model()))
+    tf, af = VelocityFilter(TICK), VelocityFilter(TICK)
+    command, phase = 0, "swing_up"
+    for _ in range(round(15.0 / TICK)):
+        r = parse_reply(sim.transfer(build_command(command)))
+        command, phase = ctl.step((r.theta, r.alpha, tf.update(r.theta), af.update(r.alpha)), TICK)
+        if phase in ("ready", "failed"):
+            break
+    assert phase == "ready", ctl.failure
+
+
+def test_retries_change_strategy_and_a_success_clears_the_count() -> None:
+    clock = VirtualClock()
+    device = SimulatedQube(period_s=0, clock=clock)
+    reset = ResetConfig(timeout_s=0.05, settle_max_s=0.02)  # no swing-up can succeed this fast
+    core = ControlCore(device, ControlConfig(calibration_window_s=0.05, reset=reset), clock=clock)
+    while core.phase in ("calibrating", "self_test"):
+        core.sense()
+        clock.advance(TICK)
+    used, failures = [], []
+    for request in range(1, 7):
+        core.events.clear()
+        core.request_reset(request)
+        while not any(e[0] == "reset_failed" for e in core.events):
+            core.sense()
+            clock.advance(TICK)
+        used += [e[2] for e in core.events if e[0] == "resetting"]
+        failures += [e[2] for e in core.events if e[0] == "reset_failed"]
+    names = [name for name, _ in STRATEGIES]
+    assert used == [f"strategy '{n}'" for n in [*names, names[-1]]]
+    assert all(f"strategy '{n}'" in f for n, f in zip([*names, names[-1]], failures, strict=True))
+    assert core.reset_failures == 5
+    core.cfg = ControlConfig()  # a reset that can succeed: the count starts again
+    core._reset_ctl = ResetController(ResetConfig())
+    core.request_reset(7)
+    for _ in range(round(20 / TICK)):
+        if core.sense().awaits_action:
+            break
+        clock.advance(TICK)
+    assert core.phase == "ready" and core.reset_failures == 0
+
+
+def start_up(params: object, model: PlantModel | None = None, **wiring: bool) -> tuple[str, str]:
+    """(phase after the start-up checks, the last event's detail) of a core on a rig with ``params``."""
+    clock = VirtualClock()
+    device = SimulatedQube(params, seed=0, period_s=0, clock=clock, **wiring)  # type: ignore[arg-type]
+    config = ControlConfig(calibration_window_s=0.05)
+    core = ControlCore(device, with_model(config, model) if model else config, clock=clock)
+    for _ in range(round(5.0 / TICK)):
+        core.sense()
+        core.act(None)
+        clock.advance(TICK)
+        if core.phase not in ("calibrating", "self_test"):
+            break
+    return core.phase, core.events[-1][2]
+
+
+@pytest.mark.parametrize(("parameter", "factor"), [("arm_friction", 3.0), ("arm_inertia", 4.0)])
+def test_the_self_test_passes_sticky_and_heavy_arms_and_still_names_each_wiring_fault(parameter: str,
+                                                                                         factor: float) -> None:
+    profile = families.family(parameter, factor)
+    params = profile.rig_params(0)
+    for model in (None, profile.plant_model()):
+        phase, detail = start_up(params, model)
+        assert phase == "idle" and "self-test passed" in detail, detail
+    for wiring, message in (("reverse_motor", "motor leads are reversed"),
+                            ("reverse_encoder0", "encoder 0 (arm) counts backwards"),
+                            ("reverse_encoder1", "encoder 1 (pendulum) counts backwards"),
+                            ("dead_encoder1", "encoder 1 cable")):
+        phase, detail = start_up(params, None, **{wiring: True})
+        assert phase == "fault" and message in detail, (wiring, detail)

@@ -331,6 +331,12 @@ class Settings(BaseSettings):
         finally:
             _ONLY_GIVEN.reset(token)
 
+    def variable(self, var: str) -> str | None:
+        """The text of variable ``var`` as these settings read it: the environment, else their .env file (None: unset
+        or empty there)."""
+        env_file = self._env_file or Path(DEFAULT_ENV_FILE)
+        return os.environ.get(var) or ((dotenv_values(env_file).get(var) if env_file.is_file() else None) or None)
+
     # -- handing on ----------------------------------------------------------------------------------------------
 
     def child(self, cls: type[S], *, inherit: bool = True, **values: Any) -> S:

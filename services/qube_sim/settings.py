@@ -13,6 +13,9 @@ from rpi_bridge.settings import LoopSettings
 from runtime.settings import MqttSettings, setting
 from services.qube_sim.profile import RigProfile, load_profile
 
+#: The profile of a rig that is not given one.
+DEFAULT_PROFILE = "ideal"
+
 
 class SimRigSettings(MqttSettings, LoopSettings):
     """A simulated QUBE-Servo 2 on MQTT, behind the bridge's own control loop."""
@@ -26,8 +29,9 @@ class SimRigSettings(MqttSettings, LoopSettings):
     qube_miss_rate: float | None = setting(None, "clock 'delayed': fraction of actions lost (the safe action "
                                            "instead; unset: the rig profile's loop_miss_rate)",
                                            aliases=["--miss-rate"], ge=0, lt=1)
-    rig_profile: str = setting("ideal", "the rig's physics and non-ideal effects: a built-in profile (ideal, lab) "
-                               "or a JSON file (see --show-profile and docs/rig-profiles.md)", metavar="NAME|FILE")
+    rig_profile: str | None = setting(DEFAULT_PROFILE, "the rig's physics and non-ideal effects: a built-in profile "
+                                      "(ideal, lab) or a JSON file (see --show-profile and docs/rig-profiles.md); "
+                                      f"unset: {DEFAULT_PROFILE}", metavar="NAME|FILE")
     randomize: float | None = setting(None, "domain randomisation: draw the rig's parameters at each reset from "
                                       "+-FRACTION of the profile's values (unset: the profile's)", ge=0, le=0.5,
                                       metavar="FRACTION")
@@ -55,4 +59,4 @@ class SimRigSettings(MqttSettings, LoopSettings):
         return value
 
     def profile(self) -> RigProfile:
-        return load_profile(self.rig_profile)
+        return load_profile(self.rig_profile or DEFAULT_PROFILE)

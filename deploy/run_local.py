@@ -171,7 +171,10 @@ def main(argv: list[str] | None = None) -> int:
         ended = (run_dir / "summary.json").exists() and code != EXIT_INTERRUPTED
         if ended and s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
             print(f"the dashboard stays up for {s.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
-            time.sleep(s.dashboard_linger)
+            try:
+                time.sleep(s.dashboard_linger)
+            except KeyboardInterrupt:  # the run is over: ending the wait early keeps its exit code
+                print("\nthe dashboard stops", file=sys.stderr)
         return code
     except KeyboardInterrupt:
         print("\ninterrupted; stopping every process", file=sys.stderr)

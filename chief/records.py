@@ -263,10 +263,11 @@ class RunSummary(Record):
     learner. ``total_steps`` are the env steps the chief counted, ``played_steps`` every env step the workers played and
     ``refused_steps`` those it did not count (absent when no worker's submissions said). ``last_rig``: the rig time of
     the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from
-    scratch)."""
+    scratch). ``env_options``: the workers' task options an in-process launcher gave (qube-local's rig profile,
+    randomisation and clock; absent when none)."""
 
     OPTIONAL = frozenset({"quorum", "mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates",
-                          "restarts", "played_steps", "refused_steps", "last_rig", "init_model"})
+                          "restarts", "played_steps", "refused_steps", "last_rig", "init_model", "env_options"})
 
     run_id: str = ""
     env: str
@@ -296,6 +297,7 @@ class RunSummary(Record):
     restarts: int | None = None
     last_rig: LastRig | None = None
     init_model: InitModelRecord | None = None
+    env_options: dict[str, Any] | None = None
 
     def dump(self) -> dict[str, Any]:
         """As Record.dump, each worker's row without its optional fields when None too."""

@@ -35,7 +35,6 @@ from protocol import topics
 from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import RunStop
-from protocol.tasks import TASKS
 from protocol.transport import Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
@@ -119,7 +118,8 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     failed = {w: c for w, c in codes.items() if c not in (EXIT_OK, EXIT_ABORTED)}
     if failed and not (tolerate_failures and all(c == EXIT_ERROR for c in failed.values())):
         raise RuntimeError(f"in-process workers failed: {failed}")
-    summary = {**json.loads((run_dir / "summary.json").read_text()), "run_id": run_dir.name, "mode": "in-process"}
+    summary = {**json.loads((run_dir / "summary.json").read_text()), "run_id": run_dir.name, "mode": "in-process",
+               **({"env_options": env_options} if env_options else {})}
     summary.pop("broker", None)
     write_summary(run_dir, summary)
     (run_dir / "timing.json").write_text(json.dumps(
@@ -215,14 +215,25 @@ class _NewEpisode:
         return new
 
 
+def env_options(s: InprocessSettings) -> dict[str, Any]:
+    """The workers' task options of these settings (qube-local: the rig profile, randomisation and clock), as a
+    worker over MQTT derives them (WorkerSettings.env_options)."""
+    return WorkerSettings.given(env=s.env, algo=s.algo, rig_profile=s.rig_profile, randomize=s.randomize,
+                                qube_clock=s.qube_clock, qube_actions=s.qube_actions,
+                                rig_model=s.rig_model).env_options()
+
+
 @returns_code
 def main(argv: list[str] | None = None) -> int:
     s = InprocessSettings.load(argv, prog="python -m deploy.inprocess", description=__doc__.splitlines()[0])
+    options = env_options(s)
+    if options:
+        print(f"rigs: {', '.join(f'{k} {v}' for k, v in options.items())}")
     try:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
                                  device_noise=s.device_noise, progress=True, init_model=s.init_model,
                                  max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum,
-                                 env_options={"qube_actions": s.qube_actions} if TASKS[s.env].qube else None)
+                                 env_options=options)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

@@ -14,6 +14,7 @@ every process at once.
 
 from __future__ import annotations
 
+import contextlib
 import datetime as dt
 import json
 import os
@@ -34,15 +35,15 @@ from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy import sites
 from deploy.forked import ForkedProcess
-from deploy.settings import LocalRunSettings
+from deploy.settings import RIG_TASKS, LocalRunSettings
 from deploy.witness import Witness
 from protocol.codec import RejectCounter
 from protocol.messages import INTERRUPTED
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import DEFAULT_BROKER, BrokerAddress, MqttConnection
 from protocol.tasks import worker_seed
 from protocol.transport import Connect
 from runtime.cli import exits_on_storage_faults
-from runtime.settings import RunMqttSettings, Settings, returns_code, to_env
+from runtime.settings import RunMqttSettings, Settings, env_name, flags, returns_code, to_env
 from runtime.storage import EXIT_STORAGE, storage_errors
 from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.service import wait_for_url
@@ -56,9 +57,14 @@ def load(argv: list[str] | None = None) -> LocalRunSettings:
     s = LocalRunSettings.load(argv, prog="python -m deploy.run_local")
     stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     return s.model_copy(update={
-        "workers": s.workers or (3 if s.env == "qube" else 4),
+        "workers": s.workers or default_workers(s.env),
         "run_id": s.run_id or f"r{stamp}",
         "run_dir": s.run_dir or Path("runs") / f"{stamp}-{s.env}-{s.policy}-s{s.seed}"})
+
+
+def default_workers(env: str) -> int:
+    """The worker count of a run that does not say: 3 rigs for qube, as in the paper, else 4."""
+    return 3 if env == "qube" else 4
 
 
 class Fleet:
@@ -114,7 +120,8 @@ class Fleet:
 def main(argv: list[str] | None = None) -> int:
     s = load(argv)
     assert s.workers is not None and s.run_id is not None and s.run_dir is not None  # load fills them in
-    if s.init_model is not None and not warm_start_fits(s):  # before anything starts: one line, exit 2
+    check_children(s)  # before anything starts: a bad setting is one line, exit 2
+    if s.init_model is not None and not warm_start_fits(s):
         return 2
     run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
@@ -126,7 +133,10 @@ def main(argv: list[str] | None = None) -> int:
     edges = edge_of(s, worker_ids)
     try:
         reached = start_broker(s, fleet, worker_ids, rigs, edges)
-        if reached is None:
+        if reached is None:  # nothing started: leave no empty run folder behind
+            for folder in (log_dir, run_dir):
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
             return 1
         broker, login = reached
         common: dict[str, Any] = {"broker": broker, "run_id": s.run_id}
@@ -147,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
         witness = (Witness(_observer(broker, s.run_id, login), s.run_id, run_dir) if s.witness and edges
                    else None)
         start_devices(s, fleet, common, login, key, worker_ids, rigs, edges)
-        print(f"run {s.run_id}: {s.workers} workers on {s.env}, policy {s.policy}, seed {s.seed}; logs in {log_dir}")
+        print(f"run {s.run_id}: {s.workers} workers on {s.env}{rigs_of(s)}, learner {s.algo}, policy {s.policy}, "
+              f"seed {s.seed}; logs in {log_dir}")
         if s.dashboard_port is not None:
             url = wait_for_url(dashboard, url_file)
             print(f"dashboard: {url}" if url else f"!! the dashboard did not start; see {log_dir / 'dashboard.log'}",
@@ -156,11 +167,14 @@ def main(argv: list[str] | None = None) -> int:
                                         edges=len(set(edges.values()))), run_dir)
         if witness is not None:
             print(f"witness: every gradient and root aggregate in {witness.save()}")
-        code = report(s, argv, code, time.monotonic() - t0)
+        code = report(s, code, time.monotonic() - t0)
         ended = (run_dir / "summary.json").exists() and code != EXIT_INTERRUPTED
         if ended and s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
             print(f"the dashboard stays up for {s.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
-            time.sleep(s.dashboard_linger)
+            try:
+                time.sleep(s.dashboard_linger)
+            except KeyboardInterrupt:  # the run is over: ending the wait early keeps its exit code
+                print("\nthe dashboard stops", file=sys.stderr)
         return code
     except KeyboardInterrupt:
         print("\ninterrupted; stopping every process", file=sys.stderr)
@@ -168,6 +182,27 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         fleet.stop()
+
+
+def check_children(s: LocalRunSettings) -> None:
+    """Build every child's settings as it will read them (the launcher's, then its own FEDRL_* variables and .env
+    file), so that a bad one is refused (one line, SystemExit 2) before a broker or a process starts."""
+    assert s.run_id is not None and s.run_dir is not None
+    where: dict[str, Any] = {"broker": s.broker or DEFAULT_BROKER, "run_id": s.run_id}
+    s.child(ChiefSettings, **where, run_dir=s.run_dir)
+    s.child(WorkerSettings, **where, worker_id="w0")
+    if s.env == "qube":
+        s.child(SimRigSettings, **where, rig_id="rig0")
+    if s.dashboard_port is not None:
+        s.child(DashboardSettings, **where, dashboard_host="127.0.0.1", dashboard_port=s.dashboard_port)
+
+
+def rigs_of(s: LocalRunSettings) -> str:
+    """The simulated rigs of a QUBE-Servo 2 run as the start line says them (empty for the other tasks)."""
+    if s.env not in RIG_TASKS:
+        return ""
+    randomize = "" if s.randomize is None else f", randomize {s.randomize:g}"
+    return f" (rig profile {s.rig_profile or 'ideal'}{randomize}, clock {s.qube_clock})"
 
 
 def warm_start_fits(s: LocalRunSettings) -> bool:
@@ -270,10 +305,14 @@ def run_chief(fleet: Fleet, chief: Settings, run_dir: Path) -> int:
               "resumes the run from its saved state", flush=True)
 
 
-def report(s: LocalRunSettings, argv: list[str] | None, code: int, wall: float) -> int:
+def report(s: LocalRunSettings, code: int, wall: float) -> int:
     """The summary table and next steps (or why there is none, or how to resume); the launcher's exit code."""
     assert s.run_dir is not None and s.run_id is not None
     summary_path = s.run_dir / "summary.json"
+    if code in (2, EXIT_CLAIMED):  # refused before it ran (its line is above): a summary there is an earlier part's
+        print(f"the chief refused to run (exit code {code}); see above or {s.run_dir / 'logs' / 'chief.log'}",
+              file=sys.stderr)
+        return code
     if not summary_path.exists():
         hint = (f"; free space or fix the folder's permissions, then the same command with --run-id {s.run_id} "
                 f"--run-dir {s.run_dir} resumes from the saved state") if code == EXIT_STORAGE else ""
@@ -281,10 +320,10 @@ def report(s: LocalRunSettings, argv: list[str] | None, code: int, wall: float) 
               file=sys.stderr)
         return code or 1
     summary = json.loads(summary_path.read_text())
-    print_summary(summary, s.run_dir, wall)
+    print_summary(summary, s, wall)
     if summary["end_reason"] == INTERRUPTED:
         print(f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:\n"
-              f"  {resume_command(argv if argv is not None else sys.argv[1:], s.run_id, s.run_dir)}", flush=True)
+              f"  {resume_command(s)}", flush=True)
         return EXIT_INTERRUPTED
     return code
 
@@ -348,23 +387,64 @@ def this_python() -> str:
     return os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else sys.executable
 
 
-def resume_command(argv: list[str], run_id: str, run_dir: Path) -> str:
-    """This launcher's command line with ``--run-id`` and ``--run-dir`` naming the run (its other settings as they
-    were given: the same shell's FEDRL_* variables and .env file apply again)."""
-    py = this_python()
-    kept: list[str] = []
-    skip = False
-    for arg in argv:
-        if skip:
-            skip = False
-        elif arg in ("--run-id", "--run-dir"):
-            skip = True
-        elif not arg.startswith(("--run-id=", "--run-dir=")):
-            kept.append(arg)
-    return shlex.join([py, "-m", "deploy.run_local", *kept, "--run-id", run_id, "--run-dir", str(run_dir)])
+#: Settings a printed command does not carry over: the run's identity (a new run gets its own, a resume names it) and
+#: the warm start (a command says where it starts from).
+NOT_CARRIED = frozenset({"run_id", "run_dir", "init_model"})
+#: The processes of a run, which read their own FEDRL_* variables beyond the settings the launcher hands them.
+CHILDREN: tuple[type[Settings], ...] = (ChiefSettings, WorkerSettings, SimRigSettings, DashboardSettings)
 
 
-def print_summary(summary: dict, run_dir: Path, wall: float) -> None:
+def run_variables(s: LocalRunSettings) -> dict[str, str]:
+    """The FEDRL_* variables that start a run with this one's settings: each of the launcher's settings that is not
+    its default (flag, variable or .env file alike), then each variable a child process of the run read for itself
+    (a sim rig's loop timing, the log level...). Secrets (variable-only settings) stay where they are."""
+    fields = LocalRunSettings.model_fields
+    given, defaults = to_env(s), to_env(LocalRunSettings.model_construct())
+    out = {var: given[var] for name, field in fields.items()
+           if name not in NOT_CARRIED and flags(name, field) and (var := env_name(name, field)) is not None
+           and given[var] != defaults[var]}
+    if s.workers == default_workers(s.env):
+        out.pop(env_name("workers", fields["workers"]) or "", None)
+    children = [c for c in CHILDREN if (c is not SimRigSettings or s.env == "qube")
+                and (c is not DashboardSettings or s.dashboard_port is not None)]
+    for cls in children:
+        for name, field in cls.model_fields.items():
+            var = env_name(name, field)
+            if name in fields or var is None or var in out or not flags(name, field):
+                continue
+            if (value := s.variable(var)) is not None:
+                out[var] = value
+    return out
+
+
+def run_command(s: LocalRunSettings, tail: list[str], **values: str) -> str:
+    """A shell command that starts a launcher with this run's settings (:func:`run_variables`), then ``values``
+    (more FEDRL_* variables), then ``tail`` (``make run``, or this interpreter's ``-m deploy.run_local ...``): what
+    every command the launcher prints is made of."""
+    variables = {**run_variables(s), **values}
+    return " ".join([*(f"{var}={shlex.quote(value)}" for var, value in variables.items()), shlex.join(tail)])
+
+
+def resume_command(s: LocalRunSettings) -> str:
+    """The command that resumes this run: its settings, and ``--run-id`` and ``--run-dir`` naming it."""
+    assert s.run_id is not None and s.run_dir is not None
+    return run_command(s, [this_python(), "-m", "deploy.run_local", "--run-id", s.run_id, "--run-dir", str(s.run_dir)])
+
+
+def warm_start_command(s: LocalRunSettings, init_model: Path) -> str:
+    """The command that starts a new run with this run's settings from ``init_model`` (a model or a run folder)."""
+    return run_command(s, ["make", "run"], FEDRL_INIT_MODEL=str(init_model))
+
+
+def linger_command(s: LocalRunSettings, seconds: float = 600) -> str:
+    """The command that runs this run's settings again with the dashboard kept up ``seconds`` after the end."""
+    on = {} if s.dashboard_port is not None else {"FEDRL_DASHBOARD_PORT": "0"}
+    return run_command(s, ["make", "run"], **on, FEDRL_DASHBOARD_LINGER=f"{seconds:g}")
+
+
+def print_summary(summary: dict, s: LocalRunSettings, wall: float) -> None:
+    assert s.run_dir is not None
+    run_dir = s.run_dir
     print()
     print(f"{'worker':<12}{'solved':<8}{'episodes':>9}{'final PI':>11}  state")
     for w in summary["workers"]:
@@ -377,7 +457,7 @@ def print_summary(summary: dict, run_dir: Path, wall: float) -> None:
           + f"; chief wall time {summary['wall_s']:.1f} s, launcher {wall:.1f} s")
     print_rig_time(summary)
     print(f"results: {run_dir}/summary.json, metrics.jsonl, learning_curve.png")
-    print_next_steps(summary, run_dir)
+    print_next_steps(summary, s)
 
 
 def print_rig_time(summary: dict) -> None:
@@ -396,18 +476,19 @@ def print_rig_time(summary: dict) -> None:
         print("(* idle modelled on the simulated clock: a round closes when its slowest rig is ready)")
 
 
-def print_next_steps(summary: dict, run_dir: Path) -> None:
+def print_next_steps(summary: dict, s: LocalRunSettings) -> None:
     """The footer: how to evaluate a controller, audit the run, view TensorBoard, warm-start from this run and keep
-    the dashboard up."""
-    py = this_python()
+    the dashboard up (the last two with every setting of this run, run_command)."""
+    assert s.run_dir is not None
+    run_dir, py = s.run_dir, this_python()
     solved = [w["id"] for w in summary["workers"] if w["solved"]]
     print("\nnext steps:")
     if solved:  # the model records its task (a rig's controller runs on the in-process rig)
         print(f"  evaluate a controller:  {py} -m worker.evaluate {run_dir}/models/{solved[0]}.pt")
-        print(f"  start a run from it:    FEDRL_INIT_MODEL={run_dir} make run")
+        print(f"  start a run from it:    {warm_start_command(s, run_dir)}")
     print(f"  audit the run:          {py} -m chief.audit {run_dir}")
     print(f"  TensorBoard:            make tensorboard RUN={run_dir}   (installs the viewer first)")
-    print("  keep the dashboard up:  FEDRL_DASHBOARD_LINGER=600 make run   (seconds after the run ended)")
+    print(f"  keep the dashboard up:  {linger_command(s)}   (seconds after the run ended)")
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -20,6 +20,7 @@ from deploy import sites
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
 from runtime.settings import Counts, Port, Settings, Words, setting
+from services.qube_sim.profile import load_profile
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
 
@@ -41,6 +42,44 @@ class WarmStartSettings(Settings):
                                       "folder: its first worker to solve); unset: from scratch", metavar="PATH")
 
 
+#: The tasks whose rigs are simulated (their profile, randomisation and clock are the launcher's settings).
+RIG_TASKS = ("qube", "qube-local")
+
+
+class SimulatedRigSettings(FederationSettings):
+    """The simulated rigs of a launcher's run: --env qube (a services.qube_sim process per worker) or qube-local (the
+    rig inside each worker). Refused with any other task, where nothing would use them."""
+
+    rig_profile: str | None = setting(None, "--env qube or qube-local: the simulated rigs' profile, a built-in "
+                                      "(ideal, lab), a JSON file or a folder with one per rig (docs/rig-profiles.md); "
+                                      "unset: ideal", metavar="NAME|FILE|DIR")
+    rig_model: str | None = setting(None, "--env qube or qube-local: the rigs' identified profiles (a file, or a "
+                                    "folder with one per rig, as deploy.lab writes them), from which each rig's "
+                                    "reset and self-test are computed (unset: the nominal rig)", metavar="FILE|DIR")
+    randomize: float | None = setting(None, "--env qube or qube-local: domain randomisation, draw each rig's "
+                                      "parameters at each reset from +-FRACTION of the profile's values (unset: the "
+                                      "profile's)", ge=0, le=0.5, metavar="FRACTION")
+    qube_clock: Clock = setting("lockstep", "--env qube or qube-local: clock of the simulated rigs (python -m "
+                                "services.qube_sim --help); qube-local knows lockstep and delayed (the profile's "
+                                "loop timing)")
+
+    @field_validator("rig_profile", "rig_model")
+    @classmethod
+    def _profile(cls, value: str | None) -> str | None:
+        if value is not None:
+            load_profile(value)  # a missing or bad file: one line before anything starts
+        return value
+
+    @model_validator(mode="after")
+    def _rigs_used(self) -> SimulatedRigSettings:
+        if self.env not in RIG_TASKS:
+            for name in ("rig_profile", "randomize", "rig_model"):
+                if getattr(self, name) is not None:
+                    raise ValueError(f"--{name.replace('_', '-')} (FEDRL_{name.upper()}) is a setting of --env qube "
+                                     f"or qube-local, not of {self.env}")
+        return self
+
+
 class TieredSettings(FederationSettings):
     """A federation that may run tiered: ``edges`` edge chiefs between the workers and the root (launchers redefine
     the field for their help text; the check is this one)."""
@@ -55,7 +94,7 @@ class TieredSettings(FederationSettings):
         return self
 
 
-class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
+class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSettings, TieredSettings):
     """A federation on this machine: embedded MQTT broker, chief and N workers as separate processes (make run)."""
 
     workers: PositiveInt | None = setting(None, "number of workers (unset: 4, or 3 for qube as in the paper)")
@@ -71,8 +110,6 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
                                         "printed; off = no dashboard)")
     dashboard_linger: NonNegativeFloat = setting(0.0, "keep the dashboard up this many seconds after the run ended, "
                                                  "to look at the final state")
-    qube_clock: Clock = setting("lockstep", "clock of the simulated rigs when --env qube (python -m services.qube_sim "
-                                "--help)")
     edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), each its own "
                                     "process (python -m chief --role edge), worker i behind edge e<i mod N>; 0: flat. "
                                     "A strategy that cannot be split (median, trimmed) runs flat")
@@ -112,7 +149,7 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
         return check_id(value, "run id") if value else None
 
 
-class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
+class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSettings, TieredSettings):
     """A whole federation in one process, for sweeps: make run's chief and worker services on an in-memory hub."""
 
     workers: int = setting(4, "number of workers", ge=1)

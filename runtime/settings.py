@@ -19,6 +19,7 @@ machinery and the MQTT settings every client shares, so that torch-free processe
 from __future__ import annotations
 
 import argparse
+import difflib
 import functools
 import os
 import re
@@ -275,7 +276,14 @@ class Settings(BaseSettings):
             given = source(parsed_args={k: v for k, v in parsed.items() if k not in own})()
         except SettingsError as err:
             fail(prog, f"{err} (--help lists the options)")
-        return cls._build(prog, env_file, {**given, **own}, argv=argv)
+        settings = cls._build(prog, env_file, {**given, **own}, argv=argv)
+        settings._loaded()
+        for line in unknown_variables(os.environ, dotenv_values(env_file) if env_file.is_file() else {}, cls):
+            print(f"{prog}: warning: {line}", file=sys.stderr)
+        return settings
+
+    def _loaded(self) -> None:
+        """Called once a process's settings are loaded (a model may say something about them first)."""
 
     @classmethod
     def _env_file_path(cls, prog: str, flag_value: str | None) -> Path:
@@ -342,6 +350,12 @@ class Settings(BaseSettings):
         finally:
             _ONLY_GIVEN.reset(token)
 
+    def variable(self, var: str) -> str | None:
+        """The text of variable ``var`` as these settings read it: the environment, else their .env file (None: unset
+        or empty there)."""
+        env_file = self._env_file or Path(DEFAULT_ENV_FILE)
+        return os.environ.get(var) or ((dotenv_values(env_file).get(var) if env_file.is_file() else None) or None)
+
     # -- handing on ----------------------------------------------------------------------------------------------
 
     def child(self, cls: type[S], *, inherit: bool = True, **values: Any) -> S:
@@ -355,6 +369,24 @@ class Settings(BaseSettings):
             return cls._build(self._prog, env_file, {**shared, **values}, given_by="set by the launcher")
         finally:
             _ONLY_GIVEN.reset(token)
+
+
+def unknown_variables(environ: Mapping[str, str], env_file: Mapping[str, str | None],
+                      model: type[Settings] | None = None) -> list[str]:
+    """A line for each FEDRL_* variable (environment, then the .env file's) that neither ``model`` nor any process or
+    deployment file of this project reads (runtime/variables.py), naming the closest one: a misspelt setting would
+    otherwise be dropped without a word."""
+    from runtime.variables import KNOWN  # generated: python -m deploy.reference --variables
+
+    known = KNOWN | {var for name, field in (model.model_fields.items() if model else ())
+                     if (var := env_name(name, field)) is not None}
+    lines = []
+    for where, names in (("environment", list(environ)), (".env file", list(env_file))):
+        for var in sorted(v for v in names if v.startswith(ENV_PREFIX) and v not in known):
+            close = difflib.get_close_matches(var, sorted(known), n=1, cutoff=0.6)
+            hint = f"did you mean {close[0]}?" if close else "docs/settings.md lists every setting"
+            lines.append(f"{var} ({where}) is no setting of any process, ignored ({hint})")
+    return lines
 
 
 def to_env(settings: Settings) -> dict[str, str]:
@@ -439,6 +471,11 @@ class MqttSettings(Settings):
         if value is not None and value != 0 and value < 1024:
             raise ValueError("must be at least 1024 bytes (or 0 for no chunking)")
         return value or None
+
+    def _loaded(self) -> None:
+        if "broker" not in self.model_fields_set:  # started by hand with no broker: say which one it joins, first
+            print(f"{self._prog}: no broker configured (--broker, FEDRL_BROKER): joining {self.broker}",
+                  file=sys.stderr, flush=True)
 
     def address(self) -> BrokerAddress:
         """The broker with these credentials (explicit ones win over those in the URL)."""

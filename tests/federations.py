@@ -8,6 +8,7 @@ import json
 import multiprocessing
 import multiprocessing.synchronize
 import os
+import shlex
 import subprocess
 import sys
 import threading
@@ -175,3 +176,18 @@ def cpu_load(processes: int = 2) -> Iterator[None]:
         stop.set()
         for p in procs:
             p.join(5)
+
+
+def as_started(line: str) -> tuple[list[str], dict[str, str]]:
+    """A printed command as a shell runs it: its leading VAR=value words as the environment (over this one's, without
+    its FEDRL_* variables, so that only the printed ones count), ``make run`` as what it runs (the Makefile's
+    ``python -m deploy.run_local``), and the interpreter it names as this one."""
+    words = shlex.split(line)
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FEDRL_")}
+    while "=" in words[0] and words[0].split("=", 1)[0].isidentifier():
+        var, value = words.pop(0).split("=", 1)
+        env[var] = value
+    if words[:2] == ["make", "run"]:
+        return [sys.executable, "-m", "deploy.run_local", *words[2:]], env
+    assert words[1:3] == ["-m", "deploy.run_local"], line
+    return [sys.executable, *words[1:]], env

@@ -140,6 +140,10 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     sensor_noise: float = setting(1.0, "--rigs: extra encoder noise, standard deviation in counts", ge=0, le=20)
     log_level: LogLevel = setting("WARNING", "DEBUG, INFO, WARNING or ERROR")
 
+    def _loaded(self) -> None:
+        if self.rig_id is not None:  # only a rig over MQTT joins a broker
+            super()._loaded()
+
     @model_validator(mode="after")
     def _task_given(self) -> EvaluateSettings:
         if self.env == "qube" and not self.rig_id:

@@ -120,6 +120,15 @@ NO_TELEMETRY = ("no loop telemetry: a lockstep rig sends none (its clock advance
                 "it has no real-time loop to time); a real-time rig reports every second")
 #: The transfers panel without any: while the run goes on, and once it is over.
 NO_TRANSFER_YET, NO_TRANSFER = "No worker has finished yet.", "No worker finished."
+#: ... and when workers finished, each solving on its own (every sync and independent run, a one-round warm start).
+SOLVED_WITHOUT_TRANSFER = "No transfer: every worker that finished solved on its own."
+
+
+def no_transfer_text(stopped: bool, solved: int) -> str:
+    """What the transfers panel says while it has no transfer, ``solved`` workers having finished."""
+    if solved:
+        return SOLVED_WITHOUT_TRANSFER
+    return NO_TRANSFER if stopped else NO_TRANSFER_YET
 
 
 class RunView:
@@ -383,7 +392,7 @@ class RunView:
             "workers": list(start.workers) if start else sorted(self.workers),
             "round": self.last_round + 1 if start else None, "rounds": self.round_count,
             "round_label": "rounds" if stop is not None else "open round",
-            "no_transfer": NO_TRANSFER if stop is not None else NO_TRANSFER_YET,
+            "no_transfer": no_transfer_text(stop is not None, len(solved)),
             "episode": start.shape.episode_of(self.last_round + 1) if start else None,
             "rounds_per_episode": start.rounds_per_episode if start else None,
             "transfers": len(self.transfers), "solved": [{"worker": w, "episode": e} for w, e in solved],

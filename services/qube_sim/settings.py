@@ -13,6 +13,9 @@ from rpi_bridge.settings import LoopSettings
 from runtime.settings import MqttSettings, setting
 from services.qube_sim.profile import RigProfile, load_profile
 
+#: The profile of a rig that is not given one.
+DEFAULT_PROFILE = "ideal"
+
 
 class SimRigSettings(MqttSettings, LoopSettings):
     """A simulated QUBE-Servo 2 on MQTT, behind the bridge's own control loop."""
@@ -26,10 +29,10 @@ class SimRigSettings(MqttSettings, LoopSettings):
     qube_miss_rate: float | None = setting(None, "clock 'delayed': fraction of actions lost (the safe action "
                                            "instead; unset: the rig profile's loop_miss_rate)",
                                            aliases=["--miss-rate"], ge=0, lt=1)
-    rig_profile: str = setting("ideal", "the rig's physics and non-ideal effects: a built-in profile (ideal, lab), "
-                               "a JSON file, or a folder of them, one per rig (the rig of seed S takes its "
-                               "(S mod 1000)-th file; see --show-profile and docs/rig-profiles.md)",
-                               metavar="NAME|FILE|DIR")
+    rig_profile: str | None = setting(DEFAULT_PROFILE, "the rig's physics and non-ideal effects: a built-in profile "
+                                      "(ideal, lab), a JSON file, or a folder of them, one per rig (the rig of seed "
+                                      "S takes its (S mod 1000)-th file; see --show-profile and "
+                                      f"docs/rig-profiles.md); unset: {DEFAULT_PROFILE}", metavar="NAME|FILE|DIR")
     randomize: float | None = setting(None, "domain randomisation: draw the rig's parameters at each reset from "
                                       "+-FRACTION of the profile's values (unset: the profile's)", ge=0, le=0.5,
                                       metavar="FRACTION")
@@ -65,4 +68,4 @@ class SimRigSettings(MqttSettings, LoopSettings):
         return self.seed
 
     def profile(self) -> RigProfile:
-        return load_profile(self.rig_profile, self.seed)
+        return load_profile(self.rig_profile or DEFAULT_PROFILE, self.seed)

@@ -162,9 +162,11 @@ def test_an_unusable_state_is_refused_with_a_clear_error(tmp_path: Path) -> None
     assert chief_in(over, run_id="other").stderr.strip().endswith("or another --run-dir")
 
 
-def test_the_resume_command_names_the_run_and_keeps_the_other_flags() -> None:
-    from deploy.run_local import resume_command
+def test_the_resume_command_names_the_run_and_carries_its_settings(monkeypatch: pytest.MonkeyPatch) -> None:
+    from deploy.run_local import load, resume_command
 
-    cmd = resume_command(["--env", "Acrobot-v1", "--run-id=old", "--run-dir", "x y", "--workers", "2"], "r1",
-                         Path("runs/a b"))
-    assert cmd.endswith("-m deploy.run_local --env Acrobot-v1 --workers 2 --run-id r1 --run-dir 'runs/a b'")
+    monkeypatch.setenv("FEDRL_POLICY", "sync")
+    s = load(["--env", "Acrobot-v1", "--run-id=r1", "--run-dir", "runs/a b", "--workers", "2"])
+    cmd = resume_command(s)
+    assert cmd.startswith("FEDRL_ENV=Acrobot-v1 FEDRL_POLICY=sync FEDRL_WORKERS=2 ")
+    assert cmd.endswith("-m deploy.run_local --run-id r1 --run-dir 'runs/a b'")

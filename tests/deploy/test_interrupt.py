@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 import os
 import re
-import shlex
 import signal
 import subprocess
 import sys
@@ -18,6 +17,7 @@ import pytest
 
 from chief.audit import audit
 from chief.service import EXIT_INTERRUPTED
+from tests.federations import as_started
 
 pytestmark = pytest.mark.slow
 
@@ -99,10 +99,8 @@ def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path
     [resume] = [line.strip() for line in log.splitlines() if "-m deploy.run_local" in line]
     assert "--run-id ctrlc" in resume and f"--run-dir {run_dir}" in resume
 
-    argv = shlex.split(resume)
-    assert argv[1:3] == ["-m", "deploy.run_local"]
-    argv[0] = sys.executable  # it names this interpreter as the user would type it (relative, or plain python)
-    resumed = subprocess.run(argv, capture_output=True, text=True, timeout=600)
+    argv, env = as_started(resume)  # it names this interpreter as the user would type it (relative, or plain python)
+    resumed = subprocess.run(argv, capture_output=True, text=True, timeout=600, env=env)
     assert resumed.returncode == 0, resumed.stdout[-3000:] + resumed.stderr[-3000:]
     audit(run_dir)
     uninterrupted = run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, tmp_path / "uninterrupted", plot=False,

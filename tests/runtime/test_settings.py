@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from chief.settings import ChiefSettings
-from deploy.reference import PROCESSES, markdown
+from deploy.reference import PROCESSES, markdown, variables_module
 from deploy.run_local import Fleet
 from deploy.settings import DockerSettings, LocalRunSettings
 from rpi_bridge.settings import BridgeSettings
@@ -163,6 +163,36 @@ def test_a_container_child_reads_nothing_of_the_host(clean_env: pytest.MonkeyPat
 def test_the_reference_is_up_to_date() -> None:
     assert (ROOT / "docs" / "settings.md").read_text() == markdown(), (
         "docs/settings.md is stale: python -m deploy.reference --markdown > docs/settings.md")
+
+
+def test_the_known_variables_are_up_to_date() -> None:
+    assert (ROOT / "runtime" / "variables.py").read_text() == variables_module(), (
+        "runtime/variables.py is stale: python -m deploy.reference --variables > runtime/variables.py")
+
+
+@pytest.mark.parametrize("cls", [WorkerSettings, LocalRunSettings, ChiefSettings, BridgeSettings])
+def test_a_misspelt_variable_is_a_warning_naming_the_closest_setting(cls: type[Settings], clean_env: pytest.MonkeyPatch,
+                                                                     tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    clean_env.setenv("FEDRL_WROKERS", "3")
+    clean_env.setenv("FEDRL_BROKER", "mqtt://127.0.0.1:1")
+    clean_env.setenv("FEDRL_ROUND_TIMEOUT", "5")  # the chief's: known to every process (a shared .env holds it)
+    (tmp_path / ".env").write_text("FEDRL_SEEED=4\nFEDRL_SITE=a\n")  # FEDRL_SITE: a stack file's
+    cls.load([], prog="p")
+    assert capsys.readouterr().err.splitlines() == [
+        "p: warning: FEDRL_WROKERS (environment) is no setting of any process, ignored (did you mean FEDRL_WORKERS?)",
+        "p: warning: FEDRL_SEEED (.env file) is no setting of any process, ignored (did you mean FEDRL_SEED?)"]
+
+
+@pytest.mark.parametrize("cls", [WorkerSettings, ChiefSettings, DashboardSettings, SimRigSettings])
+def test_a_process_with_no_broker_configured_says_which_it_joins_first(cls: type[Settings],
+                                                                       clean_env: pytest.MonkeyPatch,
+                                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    cls.load([], prog="p")
+    assert capsys.readouterr().err.splitlines()[0] == (
+        "p: no broker configured (--broker, FEDRL_BROKER): joining mqtt://127.0.0.1:1883")
+    cls.load(["--broker", "mqtt://127.0.0.1:1"], prog="p")
+    assert capsys.readouterr().err == ""
 
 
 def test_settings_import_no_torch() -> None:

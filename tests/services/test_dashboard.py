@@ -40,7 +40,7 @@ from protocol.tensors import pack_arrays
 from services.dashboard.feed import MqttFeed, subscriptions
 from services.dashboard.hub import Hub
 from services.dashboard.service import DashboardConfig, DashboardService
-from services.dashboard.view import NO_TELEMETRY, NO_TRANSFER, NO_TRANSFER_YET, RunView
+from services.dashboard.view import NO_TELEMETRY, NO_TRANSFER, NO_TRANSFER_YET, SOLVED_WITHOUT_TRANSFER, RunView
 
 RUN = "dash1"
 BIG = {"w": np.ones((256, 256), np.float32)}  # a 256 KiB tensor: must never end up in the view
@@ -205,6 +205,16 @@ def test_view_end_state_says_the_run_is_over() -> None:
     feed(view, RunStop(run_id=RUN, reason="interrupted", episodes=2, all_solved=False, aborted=True))
     run = view.snapshot()["run"]
     assert (run["round_label"], run["rounds"], run["no_transfer"]) == ("rounds", 2, NO_TRANSFER)
+
+
+def test_view_of_workers_that_solved_without_a_transfer_says_so() -> None:
+    """A sync or independent run, or a warm start solved in one round: nobody "finished" is not what happened."""
+    view = RunView(RUN)
+    feed(view, start(["w0"]), update("w0", 1, 199.0), WorkerStatus(worker_id="w0", state="finished", episode=1,
+                                                                   pi=199.0))
+    assert view.snapshot()["run"]["no_transfer"] == SOLVED_WITHOUT_TRANSFER
+    feed(view, RunStop(run_id=RUN, reason="all solved", episodes=1, all_solved=True, aborted=False))
+    assert view.snapshot()["run"]["no_transfer"] == SOLVED_WITHOUT_TRANSFER
 
 
 def test_view_rig_without_telemetry_says_why() -> None:

@@ -116,19 +116,23 @@ def test_chief_refuses_a_worker_started_from_another_model(pretrained: Path, tmp
     assert chief.roster.workers == ["w0"]
 
 
+#: A broker given (a process with none says which it joins, first): these refusals come before it connects.
+NO_BROKER = ["--broker", "mqtt://127.0.0.1:1"]
+
+
 def test_model_for_another_task_is_one_line_and_exit_2(pretrained: Path, capsys: pytest.CaptureFixture[str]) -> None:
     model = pretrained / "models" / "w0.pt"
-    assert worker_main(["--env", "Acrobot-v1", "--init-model", str(model), "--worker-id", "w0"]) == 2
+    assert worker_main(["--env", "Acrobot-v1", "--init-model", str(model), "--worker-id", "w0", *NO_BROKER]) == 2
     err = capsys.readouterr().err
     assert f"{model} was made for CartPole-v0, not Acrobot-v1" in err and len(err.strip().splitlines()) == 1, err
     state = torch.load(model, weights_only=True)
     del state["provenance"]  # an older model without a recorded task: its shapes tell
     bare = pretrained / "bare.pt"
     torch.save(state, bare)
-    assert worker_main(["--env", "Pendulum-v1", "--init-model", str(bare), "--worker-id", "w0"]) == 2
+    assert worker_main(["--env", "Pendulum-v1", "--init-model", str(bare), "--worker-id", "w0", *NO_BROKER]) == 2
     err = capsys.readouterr().err
     assert "does not fit Pendulum-v1: actor net.0.weight" in err and len(err.strip().splitlines()) == 1, err
-    assert worker_main(["--init-model", str(pretrained / "missing.pt"), "--worker-id", "w0"]) == 2
+    assert worker_main(["--init-model", str(pretrained / "missing.pt"), "--worker-id", "w0", *NO_BROKER]) == 2
     assert "no model file or run folder at" in capsys.readouterr().err
 
 

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import sys
+import time
 
+from rpi_bridge.device import QubeDevice
 from rpi_bridge.settings import BridgeSettings
 from runtime.cli import setup_logging
 from runtime.settings import returns_code
@@ -29,6 +31,11 @@ def main(argv: list[str] | None = None) -> int:
     except (RuntimeError, OSError) as err:
         print(f"rpi_bridge: cannot open SPI {s.spi_bus}.{s.spi_device}: {err}", file=sys.stderr)
         return 1
+    if s.identify is not None:
+        try:
+            return identify(device, s)
+        finally:
+            device.close()
     try:
         service = BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
                                 store=CalibrationStore.for_rig(s.state_dir, s.rig_id), recalibrate=s.recalibrate)
@@ -44,6 +51,47 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     finally:
         device.close()
+    return 0
+
+
+def identify(device: QubeDevice, s: BridgeSettings) -> int:
+    """``--identify OUT``: start-up checks and the protocol in real time on this rig, the recording to OUT."""
+    assert s.identify is not None
+    from rpi_bridge.calibration import CalibrationStore
+    from rpi_bridge.control import ControlCore
+    from rpi_bridge.identify import IdentifyFailed, drive
+
+    core = ControlCore(device, s.control(), store=CalibrationStore.for_rig(s.state_dir, s.rig_id),
+                       recalibrate=s.recalibrate)
+    period = core.cfg.period_s
+    next_tick = time.perf_counter()
+
+    def wait() -> None:
+        nonlocal next_tick
+        next_tick += period
+        pause = next_tick - time.perf_counter()
+        if pause > 0:
+            time.sleep(pause)
+        else:
+            next_tick = time.perf_counter()  # late: no burst of ticks to catch up
+
+    try:
+        recording = drive(core, wait, progress=lambda seg: print(f"identify: {seg}", flush=True))
+    except IdentifyFailed as err:
+        print(f"rpi_bridge: identification failed: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("rpi_bridge: identification interrupted", file=sys.stderr)
+        return 1
+    finally:
+        core.disable("identification over")
+    recording = recording.model_copy(update={"rig": s.rig_id})
+    try:
+        recording.save(s.identify)
+    except OSError as err:
+        print(f"rpi_bridge: cannot write the recording {s.identify}: {err}", file=sys.stderr)
+        return 1
+    print(f"identify: wrote {s.identify} ({recording.rig_seconds:.0f} s of rig time, {len(recording.t)} ticks)")
     return 0
 
 

@@ -88,6 +88,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"qube_sim: {err}", file=sys.stderr)
             return 2
         return 0
+    if s.identify is not None:
+        from services.qube_sim.identify import identify_simulated
+
+        fault = s.qube_wiring_fault.replace("-", "_")
+        return identify_simulated(s.profile(), s.seed, s.control(), load_profile(s.identify_base), s.identify,
+                                  faults={fault: True} if fault != "none" else None)
     setup_logging(s.log_level, f"qube-sim[{s.rig_id}]")
 
     def build() -> BridgeService:

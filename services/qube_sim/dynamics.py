@@ -153,22 +153,21 @@ def derivatives(
 
 # -- the same equations of motion on numpy arrays (many states at once: the identification fit's windows) ---------
 # Kept beside the scalar functions above, term for term; tests/services/test_identify.py checks they agree. The scalar
-# path stays pure Python: numpy on one state is several times slower.
+# path stays pure Python (numpy on one state is several times slower). Any field of ``p`` may itself be an array
+# broadcasting with the states (one parameter set per state: the fit's Jacobian in one batch), so the terms that the
+# scalar code skips when a parameter is 0 are always computed here (they are then exactly 0).
 
 
 def motor_torque_array(p: QubeParams, voltage: np.ndarray, theta_dot: np.ndarray) -> np.ndarray:
     """:func:`motor_torque` on arrays."""
-    if p.voltage_offset or p.deadzone:
-        voltage = voltage + p.voltage_offset
-        voltage = np.sign(voltage) * np.maximum(0.0, np.abs(voltage) - p.deadzone)
+    voltage = voltage + p.voltage_offset
+    voltage = np.sign(voltage) * np.maximum(0.0, np.abs(voltage) - p.deadzone)
     return -p.kt * (voltage + p.km * theta_dot) / p.Rm
 
 
 def friction_array(coulomb: float, static: float, speed: np.ndarray, p: QubeParams) -> np.ndarray:
     """:func:`friction` on arrays."""
-    level: np.ndarray | float = coulomb
-    if static > coulomb:
-        level = coulomb + (static - coulomb) * np.exp(-((speed / p.stribeck_speed) ** 2))
+    level = coulomb + np.maximum(0.0, static - coulomb) * np.exp(-((speed / p.stribeck_speed) ** 2))
     return level * np.tanh(speed / p.coulomb_speed)
 
 
@@ -177,9 +176,8 @@ def derivatives_array(
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`derivatives` on arrays of states (same parameters for all)."""
     mp, Lp, Lr = p.mp, p.Lp, p.Lr
-    if p.Cr or p.Sr:
-        tau = tau - friction_array(p.Cr, p.Sr, theta_dot, p)
-    friction_p = friction_array(p.Cp, p.Sp, alpha_dot, p) if p.Cp or p.Sp else 0.0
+    tau = tau - friction_array(p.Cr, p.Sr, theta_dot, p)
+    friction_p = friction_array(p.Cp, p.Sp, alpha_dot, p)
     s, c = np.sin(alpha), np.cos(alpha)
     s2 = 2.0 * s * c
     P = 4.0 * p.Jp + Lp * Lp * mp

@@ -26,23 +26,30 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import savgol_filter
 
+from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.frame import VOLTS_PER_COUNT
-from rpi_bridge.identify import Recording, RecordingError
+from rpi_bridge.identify import IdentifyFailed, Recording, RecordingError, drive
+from services.qube_sim.clock import VirtualClock
 from services.qube_sim.dynamics import QubeParams, derivatives_array, motor_torque_array
 from services.qube_sim.profile import Identified, ProfileError, RigProfile, load_profile
+from services.qube_sim.spi_peer import SimulatedQube
 
-#: Fitted quantities: name -> (lower, upper) bound of its value. ``static_ratio`` is static_arm / coulomb_arm,
-#: ``motor`` km = kt, ``delay_ms`` the command's delay after its read (fitted linearly; everything else in log space).
+#: Fitted quantities: name -> the range of values a fit may return (the profile's own limits, or physically
+#: plausible ones; a fit outside it is refused). ``static_ratio`` is static_arm / coulomb_arm (>= 1), ``motor`` km = kt,
+#: ``delay_ms`` a command's delay after its read (fitted linearly, as delay / 7 ms; everything else in log space).
 FITTED: dict[str, tuple[float, float]] = {
-    "Dr": (1e-6, 0.05), "Dp": (1e-7, 0.01), "coulomb_arm": (1e-5, 0.05), "static_ratio": (1.0, 5.0),
-    "coulomb_pendulum": (1e-7, 0.01), "motor": (0.005, 0.2), "deadzone_v": (1e-3, 3.0), "mr": (0.005, 2.0),
-    "delay_ms": (0.0, 7.0),
+    "Dr": (1e-7, 0.05), "Dp": (1e-8, 0.01), "coulomb_arm": (0.0, 0.05), "static_ratio": (1.0, 10.0),
+    "coulomb_pendulum": (0.0, 0.01), "motor": (0.005, 0.5), "deadzone_v": (0.0, 3.0), "mr": (0.01, 1.0),
+    "Lr": (0.01, 0.5), "Lp": (0.01, 0.5), "delay_ms": (0.0, 7.0),
 }
+#: The QubeParams fields that the fitted values set (see :func:`_params`).
+_VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr", "Lp")
 #: Parameters whose uncertainty decides whether the fit is trusted (the ones that decide control).
 GATED = ("Dr", "Dp", "coulomb_arm", "motor", "mr")
 
@@ -58,6 +65,8 @@ class FitConfig:
     savgol: int = 11  # samples in the velocity estimate's window (polynomial of order 3)
     holdout: float = 0.25  # fraction of the prbs segment, at its end, held out
     max_nfev: int = 60
+    ftol: float = 1e-4  # least_squares' tolerances: relative change of the cost, and of the parameters (log space)
+    xtol: float = 1e-4
     max_sigma: float = 0.25
     max_heldout_deg: float = 2.0
     max_heldout_ratio: float = 2.5
@@ -128,7 +137,7 @@ def cut(rec: Recording, cfg: FitConfig) -> tuple[Windows, Windows]:
     return build(train), build(held)
 
 
-def simulate(p: QubeParams, w: Windows, delay_s: float, substeps: int) -> np.ndarray:
+def simulate(p: QubeParams, w: Windows, delay_s: float | np.ndarray, substeps: int) -> np.ndarray:
     """Predicted (theta, alpha) after each tick of every window, (n, L, 2): RK4 with ``substeps`` per tick; over
     each sub-step the voltage is the time average of the previous command (until ``delay_s`` into the tick) and this
     tick's."""
@@ -147,8 +156,7 @@ def simulate(p: QubeParams, w: Windows, delay_s: float, substeps: int) -> np.nda
             def rates(th: np.ndarray, al: np.ndarray, thd: np.ndarray, ald: np.ndarray,
                       v: np.ndarray = v) -> tuple[np.ndarray, ...]:
                 tau = motor_torque_array(p, v, thd)
-                if p.cable_stiffness:
-                    tau = tau - p.cable_stiffness * (th - p.cable_rest)
+                tau = tau - p.cable_stiffness * (th - p.cable_rest)
                 tdd, add = derivatives_array(p, thd, al, ald, tau)
                 return thd, ald, tdd, add
 
@@ -162,6 +170,32 @@ def simulate(p: QubeParams, w: Windows, delay_s: float, substeps: int) -> np.nda
         out[:, k, 0] = theta
         out[:, k, 1] = alpha
     return out
+
+
+DELAY_SCALE_MS = 7.0  # delay_ms is fitted as delay / 7 ms (linear, clipped to [0, 7] ms when used)
+
+
+def _to_z(name: str, value: float) -> float:
+    """The optimiser's coordinate of a value: log (static_ratio: log(ratio - 1), so that static >= Coulomb; the
+    delay: linear). Unbounded, so that least_squares can use Levenberg-Marquardt."""
+    if name == "delay_ms":
+        return value / DELAY_SCALE_MS
+    if name == "static_ratio":
+        return math.log(max(1e-3, value - 1.0))
+    return math.log(value)
+
+
+def _from_z(name: str, z: float) -> float:
+    if name == "delay_ms":
+        return min(DELAY_SCALE_MS, max(0.0, z * DELAY_SCALE_MS))
+    if name == "static_ratio":
+        return 1.0 + math.exp(min(z, 50.0))
+    return math.exp(min(z, 50.0))
+
+
+def _relative_scale(name: str, value: float) -> float:
+    """d(value)/value per unit of z: 1 in log space; (ratio - 1)/ratio for static_ratio."""
+    return (value - 1.0) / value if name == "static_ratio" else 1.0
 
 
 def _covariance(jac: np.ndarray, residuals: np.ndarray, windows: int) -> np.ndarray:
@@ -184,15 +218,15 @@ def _params(base: QubeParams, values: dict[str, float], static_pendulum_ratio: f
     cp = values["coulomb_pendulum"]
     return replace(base, Dr=values["Dr"], Dp=values["Dp"], Cr=cr, Sr=cr * values["static_ratio"], Cp=cp,
                    Sp=cp * static_pendulum_ratio, km=values["motor"], kt=values["motor"], deadzone=values["deadzone_v"],
-                   mr=values["mr"])
+                   mr=values["mr"], Lr=values["Lr"], Lp=values["Lp"])
 
 
 def _initial(base: RigProfile) -> dict[str, float]:
-    guess = {"Dr": base.Dr, "Dp": base.Dp, "coulomb_arm": base.coulomb_arm or 1e-3,
+    guess = {"Dr": base.Dr or 2.7e-4, "Dp": base.Dp or 5e-5, "coulomb_arm": base.coulomb_arm or 1e-3,
              "static_ratio": base.static_arm / base.coulomb_arm if base.coulomb_arm and base.static_arm else 1.3,
              "coulomb_pendulum": base.coulomb_pendulum or 1e-4, "motor": base.km, "deadzone_v": base.deadzone_v or 0.05,
-             "mr": base.mr, "delay_ms": 1.0}
-    return {k: min(FITTED[k][1], max(FITTED[k][0], v)) for k, v in guess.items()}
+             "mr": base.mr, "Lr": base.Lr, "Lp": base.Lp, "delay_ms": 1.0}
+    return {k: min(FITTED[k][1], max(FITTED[k][0], v)) for k, v in guess.items()}  # every log value > 0 already
 
 
 def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
@@ -209,17 +243,13 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
                          f"{cfg.min_arm_travel_deg:.0f} needed): the rig did not respond to the protocol")
     train, held = cut(rec, cfg)
     names = list(FITTED)
-    linear = {"delay_ms"}
-    to_z = {k: (lambda v: v / 7.0) if k in linear else math.log for k in names}
-    lo = np.array([to_z[k](FITTED[k][0]) for k in names])
-    hi = np.array([to_z[k](FITTED[k][1]) for k in names])
     start = _initial(base)
-    z0 = np.clip(np.array([to_z[k](start[k]) for k in names]), lo + 1e-9, hi - 1e-9)
+    z0 = np.array([_to_z(k, start[k]) for k in names])
     nominal = base.params()
     sp_ratio = base.static_pendulum / base.coulomb_pendulum if base.coulomb_pendulum and base.static_pendulum else 0.0
 
     def values_of(z: np.ndarray) -> dict[str, float]:
-        return {k: (float(zi) * 7.0 if k in linear else math.exp(zi)) for k, zi in zip(names, z, strict=True)}
+        return {k: _from_z(k, float(zi)) for k, zi in zip(names, z, strict=True)}
 
     def residuals(z: np.ndarray, w: Windows) -> np.ndarray:
         v = values_of(z)
@@ -227,18 +257,37 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         r = (pred - w.measured).ravel()
         return np.where(np.isfinite(r), r, 10.0)
 
+    def batch(z: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Residuals at z and at z + steps[j] e_j for every j, in one vectorised simulation: (1 + k, m)."""
+        zs = np.vstack([z, z + np.diag(steps)])
+        sets = [_params(nominal, values_of(zi), sp_ratio) for zi in zs]
+        n = len(train)
+        arrays: dict[str, Any] = {f: np.repeat([getattr(q, f) for q in sets], n) for f in _VARIED}
+        stacked = replace(nominal, **arrays)
+        tiled = Windows(np.tile(train.x0, (len(zs), 1)), np.tile(train.commands, (len(zs), 1)),
+                        np.tile(train.dt, (len(zs), 1)), train.measured)
+        delays = np.repeat([values_of(zi)["delay_ms"] / 1e3 for zi in zs], n)
+        pred = simulate(stacked, tiled, delays, cfg.substeps).reshape(len(zs), *train.measured.shape)
+        r = (pred - train.measured[None]).reshape(len(zs), -1)
+        return np.where(np.isfinite(r), r, 10.0)
+
+    def jacobian(z: np.ndarray) -> np.ndarray:
+        steps = 1e-3 * np.maximum(1.0, np.abs(z))
+        r = batch(z, steps)
+        return ((r[1:] - r[0]) / steps[:, None]).T
+
     evaluations = [0]
 
     def counted(z: np.ndarray) -> np.ndarray:
         evaluations[0] += 1
         r = residuals(z, train)
-        if progress is not None and evaluations[0] % (len(names) + 1) == 1:
+        if progress is not None:
             rms = math.degrees(float(np.sqrt(np.mean(r * r))))
             progress(f"fit evaluation {evaluations[0]}: training RMS {rms:.3f} deg")
         return r
 
-    result = least_squares(counted, z0, bounds=(lo, hi), method="trf", x_scale=1.0, diff_step=1e-3,
-                           max_nfev=cfg.max_nfev, xtol=1e-6, ftol=1e-8)
+    result = least_squares(counted, z0, jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
+                           xtol=cfg.xtol, ftol=cfg.ftol)
     values = values_of(result.x)
     r_train = result.fun
     r_held = residuals(result.x, held)
@@ -247,9 +296,10 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
     sigma = {}
     for i, name in enumerate(names):
         sd = math.sqrt(var[i]) if var[i] >= 0 else math.inf
-        sigma[name] = sd * 7.0 if name in linear else sd
+        sigma[name] = sd * DELAY_SCALE_MS if name == "delay_ms" else sd * _relative_scale(name, values[name])
     i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
-    v_static = var[i_c] + var[i_r] + 2 * cov[i_c, i_r]
+    w = _relative_scale("static_ratio", values["static_ratio"])
+    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r]
     sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
     values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
     return Fit(values=values, sigma=sigma,
@@ -269,10 +319,12 @@ def check(result: Fit, cfg: FitConfig | None = None) -> None:
     if loose:
         raise FitRefused(f"the fit is too uncertain: {', '.join(loose)} (at most +-{cfg.max_sigma:.0%} trusted): "
                          "the recording does not determine them")
-    for k in GATED:
-        lo, hi = FITTED[k]
-        if not lo * 1.01 < result.values[k] < hi * 0.99:
-            raise FitRefused(f"the fit put {k} at its bound ({result.values[k]:.3g}): no rig this model describes")
+    for k, (lo, hi) in FITTED.items():
+        if not lo <= result.values[k] <= hi:
+            raise FitRefused(f"the fit put {k} at {result.values[k]:.3g}, outside [{lo:g}, {hi:g}]: no rig this model "
+                             "describes")
+    if not result.values["static_arm"] <= FITTED["coulomb_arm"][1]:
+        raise FitRefused(f"the fit put static_arm at {result.values['static_arm']:.3g}: no rig this model describes")
     if not result.heldout_rms_deg <= cfg.max_heldout_deg:
         raise FitRefused(f"held-out RMS angle error {result.heldout_rms_deg:.2f} deg exceeds "
                          f"{cfg.max_heldout_deg:.1f} deg: the fitted model does not predict the rig")
@@ -295,10 +347,10 @@ def to_profile(result: Fit, base: RigProfile, rec: Recording, source: str, name:
     data = {**base.model_dump(), "name": name or f"{rec.rig or base.name}-identified",
             "description": f"identified from {source} ({rec.rig_seconds:.0f} s of rig time) over {base.name}",
             "Dr": v["Dr"], "Dp": v["Dp"], "coulomb_arm": v["coulomb_arm"], "static_arm": v["static_arm"],
-            "coulomb_pendulum": v["coulomb_pendulum"],
-            "static_pendulum": result.params.Sp, "km": v["motor"], "kt": v["motor"], "deadzone_v": v["deadzone_v"],
-            "mr": v["mr"], "action_delay_ms": delay, "spread": 0.0, "spread_nonideal": 0.0, "randomize": 0.0,
-            "ranges": {}, "identified": identified.model_dump()}
+            "coulomb_pendulum": v["coulomb_pendulum"], "static_pendulum": result.params.Sp,
+            "km": v["motor"], "kt": v["motor"], "deadzone_v": v["deadzone_v"],
+            "mr": v["mr"], "Lr": v["Lr"], "Lp": v["Lp"], "action_delay_ms": delay, "spread": 0.0,
+            "spread_nonideal": 0.0, "randomize": 0.0, "ranges": {}, "identified": identified.model_dump()}
     return RigProfile.model_validate(data)
 
 
@@ -328,6 +380,47 @@ def fit_and_write(rec: Recording, base: RigProfile, out: Path, source: str, cfg:
     return result, profile
 
 
+def record_simulated(truth: RigProfile, seed: int, control: ControlConfig | None = None,
+                     progress: Callable[[str], None] | None = None, rig: str = "",
+                     faults: dict[str, bool] | None = None) -> Recording:
+    """The identification recording of simulated rig ``seed`` of ``truth``: the bridge's ControlCore (start-up checks
+    and the protocol) over a SimulatedQube on a virtual clock, lockstep. ``faults``: SimulatedQube's wiring faults.
+    IdentifyFailed when it does not finish."""
+    clock = VirtualClock()
+    options: dict[str, Any] = {**truth.device_options(), **(faults or {})}
+    device = SimulatedQube(truth.rig_params(seed), seed=seed, period_s=0, clock=clock, **options)
+    core = ControlCore(device, control or ControlConfig(), clock=clock)
+    recording = drive(core, lambda: clock.advance(core.cfg.period_s), progress=progress)
+    return recording.model_copy(update={"rig": rig or f"{truth.name}-seed{seed}"})
+
+
+def identify_simulated(truth: RigProfile, seed: int, control: ControlConfig, base: RigProfile, out: Path,
+                       faults: dict[str, bool] | None = None) -> int:
+    """``python -m services.qube_sim --identify OUT``: record simulated rig ``seed`` of ``truth`` (its truth only
+    simulates), fit over ``base``, write a trusted profile to ``out``. 0, or 1 with one line."""
+    began = time.perf_counter()
+    try:
+        rec = record_simulated(truth, seed, control, progress=lambda seg: print(f"identify: segment {seg}", flush=True),
+                               faults=faults)
+    except IdentifyFailed as err:
+        print(f"qube_sim: identification failed: {err}", file=sys.stderr)
+        return 1
+    print(f"identify: recorded {rec.rig_seconds:.1f} s of rig time ({len(rec.t)} ticks) in "
+          f"{time.perf_counter() - began:.1f} s; fitting over {base.name}", flush=True)
+    try:
+        result, profile = fit_and_write(rec, base, out, f"simulated rig {rec.rig}",
+                                        progress=lambda line: print(line, flush=True))
+    except FitRefused as err:
+        print(f"qube_sim: refused: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        print(f"qube_sim: cannot write {out}: {err}", file=sys.stderr)
+        return 1
+    print(f"identify: wrote {out}: profile {profile.name!r} from {rec.rig_seconds:.1f} s of rig time, fit "
+          f"{result.wall_s:.1f} s")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m services.qube_sim.identify",
                                      description="Fit a rig profile to a bridge's identification recording "
@@ -346,6 +439,9 @@ def main(argv: list[str] | None = None) -> int:
         _, profile = fit_and_write(rec, base, args.out, str(args.recording), progress=print)
     except FitRefused as err:
         print(f"identify: refused: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        print(f"identify: cannot write {args.out}: {err}", file=sys.stderr)
         return 1
     print(f"wrote {args.out}: profile {profile.name!r} from {rec.rig_seconds:.0f} s of rig time")
     return 0

@@ -44,6 +44,12 @@ class SimRigSettings(MqttSettings, LoopSettings):
     state_dir: Path | None = setting(None, "keep the calibration in <dir>/<rig>-calibration.json (unset: a simulated "
                                      "rig starts calibrated and at rest)")
     seed: int = setting(1, "draws this rig's variation (the profile's spread) and its randomised episodes")
+    identify: Path | None = setting(None, "identify this simulated rig and exit, without MQTT: the bridge's start-up "
+                                    "checks and identification protocol on a virtual clock, then the host's fit "
+                                    "over --identify-base; writes the fitted profile to OUT (only a trusted one; "
+                                    "docs/how-to/identify.md)", env=False, metavar="OUT")
+    identify_base: str = setting("lab", "--identify: the profile of every value the fit does not fit (its start)",
+                                 env=False, metavar="NAME|FILE")
 
     @field_validator("qube_delay_ms")
     @classmethod
@@ -52,7 +58,7 @@ class SimRigSettings(MqttSettings, LoopSettings):
             InjectedTiming.parse(value, 0.0)
         return value
 
-    @field_validator("show_profile")
+    @field_validator("show_profile", "identify_base")
     @classmethod
     def _profile(cls, value: str | None) -> str | None:
         if value is not None:

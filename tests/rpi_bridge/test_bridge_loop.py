@@ -368,7 +368,8 @@ def test_each_phase_has_its_own_led_colour_documented_in_the_rpi_readme() -> Non
 
     colours = list(LEDS.values())
     assert len(set(colours)) == len(colours)
-    assert set(LEDS) == {"calibrating", "self_test", "idle", "resetting", "ready", "running", "fallen", "fault", "off"}
+    assert set(LEDS) == {"calibrating", "self_test", "idle", "resetting", "identifying", "ready", "running", "fallen",
+                         "fault", "off"}
     readme = (ROOT / "deploy" / "rpi" / "README.md").read_text()
     for phase, (r, g, b) in LEDS.items():
         assert f"| `{phase}` | {r}, {g}, {b} |" in readme, phase

@@ -1,0 +1,302 @@
+"""``python -m deploy.lab``: a lab's pipeline in one command. Identify every rig, pretrain in process around the rigs
+as identified, then warm-start and fine-tune the rigs federated.
+
+1. **identify**: every rig runs the identification protocol (rpi_bridge/identify.py) and its profile is fitted on
+   this host (services/qube_sim/identify.py) into ``identified/rig<i>.json``. ``--env qube-local``: each rig is
+   simulated by ``python -m services.qube_sim --identify`` with the bridge's own control code; ``--env qube``: each
+   rig is asked over MQTT (``python -m worker.identify``), a real bridge or a simulated one.
+2. **pretrain**: a federation in process on simulated rigs randomised around the identified ones
+   (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``.
+3. **finetune**: the rigs themselves, every worker warm-started from the pretrain, federated by
+   ``python -m deploy.run_local`` into ``finetune/``; each rig's resets use its identified model.
+
+Simulated rigs take their true physics from ``FEDRL_RIG_PROFILE`` (a profile, or a folder with one per rig). The
+pipeline never reads it: it passes the environment on to the simulators of stages 1 and 3 and learns the rigs only by
+identifying them; the pretrain's simulator is told the identified profile instead. An interrupted pipeline resumes
+at the stage it stopped in (``lab.json`` records what is done): a finished rig's identification is kept, an
+interrupted fine-tune resumes from its saved state, and an interrupted pretrain starts again.
+
+At the end it reports for every rig its identification, balance, reset and idle seconds, and writes them into the
+fine-tune's summary.json (``workers[].rig.identify_s`` beside ``rig_s``) and into ``lab.json``.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import field_validator, model_validator
+
+from chief.records import RunSummary
+from chief.settings import PolicyName
+from protocol import learners
+from protocol.mqtt import BrokerAddress
+from protocol.tasks import worker_seed
+from runtime.settings import LearnerName, QubeActions, Settings, fits_task, qube_actions_setting, returns_code, setting
+
+#: The stages, in order.
+STAGES = ("identify", "pretrain", "finetune")
+#: Variables that carry the true physics of simulated rigs: the pretrain's simulator must not see them.
+TRUTH = ("FEDRL_RIG_PROFILE", "FEDRL_RANDOMIZE")
+
+
+class LabSettings(Settings):
+    """A lab's rigs from identification to a fine-tuned controller (docs/how-to/lab.md)."""
+
+    env: Literal["qube", "qube-local"] = setting("qube-local", "qube: rigs over MQTT (real bridges, or the simulated "
+                                                 "rigs deploy.run_local starts); qube-local: simulated rigs in each "
+                                                 "worker's process")
+    workers: int = setting(3, "rigs, one worker each", ge=1, le=32)
+    seed: int = setting(1, "base seed: rig i is simulated with seed*1000 + i, as in deploy.run_local")
+    run_dir: Path | None = setting(None, "the pipeline's folder (unset: runs/<time>-lab-<env>-s<seed>); give the same "
+                                   "one again to resume")
+    max_episodes: int = setting(150, "M of the fine-tune: the most episodes per rig", ge=1)
+    pretrain_episodes: int = setting(600, "M of the pretrain", ge=1)
+    pretrain_workers: int = setting(3, "workers of the pretrain (simulated rigs)", ge=1, le=32)
+    policy: PolicyName = setting("plain", "federation strategy of the pretrain and the fine-tune")
+    algo: LearnerName = setting(learners.DEFAULT, "learner")
+    qube_actions: QubeActions = qube_actions_setting()
+    qube_clock: Literal["lockstep", "delayed", "realtime"] = setting(
+        "lockstep", "clock of the simulated rigs of the fine-tune (--env qube: the simulator's; qube-local: lockstep "
+        "or delayed)")
+    broker: str | None = setting(None, "--env qube: the broker of real rigs (unset: the pipeline starts an embedded "
+                                 "broker and simulated rigs)")
+    init_model: Path | None = setting(None, "skip the pretrain: fine-tune from this model (a models/<id>.pt, or a run "
+                                      "folder: its first worker to solve), e.g. an earlier pipeline's pretrain/",
+                                      metavar="PATH")
+
+    @field_validator("broker")
+    @classmethod
+    def _broker(cls, value: str | None) -> str | None:
+        if value is not None:
+            BrokerAddress.parse(value)
+        return value
+
+    @model_validator(mode="after")
+    def _fits(self) -> LabSettings:
+        fits_task(self.algo, self.env, self.qube_actions)
+        if self.env == "qube-local" and self.qube_clock == "realtime":
+            raise ValueError("--env qube-local runs on a simulated clock: --qube-clock lockstep or delayed")
+        if self.env == "qube-local" and self.broker is not None:
+            raise ValueError("--broker is for --env qube (rigs over MQTT)")
+        return self
+
+    def folder(self) -> Path:
+        stamp = dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+        return self.run_dir or Path("runs") / f"{stamp}-lab-{self.env}-s{self.seed}"
+
+
+class StageFailed(RuntimeError):
+    """A stage that could not finish: one line saying why (the pipeline exits 1 and resumes there)."""
+
+
+# -- the record of what is done ---------------------------------------------------------------------------------
+
+
+def load_progress(folder: Path) -> dict[str, Any]:
+    path = folder / "lab.json"
+    if not path.exists():
+        return {"done": []}
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise StageFailed(f"{path}: not readable ({err}); move it away to start the pipeline again") from None
+    return data if isinstance(data, dict) and isinstance(data.get("done"), list) else {"done": []}
+
+
+def save_progress(folder: Path, progress: dict[str, Any]) -> None:
+    path = folder / "lab.json"
+    tmp = path.with_suffix(".tmp")
+    tmp.write_text(json.dumps(progress, indent=2) + "\n")
+    tmp.replace(path)
+
+
+def say(stage: str, text: str) -> None:
+    print(f"[lab {stage}] {text}", flush=True)
+
+
+def run_child(stage: str, command: Sequence[str], env: dict[str, str]) -> int:
+    """A stage's command, its output passed on line by line under the stage's name."""
+    say(stage, "$ " + " ".join(command))
+    with subprocess.Popen(list(command), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env,
+                          bufsize=1) as proc:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            print(f"[lab {stage}]   {line.rstrip()}", flush=True)
+        return proc.wait()
+
+
+# -- stage 1: identify ------------------------------------------------------------------------------------------
+
+
+def identified_files(s: LabSettings, folder: Path) -> list[Path]:
+    return [folder / "identified" / f"rig{i}.json" for i in range(s.workers)]
+
+
+def identify(s: LabSettings, folder: Path) -> None:
+    """Every rig's identified profile, those already on file kept."""
+    from services.qube_sim.profile import ProfileError, load_profile
+
+    out = folder / "identified"
+    out.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    todo = []
+    for i, path in enumerate(identified_files(s, folder)):
+        try:
+            if load_profile(path).identified is not None:
+                say("identify", f"rig{i}: kept {path}")
+                continue
+        except ProfileError:
+            pass
+        todo.append(i)
+    if s.env == "qube":
+        from deploy.lab_mqtt import identify_over_mqtt
+
+        identify_over_mqtt(s, out, todo, env)
+        return
+    for i in todo:
+        command = [sys.executable, "-m", "services.qube_sim", "--rig-id", f"rig{i}", "--seed",
+                   str(worker_seed(s.seed, i)), "--identify", str(out / f"rig{i}.json")]
+        code = run_child("identify", command, env)
+        if code != 0:
+            raise StageFailed(f"rig{i} could not be identified (exit code {code}); see the lines above")
+
+
+# -- stage 2: pretrain --------------------------------------------------------------------------------------------
+
+
+def pretrain(s: LabSettings, folder: Path) -> None:
+    """A federation in process on rigs randomised around the identified ones, until every worker meets TC."""
+    from services.qube_sim.pretrain import around
+    from services.qube_sim.profile import load_profile
+
+    rigs = [load_profile(path) for path in identified_files(s, folder)]
+    profile = around(rigs, name=f"around-{len(rigs)}-identified")
+    profile_path = folder / "pretrain-profile.json"
+    profile_path.write_text(profile.to_json())
+    ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in profile.ranges.items())
+    say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}")
+    run_dir = folder / "pretrain"
+    command = [sys.executable, "-m", "deploy.inprocess", "--env", "qube-local", "--workers", str(s.pretrain_workers),
+               "--seed", str(s.seed), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
+               str(s.pretrain_episodes), "--run-dir", str(run_dir), "--rig-profile", str(profile_path),
+               "--rig-model", str(profile_path), "--qube-actions", s.qube_actions]
+    env = {k: v for k, v in os.environ.items() if k not in TRUTH}
+    code = run_child("pretrain", command, {**env, "PYTHONUNBUFFERED": "1"})
+    summary = read_summary(run_dir)
+    if code != 0 or summary is None or not any(w.solved for w in summary.workers):
+        why = summary.end_reason if summary is not None else f"exit code {code}"
+        raise StageFailed(f"the pretrain ended without a controller that meets TC ({why}); try --pretrain-episodes "
+                          "or another --seed")
+
+
+# -- stage 3: fine-tune -------------------------------------------------------------------------------------------
+
+
+def pretrained(s: LabSettings, folder: Path) -> Path:
+    """The model the fine-tune starts from: ``--init-model``, else the pretrain's run folder."""
+    return s.init_model if s.init_model is not None else folder / "pretrain"
+
+
+def finetune_command(s: LabSettings, folder: Path) -> list[str]:
+    command = [sys.executable, "-m", "deploy.run_local", "--env", s.env, "--workers", str(s.workers), "--seed",
+               str(s.seed), "--policy", s.policy, "--algo", s.algo, "--max-episodes", str(s.max_episodes),
+               "--run-id", f"lab-s{s.seed}", "--run-dir", str(folder / "finetune"), "--init-model",
+               str(pretrained(s, folder)), "--rig-model", str(folder / "identified"), "--qube-actions",
+               s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off"]
+    return command + (["--broker", s.broker] if s.broker else [])
+
+
+def finetune(s: LabSettings, folder: Path) -> None:
+    code = run_child("finetune", finetune_command(s, folder), {**os.environ, "PYTHONUNBUFFERED": "1"})
+    summary = read_summary(folder / "finetune")
+    if summary is None or summary.end_reason == "interrupted":
+        raise StageFailed(f"the fine-tune did not end (exit code {code}); the same command resumes it")
+
+
+# -- the report ---------------------------------------------------------------------------------------------------
+
+
+def read_summary(run_dir: Path) -> RunSummary | None:
+    path = run_dir / "summary.json"
+    if not path.exists():
+        return None
+    return RunSummary.model_validate_json(path.read_text())
+
+
+def report(s: LabSettings, folder: Path, progress: dict[str, Any]) -> list[dict[str, Any]]:
+    """Per rig: identification, balance, reset and idle seconds and the fine-tune's episodes; identify_s goes into
+    the fine-tune's summary.json beside rig_s."""
+    from services.qube_sim.profile import load_profile
+
+    summary_path = folder / "finetune" / "summary.json"
+    data = json.loads(summary_path.read_text())
+    summary = RunSummary.model_validate(data)
+    rows: list[dict[str, Any]] = []
+    for i, path in enumerate(identified_files(s, folder)):
+        record = load_profile(path).identified
+        identify_s = record.rig_seconds if record is not None else 0.0
+        worker = next((w for w in summary.workers if w.id == f"w{i}"), None)
+        rig = worker.rig if worker is not None else None
+        rows.append({"rig": f"rig{i}", "worker": f"w{i}", "identify_s": round(identify_s, 1),
+                     "balance_s": rig.balance_s if rig else None, "reset_s": rig.reset_s if rig else None,
+                     "idle_s": rig.idle_s if rig else None, "rig_s": rig.rig_s if rig else None,
+                     "episodes": worker.episodes if worker else None, "solved": worker.solved if worker else False})
+        for entry in data.get("workers", []):
+            if entry.get("id") == f"w{i}" and isinstance(entry.get("rig"), dict):
+                entry["rig"]["identify_s"] = round(identify_s, 3)
+    summary_path.write_text(json.dumps(data, indent=2) + "\n")
+    progress["rigs"] = rows
+    print(f"\n{'rig':<6}{'solved':>7}{'episodes':>9}{'identify s':>11}{'balance s':>10}{'reset s':>9}{'idle s':>8}"
+          f"{'rig min':>8}")
+    for r in rows:
+        minutes = ((r["rig_s"] or 0.0) + r["identify_s"]) / 60
+        print(f"{r['rig']:<6}{'yes' if r['solved'] else 'no':>7}{r['episodes'] or '-':>9}{r['identify_s']:>11.1f}"
+              f"{r['balance_s'] or 0:>10.1f}{r['reset_s'] or 0:>9.1f}{r['idle_s'] or 0:>8.1f}{minutes:>8.2f}")
+    print(f"(rig min: identification + balance + reset; the fine-tune's run folder: {folder / 'finetune'})")
+    return rows
+
+
+@returns_code
+def main(argv: list[str] | None = None) -> int:
+    s = LabSettings.load(argv, prog="python -m deploy.lab", description=__doc__.splitlines()[0])
+    folder = s.folder()
+    folder.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    try:
+        progress = load_progress(folder)
+        progress["settings"] = s.model_dump(mode="json", exclude={"run_dir"})
+        for name, stage in (("identify", identify), ("pretrain", pretrain), ("finetune", finetune)):
+            if name in progress["done"]:
+                say(name, "done before: skipped")
+                continue
+            if name == "pretrain" and s.init_model is not None:
+                say(name, f"skipped: the fine-tune starts from {s.init_model} (--init-model)")
+                continue
+            say(name, f"stage {STAGES.index(name) + 1} of {len(STAGES)}")
+            stage(s, folder)
+            progress["done"].append(name)
+            save_progress(folder, progress)
+        report(s, folder, progress)
+        progress["wall_s"] = round(progress.get("wall_s", 0.0) + time.monotonic() - t0, 1)
+        save_progress(folder, progress)
+    except StageFailed as err:
+        print(f"python -m deploy.lab: {err}; the same command resumes at this stage (folder {folder})",
+              file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"\ninterrupted; the same command with --run-dir {folder} resumes at the stage it stopped in",
+              file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

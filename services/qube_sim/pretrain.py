@@ -1,0 +1,65 @@
+"""A pretrain's rigs centred on a lab's identified rigs, with ranges from what the fit could not pin down.
+
+A controller pretrained in simulation holds on the real rigs only if their physics lies inside what it was
+randomised over. Randomising ±20 % around ``lab`` does not cover a lab whose rigs differ from ``lab`` by 2-10x. So
+the pretrain randomises around the rigs as identified (services/qube_sim/identify.py): its nominal plant is the
+median of the identified rigs, and each fitted parameter is drawn at every reset from a range that spans every rig
+and reaches ``sigmas`` standard deviations of its fit beyond it, never less than ``floor`` (±30 %: wider tails than the
+±20 % of before), because a fit is made from a few minutes of one rig's motion and a rig drifts (warm-up, wear).
+"""
+
+from __future__ import annotations
+
+import statistics
+from collections.abc import Sequence
+
+from services.qube_sim.profile import RigProfile
+
+#: Identified name (Identified.fitted) -> the profile field of its value and the ``ranges`` key it is drawn under.
+RANDOMISED: dict[str, tuple[str, str]] = {
+    "Dr": ("Dr", "Dr"), "Dp": ("Dp", "Dp"), "mr": ("mr", "mr"), "Lr": ("Lr", "Lr"), "Lp": ("Lp", "Lp"),
+    "coulomb_arm": ("coulomb_arm", "coulomb_arm"), "static_arm": ("static_arm", "static_arm"),
+    "coulomb_pendulum": ("coulomb_pendulum", "coulomb_pendulum"), "deadzone_v": ("deadzone_v", "deadzone_v"),
+    "motor": ("km", "motor"),
+}
+#: The least half-width of a range, relative to the value (a fit that claims more precision is not believed).
+FLOOR = 0.3
+#: A range reaches this many of the fit's standard deviations beyond the rigs' values.
+SIGMAS = 3.0
+#: Every randomisable parameter not identified is drawn from ± this fraction of the nominal value.
+REST = 0.2
+
+
+def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIGMAS, rest: float = REST,
+           name: str = "identified-rigs") -> RigProfile:
+    """The pretrain profile of ``rigs`` (identified profiles, ``RigProfile.identified`` set): the median rig, each
+    identified parameter drawn per episode from [min_i v_i (1 - w_i), max_i v_i (1 + w_i)] with w_i = max(floor,
+    sigmas * sigma_i) (sigma_i: the fit's relative 1-sigma of rig i's value), the rest from ± ``rest``. A
+    ValueError for no rigs, or for a profile that was not identified."""
+    if not rigs:
+        raise ValueError("a pretrain around identified rigs needs at least one identified rig profile")
+    missing = [r.name for r in rigs if r.identified is None]
+    if missing:
+        raise ValueError(f"not identified (no 'identified' record): {', '.join(missing)}")
+    if not 0 < floor < 1 or sigmas < 0 or not 0 <= rest <= 0.5:
+        raise ValueError("need 0 < floor < 1, sigmas >= 0 and 0 <= rest <= 0.5")
+    fields = sorted({field for field, _ in RANDOMISED.values()} | {"kt", "static_pendulum", "action_delay_ms"})
+    nominal = {f: statistics.median(getattr(r, f) for r in rigs) for f in fields}
+    for static, coulomb in (("static_arm", "coulomb_arm"), ("static_pendulum", "coulomb_pendulum")):
+        nominal[static] = max(nominal[static], nominal[coulomb])  # medians of each need not keep the order
+    ranges: dict[str, tuple[float, float]] = {}
+    for fitted, (field, key) in RANDOMISED.items():
+        lo, hi = [], []
+        for rig in rigs:
+            assert rig.identified is not None
+            value = getattr(rig, field)
+            width = max(floor, sigmas * rig.identified.sigma.get(fitted, 0.0))
+            lo.append(max(0.0, value * (1 - width)))
+            hi.append(value * (1 + width))
+        scale = nominal["km"] if key == "motor" else 1.0  # 'motor' is a factor on the nominal km and kt
+        ranges[key] = (min(lo) / scale, max(hi) / scale)
+    names = ", ".join(r.name for r in rigs)
+    data = {**rigs[0].model_dump(), **nominal, "name": name[:64], "identified": None,
+            "description": f"randomised around {len(rigs)} identified rigs ({names})"[:2000],
+            "spread": 0.0, "spread_nonideal": 0.0, "randomize": rest, "ranges": ranges}
+    return RigProfile.model_validate(data)

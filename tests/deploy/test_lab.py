@@ -1,0 +1,108 @@
+"""``python -m deploy.lab``: a lab's rigs identified, a pretrain around them, a warm-started fine-tune, end to end with
+simulated rigs in process (qube-local) and over MQTT (qube). The pretrain itself is a federation to TC (minutes), so
+the end-to-end runs here start the fine-tune from a given model (``--init-model``); the pretrain stage is checked
+apart, up to the federation it starts (bench/lab.py runs the whole pipeline and measures it)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from chief.audit import audit
+from deploy.lab import LabSettings
+from services.qube_sim import families
+from services.qube_sim.pretrain import around
+from services.qube_sim.profile import load_profile
+from tests.paths import ROOT
+
+pytestmark = pytest.mark.slow
+
+
+def model_of(path: Path, env: str) -> Path:
+    """An untrained PPO model of ``env`` with its provenance (the fine-tune's starting point)."""
+    from worker.episode import build_learner_and_env
+    from worker.model import provenance
+
+    _, learner = build_learner_and_env(env, seed=0, device_noise=0.0, spec_only=True)
+    learner.save(path, provenance(env, {}, 0, 1, 1, 1, None, "w0", "made"))
+    return path
+
+
+def lab(args: list[str], truth: Path, timeout: float = 600) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("FEDRL_")}
+    env.update(FEDRL_RIG_PROFILE=str(truth), PYTHONUNBUFFERED="1")
+    return subprocess.run([sys.executable, "-m", "deploy.lab", *args], capture_output=True, text=True, env=env,
+                          cwd=ROOT, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def truth(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The rigs' true physics: the combined family (outside lab), which only the simulators read."""
+    path = tmp_path_factory.mktemp("truth") / "combined.json"
+    path.write_text(families.combined().to_json())
+    return path
+
+
+def test_settings_are_checked_before_anything_starts(tmp_path: Path, truth: Path) -> None:
+    for args, expected in ((["--algo", "dqn", "--qube-actions", "voltage"], "needs discrete actions"),
+                           (["--qube-clock", "realtime"], "runs on a simulated clock"),
+                           (["--broker", "mqtt://127.0.0.1:1"], "--broker is for --env qube")):
+        proc = lab([*args, "--run-dir", str(tmp_path / "x")], truth, timeout=120)
+        assert proc.returncode == 2 and expected in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
+    assert not (tmp_path / "x").exists()
+    assert LabSettings.given().qube_actions == "paper"
+
+
+@pytest.mark.parametrize("env", ["qube-local", "qube"])
+def test_the_pipeline_identifies_every_rig_and_fine_tunes_them(env: str, tmp_path: Path, truth: Path) -> None:
+    """Identification of every rig (in process, or asked over MQTT), then the fine-tune over MQTT with each rig's
+    identified model for its resets; the report's identification seconds land in summary.json beside rig_s."""
+    folder = tmp_path / "lab"
+    model = model_of(tmp_path / "m.pt", env)
+    args = ["--env", env, "--workers", "2", "--seed", "7", "--run-dir", str(folder), "--max-episodes", "1",
+            "--init-model", str(model)]
+    proc = lab(args, truth)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr
+    for i in range(2):
+        profile = load_profile(folder / "identified" / f"rig{i}.json")
+        assert profile.identified is not None and 60 < profile.identified.rig_seconds < 240
+        true = families.combined()
+        # the rig's own physics is the family's spread by its seed: the fit lands near it, not on lab's values
+        assert abs(profile.Dp / true.Dp - 1) < 0.6 and abs(profile.km / true.km - 1) < 0.2, profile
+    assert "stage 1 of 3" in proc.stdout and "[lab pretrain] skipped" in proc.stdout
+    progress = json.loads((folder / "lab.json").read_text())
+    assert progress["done"] == ["identify", "finetune"]
+    summary = json.loads((folder / "finetune" / "summary.json").read_text())
+    assert summary["env"] == env and all(w["episodes"] == 1 for w in summary["workers"])
+    for w, row in zip(summary["workers"], progress["rigs"], strict=True):
+        assert w["rig"]["identify_s"] == pytest.approx(row["identify_s"], abs=0.1) and row["identify_s"] > 60
+    assert audit(folder / "finetune").rounds >= 1  # the fine-tune is a federation the audit re-checks
+    if env == "qube":  # the recordings came over MQTT and are kept beside the profiles
+        assert (folder / "identified" / "rig0.recording.json.gz").stat().st_size > 10_000
+
+    again = lab(args, truth)  # a finished pipeline: every stage is kept, the report is made again
+    assert again.returncode == 0 and again.stdout.count("done before: skipped") == 2, again.stdout[-2000:]
+
+
+def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tmp_path: Path, truth: Path) -> None:
+    folder = tmp_path / "lab"
+    args = ["--workers", "1", "--seed", "8", "--run-dir", str(folder), "--pretrain-episodes", "1",
+            "--pretrain-workers", "1"]
+    proc = lab(args, truth)
+    assert proc.returncode == 1, proc.stdout[-3000:] + proc.stderr
+    assert "the pretrain ended without a controller that meets TC" in proc.stderr
+    assert "the same command resumes at this stage" in proc.stderr
+    assert json.loads((folder / "lab.json").read_text())["done"] == ["identify"]
+    rig = load_profile(folder / "identified" / "rig0.json")
+    expected = around([rig], name="around-1-identified")
+    assert load_profile(folder / "pretrain-profile.json") == expected
+    summary = json.loads((folder / "pretrain" / "summary.json").read_text())
+    assert summary["env_options"]["rig_profile"] == str(folder / "pretrain-profile.json")  # never the truth
+
+    again = lab(args, truth)  # resumes at the pretrain: the rig is not identified again
+    assert again.returncode == 1 and "[lab identify] done before: skipped" in again.stdout

@@ -38,5 +38,5 @@ def test_every_identified_rig_lies_inside_the_pretrains_ranges_with_wide_tails()
 def test_only_identified_rigs_are_taken() -> None:
     with pytest.raises(ValueError, match="at least one identified rig"):
         around([])
-    with pytest.raises(ValueError, match="not identified .*: lab"):
+    with pytest.raises(ValueError, match=r"not identified .*: lab"):
         around([LAB])

@@ -4,8 +4,9 @@ A controller pretrained in simulation holds on the real rigs only if their physi
 randomised over. Randomising ±20 % around ``lab`` does not cover a lab whose rigs differ from ``lab`` by 2-10x. So
 the pretrain randomises around the rigs as identified (services/qube_sim/identify.py): its nominal plant is the
 median of the identified rigs, and each fitted parameter is drawn at every reset from a range that spans every rig
-and reaches ``sigmas`` standard deviations of its fit beyond it, never less than ``floor`` (±30 %: wider tails than the
-±20 % of before), because a fit is made from a few minutes of one rig's motion and a rig drifts (warm-up, wear).
+and reaches ``sigmas`` standard deviations of its fit beyond it, never less than ``floor`` (±30 % for damping, friction
+and deadzone: wider tails than the ±20 % of before; ±10 % for masses, lengths and motor gain), because a fit is made
+from a few minutes of one rig's motion and a rig drifts (warm-up, wear).
 """
 
 from __future__ import annotations
@@ -22,8 +23,13 @@ RANDOMISED: dict[str, tuple[str, str]] = {
     "coulomb_pendulum": ("coulomb_pendulum", "coulomb_pendulum"), "deadzone_v": ("deadzone_v", "deadzone_v"),
     "motor": ("km", "motor"),
 }
-#: The least half-width of a range, relative to the value (a fit that claims more precision is not believed).
+#: The least half-width of a range, relative to the value (a fit that claims more precision is not believed): wide for
+#: what dissipates energy (damping, dry friction, deadzone), which a few minutes of one rig pin down least and which
+#: drifts with temperature and wear; narrower for the masses, lengths and motor gain, which the fit pins down to a few
+#: per cent and which the reset's model must match for the pretrain's rigs to swing up.
 FLOOR = 0.3
+FLOOR_INERTIAL = 0.1
+INERTIAL = frozenset({"mr", "Lr", "Lp", "motor"})
 #: A range reaches this many of the fit's standard deviations beyond the rigs' values.
 SIGMAS = 3.0
 #: Every randomisable parameter not identified is drawn from ± this fraction of the nominal value.
@@ -34,7 +40,8 @@ def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIG
            name: str = "identified-rigs") -> RigProfile:
     """The pretrain profile of ``rigs`` (identified profiles, ``RigProfile.identified`` set): the median rig, each
     identified parameter drawn per episode from [min_i v_i (1 - w_i), max_i v_i (1 + w_i)] with w_i = max(floor,
-    sigmas * sigma_i) (sigma_i: the fit's relative 1-sigma of rig i's value), the rest from ± ``rest``. A
+    sigmas * sigma_i) (sigma_i: the fit's relative 1-sigma of rig i's value; the floor of the masses, lengths and motor
+    gain is ``FLOOR_INERTIAL``), the rest from ± ``rest``. A
     ValueError for no rigs, or for a profile that was not identified."""
     if not rigs:
         raise ValueError("a pretrain around identified rigs needs at least one identified rig profile")
@@ -53,7 +60,8 @@ def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIG
         for rig in rigs:
             assert rig.identified is not None
             value = getattr(rig, field)
-            width = max(floor, sigmas * rig.identified.sigma.get(fitted, 0.0))
+            least = min(floor, FLOOR_INERTIAL) if fitted in INERTIAL else floor
+            width = max(least, sigmas * rig.identified.sigma.get(fitted, 0.0))
             lo.append(max(0.0, value * (1 - width)))
             hi.append(value * (1 + width))
         scale = nominal["km"] if key == "motor" else 1.0  # 'motor' is a factor on the nominal km and kt

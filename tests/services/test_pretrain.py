@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from services.qube_sim import families
-from services.qube_sim.pretrain import FLOOR, RANDOMISED, around
+from services.qube_sim.pretrain import FLOOR, FLOOR_INERTIAL, INERTIAL, RANDOMISED, around
 from services.qube_sim.profile import LAB, Identified, RigProfile
 
 
@@ -25,7 +25,8 @@ def test_every_identified_rig_lies_inside_the_pretrains_ranges_with_wide_tails()
         lo, hi = profile.ranges[key]
         scale = profile.km if key == "motor" else 1.0
         values = [getattr(r, field) / scale for r in rigs]
-        assert lo <= min(values) * (1 - FLOOR) + 1e-12 and hi >= max(values) * (1 + FLOOR) - 1e-12, fitted
+        floor = FLOOR_INERTIAL if fitted in INERTIAL else FLOOR
+        assert lo <= min(values) * (1 - floor) + 1e-12 and hi >= max(values) * (1 + floor) - 1e-12, fitted
     # the course rig's fit is uncertain (30 %): its damping's range reaches 3 sigma, 90 %, beyond it
     assert profile.ranges["Dr"][1] == pytest.approx(families.course().Dr * 1.9)
     # the nominal plant is the median rig, and static friction never falls below Coulomb

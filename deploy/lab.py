@@ -211,7 +211,7 @@ def finetune_command(s: LabSettings, folder: Path) -> list[str]:
                "--run-id", f"lab-s{s.seed}", "--run-dir", str(folder / "finetune"), "--init-model",
                str(pretrained(s, folder)), "--rig-model", str(folder / "identified"), "--qube-actions",
                s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off"]
-    return command + (["--broker", s.broker] if s.broker else [])
+    return command + (["--broker", s.broker, "--no-simulate-rigs"] if s.broker else [])
 
 
 def finetune(s: LabSettings, folder: Path) -> None:

@@ -281,7 +281,7 @@ def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], log
     assert s.run_dir is not None
     at_site = [{**common, "broker": s.site_brokers[i % len(s.site_brokers)]} if s.site_brokers else common
                for i in range(len(worker_ids))]
-    for i, rig in rigs.items():
+    for i, rig in (rigs.items() if s.simulate_rigs else ()):
         fleet.start(f"qube-sim-{rig}", "services.qube_sim", s.child(
             SimRigSettings, **at_site[i], **login(rig), rig_id=rig, seed=worker_seed(s.seed, i)))
     for i, wid in enumerate(worker_ids):

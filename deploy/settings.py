@@ -113,6 +113,8 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSetti
     edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md), each its own "
                                     "process (python -m chief --role edge), worker i behind edge e<i mod N>; 0: flat. "
                                     "A strategy that cannot be split (median, trimmed) runs flat")
+    simulate_rigs: bool = setting(True, "--env qube: start a simulated rig (python -m services.qube_sim) for each "
+                                  "worker; false: the rigs are real bridges on --broker (worker i drives rig<i>)")
     fork_workers: bool = setting(True, "fork the workers from one process that imported torch once (deploy/forked.py): "
                                  "about 3 s of CPU less per worker at start, and its memory shared; false: each "
                                  "worker its own python -m worker")
@@ -133,6 +135,12 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSetti
         for url in value:
             BrokerAddress.parse(url)
         return value
+
+    @model_validator(mode="after")
+    def _real_rigs_need_their_broker(self) -> LocalRunSettings:
+        if not self.simulate_rigs and (self.env != "qube" or not self.broker):
+            raise ValueError("--no-simulate-rigs is for --env qube with --broker, the broker of the real rigs")
+        return self
 
     @model_validator(mode="after")
     def _sites_need_a_core(self) -> LocalRunSettings:

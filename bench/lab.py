@@ -143,8 +143,8 @@ def render(report: dict[str, Any], source: str) -> str:
     met = lambda ok: "met" if ok else "**missed**"  # noqa: E731
     lines = [
         f"`python -m deploy.lab --env {report['env']} --workers {report['workers']}` on rigs of the "
-        f"`{report['family']}` family (true physics given to the simulators only), action set `{report['qube_actions']}`, report seeds "
-        f"{report['seeds']} ({t['seeds']} labs), the last of each lab's rigs, median [IQR], unfinished counted as "
+        f"`{report['family']}` family (true physics given to the simulators only), action set "
+        f"`{report['qube_actions']}`, report seeds {report['seeds']} ({t['seeds']} labs), the last of each lab's rigs, median [IQR], unfinished counted as "
         f"worse; generated from `{source}` ({report['cpus']} cores, load {report['load_at_start']} at the start, "
         f"{report['wall_s'] / 60:.0f} wall minutes).",
         "",

@@ -144,9 +144,9 @@ def render(report: dict[str, Any], source: str) -> str:
     lines = [
         f"`python -m deploy.lab --env {report['env']} --workers {report['workers']}` on rigs of the "
         f"`{report['family']}` family (true physics given to the simulators only), action set "
-        f"`{report['qube_actions']}`, report seeds {report['seeds']} ({t['seeds']} labs), the last of each lab's rigs, median [IQR], unfinished counted as "
-        f"worse; generated from `{source}` ({report['cpus']} cores, load {report['load_at_start']} at the start, "
-        f"{report['wall_s'] / 60:.0f} wall minutes).",
+        f"`{report['qube_actions']}`, report seeds {report['seeds']} ({t['seeds']} labs), the last of each lab's "
+        f"rigs, median [IQR], unfinished counted as worse; generated from `{source}` ({report['cpus']} cores, load "
+        f"{report['load_at_start']} at the start, {report['wall_s'] / 60:.0f} wall minutes).",
         "",
         "| labs finished | fine-tune episodes | balance steps | rig minutes (identification + balance + reset) | "
         "zero-shot after identification | workers stopped on their rig |",

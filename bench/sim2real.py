@@ -392,7 +392,7 @@ def write_report(json_path: Path, pages: list[Path]) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse(argv)
     if args.report:
-        write_report(args.out / "sim2real.json", [Path("README.md"), Path("docs/how-to/warm-start.md")])
+        write_report(args.out / "sim2real.json", [Path("docs/how-to/warm-start.md")])
         return 0
     start = time.monotonic()
     setup = Setup(args.algo, args.policy)
@@ -448,7 +448,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="one seed, small caps: checks the pipeline only")
     parser.add_argument("--report", action="store_true", help="write the table of <out>/sim2real.json into "
-                        "README.md and docs/how-to/warm-start.md (runs nothing)")
+                        "docs/how-to/warm-start.md (runs nothing)")
     parser.add_argument("--seeds", nargs="+", type=int, help="report seeds (default 101-110)")
     parser.add_argument("--clocks", nargs="+", choices=CLOCKS, default=list(CLOCKS),
                         help="the fine-tuning runs' simulated clocks (default: both; the disturbed trials take the "

@@ -378,9 +378,9 @@ def this_python() -> str:
     return os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else sys.executable
 
 
-#: Settings a printed command does not carry over: the run's identity (a new run gets its own, a resume names it) and
-#: the warm start (a command says where it starts from).
-NOT_CARRIED = frozenset({"run_id", "run_dir", "init_model"})
+#: Settings a printed command does not carry over: the run's identity (a new run gets its own, a resume names it). A
+#: warm start is carried, except by the command that starts a run from this one (it names its own model).
+NOT_CARRIED = frozenset({"run_id", "run_dir"})
 #: The processes of a run, which read their own FEDRL_* variables beyond the settings the launcher hands them.
 CHILDREN: tuple[type[Settings], ...] = (ChiefSettings, WorkerSettings, SimRigSettings, DashboardSettings)
 

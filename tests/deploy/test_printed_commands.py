@@ -183,3 +183,13 @@ def test_a_warm_started_run_keeps_its_model_in_its_commands_but_a_run_from_it_na
     again = run_local.warm_start_command(s, Path("runs/r1"))
     assert again.count("FEDRL_INIT_MODEL=") == 1 and again.endswith("FEDRL_INIT_MODEL=runs/r1 make run")
     assert "FEDRL_RUN_ID" not in again and "FEDRL_RUN_DIR" not in again
+
+
+def test_a_resume_the_chief_refuses_exits_2_without_the_earlier_part_s_resume_line(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("FEDRL_ENV_FILE", os.devnull)
+    s = run_local.load(["--run-id", "r1", "--run-dir", str(tmp_path)])
+    (tmp_path / "summary.json").write_text(json.dumps({"end_reason": "interrupted"}))  # the first part's
+    assert run_local.report(s, 2, 1.0) == 2
+    out = capsys.readouterr()
+    assert "the chief refused to run (exit code 2)" in out.err and "To resume it" not in out.out

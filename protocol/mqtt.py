@@ -178,9 +178,8 @@ def connect_problem(address: BrokerAddress, timeout: float = PROBE_TIMEOUT) -> s
     client = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"fedrl-probe-{secrets.token_hex(6)}",
                          protocol=paho.MQTTv311, clean_session=True)
     client.connect_timeout = timeout
-    client.on_connect = lambda c, u, flags, rc, props: answer.append(
-        None if not rc.is_failure else f"the broker refused the login{_as(address)}: {rc} (check FEDRL_MQTT_USERNAME "
-        "and FEDRL_MQTT_PASSWORD, or the user's line in the broker's password file)")
+    client.on_connect = lambda c, u, flags, rc, props: answer.append(refused_login(address, rc) if rc.is_failure
+                                                                      else None)
     client.on_disconnect = lambda c, u, flags, rc, props: answer.append(
         "the listener closed the connection without an MQTT answer (is it an MQTT broker's port? a TLS listener "
         "needs mqtts://)")
@@ -232,8 +231,11 @@ def connect_problem(address: BrokerAddress, timeout: float = PROBE_TIMEOUT) -> s
     return answer[0]
 
 
-def _as(address: BrokerAddress) -> str:
-    return f" of user {address.username!r}" if address.username else " (no user name given)"
+def refused_login(address: BrokerAddress, reason: object) -> str:
+    """The cause of a CONNACK that refused the connection, as one line."""
+    who = f" of user {address.username!r}" if address.username else " (no user name given)"
+    return (f"the broker refused the login{who}: {reason} (check FEDRL_MQTT_USERNAME and FEDRL_MQTT_PASSWORD, or the "
+            "user's line in the broker's password file)")
 
 
 def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -> None:
@@ -268,6 +270,8 @@ class MqttConnection:
         self.address = address
         self.client_id = f"{client_id}-{secrets.token_hex(6)}"  # the part nobody can guess
         self.connected = threading.Event()
+        self._answered = threading.Event()  # the first CONNACK came, accepting or refusing
+        self._refused: str | None = None  # why the broker refused the first CONNECT
         self.connects = 0  # successful CONNACKs so far (more than 1: we reconnected)
         self.session_present = False  # whether the broker still had our session at the last CONNACK
         self.handler_errors = 0
@@ -306,7 +310,11 @@ class MqttConnection:
         """Connect in the background and wait up to ``timeout`` s for the first CONNACK."""
         self._client.connect_async(self.address.host, self.address.port, keepalive=self._keepalive)
         self._client.loop_start()
-        if not self.connected.wait(timeout):
+        self._answered.wait(timeout)
+        if self._refused is not None:  # a refused login does not get better by retrying: say so at once
+            self.stop()
+            raise ConnectionError(f"could not connect to the MQTT broker at {self.address}: {self._refused}")
+        if not self.connected.wait(0):
             self.stop()
             # Why, as the launchers' start-up check says it (a refused login, TLS, not MQTT...), in one more try.
             why = connect_problem(self.address, timeout=STARTUP_PROBE_S) or "it answered only now"
@@ -417,6 +425,9 @@ class MqttConnection:
     def _on_connect(self, client: paho.Client, userdata: object, flags: object, reason: object, props: object) -> None:
         if getattr(reason, "is_failure", False):
             log.error("broker %s refused the connection: %s", self.address, reason)
+            if self.connects == 0 and not self._answered.is_set():
+                self._refused = refused_login(self.address, reason)
+                self._answered.set()
             return
         with self._lock:
             subs = list(self._subscriptions.items())
@@ -427,6 +438,7 @@ class MqttConnection:
         log.info("%s connected to %s (%d subscriptions, %s)", self.client_id, self.address, len(subs),
                  "session resumed" if self.session_present else "new session")
         self.connected.set()
+        self._answered.set()
 
     def _on_disconnect(
         self, client: paho.Client, userdata: object, flags: object, reason: object, props: object

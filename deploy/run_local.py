@@ -21,7 +21,6 @@ import os
 import secrets
 import shlex
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -39,11 +38,11 @@ from deploy.settings import RIG_TASKS, LocalRunSettings
 from deploy.witness import Witness
 from protocol.codec import RejectCounter
 from protocol.messages import INTERRUPTED
-from protocol.mqtt import DEFAULT_BROKER, BrokerAddress, MqttConnection
+from protocol.mqtt import DEFAULT_BROKER, PROBE_TIMEOUT, BrokerAddress, MqttConnection, connect_problem
 from protocol.tasks import worker_seed
 from protocol.transport import Connect
 from runtime.cli import exits_on_storage_faults
-from runtime.settings import RunMqttSettings, Settings, env_name, flags, returns_code, to_env
+from runtime.settings import MqttSettings, RunMqttSettings, Settings, env_name, flags, returns_code, to_env
 from runtime.storage import EXIT_STORAGE, storage_errors
 from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.service import wait_for_url
@@ -251,8 +250,13 @@ def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs:
     assert s.run_dir is not None and s.run_id is not None
     if s.broker:
         address = BrokerAddress.parse(s.broker)
-        for url, flag in [(s.broker, "FEDRL_BROKER / --broker"), *((u, "--site-brokers") for u in s.site_brokers)]:
-            problem = unreachable(BrokerAddress.parse(url))
+        # An MQTT CONNECT with the login and TLS settings of those who connect there: the chief, a site's workers.
+        logins: list[tuple[str, str, MqttSettings]] = [
+            (s.broker, "FEDRL_BROKER / --broker", s.child(ChiefSettings, broker=s.broker, run_id=s.run_id,
+                                                          run_dir=s.run_dir)),
+            *((u, "--site-brokers", s.child(WorkerSettings, broker=u, run_id=s.run_id)) for u in s.site_brokers)]
+        for url, flag, login in logins:
+            problem = connect_problem(login.address(), timeout=BROKER_PROBE_S)
             if problem is not None:  # before anything starts: restarts and resumes are for brokers lost mid-run
                 print(f"cannot reach the MQTT broker at {BrokerAddress.parse(url)}: {problem} (check {flag})",
                       file=sys.stderr)
@@ -328,21 +332,8 @@ def report(s: LocalRunSettings, code: int, wall: float) -> int:
     return code
 
 
-#: Seconds the launcher waits for the broker's TCP port before it gives up (the run has not started yet).
-BROKER_PROBE_S = 10.0
-
-
-def unreachable(address: BrokerAddress, timeout: float = BROKER_PROBE_S) -> str | None:
-    """Why a TCP connection to the broker fails within ``timeout`` seconds, or None when it opens."""
-    try:
-        with socket.create_connection((address.host, address.port), timeout=timeout):
-            return None
-    except TimeoutError:
-        return f"no answer within {timeout:g} s"
-    except OSError as err:  # refused, no route, unknown host
-        return err.strerror or type(err).__name__
-
-
+#: Seconds the launcher waits for the broker's answer to its MQTT CONNECT before it gives up (the run has not started).
+BROKER_PROBE_S = PROBE_TIMEOUT
 
 
 #: Chief exit codes that end a run (done, bad setting, no workers, aborted, storage fault, another chief holds the
@@ -387,9 +378,9 @@ def this_python() -> str:
     return os.path.relpath(sys.executable) if Path(sys.executable).is_relative_to(Path.cwd()) else sys.executable
 
 
-#: Settings a printed command does not carry over: the run's identity (a new run gets its own, a resume names it) and
-#: the warm start (a command says where it starts from).
-NOT_CARRIED = frozenset({"run_id", "run_dir", "init_model"})
+#: Settings a printed command does not carry over: the run's identity (a new run gets its own, a resume names it). A
+#: warm start is carried, except by the command that starts a run from this one (it names its own model).
+NOT_CARRIED = frozenset({"run_id", "run_dir"})
 #: The processes of a run, which read their own FEDRL_* variables beyond the settings the launcher hands them.
 CHILDREN: tuple[type[Settings], ...] = (ChiefSettings, WorkerSettings, SimRigSettings, DashboardSettings)
 

@@ -19,6 +19,7 @@ and what survives a broker's death):
 from __future__ import annotations
 
 import argparse
+import os
 import secrets
 import shutil
 import subprocess
@@ -28,6 +29,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+from deploy.mosquitto_conf import render
 from protocol.routes import BRIDGE, CHIEF, DASHBOARD, EDGE, ROUTES, WORKER, Route
 from protocol.topics import check_id
 from services.broker import mosquitto
@@ -278,11 +280,12 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
     Each folder also holds the run's key (``run_key``, the same everywhere: an orchestrator takes a folder per
     place), and so does each process's credentials/<user>.env. Passwords and the key are random; files with
     secrets are private. Returns the folders."""
+    base_conf = render(base.read_text(encoding="utf-8"), os.environ)  # its ${VAR:-default}s filled in
     run_args = ["--run", run] if run else []
     key = secrets.token_hex(32)
     core_dir = out / CORE
     make_users(core_dir, "-w", "0", "--dashboard", *run_args)
-    (core_dir / "mosquitto.conf").write_text(base.read_text(encoding="utf-8"), encoding="utf-8")
+    (core_dir / "mosquitto.conf").write_text(base_conf, encoding="utf-8")
     private(core_dir / "run_key", key)
     with_key(core_dir, key)
     folders = [core_dir]
@@ -293,7 +296,7 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
         password = secrets.token_urlsafe(24)
         add_user(core_dir, site.bridge_user, password, bridge_acl(site, run))
         bridge = Bridge(site.name, core, run, site.bridge_user, password, core_ca)
-        private(folder / "mosquitto.conf", base.read_text(encoding="utf-8") + "\n" + bridge_section(bridge))
+        private(folder / "mosquitto.conf", base_conf + "\n" + bridge_section(bridge))
         private(folder / "logins", logins(folder))
         private(folder / "run_key", key)
         with_key(folder, key)
@@ -327,7 +330,8 @@ def main(argv: list[str] | None = None) -> int:
                         "see it (e.g. /mosquitto/certs/core-ca.crt)")
     parser.add_argument("--run", help="the one run these users may take part in (default: any)")
     parser.add_argument("--base", type=Path, default=MOSQUITTO_DIR / "mosquitto.prod.conf",
-                        help="every broker's configuration before its bridge (default: mosquitto.prod.conf; "
+                        help="every broker's configuration before its bridge, its ${VAR:-default} placeholders filled "
+                        "in from the environment (python -m deploy.mosquitto_conf; default: mosquitto.prod.conf; "
                         "mosquitto.overlay.conf on an orchestrator)")
     parser.add_argument("-o", "--out", type=Path, default=MOSQUITTO_DIR / "secrets" / "sites",
                         help="folder to write (default: deploy/mosquitto/secrets/sites, git-ignored)")

@@ -19,6 +19,7 @@ logged and counted; it never kills the network loop.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import secrets
 import socket
@@ -27,6 +28,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from struct import error as struct_error
 from urllib.parse import unquote, urlsplit
 
 import paho.mqtt.client as paho
@@ -161,6 +163,81 @@ def check_readable(path: str, what: str) -> None:
         raise ValueError(f"cannot read the {what} {path}: {err.strerror or err}") from None
 
 
+#: Seconds a start-up check waits for the broker's answer to an MQTT CONNECT (the run has not started yet).
+PROBE_TIMEOUT = 10.0
+#: Seconds a connection that could not start tries once more, to say why.
+STARTUP_PROBE_S = 3.0
+
+
+def connect_problem(address: BrokerAddress, timeout: float = PROBE_TIMEOUT) -> str | None:
+    """Why an MQTT CONNECT to ``address``, with its login and TLS settings, is not accepted within ``timeout``
+    seconds, as one line naming the cause (refused login, a listener that is not MQTT, a certificate that does not
+    verify, one for another host name, nothing listening), or None once the broker accepted it. A clean session under
+    a client id of its own, disconnected at once: it leaves nothing on the broker."""
+    answer: list[str | None] = []
+    client = paho.Client(CallbackAPIVersion.VERSION2, client_id=f"fedrl-probe-{secrets.token_hex(6)}",
+                         protocol=paho.MQTTv311, clean_session=True)
+    client.connect_timeout = timeout
+    client.on_connect = lambda c, u, flags, rc, props: answer.append(refused_login(address, rc) if rc.is_failure
+                                                                      else None)
+    client.on_disconnect = lambda c, u, flags, rc, props: answer.append(
+        "the listener closed the connection without an MQTT answer (is it an MQTT broker's port? a TLS listener "
+        "needs mqtts://)")
+    if address.username:
+        client.username_pw_set(address.username, address.password)
+    try:
+        if address.tls:
+            if address.ca_file:
+                check_readable(address.ca_file, "CA file (FEDRL_MQTT_CA_FILE)")
+            client.tls_set(ca_certs=address.ca_file, cert_reqs=ssl.CERT_REQUIRED)
+        client.connect(address.host, address.port, keepalive=KEEPALIVE)
+    except ssl.SSLCertVerificationError as err:
+        why = err.verify_message or str(err)
+        if "mismatch" in why.lower():
+            return (f"TLS: the broker's certificate is not for host {address.host!r} ({why}); use the host name or "
+                    "address it was made for (make-certs.sh <host>)")
+        return (f"TLS: the broker's certificate does not verify ({why}); give its CA with FEDRL_MQTT_CA_FILE "
+                "(--mqtt-ca-file)")
+    except ssl.SSLError as err:
+        return f"TLS handshake failed ({err.reason or err}): is it a TLS listener? mqtt:// is plain MQTT"
+    except TimeoutError:
+        return f"no answer within {timeout:g} s"
+    except ValueError as err:  # an unreadable CA file
+        return str(err)
+    except OSError as err:  # refused, no route, unknown host; reset in the middle of a TLS handshake
+        why = err.strerror or type(err).__name__
+        if address.tls and isinstance(err, ConnectionResetError):
+            return f"TLS handshake failed ({why}): is it a TLS listener? mqtt:// is plain MQTT"
+        return why
+    deadline = time.monotonic() + timeout
+    try:
+        while not answer and time.monotonic() < deadline:
+            rc = client.loop(timeout=0.1)
+            if rc not in (paho.MQTT_ERR_SUCCESS, paho.MQTT_ERR_AGAIN) and not answer:
+                answer.append("the listener closed the connection without an MQTT answer (is it an MQTT broker's "
+                              "port? a TLS listener needs mqtts://)")
+    except (ValueError, TypeError, IndexError, struct_error):  # a reply that is not MQTT, as paho reads it
+        answer.append("the listener's answer is not MQTT (is it an MQTT broker's port?)")
+    finally:
+        if answer and answer[0] is None:
+            client.disconnect()
+            client.loop(timeout=0.1)
+        with contextlib.suppress(OSError):
+            sock = client.socket()
+            if sock is not None:
+                sock.close()
+    if not answer:
+        return f"it accepts connections but gave no MQTT answer within {timeout:g} s (is it an MQTT broker's port?)"
+    return answer[0]
+
+
+def refused_login(address: BrokerAddress, reason: object) -> str:
+    """The cause of a CONNACK that refused the connection, as one line."""
+    who = f" of user {address.username!r}" if address.username else " (no user name given)"
+    return (f"the broker refused the login{who}: {reason} (check FEDRL_MQTT_USERNAME and FEDRL_MQTT_PASSWORD, or the "
+            "user's line in the broker's password file)")
+
+
 def _set_nodelay(client: paho.Client, userdata: object, sock: paho.SocketLike) -> None:
     """Nagle + delayed ACK turn a 0.6 ms round trip into 40-90 ms (measured on loopback; mosquitto
     issues #433, #1526, #1616), so disable Nagle."""
@@ -193,6 +270,8 @@ class MqttConnection:
         self.address = address
         self.client_id = f"{client_id}-{secrets.token_hex(6)}"  # the part nobody can guess
         self.connected = threading.Event()
+        self._answered = threading.Event()  # the first CONNACK came, accepting or refusing
+        self._refused: str | None = None  # why the broker refused the first CONNECT
         self.connects = 0  # successful CONNACKs so far (more than 1: we reconnected)
         self.session_present = False  # whether the broker still had our session at the last CONNACK
         self.handler_errors = 0
@@ -231,12 +310,16 @@ class MqttConnection:
         """Connect in the background and wait up to ``timeout`` s for the first CONNACK."""
         self._client.connect_async(self.address.host, self.address.port, keepalive=self._keepalive)
         self._client.loop_start()
-        if not self.connected.wait(timeout):
+        self._answered.wait(timeout)
+        if self._refused is not None:  # a refused login does not get better by retrying: say so at once
             self.stop()
-            raise ConnectionError(
-                f"could not connect to the MQTT broker at {self.address} within {timeout:.0f} s "
-                "(is it running? set FEDRL_BROKER or --broker)"
-            )
+            raise ConnectionError(f"could not connect to the MQTT broker at {self.address}: {self._refused}")
+        if not self.connected.wait(0):
+            self.stop()
+            # Why, as the launchers' start-up check says it (a refused login, TLS, not MQTT...), in one more try.
+            why = connect_problem(self.address, timeout=STARTUP_PROBE_S) or "it answered only now"
+            raise ConnectionError(f"could not connect to the MQTT broker at {self.address} within {timeout:.0f} s: "
+                                  f"{why} (set FEDRL_BROKER or --broker)")
         return self
 
     def stop(self, timeout: float = STOP_TIMEOUT) -> None:
@@ -342,6 +425,9 @@ class MqttConnection:
     def _on_connect(self, client: paho.Client, userdata: object, flags: object, reason: object, props: object) -> None:
         if getattr(reason, "is_failure", False):
             log.error("broker %s refused the connection: %s", self.address, reason)
+            if self.connects == 0 and not self._answered.is_set():
+                self._refused = refused_login(self.address, reason)
+                self._answered.set()
             return
         with self._lock:
             subs = list(self._subscriptions.items())
@@ -352,6 +438,7 @@ class MqttConnection:
         log.info("%s connected to %s (%d subscriptions, %s)", self.client_id, self.address, len(subs),
                  "session resumed" if self.session_present else "new session")
         self.connected.set()
+        self._answered.set()
 
     def _on_disconnect(
         self, client: paho.Client, userdata: object, flags: object, reason: object, props: object

@@ -17,6 +17,7 @@ import paho.mqtt.client as paho
 import pytest
 from paho.mqtt.enums import CallbackAPIVersion
 
+from deploy.mosquitto_conf import render
 from protocol.mqtt import BrokerAddress, MqttConnection
 from services.broker.embedded import free_port, stop_process
 from tests.conftest import HOST, mosquitto_available
@@ -34,10 +35,10 @@ def prod_broker(tmp_path: Path) -> Iterator[tuple[int, dict[str, str]]]:
     pw = {path.stem: dict(ln.split("=", 1) for ln in path.read_text().split())["FEDRL_MQTT_PASSWORD"]
           for path in (secrets / "credentials").iterdir()}
     port = free_port(HOST)
-    conf = (MOSQUITTO / "mosquitto.prod.conf").read_text().replace("/mosquitto/config/", f"{secrets}/")
+    conf = render((MOSQUITTO / "mosquitto.prod.conf").read_text(), {
+        "FEDRL_MOSQUITTO_CONFIG_DIR": str(secrets), "FEDRL_MQTT_LOCAL_PORT": str(port), "FEDRL_MQTT_LOCAL_HOST": HOST})
     conf = re.sub(r"listener 8883\n(cafile|certfile|keyfile|tls_version).*?(?=\n\S*listener)", "", conf, flags=re.S)
-    conf = conf.replace("listener 1883 127.0.0.1", f"listener {port} {HOST}").replace("persistence true",
-                                                                                      "persistence false")
+    conf = conf.replace("persistence true", "persistence false")
     if os.geteuid() == 0:
         conf += "\nuser root\n"  # else Mosquitto drops to its own user, who cannot read tmp_path
     (tmp_path / "broker.conf").write_text(conf)

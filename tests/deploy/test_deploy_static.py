@@ -16,6 +16,7 @@ from typing import Any
 import pytest
 import yaml
 
+from deploy.mosquitto_conf import placeholders, render
 from deploy.settings import DockerSettings
 from runtime.settings import env_name
 from services.broker.embedded import free_port, stop_process
@@ -101,6 +102,28 @@ def test_mosquitto_dev_config() -> None:
         assert conf["set_tcp_nodelay"] == "true"
         assert int(conf["max_packet_size"]) == MAX_PACKET_SIZE  # the same limit as the codec and the embedded broker
         assert conf["persistence"] == "true" and conf["persistent_client_expiration"] == "1d"
+
+
+def test_the_production_config_takes_its_ports_and_paths_from_variables() -> None:
+    """mosquitto.prod.conf: every port and path a ${FEDRL_...:-default} placeholder, the defaults the image's layout
+    and the standard ports (documented in its header), each variable rendered where set."""
+    text = (MOSQUITTO / "mosquitto.prod.conf").read_text()
+    defaults = {"FEDRL_MQTT_TLS_PORT": "8883", "FEDRL_MQTT_LOCAL_PORT": "1883", "FEDRL_MQTT_LOCAL_HOST": "127.0.0.1",
+                "FEDRL_MOSQUITTO_CONFIG_DIR": "/mosquitto/config", "FEDRL_MOSQUITTO_CERTS_DIR": "/mosquitto/certs",
+                "FEDRL_MOSQUITTO_DATA_DIR": "/mosquitto/data"}
+    assert placeholders(text) == defaults
+    header = [line for line in text.splitlines() if line.startswith("#")]
+    for var, default in defaults.items():
+        assert any(var in line and default in line for line in header), f"{var} is not documented in the header"
+    plain = render(text, {})
+    assert not placeholders(plain) and "listener 1883 127.0.0.1\n" in plain and "listener 8883\n" in plain
+    assert "password_file /mosquitto/config/passwd" in plain and "persistence_location /mosquitto/data/" in plain
+    moved = render(text, {"FEDRL_MQTT_LOCAL_PORT": "1884", "FEDRL_MQTT_TLS_PORT": "8884",
+                          "FEDRL_MOSQUITTO_CONFIG_DIR": "/etc/mosquitto/fedrl"})
+    assert "listener 1884 127.0.0.1\n" in moved and "listener 8884\n" in moved
+    assert "acl_file /etc/mosquitto/fedrl/acl" in moved
+    with pytest.raises(ValueError, match="has no default: set FEDRL_X"):
+        render("port ${FEDRL_X}", {})
 
 
 def compose_cli() -> list[list[str]]:
@@ -316,10 +339,10 @@ def test_acl_on_a_live_mosquitto(tmp_path: Path) -> None:
         subprocess.run(["bash", str(MOSQUITTO / "make-certs.sh"), HOST, str(secrets / "certs")], check=True,
                        capture_output=True, timeout=120)
     plain_port, tls_port = free_port(HOST), free_port(HOST)
-    conf = (MOSQUITTO / "mosquitto.prod.conf").read_text()
-    conf = conf.replace("/mosquitto/config/", f"{secrets}/").replace("/mosquitto/certs/", f"{secrets}/certs/")
-    conf = conf.replace("listener 8883", f"listener {tls_port} {HOST}").replace(
-        "listener 1883 127.0.0.1", f"listener {plain_port} {HOST}")
+    conf = render((MOSQUITTO / "mosquitto.prod.conf").read_text(), {
+        "FEDRL_MOSQUITTO_CONFIG_DIR": str(secrets), "FEDRL_MOSQUITTO_CERTS_DIR": str(secrets / "certs"),
+        "FEDRL_MQTT_TLS_PORT": f"{tls_port} {HOST}", "FEDRL_MQTT_LOCAL_PORT": str(plain_port),
+        "FEDRL_MQTT_LOCAL_HOST": HOST})
     conf = conf.replace("persistence true", "persistence false")
     if not tls:
         conf = re.sub(r"listener \d+ \S+\n(cafile|certfile|keyfile|tls_version).*?(?=\n\S*listener)", "", conf,

@@ -170,3 +170,26 @@ def test_the_resume_line_of_an_interrupted_run_started_from_variables_resumes_it
                 time.sleep(1)
         rest = resumed.communicate(timeout=60)[0]
     assert resumed.returncode in (0, 130), "".join(lines) + rest
+
+
+def test_a_warm_started_run_keeps_its_model_in_its_commands_but_a_run_from_it_names_its_own(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    for var in [v for v in os.environ if v.startswith("FEDRL_")]:
+        monkeypatch.delenv(var)
+    monkeypatch.setenv("FEDRL_ENV_FILE", os.devnull)
+    s = run_local.load(["--init-model", "runs/a", "--run-id", "r1", "--run-dir", "runs/r1"])
+    assert run_local.resume_command(s).startswith("FEDRL_INIT_MODEL=runs/a ")
+    assert "FEDRL_INIT_MODEL=runs/a " in run_local.linger_command(s)
+    again = run_local.warm_start_command(s, Path("runs/r1"))
+    assert again.count("FEDRL_INIT_MODEL=") == 1 and again.endswith("FEDRL_INIT_MODEL=runs/r1 make run")
+    assert "FEDRL_RUN_ID" not in again and "FEDRL_RUN_DIR" not in again
+
+
+def test_a_resume_the_chief_refuses_exits_2_without_the_earlier_part_s_resume_line(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    monkeypatch.setenv("FEDRL_ENV_FILE", os.devnull)
+    s = run_local.load(["--run-id", "r1", "--run-dir", str(tmp_path)])
+    (tmp_path / "summary.json").write_text(json.dumps({"end_reason": "interrupted"}))  # the first part's
+    assert run_local.report(s, 2, 1.0) == 2
+    out = capsys.readouterr()
+    assert "the chief refused to run (exit code 2)" in out.err and "To resume it" not in out.out

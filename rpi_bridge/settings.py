@@ -101,3 +101,7 @@ class BridgeSettings(MqttSettings, LoopSettings):
     identify: Path | None = setting(None, "run the start-up checks and the identification protocol (about 2 minutes "
                                     "of rig time; docs/how-to/identify.md), write its recording to OUT (.json or "
                                     ".json.gz) and exit, without MQTT", env=False, metavar="OUT")
+
+    def _loaded(self) -> None:
+        if self.identify is None:  # --identify never connects
+            super()._loaded()

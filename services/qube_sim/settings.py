@@ -73,5 +73,9 @@ class SimRigSettings(MqttSettings, LoopSettings):
     def _seed(self) -> int | None:
         return self.seed
 
+    def _loaded(self) -> None:
+        if self.identify is None and self.show_profile is None:  # those two never connect
+            super()._loaded()
+
     def profile(self) -> RigProfile:
         return load_profile(self.rig_profile or DEFAULT_PROFILE, self.seed)

@@ -109,7 +109,7 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):
     @field_validator("run_id")
     @classmethod
     def _run_id(cls, value: str | None) -> str | None:
-        return check_id(value, "run id") if value else None
+        return None if value is None else check_id(value, "run id")
 
 
 class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, TieredSettings):

@@ -6,7 +6,7 @@ import ast
 from pathlib import Path
 from typing import Any
 
-from pydantic import field_validator, model_validator
+from pydantic import ValidationInfo, field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
 
 from protocol import learners
@@ -82,6 +82,11 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     def _worker_id(cls, value: str) -> str:
         return value if value == "auto" else check_id(value, "worker id")
 
+    @field_validator("rig_id", "edge")
+    @classmethod
+    def _ids(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else check_id(value, "rig id" if info.field_name == "rig_id" else "edge id")
+
     @field_validator("rig_profile")
     @classmethod
     def _profile(cls, value: str | None) -> str | None:
@@ -128,6 +133,11 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     pulse_ms: float = setting(50.0, "--rigs: length of each torque pulse in ms (0: no pulses)", ge=0, le=1000)
     sensor_noise: float = setting(1.0, "--rigs: extra encoder noise, standard deviation in counts", ge=0, le=20)
     log_level: LogLevel = setting("WARNING", "DEBUG, INFO, WARNING or ERROR")
+
+    @field_validator("rig_id")
+    @classmethod
+    def _rig_id(cls, value: str | None) -> str | None:
+        return None if value is None else check_id(value, "rig id")
 
     @model_validator(mode="after")
     def _task_given(self) -> EvaluateSettings:

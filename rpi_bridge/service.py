@@ -23,6 +23,7 @@ from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.device import QubeDevice
 from rpi_bridge.runner import BridgeRunner, InjectedTiming
+from runtime.cli import STOP_SIGNALS
 
 M = TypeVar("M", bound=Message)
 
@@ -110,5 +111,5 @@ class BridgeService:
             self.conn.stop()
 
     def install_signal_handlers(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             signal.signal(sig, lambda *_: self.stop_event.set())

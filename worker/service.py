@@ -48,6 +48,7 @@ from runtime.storage import StorageError, atomic_write, storage_errors
 from worker import model, resume
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
+from worker.qube_env import Halted
 from worker.settings import WorkerSettings
 
 log = logging.getLogger("worker")
@@ -167,6 +168,10 @@ class WorkerService:
         except StorageError as exc:  # main prints it as one line: exit 5
             self._status("error", detail=str(exc))
             raise
+        except Halted as exc:  # a signal while the env waited for its rig (a reset, a state): at once, not after it
+            log.info("%s: the episode in play is dropped", exc)
+            self._status("stopped", detail="interrupted during an episode")
+            return EXIT_INTERRUPTED
         except Exception as exc:
             log.exception("worker %s failed", cfg.worker_id)
             self._status("error", detail=f"{type(exc).__name__}: {exc}")
@@ -224,7 +229,7 @@ class WorkerService:
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
-                                             env_options=cfg.env_options(), algo=cfg.algo)
+                                             env_options={**cfg.env_options(), "halt": self._interrupt}, algo=cfg.algo)
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
             model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo)
             log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])

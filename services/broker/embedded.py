@@ -16,7 +16,6 @@ import json
 import logging
 import os
 import secrets
-import signal
 import socket
 import subprocess
 import sys
@@ -26,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from runtime.cli import STOP_SIGNALS
 from runtime.settings import to_env
 from services.broker.settings import MAX_PACKET_SIZE, BrokerSettings
 
@@ -119,7 +119,7 @@ def run(host: str, port: int, password_file: Path | None = None, acl_file: Path 
     async def main() -> None:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             loop.add_signal_handler(sig, stop.set)
         await serve(host, port, stop, password_file=password_file, acl=acl, max_packet_size=max_packet_size)
 

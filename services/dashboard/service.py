@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.mqtt import BrokerAddress
+from runtime.cli import STOP_SIGNALS
 from services.dashboard.feed import MqttFeed
 from services.dashboard.hub import Hub
 from services.dashboard.server import DashboardServer
@@ -80,7 +81,7 @@ class DashboardService:
         return 0
 
     def install_signal_handlers(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             signal.signal(sig, lambda *_: self.stop_event.set())
 
 

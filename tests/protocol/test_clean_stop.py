@@ -162,3 +162,42 @@ def test_sigterm_stops_a_worker_and_the_chief_without_a_will(any_broker: str, tm
             log.close()
         status.conn.stop()
         chief_said.conn.stop()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_qube_worker_waiting_on_a_rig_reset_stops_at_once(amqtt_broker: str, tmp_path: Path,
+                                                           sig: signal.Signals) -> None:
+    """A worker of env qube whose rig never answers its reset (none is running) waits in the reset up to 60 s: a
+    signal ends that wait at once, with the worker's code 130, `stopped` on its status topic and no traceback (it
+    said "stopping cleanly", then failed with a TimeoutError 59 s later). The bound (2 s) is left to a generous
+    timeout here: the suite must not depend on the machine's speed."""
+    run = "resetstop"
+    common = ["--broker", amqtt_broker, "--run-id", run, "--env", "qube"]
+    status = Watcher(amqtt_broker, topics.worker(run, "w0", topics.STATUS), "watch-status")
+    logs = {name: (tmp_path / f"{name}.log").open("wb") for name in ("chief", "worker")}
+    chief = subprocess.Popen([sys.executable, "-m", "chief", *common, "--workers", "1", "--run-dir",
+                              str(tmp_path / "run")], cwd=ROOT, stdout=logs["chief"], stderr=subprocess.STDOUT)
+    worker = subprocess.Popen([sys.executable, "-m", "worker", *common, "--worker-id", "w0", "--rig-id", "nobody"],
+                              cwd=ROOT, stdout=logs["worker"], stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(decode(p).state == "training" for p in status.got):  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline and worker.poll() is None, (tmp_path / "worker.log").read_text()
+            time.sleep(0.1)
+        time.sleep(0.5)  # in the reset's wait (it publishes its request every second)
+        worker.send_signal(sig)
+        assert worker.wait(10) == 130, (tmp_path / "worker.log").read_text()
+        log = (tmp_path / "worker.log").read_text()
+        assert "Traceback" not in log and "failed" not in log, log
+        assert decode(status.got[-1]).state == "stopped"  # type: ignore[attr-defined]
+        chief.send_signal(sig)
+        assert chief.wait(10) == 130, (tmp_path / "chief.log").read_text()
+        assert "Traceback" not in (tmp_path / "chief.log").read_text()
+    finally:
+        for proc in (worker, chief):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for log_file in logs.values():
+            log_file.close()
+        status.conn.stop()

@@ -108,3 +108,65 @@ def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path
     uninterrupted = run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, tmp_path / "uninterrupted", plot=False,
                                    tensorboard_files=False)
     assert per_worker(run_dir) == [(w["id"], w["episodes"], w["steps"]) for w in uninterrupted["workers"]]
+
+
+def marked(marker: str) -> list[int]:
+    """The live processes whose environment holds ``marker`` (every process the launcher started inherits it)."""
+    found = []
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit() and int(entry.name) != os.getpid():
+            try:
+                if marker.encode() in (entry / "environ").read_bytes():
+                    found.append(int(entry.name))
+            except OSError:  # gone, or not ours
+                pass
+    return found
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_sigterm_or_sighup_to_the_launcher_ends_the_run_as_ctrl_c_does_and_leaves_no_process(
+        tmp_path: Path, sig: signal.Signals) -> None:
+    """``kill``, ``timeout``, a closed terminal or a dropped ssh connection: the launcher passes the stop on as it
+    does a Ctrl-C (the chief ends the run resumably, the summary is written and the audit passes on it, the resume
+    command is printed), then stops the broker, the dashboard and the workers. It died at once and left them all
+    running."""
+    marker = f"FEDRL_TEST_MARK=launcher-{sig.name}-{os.getpid()}"
+    run_dir = tmp_path / "run"
+    out = tmp_path / "launcher.log"
+    said = lambda: out.read_text() + ((run_dir / "logs" / "launcher.log").read_text()  # noqa: E731
+                                      if (run_dir / "logs" / "launcher.log").exists() else "")
+    argv = [a if a != "off" else "0" for a in ARGV]  # with the dashboard
+    launcher = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *argv, "--run-dir", str(run_dir),
+                                 "--run-id", "killed"], stdout=out.open("wb"), stderr=subprocess.STDOUT,
+                                env={**os.environ, marker.split("=")[0]: marker.split("=")[1]})
+    paused: list[int] = []
+    try:
+        deadline = time.monotonic() + 300
+        while rounds_closed(run_dir / "metrics.jsonl") < 3:
+            assert time.monotonic() < deadline and launcher.poll() is None, said()
+            time.sleep(0.05)
+        assert len(marked(marker)) >= 5, said()  # launcher, broker, dashboard, chief, workers (and a fork server)
+        paused = worker_pids(said())
+        signal_all(paused, signal.SIGSTOP)  # the run is still open when the signal lands, however loaded the host
+        launcher.send_signal(sig)
+        taken = time.monotonic() + 60
+        while "interrupted: the chief saves the run" not in said():
+            assert time.monotonic() < taken and launcher.poll() is None, said()[-3000:]
+            time.sleep(0.05)
+        signal_all(paused, signal.SIGCONT)
+        assert launcher.wait(timeout=120) == EXIT_INTERRUPTED, said()[-3000:]
+        gone = time.monotonic() + 5
+        while marked(marker) and time.monotonic() < gone:
+            time.sleep(0.1)
+        assert marked(marker) == [], said()[-3000:]
+    finally:
+        signal_all(paused, signal.SIGCONT)
+        if launcher.poll() is None:
+            launcher.kill()
+            launcher.wait()
+        signal_all(marked(marker), signal.SIGKILL)
+    summary = json.loads((run_dir / "summary.json").read_text())
+    assert summary["end_reason"] == "interrupted"
+    audit(run_dir)
+    [resume] = [line.strip() for line in said().splitlines() if "-m deploy.run_local" in line]
+    assert "--run-id killed" in resume and f"--run-dir {run_dir}" in resume

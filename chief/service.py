@@ -41,7 +41,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection
+from protocol.mqtt import MqttConnection, Stopped
 from protocol.rigtime import RIG_FIELDS
 from protocol.routes import CHIEF, chief_route, qos_of, received_by
 from protocol.tasks import task
@@ -161,7 +161,10 @@ class ChiefService:
     def run(self) -> int:
         cfg = self.cfg
         run = cfg.run_id
-        self.conn.start()
+        try:
+            self.conn.start(stop=self._interrupt)
+        except Stopped:
+            return EXIT_INTERRUPTED  # before the run was claimed: nothing to save
         try:
             other = self.claim.take()
             if other is not None:
@@ -495,8 +498,12 @@ class ChiefService:
         rounds = keeper.round - 1
         self._save()
         episodes = keeper.shape.episode_of(rounds) if rounds else 0
-        self._send(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes, all_solved=all_solved,
-                           aborted=aborted, session=self.session)).wait_for_publish(timeout=5)
+        stop = self._send(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes, all_solved=all_solved,
+                                  aborted=aborted, session=self.session))
+        try:  # a stopped chief does not wait long for a broker that is gone: the workers' timeouts end them
+            stop.wait_for_publish(timeout=1 if keeper.interrupted else 5)
+        except (RuntimeError, ValueError) as err:  # paho: not connected
+            log.warning("the RunStop could not be sent (%s): the workers end by their own timeouts", err)
         self.claim.clear()
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)

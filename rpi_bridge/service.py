@@ -17,7 +17,7 @@ from typing import TypeVar
 from protocol import qube, topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import Message, QubeAction, QubeReset, QubeStatus
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress, MqttConnection, Stopped
 from protocol.routes import qos_of
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
@@ -87,7 +87,10 @@ class BridgeService:
     def run(self, max_ticks: int | None = None, connect_timeout_s: float = 60.0) -> None:
         """Connect (waiting up to ``connect_timeout_s`` for the broker: a rig starts with the broker, on a loaded
         machine too), then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
-        self.conn.start(timeout=connect_timeout_s)
+        try:
+            self.conn.start(timeout=connect_timeout_s, stop=self.stop_event)
+        except Stopped:
+            return
         for leaf, handler in ((topics.ACTION, self._on_action), (topics.RESET, self._on_reset)):
             topic = topics.rig(self.rig_id, leaf)
             self.conn.subscribe(topic, handler, qos=qos_of(topic))

@@ -36,7 +36,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection
+from protocol.mqtt import MqttConnection, Stopped
 from protocol.rigtime import SECONDS_LIMIT
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.routes import qos_of
@@ -149,7 +149,10 @@ class WorkerService:
     def run(self) -> int:
         cfg = self.cfg
         torch.set_num_threads(1)
-        self.conn.start()
+        try:
+            self.conn.start(stop=self._interrupt)
+        except Stopped:
+            return EXIT_INTERRUPTED  # not connected: nobody to tell
         chief = topics.chief(cfg.run_id, "+") if cfg.edge is None else topics.relayed(cfg.run_id, cfg.edge, "+")
         self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
         try:

@@ -10,7 +10,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.mqtt import BrokerAddress
+from protocol.mqtt import BrokerAddress, Stopped
 from runtime.cli import STOP_SIGNALS
 from services.dashboard.feed import MqttFeed
 from services.dashboard.hub import Hub
@@ -54,8 +54,8 @@ class DashboardService:
         """Serve the page, then connect to the broker (ConnectionError if it cannot be reached)."""
         self._http.start()
         try:
-            self.feed.start()
-        except ConnectionError:
+            self.feed.start(stop=self.stop_event)
+        except (ConnectionError, Stopped):
             self.stop()
             raise
         if self.cfg.url_file is not None:
@@ -72,7 +72,10 @@ class DashboardService:
         self.server.server_close()
 
     def run(self) -> int:
-        self.start()
+        try:
+            self.start()
+        except Stopped:
+            return 0
         print(f"dashboard for run {self.cfg.run_id}: {self.url}", flush=True)
         try:
             self.stop_event.wait()

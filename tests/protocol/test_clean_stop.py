@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -201,3 +202,38 @@ def test_a_qube_worker_waiting_on_a_rig_reset_stops_at_once(amqtt_broker: str, t
         for log_file in logs.values():
             log_file.close()
         status.conn.stop()
+
+
+def handles(pid: int, sig: signal.Signals) -> bool:
+    """Whether process ``pid`` has a handler of its own for ``sig`` installed (its SigCgt mask)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
+    return bool(caught >> (sig - 1) & 1)
+
+
+@pytest.mark.parametrize(("module", "code"), [("worker", 130), ("chief", 130), ("services.qube_sim", 0),
+                                              ("services.dashboard", 0)])
+def test_a_signal_while_the_broker_cannot_be_reached_stops_at_once(tmp_path: Path, module: str, code: int) -> None:
+    """Each waited out its connect timeout (10 s, the rig's 60 s), then exited 1; now a signal ends the wait with
+    the process's stopped code. The handler is in place (the process's signal mask says so) before it is sent."""
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", module, "--broker", f"mqtt://127.0.0.1:{port}", "--run-dir",
+                             str(tmp_path / "run")] if module == "chief" else
+                            [sys.executable, "-m", module, "--broker", f"mqtt://127.0.0.1:{port}"],
+                            cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT), "FEDRL_DASHBOARD_PORT": "0"},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not handles(proc.pid, signal.SIGHUP):
+            assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[0]
+            time.sleep(0.05)
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=8)  # under the 10 s of the connect timeout that ended it before
+        assert proc.returncode == code and "Traceback" not in out, out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -730,6 +730,17 @@ class RoundKeeper:
         outcome.recipient_pis, outcome.finished, outcome.offline = recipient_pis, sorted(mature), offline
         return outcome
 
+    def why_no_transfer(self) -> str:
+        """Why a round in which workers finished transferred nothing (for the log): nobody left to learn, every
+        learner left excused (lagging, offline: no transfer is addressed to them), or the strategy's rule."""
+        learning = self.ids_in("active", "lagging", "offline")
+        if not learning:
+            return "nobody left to learn"
+        if all(self.workers[w].excused for w in learning):
+            return ", ".join(f"{w} {self.workers[w].state}" for w in learning) + " (not answering: no transfer is " \
+                "addressed to a worker that is not)"
+        return f"policy {self.policy}"
+
     def _offline_learners(self, mature: dict[str, Submission]) -> list[str]:
         """The workers still learning that the keeper knows are offline: excused (timed out, or said it stopped or
         failed) and silent since. No transfer is addressed to them."""

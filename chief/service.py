@@ -460,7 +460,7 @@ class ChiefService:
                      ", ".join(f"{w} (keep {k:.3f})" for w, k in outcome.keep_weights.items()))
         elif outcome.finished:
             log.info("round %d: %s finished (no transfer: %s)", outcome.round, ", ".join(outcome.finished),
-                     "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
+                     "nobody left to learn" if not self.keeper or self.keeper.done else self.keeper.why_no_transfer())
         for edge in sorted({self.edge_of[w] for w in outcome.timed_out if w in self.edge_of} - set(outcome.edges)):
             behind = sorted(w for w in outcome.timed_out if self.edge_of.get(w) == edge)
             log.warning("round %d: nothing came from edge %s within %.0f s (%s timed out): its edge chief, its broker "

@@ -153,7 +153,7 @@ def main(argv: list[str] | None = None) -> int:
         if s.dashboard_port is not None:  # first, so that it sees the run start
             url_file.unlink(missing_ok=True)
             dashboard = fleet.start("dashboard", "services.dashboard", s.child(
-                DashboardSettings, **common, **login("observer"), dashboard_host="127.0.0.1",
+                DashboardSettings, **common, **login("observer"), run_key=key, dashboard_host="127.0.0.1",
                 dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
         for k, e in enumerate(sorted(set(edges.values()), key=lambda e: int(e[1:]))):
             # Before the workers (it passes the root's RunStart on to them); with sites, at its workers' site.

@@ -29,6 +29,7 @@ class DashboardConfig:
     rigs: list[str] | None = None  # None = every rig's status and telemetry
     max_points: int = 4000  # per worker curve kept for new pages (older points are thinned)
     url_file: Path | None = None  # written with the page's URL once it is served
+    key: bytes | None = None  # the run's key: chief messages without its tag are refused (None: all trusted)
 
 
 class DashboardService:
@@ -36,7 +37,7 @@ class DashboardService:
 
     def __init__(self, cfg: DashboardConfig) -> None:
         self.cfg = cfg
-        self.hub = Hub(RunView(cfg.run_id, max_points=cfg.max_points))
+        self.hub = Hub(RunView(cfg.run_id, max_points=cfg.max_points, key=cfg.key))
         self.feed = MqttFeed(cfg.broker, cfg.run_id, self.hub, cfg.rigs)
         try:
             self.server = DashboardServer((cfg.host, cfg.port), self.hub, self.feed.stats)

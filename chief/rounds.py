@@ -433,11 +433,12 @@ class RoundKeeper:
         round times out; ``error`` or ``stopped`` (it said so itself) stops the wait at once. A ``finished`` status
         is only news: the worker's MatureParams is its finish. What a worker sent always still counts."""
         rec = self.workers.get(worker_id)
+        said, state = state, "error" if state == "storage" else state  # a storage fault: excused as an error
         if rec is None or rec.state == "finished" or state not in ("offline", "error", "stopped"):
             return []
         rec.state = "offline"
         if state != "offline":
-            rec.excused, rec.detail = True, f"{state}: {detail}" if detail else state
+            rec.excused, rec.detail = True, f"{said}: {detail}" if detail else said
         return self._maybe_close(now)
 
     def tick(self, now: float) -> list[RoundOutcome]:

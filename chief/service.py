@@ -48,6 +48,7 @@ from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
+from runtime.storage import EXIT_STORAGE
 
 log = logging.getLogger("chief")
 
@@ -113,6 +114,7 @@ class ChiefService:
         self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
+        self._storage_fault: str | None = None  # a worker's storage fault, which stopped the run (exit 5)
         session, since = ((self.saved[1]["session"], self.saved[1].get("claimed_since", 0.0)) if self.saved is not None
                           else (self.session, time.time()))  # a resumed chief is the same chief: its claim too
         self.claim = RunClaim(self.conn, ChiefClaim(run_id=cfg.run_id, session=session, since=since,
@@ -387,7 +389,12 @@ class ChiefService:
                                 "not part of this run")
             return []
         if msg.kind == "status":
-            if msg.state in ("offline", "error", "stopped"):
+            if msg.state == "storage" and self._storage_fault is None:
+                log.error("worker %s stopped on a storage fault (%s): the run stops resumably; free space or fix the "
+                          "folder, then the same command resumes it", msg.worker_id, msg.detail)
+                self._storage_fault = f"{msg.worker_id}: {msg.detail}"
+                self._interrupt.set()
+            elif msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
             return keeper.note_status(msg.worker_id, msg.state, now, msg.detail)
         verdict = keeper.submit(submission_of(msg), now)
@@ -516,7 +523,7 @@ class ChiefService:
         if keeper.interrupted:
             log.warning("the same command with --run-id %s --run-dir %s resumes the run from round %d", cfg.run_id,
                         cfg.run_dir, keeper.round)
-            return EXIT_INTERRUPTED
+            return EXIT_STORAGE if self._storage_fault is not None else EXIT_INTERRUPTED
         return EXIT_ABORTED if aborted else EXIT_OK
 
     def summary(self, reason: str, all_solved: bool, rounds: int) -> dict[str, Any]:

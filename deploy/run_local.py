@@ -301,9 +301,11 @@ def report(s: LocalRunSettings, argv: list[str] | None, code: int, wall: float) 
     summary = json.loads(summary_path.read_text())
     print_summary(summary, s.run_dir, wall)
     if summary["end_reason"] == INTERRUPTED:
-        print(f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:\n"
-              f"  {resume_command(argv if argv is not None else sys.argv[1:], s.run_id, s.run_dir)}", flush=True)
-        return EXIT_INTERRUPTED
+        print(f"\nthe run stopped on a storage fault after {summary['rounds']} rounds (the chief's log names it); once "
+              "there is room, resume it:" if code == EXIT_STORAGE else
+              f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:")
+        print(f"  {resume_command(argv if argv is not None else sys.argv[1:], s.run_id, s.run_dir)}", flush=True)
+        return EXIT_STORAGE if code == EXIT_STORAGE else EXIT_INTERRUPTED
     return code
 
 

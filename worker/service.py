@@ -168,8 +168,8 @@ class WorkerService:
             log.error("refusing to start: %s (remove it to start this worker afresh, its learning lost)", exc)
             self._status("error", detail=str(exc)[:2000])
             return EXIT_UNFIT_STATE
-        except StorageError as exc:  # main prints it as one line: exit 5
-            self._status("error", detail=str(exc))
+        except StorageError as exc:  # main prints it as one line: exit 5; the chief stops the run resumably
+            self._status("storage", detail=str(exc))
             raise
         except Halted as exc:  # a signal while the env waited for its rig (a reset, a state): at once, not after it
             log.info("%s: the episode in play is dropped", exc)

@@ -34,6 +34,8 @@ def gradient_key(episode: int, step: int, who: str, name: str) -> str:
 ROOT = "@root"
 
 WorkerState = Literal["active", "lagging", "offline", "finished"]
+#: A worker's state in summary.json: the keeper's, or ``stopped`` when an offline worker said so itself.
+SummaryState = Literal["active", "lagging", "offline", "finished", "stopped"]
 
 
 class Record(BaseModel):
@@ -242,7 +244,7 @@ class WorkerSummary(Record):
     episodes: int
     steps: int
     final_pi: float | None = None
-    state: WorkerState
+    state: SummaryState
     played: PlayedTotals | None = None
     rig: RigTime | None = None
     #: Why a worker that did not solve stopped learning, in its own words (its error or stopped status).

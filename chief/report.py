@@ -21,13 +21,14 @@ from chief.records import (
     RoundRecord,
     RunSummary,
     StepRecord,
+    SummaryState,
     WorkerSummary,
     line,
     parse_record,
     read_metrics,
 )
 from chief.rigtime import last_rig, rig_times
-from chief.rounds import RoundKeeper
+from chief.rounds import RoundKeeper, WorkerRecord
 from runtime.storage import storage_errors
 
 log = logging.getLogger(__name__)
@@ -141,6 +142,14 @@ class MetricsLog:
         self.sinks.clear()
 
 
+def summary_state(rec: WorkerRecord) -> SummaryState:
+    """A worker's state in summary.json: ``stopped`` when it said so itself before it went (the keeper has it
+    offline, excused), else the keeper's state (``offline``: its will, or an error, which ``detail`` words)."""
+    if rec.state == "offline" and rec.excused and (rec.detail or "").split(":", 1)[0] == "stopped":
+        return "stopped"
+    return rec.state
+
+
 def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | None = None,
               played: Mapping[str, PlayedTotals] | None = None, **meta: Any) -> RunSummary:
     """summary.json: the task, the strategy, each worker's result (episodes and env steps until it solved, or so
@@ -154,7 +163,7 @@ def summarize(keeper: RoundKeeper, reason: str, rigs: Mapping[str, RigTime] | No
         workers.append(WorkerSummary(id=w, index=index, solved=solved,
                                      episodes=rec.solved_episode if solved else rec.last_episode,
                                      steps=rec.steps_at_solve if solved else rec.steps,
-                                     final_pi=rec.pi, state=rec.state, played=played.get(w), rig=rigs.get(w),
+                                     final_pi=rec.pi, state=summary_state(rec), played=played.get(w), rig=rigs.get(w),
                                      detail=rec.detail or None if not solved else None))
     all_solved = all(w.solved for w in workers)
     last = max(workers, key=lambda x: (x.episodes, x.steps))

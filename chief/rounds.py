@@ -433,11 +433,12 @@ class RoundKeeper:
         round times out; ``error`` or ``stopped`` (it said so itself) stops the wait at once. A ``finished`` status
         is only news: the worker's MatureParams is its finish. What a worker sent always still counts."""
         rec = self.workers.get(worker_id)
+        said, state = state, "error" if state == "storage" else state  # a storage fault: excused as an error
         if rec is None or rec.state == "finished" or state not in ("offline", "error", "stopped"):
             return []
         rec.state = "offline"
         if state != "offline":
-            rec.excused, rec.detail = True, f"{state}: {detail}" if detail else state
+            rec.excused, rec.detail = True, f"{said}: {detail}" if detail else said
         return self._maybe_close(now)
 
     def tick(self, now: float) -> list[RoundOutcome]:
@@ -729,6 +730,17 @@ class RoundKeeper:
         outcome.keep_weights = {w: float(k) for w, k in keep.items() if k is not None}
         outcome.recipient_pis, outcome.finished, outcome.offline = recipient_pis, sorted(mature), offline
         return outcome
+
+    def why_no_transfer(self) -> str:
+        """Why a round in which workers finished transferred nothing (for the log): nobody left to learn, every
+        learner left excused (lagging, offline: no transfer is addressed to them), or the strategy's rule."""
+        learning = self.ids_in("active", "lagging", "offline")
+        if not learning:
+            return "nobody left to learn"
+        if all(self.workers[w].excused for w in learning):
+            return ", ".join(f"{w} {self.workers[w].state}" for w in learning) + " (not answering: no transfer is " \
+                "addressed to a worker that is not)"
+        return f"policy {self.policy}"
 
     def _offline_learners(self, mature: dict[str, Submission]) -> list[str]:
         """The workers still learning that the keeper knows are offline: excused (timed out, or said it stopped or

@@ -41,13 +41,14 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection
+from protocol.mqtt import MqttConnection, Stopped
 from protocol.rigtime import RIG_FIELDS
 from protocol.routes import CHIEF, chief_route, qos_of, received_by
 from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
+from runtime.storage import EXIT_STORAGE
 
 log = logging.getLogger("chief")
 
@@ -113,6 +114,7 @@ class ChiefService:
         self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
+        self._storage_fault: str | None = None  # a worker's storage fault, which stopped the run (exit 5)
         session, since = ((self.saved[1]["session"], self.saved[1].get("claimed_since", 0.0)) if self.saved is not None
                           else (self.session, time.time()))  # a resumed chief is the same chief: its claim too
         self.claim = RunClaim(self.conn, ChiefClaim(run_id=cfg.run_id, session=session, since=since,
@@ -161,7 +163,10 @@ class ChiefService:
     def run(self) -> int:
         cfg = self.cfg
         run = cfg.run_id
-        self.conn.start()
+        try:
+            self.conn.start(stop=self._interrupt)
+        except Stopped:
+            return EXIT_INTERRUPTED  # before the run was claimed: nothing to save
         try:
             other = self.claim.take()
             if other is not None:
@@ -384,7 +389,12 @@ class ChiefService:
                                 "not part of this run")
             return []
         if msg.kind == "status":
-            if msg.state in ("offline", "error", "stopped"):
+            if msg.state == "storage" and self._storage_fault is None:
+                log.error("worker %s stopped on a storage fault (%s): the run stops resumably; free space or fix the "
+                          "folder, then the same command resumes it", msg.worker_id, msg.detail)
+                self._storage_fault = f"{msg.worker_id}: {msg.detail}"
+                self._interrupt.set()
+            elif msg.state in ("offline", "error", "stopped"):
                 log.warning("worker %s is %s %s", msg.worker_id, msg.state, msg.detail)
             return keeper.note_status(msg.worker_id, msg.state, now, msg.detail)
         verdict = keeper.submit(submission_of(msg), now)
@@ -457,7 +467,7 @@ class ChiefService:
                      ", ".join(f"{w} (keep {k:.3f})" for w, k in outcome.keep_weights.items()))
         elif outcome.finished:
             log.info("round %d: %s finished (no transfer: %s)", outcome.round, ", ".join(outcome.finished),
-                     "nobody left to learn" if not self.keeper or self.keeper.done else f"policy {self.cfg.policy}")
+                     "nobody left to learn" if not self.keeper or self.keeper.done else self.keeper.why_no_transfer())
         for edge in sorted({self.edge_of[w] for w in outcome.timed_out if w in self.edge_of} - set(outcome.edges)):
             behind = sorted(w for w in outcome.timed_out if self.edge_of.get(w) == edge)
             log.warning("round %d: nothing came from edge %s within %.0f s (%s timed out): its edge chief, its broker "
@@ -495,8 +505,12 @@ class ChiefService:
         rounds = keeper.round - 1
         self._save()
         episodes = keeper.shape.episode_of(rounds) if rounds else 0
-        self._send(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes, all_solved=all_solved,
-                           aborted=aborted, session=self.session)).wait_for_publish(timeout=5)
+        stop = self._send(RunStop(run_id=cfg.run_id, reason=reason, episodes=episodes, all_solved=all_solved,
+                                  aborted=aborted, session=self.session))
+        try:  # a stopped chief does not wait long for a broker that is gone: the workers' timeouts end them
+            stop.wait_for_publish(timeout=1 if keeper.interrupted else 5)
+        except (RuntimeError, ValueError) as err:  # paho: not connected
+            log.warning("the RunStop could not be sent (%s): the workers end by their own timeouts", err)
         self.claim.clear()
         summary = self.summary(reason, all_solved, rounds)
         write_summary(cfg.run_dir, summary)
@@ -509,7 +523,7 @@ class ChiefService:
         if keeper.interrupted:
             log.warning("the same command with --run-id %s --run-dir %s resumes the run from round %d", cfg.run_id,
                         cfg.run_dir, keeper.round)
-            return EXIT_INTERRUPTED
+            return EXIT_STORAGE if self._storage_fault is not None else EXIT_INTERRUPTED
         return EXIT_ABORTED if aborted else EXIT_OK
 
     def summary(self, reason: str, all_solved: bool, rounds: int) -> dict[str, Any]:

@@ -97,7 +97,7 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     @field_validator("edge_id")
     @classmethod
     def _edge_id(cls, value: str | None) -> str | None:
-        return check_id(value, "edge id") if value else None
+        return None if value is None else check_id(value, "edge id")
 
     @model_validator(mode="after")
     def _role_fits(self) -> ChiefSettings:

@@ -9,7 +9,8 @@ metrics.jsonl, learning_curve.png, the workers' mature models and every process'
 Ctrl-C reaches only the launcher (each child runs in its own process group): it passes the interrupt on to the chief,
 which ends the run resumably (summary.json with end reason ``interrupted``, the curve, its saved state; each worker
 saves its own in ``workers/``, worker/resume.py), and prints the command that resumes the run. A second Ctrl-C stops
-every process at once.
+every process at once. SIGTERM (``kill``, ``timeout``) and SIGHUP (a closed terminal, a dropped ssh connection) are
+handled as Ctrl-C is; after a SIGHUP the launcher's output goes to ``logs/launcher.log`` (the terminal is gone).
 """
 
 from __future__ import annotations
@@ -114,6 +115,20 @@ class Fleet:
             fh.close()
 
 
+def stop_like_ctrl_c(log_dir: Path) -> None:
+    """Handle SIGTERM and SIGHUP as Ctrl-C (a KeyboardInterrupt): the run ends resumably, with its summary and its
+    resume command, and no process of it is left behind. After a SIGHUP the terminal is gone: what the launcher
+    prints from then on is appended to ``log_dir/launcher.log``."""
+
+    def handler(signum: int, frame: object) -> None:
+        if signum == signal.SIGHUP and not getattr(sys.stdout, "name", "").endswith("launcher.log"):
+            sys.stdout = sys.stderr = open(log_dir / "launcher.log", "a", buffering=1)  # to the end
+        raise KeyboardInterrupt
+
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, handler)
+
+
 @returns_code
 @exits_on_storage_faults("python -m deploy.run_local")
 def main(argv: list[str] | None = None) -> int:
@@ -125,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
+    stop_like_ctrl_c(log_dir)
     fleet = Fleet(log_dir, fork_workers=s.fork_workers)
     t0 = time.monotonic()
     worker_ids = [f"w{i}" for i in range(s.workers)]
@@ -146,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         if s.dashboard_port is not None:  # first, so that it sees the run start
             url_file.unlink(missing_ok=True)
             dashboard = fleet.start("dashboard", "services.dashboard", s.child(
-                DashboardSettings, **common, **login("observer"), dashboard_host="127.0.0.1",
+                DashboardSettings, **common, **login("observer"), run_key=key, dashboard_host="127.0.0.1",
                 dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
         for k, e in enumerate(sorted(set(edges.values()), key=lambda e: int(e[1:]))):
             # Before the workers (it passes the root's RunStart on to them); with sites, at its workers' site.
@@ -180,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         fleet.stop(grace=5)
         return 130
     finally:
+        for sig in (signal.SIGTERM, signal.SIGHUP):  # stopping already: a repeated kill must not cut the stop short
+            signal.signal(sig, signal.SIG_IGN)
         fleet.stop()
 
 
@@ -326,9 +344,11 @@ def report(s: LocalRunSettings, code: int, wall: float) -> int:
     summary = json.loads(summary_path.read_text())
     print_summary(summary, s, wall)
     if summary["end_reason"] == INTERRUPTED:
-        print(f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:\n"
-              f"  {resume_command(s)}", flush=True)
-        return EXIT_INTERRUPTED
+        print(f"\nthe run stopped on a storage fault after {summary['rounds']} rounds (the chief's log names it); once "
+              "there is room, resume it:" if code == EXIT_STORAGE else
+              f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:")
+        print(f"  {resume_command(s)}", flush=True)
+        return EXIT_STORAGE if code == EXIT_STORAGE else EXIT_INTERRUPTED
     return code
 
 

@@ -154,7 +154,7 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSetti
     @field_validator("run_id")
     @classmethod
     def _run_id(cls, value: str | None) -> str | None:
-        return check_id(value, "run id") if value else None
+        return None if value is None else check_id(value, "run id")
 
 
 class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSettings, TieredSettings):

@@ -338,11 +338,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--force", action="store_true", help="replace the secrets the folder holds")
     args = parser.parse_args(argv)
     try:
+        if args.run is not None:
+            check_id(args.run, "run id")
         if shutil.which("mosquitto_passwd") is None:
             raise ValueError("needs mosquitto_passwd, to hash the passwords (apt-get install mosquitto)")
         Bridge("check", args.core)
-        if args.run:
-            check_id(args.run, "run id")
         names = [s.name for s in args.site]
         if len(set(names)) != len(names) or CORE in names:
             raise ValueError(f"site names must differ from each other and from {CORE!r}: {names}")

@@ -107,8 +107,8 @@ class MemoryConnection:
         self._inbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
         self._thread: threading.Thread | None = None
 
-    def start(self, timeout: float = 10.0) -> MemoryConnection:
-        """Attach to the hub and start the delivery thread."""
+    def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> MemoryConnection:
+        """Attach to the hub and start the delivery thread (at once: ``timeout`` and ``stop`` are for a broker)."""
         if self.connected.is_set():
             return self
         self._thread = threading.Thread(target=self._deliver, name=f"memory-{self.client_id}", daemon=True)

@@ -93,11 +93,12 @@ class WorkerHello(Message):
 
 
 class WorkerStatus(Message):
-    """Lifecycle of a worker; ``offline`` is also its MQTT last will."""
+    """Lifecycle of a worker; ``offline`` is also its MQTT last will; ``storage``: it stopped on a storage fault (a
+    full or read-only disk, ``detail`` names the path and the errno), and the chief stops the run resumably."""
 
     kind: Literal["status"] = "status"
     worker_id: Ident
-    state: Literal["online", "training", "finished", "stopped", "offline", "error"]
+    state: Literal["online", "training", "finished", "stopped", "offline", "error", "storage"]
     episode: int = Field(default=0, ge=0)
     pi: float | None = None
     detail: str = Field(default="", max_length=2000)

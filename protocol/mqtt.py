@@ -48,6 +48,8 @@ KEEPALIVE, CLEAN_SESSION = 15, False
 MAX_PARTIAL, CHUNK_TTL = 64, 60.0
 #: Seconds a clean stop waits for the broker's answers to what it sent last (then it disconnects anyway).
 STOP_TIMEOUT = 2.0
+#: How often a wait for the broker's CONNACK looks at the caller's stop event (s).
+STOP_POLL_S = 0.1
 #: Bytes of a Chunk message around its data (msgpack keys, id, counters), kept below max_payload.
 CHUNK_OVERHEAD = 160
 _CHUNK_SNIFF = b"\xa4kind\xa5chunk"
@@ -105,6 +107,10 @@ def split(payload: bytes, max_payload: int) -> list[bytes]:
     ident = secrets.token_hex(8)
     return [encode(Chunk(id=ident, index=i, count=len(pieces), total=len(payload), data=piece))
             for i, piece in enumerate(pieces)]
+
+
+class Stopped(Exception):
+    """The process was told to stop before its connection was up (``MqttConnection.start``'s ``stop``)."""
 
 
 @dataclass(frozen=True)
@@ -306,11 +312,18 @@ class MqttConnection:
 
     # -- lifecycle ---------------------------------------------------------------------------------------------
 
-    def start(self, timeout: float = 10.0) -> MqttConnection:
-        """Connect in the background and wait up to ``timeout`` s for the first CONNACK."""
+    def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> MqttConnection:
+        """Connect in the background and wait up to ``timeout`` s for the first CONNACK; :class:`Stopped` as soon
+        as ``stop`` is set meanwhile (a signal while the broker cannot be reached)."""
         self._client.connect_async(self.address.host, self.address.port, keepalive=self._keepalive)
         self._client.loop_start()
-        self._answered.wait(timeout)
+        deadline = time.monotonic() + timeout
+        while not self._answered.wait(max(0.0, min(STOP_POLL_S, deadline - time.monotonic()))):
+            if stop is not None and stop.is_set():
+                self.stop()
+                raise Stopped(f"stopped while connecting to the MQTT broker at {self.address}")
+            if time.monotonic() >= deadline:
+                break
         if self._refused is not None:  # a refused login does not get better by retrying: say so at once
             self.stop()
             raise ConnectionError(f"could not connect to the MQTT broker at {self.address}: {self._refused}")

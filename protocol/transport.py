@@ -33,7 +33,8 @@ class Transport(Protocol):
     #: Where dropped messages (retained, bad chunks) are counted.
     rejects: RejectCounter
 
-    def start(self, timeout: float = 10.0) -> Transport: ...
+    def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> Transport:
+        """Connect within ``timeout`` s (ConnectionError), or give up once ``stop`` is set (protocol.mqtt.Stopped)."""
 
     def stop(self) -> None: ...
 

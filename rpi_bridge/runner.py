@@ -160,9 +160,11 @@ class BridgeRunner:
         clock: Callable[[], float] = time.perf_counter,
         window: int = 20_000,
         timing: InjectedTiming | None = None,
+        sleep: Callable[[float], None] = time.sleep,
     ) -> None:
         """``clock`` measures wall time (latency, jitter); deadlines use the core's clock, which in real time must
-        be the same clock. ``timing`` (lockstep only) injects the real loop's delays and misses."""
+        be the same clock. ``timing`` (lockstep only) injects the real loop's delays and misses. ``sleep`` waits
+        out the rest of a real-time period (a test's stepped clock passes one that advances it)."""
         if deadline_s <= 0 or deadline_s > core.cfg.period_s:
             raise ValueError(f"deadline {deadline_s * 1e3:.2f} ms must be in (0, period {core.cfg.period_s * 1e3} ms]")
         if timing is not None and not lockstep:
@@ -179,6 +181,7 @@ class BridgeRunner:
         self.telemetry_interval_s = telemetry_interval_s
         self.clock = clock
         self.timing = timing
+        self.sleep = sleep
         self.slot = ActionSlot(core.clock)
         self._stop = threading.Event()  # the stop event of run()
         self._requested = threading.Event()  # set on every reset request (wakes a lockstep rig that waits for one)
@@ -235,7 +238,7 @@ class BridgeRunner:
                 next_tick += period
                 delay = next_tick - self.clock()
                 if delay > 0:
-                    time.sleep(delay)
+                    self.sleep(delay)
                 elif delay < -period:
                     self.overruns += 1
                     next_tick = self.clock()

@@ -17,12 +17,13 @@ from typing import TypeVar
 from protocol import qube, topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import Message, QubeAction, QubeIdentify, QubeReset, QubeStatus
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress, MqttConnection, Stopped
 from protocol.routes import qos_of
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.device import QubeDevice
 from rpi_bridge.runner import BridgeRunner, InjectedTiming
+from runtime.cli import STOP_SIGNALS
 
 M = TypeVar("M", bound=Message)
 
@@ -93,7 +94,10 @@ class BridgeService:
     def run(self, max_ticks: int | None = None, connect_timeout_s: float = 60.0) -> None:
         """Connect (waiting up to ``connect_timeout_s`` for the broker: a rig starts with the broker, on a loaded
         machine too), then run the control loop in this thread until SIGINT/SIGTERM (or ``max_ticks``)."""
-        self.conn.start(timeout=connect_timeout_s)
+        try:
+            self.conn.start(timeout=connect_timeout_s, stop=self.stop_event)
+        except Stopped:
+            return
         for leaf, handler in ((topics.ACTION, self._on_action), (topics.RESET, self._on_reset),
                               (topics.IDENTIFY, self._on_identify)):
             topic = topics.rig(self.rig_id, leaf)
@@ -118,5 +122,5 @@ class BridgeService:
             self.conn.stop()
 
     def install_signal_handlers(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             signal.signal(sig, lambda *_: self.stop_event.set())

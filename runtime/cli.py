@@ -44,19 +44,23 @@ def run_service(name: str, build: Callable[[], Any]) -> int:
     return 0 if code is None else int(code)
 
 
+#: The signals that stop a process cleanly: Ctrl-C, ``kill``/``timeout``/compose/systemd, a closed terminal or ssh.
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
 def stop_on_signals(stop: Callable[[], None]) -> None:
-    """Make the first SIGINT (Ctrl-C) or SIGTERM call ``stop``, so that a service ends its work cleanly; a second
-    one acts as usual (KeyboardInterrupt, or the end of the process). Call it from the main thread."""
+    """Make the first SIGINT (Ctrl-C), SIGTERM or SIGHUP call ``stop``, so that a service ends its work cleanly; a
+    second one acts as usual (KeyboardInterrupt, or the end of the process). Call it from the main thread."""
 
     def first(signum: int, frame: Any) -> None:
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for sig in STOP_SIGNALS:
+            signal.signal(sig, signal.default_int_handler if sig == signal.SIGINT else signal.SIG_DFL)
         logging.getLogger(__name__).warning("%s: stopping cleanly (again to stop at once)",
                                             signal.Signals(signum).name)
         stop()
 
-    signal.signal(signal.SIGINT, first)
-    signal.signal(signal.SIGTERM, first)
+    for sig in STOP_SIGNALS:
+        signal.signal(sig, first)
 
 
 def exits_on_storage_faults(name: str) -> Callable[[Callable[..., int]], Callable[..., int]]:

@@ -270,6 +270,11 @@ class Settings(BaseSettings):
             parser.print_help()
             raise SystemExit(0)
         parsed = vars(parser.parse_args(argv))
+        blank = [(k, v) for k, v in parsed.items() if k in cls.model_fields and isinstance(v, str) and not v.strip()]
+        if blank:  # pydantic-settings drops an empty flag as it drops an empty variable: it would be the default
+            name, value = blank[0]
+            error = {"loc": (name,), "msg": "empty; leave the flag out for its default", "type": "blank"}
+            fail(prog, cls._describe([error], Path(DEFAULT_ENV_FILE), {name: value}, "command line", argv))
         own = {name: parsed[name] for name, field in cls.model_fields.items()
                if name in parsed and CLI_SUPPRESS in field.metadata}
         try:

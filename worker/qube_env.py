@@ -18,6 +18,7 @@ from __future__ import annotations
 import itertools
 import logging
 import queue
+import threading
 import time
 from typing import Any
 
@@ -57,6 +58,14 @@ def balance_reward(alpha: float) -> float:
 
 class ResetFailed(RuntimeError):
     """The rig reported that one swing-up attempt did not succeed."""
+
+
+class Halted(Exception):
+    """The worker was told to stop (SIGTERM, SIGINT, SIGHUP) while the env waited for its rig: a reset, a state."""
+
+
+#: How often a wait for the rig looks at the worker's halt event (s): a stop ends any wait within this.
+HALT_POLL_S = 0.1
 
 
 class _QubeTask(gym.Env):
@@ -102,14 +111,16 @@ class QubeMqttEnv(_QubeTask):
 
     def __init__(self, conn: Any, rig_id: str, reset_timeout_s: float = 60.0, step_timeout_s: float = 10.0,
                  reset_attempts: int = RESET_ATTEMPTS, settle_s: float = 3.0, qube_clock: str = "realtime",
-                 actions: ActionSet | None = None) -> None:
+                 actions: ActionSet | None = None, halt: threading.Event | None = None) -> None:
         """``step_timeout_s``: a state that does not come within this many seconds of wall time ends the episode
         (a dead rig or link; a live rig reports a fault or goes offline long before). It must be long enough for a
         lockstep rig on a loaded machine, whose episodes would otherwise depend on wall time. ``qube_clock``: the
         rig's clock, which says whether rig time is measured or read from the simulated clock (the ticks between
         the last state of an episode and the ``ready`` state of the next: a lockstep rig does not tick meanwhile).
-        ``actions``: the action set (default the paper's)."""
+        ``actions``: the action set (default the paper's). ``halt``: once set, any wait for the rig raises
+        :class:`Halted` within HALT_POLL_S (the worker's stop)."""
         super().__init__(actions)
+        self.halt = halt
         self.measured = qube_clock in MEASURED_CLOCKS
         self._end_seq: int | None = None  # seq of the last state of the episode before
         self.reset_attempts = reset_attempts
@@ -144,13 +155,17 @@ class QubeMqttEnv(_QubeTask):
         self.inbox.put(msg)
 
     def _next(self, deadline: float) -> QubeState | QubeStatus | None:
-        remaining = deadline - time.monotonic()
-        if remaining <= 0:
-            return None
-        try:
-            return self.inbox.get(timeout=remaining)
-        except queue.Empty:
-            return None
+        """The rig's next message, or None at ``deadline``; Halted once ``halt`` is set."""
+        while True:
+            if self.halt is not None and self.halt.is_set():
+                raise Halted(f"stopped while waiting for rig {self.rig_id}")
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return None
+            try:
+                return self.inbox.get(timeout=min(remaining, HALT_POLL_S))
+            except queue.Empty:
+                continue
 
     def reset(self, *, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         """Ask the rig for a new episode. A swing-up that fails (it happens, from a messy fall) is retried after
@@ -164,7 +179,10 @@ class QubeMqttEnv(_QubeTask):
                 self.failed_resets += 1
                 if attempt == self.reset_attempts:
                     raise RuntimeError(f"{err} ({attempt} attempts in a row)") from None
-                time.sleep(self.settle_s)
+                if self.halt is not None and self.halt.wait(self.settle_s):
+                    raise Halted(f"stopped while the pendulum of rig {self.rig_id} settled") from None
+                if self.halt is None:
+                    time.sleep(self.settle_s)
                 settled += self.settle_s
                 continue
             ticks = info.pop("reset_ticks")
@@ -349,6 +367,7 @@ class QubeLocalEnv(_QubeTask):
 
 def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, conn: Any = None,
                   probe: bool = False, qube_clock: str = "realtime", qube_actions: str | None = None,
+                  halt: threading.Event | None = None,
                   **_: Any) -> gym.Env:
     """Factory for the ``qube`` task: the rig ``rig_id`` over the worker's MQTT connection.
 
@@ -360,7 +379,7 @@ def make_qube_env(spec: Any, seed: int, noise: Any, rig_id: str | None = None, c
         return _QubeTask(actions)
     if conn is None or not rig_id:
         raise ValueError("env 'qube' drives a rig over MQTT: give the worker --rig-id (FEDRL_RIG_ID)")
-    return QubeMqttEnv(conn, rig_id, qube_clock=qube_clock, actions=actions)
+    return QubeMqttEnv(conn, rig_id, qube_clock=qube_clock, actions=actions, halt=halt)
 
 
 def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, rig_profile: Any = None,

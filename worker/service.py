@@ -36,7 +36,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection
+from protocol.mqtt import MqttConnection, Stopped
 from protocol.rigtime import SECONDS_LIMIT
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.routes import qos_of
@@ -48,6 +48,7 @@ from runtime.storage import StorageError, atomic_write, storage_errors
 from worker import model, resume
 from worker.episode import build_learner_and_env
 from worker.federated import Algorithm2
+from worker.qube_env import Halted
 from worker.settings import WorkerSettings
 
 log = logging.getLogger("worker")
@@ -149,7 +150,10 @@ class WorkerService:
     def run(self) -> int:
         cfg = self.cfg
         torch.set_num_threads(1)
-        self.conn.start()
+        try:
+            self.conn.start(stop=self._interrupt)
+        except Stopped:
+            return EXIT_INTERRUPTED  # not connected: nobody to tell
         chief = topics.chief(cfg.run_id, "+") if cfg.edge is None else topics.relayed(cfg.run_id, cfg.edge, "+")
         self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
         try:
@@ -165,9 +169,13 @@ class WorkerService:
             log.error("refusing to start: %s (remove it to start this worker afresh, its learning lost)", exc)
             self._status("error", detail=str(exc)[:2000])
             return EXIT_UNFIT_STATE
-        except StorageError as exc:  # main prints it as one line: exit 5
-            self._status("error", detail=str(exc))
+        except StorageError as exc:  # main prints it as one line: exit 5; the chief stops the run resumably
+            self._status("storage", detail=str(exc))
             raise
+        except Halted as exc:  # a signal while the env waited for its rig (a reset, a state): at once, not after it
+            log.info("%s: the episode in play is dropped", exc)
+            self._status("stopped", detail="interrupted during an episode")
+            return EXIT_INTERRUPTED
         except Exception as exc:
             log.exception("worker %s failed", cfg.worker_id)
             self._status("error", detail=f"{type(exc).__name__}: {exc}")
@@ -225,7 +233,7 @@ class WorkerService:
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
-                                             env_options=cfg.env_options(), algo=cfg.algo)
+                                             env_options={**cfg.env_options(), "halt": self._interrupt}, algo=cfg.algo)
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
             model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo,
                              cfg.qube_actions)

@@ -6,7 +6,7 @@ import ast
 from pathlib import Path
 from typing import Any
 
-from pydantic import field_validator, model_validator
+from pydantic import ValidationInfo, field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
 
 from protocol import learners, qube
@@ -90,6 +90,11 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     def _worker_id(cls, value: str) -> str:
         return value if value == "auto" else check_id(value, "worker id")
 
+    @field_validator("rig_id", "edge")
+    @classmethod
+    def _ids(cls, value: str | None, info: ValidationInfo) -> str | None:
+        return None if value is None else check_id(value, "rig id" if info.field_name == "rig_id" else "edge id")
+
     @field_validator("rig_profile", "rig_model")
     @classmethod
     def _profile(cls, value: str | None) -> str | None:
@@ -143,6 +148,11 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     def _loaded(self) -> None:
         if self.rig_id is not None:  # only a rig over MQTT joins a broker
             super()._loaded()
+
+    @field_validator("rig_id")
+    @classmethod
+    def _rig_id(cls, value: str | None) -> str | None:
+        return None if value is None else check_id(value, "rig id")
 
     @model_validator(mode="after")
     def _task_given(self) -> EvaluateSettings:

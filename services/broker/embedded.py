@@ -16,7 +16,6 @@ import json
 import logging
 import os
 import secrets
-import signal
 import socket
 import subprocess
 import sys
@@ -26,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from runtime.cli import STOP_SIGNALS
 from runtime.settings import to_env
 from services.broker.settings import MAX_PACKET_SIZE, BrokerSettings
 
@@ -72,6 +72,45 @@ class SnapshotSubscriptions(dict[str, list[Any]]):
         return [(topic, list(subscribers)) for topic, subscribers in super().items()]
 
 
+class ExpectedTimeouts(logging.Filter):
+    """One warning line with a count for each acknowledgement a stalled client did not send in time.
+
+    amqtt waits 5 s for a PUBACK (PUBREC, PUBCOMP) from a subscriber, logs a warning of its own when none came, then
+    logs the failed delivery task with a traceback ("Task failed and will be skipped"). That is expected of a client
+    that stalls (a worker in a long update, a paused process) and amqtt goes on: this filter turns the traceback
+    into one warning line with the count so far and drops amqtt's own warning, which said the same."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.count = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, TimeoutError) and str(exc).startswith("Timeout waiting for"):
+            self.count += 1
+            record.msg, record.args = "a client did not acknowledge in time (%s): %d such timeouts so far", (
+                str(exc)[len("Timeout waiting for "):], self.count)
+            record.levelno, record.levelname = logging.WARNING, "WARNING"
+            record.exc_info, record.exc_text, record.stack_info = None, None, None
+            return True
+        return not (isinstance(record.msg, str) and record.msg.startswith("Timeout waiting for"))
+
+
+#: amqtt's loggers that report an acknowledgement timeout (the delivery task's, the protocol handler's).
+TIMEOUT_LOGGERS = ("amqtt.broker", "amqtt.mqtt.protocol.handler")
+
+
+def quiet_expected_timeouts() -> ExpectedTimeouts:
+    """Install one :class:`ExpectedTimeouts` on amqtt's loggers (again: the same one)."""
+    loggers = [logging.getLogger(name) for name in TIMEOUT_LOGGERS]
+    found = [f for f in loggers[0].filters if isinstance(f, ExpectedTimeouts)]
+    timeouts = found[0] if found else ExpectedTimeouts()
+    for logger in loggers:
+        if timeouts not in logger.filters:
+            logger.addFilter(timeouts)
+    return timeouts
+
+
 def install_packet_limit(max_bytes: int) -> None:
     """Make amqtt close a connection whose next packet announces more than ``max_bytes`` (before reading it)."""
     from amqtt.mqtt.packet import MQTTFixedHeader
@@ -102,6 +141,7 @@ async def serve(host: str, port: int, stop: asyncio.Event, password_file: Path |
 
     install_packet_limit(max_packet_size)
     install_wildcard_close()
+    quiet_expected_timeouts()
     broker = Broker(broker_config(host, port, password_file=password_file, acl=acl))
     broker._subscriptions = SnapshotSubscriptions(broker._subscriptions)  # amqtt walks them while it awaits
     await broker.start()
@@ -119,7 +159,7 @@ def run(host: str, port: int, password_file: Path | None = None, acl_file: Path 
     async def main() -> None:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             loop.add_signal_handler(sig, stop.set)
         await serve(host, port, stop, password_file=password_file, acl=acl, max_packet_size=max_packet_size)
 

@@ -90,9 +90,9 @@ class MqttFeed:
 
     # -- lifecycle ---------------------------------------------------------------------------------------------
 
-    def start(self, timeout: float = 10.0) -> MqttFeed:
+    def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> MqttFeed:
         self._pump.start()
-        self.conn.start(timeout)
+        self.conn.start(timeout, stop)
         for topic_filter, qos in self.subs:
             self.conn.subscribe(topic_filter, self.on_message, qos=qos)
         log.info("dashboard following run %s on %s (%s)", self.run_id, self.conn.address,

@@ -71,7 +71,8 @@ class DashboardServer(ThreadingHTTPServer):
 
     def full_stats(self) -> dict[str, Any]:
         return {**self.stats(), "pages": self.hub.clients, "dropped_pages": self.hub.dropped_clients,
-                "ignored": dict(self.hub.view.ignored), "t": round(time.time(), 3)}
+                "ignored": dict(self.hub.view.ignored), "refused": dict(self.hub.view.refused),
+                "t": round(time.time(), 3)}
 
     def host_allowed(self, header: str | None) -> bool:
         """Served on loopback, only pages that asked for a loopback name get an answer (DNS rebinding)."""

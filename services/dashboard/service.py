@@ -10,7 +10,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocol.mqtt import BrokerAddress
+from protocol.mqtt import BrokerAddress, Stopped
+from runtime.cli import STOP_SIGNALS
 from services.dashboard.feed import MqttFeed
 from services.dashboard.hub import Hub
 from services.dashboard.server import DashboardServer
@@ -28,6 +29,7 @@ class DashboardConfig:
     rigs: list[str] | None = None  # None = every rig's status and telemetry
     max_points: int = 4000  # per worker curve kept for new pages (older points are thinned)
     url_file: Path | None = None  # written with the page's URL once it is served
+    key: bytes | None = None  # the run's key: chief messages without its tag are refused (None: all trusted)
 
 
 class DashboardService:
@@ -35,7 +37,7 @@ class DashboardService:
 
     def __init__(self, cfg: DashboardConfig) -> None:
         self.cfg = cfg
-        self.hub = Hub(RunView(cfg.run_id, max_points=cfg.max_points))
+        self.hub = Hub(RunView(cfg.run_id, max_points=cfg.max_points, key=cfg.key))
         self.feed = MqttFeed(cfg.broker, cfg.run_id, self.hub, cfg.rigs)
         try:
             self.server = DashboardServer((cfg.host, cfg.port), self.hub, self.feed.stats)
@@ -53,8 +55,8 @@ class DashboardService:
         """Serve the page, then connect to the broker (ConnectionError if it cannot be reached)."""
         self._http.start()
         try:
-            self.feed.start()
-        except ConnectionError:
+            self.feed.start(stop=self.stop_event)
+        except (ConnectionError, Stopped):
             self.stop()
             raise
         if self.cfg.url_file is not None:
@@ -71,7 +73,10 @@ class DashboardService:
         self.server.server_close()
 
     def run(self) -> int:
-        self.start()
+        try:
+            self.start()
+        except Stopped:
+            return 0
         print(f"dashboard for run {self.cfg.run_id}: {self.url}", flush=True)
         try:
             self.stop_event.wait()
@@ -80,7 +85,7 @@ class DashboardService:
         return 0
 
     def install_signal_handlers(self) -> None:
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in STOP_SIGNALS:
             signal.signal(sig, lambda *_: self.stop_event.set())
 
 

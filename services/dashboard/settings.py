@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from runtime.settings import Port, RunMqttSettings, Words, setting
+from runtime.settings import Port, RunKeySettings, RunMqttSettings, Words, setting
 
 DEFAULT_PORT = 8050
 
 
-class DashboardSettings(RunMqttSettings):
-    """The live web page of one run, served on 127.0.0.1 and fed by MQTT."""
+class DashboardSettings(RunMqttSettings, RunKeySettings):
+    """The live web page of one run, served on 127.0.0.1 and fed by MQTT; with the run's key (``FEDRL_RUN_KEY``) it
+    shows only the chief messages tagged with it and counts the others as refused."""
 
     dashboard_host: str = setting("127.0.0.1", "interface to serve on (0.0.0.0 exposes the page to the network, as "
                                   "inside a container)", aliases=["--host"])

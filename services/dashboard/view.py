@@ -18,6 +18,9 @@ Events (``type`` plus fields):
   keep weights);
 - ``rig``: one QUBE-Servo 2 rig's phase and loop timing, or ``note`` saying why there is none;
 - ``reset``: a new run under the same id started; the page clears what it has.
+
+With the run's key, every chief message is checked as the workers check it (protocol/auth.py): one without a valid
+tag changes nothing shown; it is counted in ``refused`` (by reason and kind), which the page's footer shows.
 """
 
 from __future__ import annotations
@@ -27,6 +30,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+from protocol.auth import TAG_FIELD, refusal
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
@@ -41,7 +45,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
-from protocol.routes import EDGE, route_of
+from protocol.routes import CHIEF, EDGE, route_of
 
 Event = dict[str, Any]
 
@@ -134,10 +138,13 @@ def no_transfer_text(stopped: bool, solved: int) -> str:
 class RunView:
     """The state of one run (``run_id``) as the page shows it; fed decoded messages, one at a time."""
 
-    def __init__(self, run_id: str, max_points: int = 4000, max_rounds: int = 300) -> None:
+    def __init__(self, run_id: str, max_points: int = 4000, max_rounds: int = 300, key: bytes | None = None) -> None:
+        """``key``: the run's key, which every chief message shown must be tagged with (None: all are trusted)."""
         if max_points < 2:
             raise ValueError("max_points must be at least 2")
         self.run_id = run_id
+        self.key = key
+        self.refused: Counter[str] = Counter()  # chief messages without a valid tag: "<reason> <kind>" -> count
         self.max_points = max_points
         self.max_rounds = max_rounds
         self.kinds: Counter[str] = Counter()  # messages applied, by kind
@@ -180,6 +187,11 @@ class RunView:
         if handler is None:
             self.ignored[kind] += 1
             return []
+        if route is not None and route.publisher == CHIEF and TAG_FIELD in type(msg).model_fields:
+            refused = refusal(msg, self.key)
+            if refused is not None:  # not the chief's: shown as refused, never as the run's state
+                self.refused[f"{refused[0]} {kind}"] += 1
+                return []
         self.kinds[kind] += 1
         return handler(msg, now)
 
@@ -416,4 +428,5 @@ class RunView:
             "rigs": [r.summary() for r in self.rigs.values()],
             "kinds": dict(self.kinds),
             "ignored": dict(self.ignored),
+            "refused": dict(self.refused),
         }

@@ -593,3 +593,22 @@ def test_a_scaled_critic_gradient_is_recorded_beside_the_actors() -> None:
     assert RoundRecord.model_validate(record).critic_clipped == out.critic_clipped
     plain = replace(out, critic_clipped={}).record()
     assert "critic_clipped" not in plain and "critic_clipped" not in RoundRecord.model_validate(plain).dump()
+
+
+def test_a_finish_with_only_lagging_learners_says_why_and_the_summary_keeps_what_a_worker_said() -> None:
+    """w2 said it stopped and w1 timed out: w0's finish transfers nothing, and the log says it is the lag (it said
+    "policy weighted"); summary.json lists w2 as `stopped`, as it said, not `offline`."""
+    from chief.report import summarize
+
+    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
+    for e in range(1, PI_WINDOW):
+        for f in w.values():
+            k.submit(f.sub(e, 200.0 if f.id == "w0" else 100.0), now=float(e))
+    k.note_status("w2", "stopped", now=9.5, detail="interrupted")
+    k.submit(w["w0"].sub(PI_WINDOW, 200.0, mature=True), now=10.0)
+    [out] = k.tick(now=30.0)
+    assert out.kind == "aggregate" and out.finished == ["w0"] and out.timed_out == ["w1"]
+    assert k.why_no_transfer().startswith("w1 lagging, w2 offline (not answering")
+    states = {s.id: s.state for s in summarize(k, "stopped").workers}
+    assert states == {"w0": "finished", "w1": "lagging", "w2": "stopped"}
+    assert keeper(["w0", "w1"], policy="independent").why_no_transfer() == "policy independent"

@@ -9,7 +9,6 @@ import os
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -24,13 +23,13 @@ def _closed_port() -> int:
 
 def test_an_unreachable_broker_is_one_line_and_exit_1(tmp_path: Path) -> None:
     env = {**os.environ, "FEDRL_BROKER": f"mqtt://127.0.0.1:{_closed_port()}", "FEDRL_RUN_DIR": str(tmp_path / "run")}
-    start = time.monotonic()
     done = subprocess.run([sys.executable, "-m", "deploy.run_local"], env=env, capture_output=True, text=True,
                           timeout=60)
     assert done.returncode == 1
-    assert time.monotonic() - start < 15
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "cannot reach the MQTT broker" in lines[0], done.stderr
+    # Refused at once, not waited out (no wall-clock bound here: a loaded machine must not fail the suite).
+    assert "Connection refused" in lines[0] and "no answer within" not in lines[0], lines[0]
     assert not (tmp_path / "run" / "logs" / "chief.log").exists()
 
 

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -162,3 +163,77 @@ def test_sigterm_stops_a_worker_and_the_chief_without_a_will(any_broker: str, tm
             log.close()
         status.conn.stop()
         chief_said.conn.stop()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_qube_worker_waiting_on_a_rig_reset_stops_at_once(amqtt_broker: str, tmp_path: Path,
+                                                           sig: signal.Signals) -> None:
+    """A worker of env qube whose rig never answers its reset (none is running) waits in the reset up to 60 s: a
+    signal ends that wait at once, with the worker's code 130, `stopped` on its status topic and no traceback (it
+    said "stopping cleanly", then failed with a TimeoutError 59 s later). The bound (2 s) is left to a generous
+    timeout here: the suite must not depend on the machine's speed."""
+    run = "resetstop"
+    common = ["--broker", amqtt_broker, "--run-id", run, "--env", "qube"]
+    status = Watcher(amqtt_broker, topics.worker(run, "w0", topics.STATUS), "watch-status")
+    logs = {name: (tmp_path / f"{name}.log").open("wb") for name in ("chief", "worker")}
+    chief = subprocess.Popen([sys.executable, "-m", "chief", *common, "--workers", "1", "--run-dir",
+                              str(tmp_path / "run")], cwd=ROOT, stdout=logs["chief"], stderr=subprocess.STDOUT)
+    worker = subprocess.Popen([sys.executable, "-m", "worker", *common, "--worker-id", "w0", "--rig-id", "nobody"],
+                              cwd=ROOT, stdout=logs["worker"], stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 60
+        while not any(decode(p).state == "training" for p in status.got):  # type: ignore[attr-defined]
+            assert time.monotonic() < deadline and worker.poll() is None, (tmp_path / "worker.log").read_text()
+            time.sleep(0.1)
+        time.sleep(0.5)  # in the reset's wait (it publishes its request every second)
+        worker.send_signal(sig)
+        assert worker.wait(10) == 130, (tmp_path / "worker.log").read_text()
+        log = (tmp_path / "worker.log").read_text()
+        assert "Traceback" not in log and "failed" not in log, log
+        assert decode(status.got[-1]).state == "stopped"  # type: ignore[attr-defined]
+        chief.send_signal(sig)
+        assert chief.wait(10) == 130, (tmp_path / "chief.log").read_text()
+        assert "Traceback" not in (tmp_path / "chief.log").read_text()
+    finally:
+        for proc in (worker, chief):
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        for log_file in logs.values():
+            log_file.close()
+        status.conn.stop()
+
+
+def handles(pid: int, sig: signal.Signals) -> bool:
+    """Whether process ``pid`` has a handler of its own for ``sig`` installed (its SigCgt mask)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    caught = int(next(line.split()[1] for line in status.splitlines() if line.startswith("SigCgt:")), 16)
+    return bool(caught >> (sig - 1) & 1)
+
+
+@pytest.mark.parametrize(("module", "code"), [("worker", 130), ("chief", 130), ("services.qube_sim", 0),
+                                              ("services.dashboard", 0)])
+def test_a_signal_while_the_broker_cannot_be_reached_stops_at_once(tmp_path: Path, module: str, code: int) -> None:
+    """Each waited out its connect timeout (10 s, the rig's 60 s), then exited 1; now a signal ends the wait with
+    the process's stopped code. The handler is in place (the process's signal mask says so) before it is sent."""
+    with socket.socket() as s:  # a port nobody listens on
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    proc = subprocess.Popen([sys.executable, "-m", module, "--broker", f"mqtt://127.0.0.1:{port}", "--run-dir",
+                             str(tmp_path / "run")] if module == "chief" else
+                            [sys.executable, "-m", module, "--broker", f"mqtt://127.0.0.1:{port}"],
+                            cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT), "FEDRL_DASHBOARD_PORT": "0"},
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        deadline = time.monotonic() + 30
+        while not handles(proc.pid, signal.SIGHUP):
+            assert time.monotonic() < deadline and proc.poll() is None, proc.communicate()[0]
+            time.sleep(0.05)
+        time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=8)  # under the 10 s of the connect timeout that ended it before
+        assert proc.returncode == code and "Traceback" not in out, out
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()

@@ -3,9 +3,7 @@
 from __future__ import annotations
 
 import math
-import queue
 import threading
-import time
 
 import pytest
 
@@ -143,48 +141,52 @@ def test_faults_disable_the_amplifier_and_a_reset_clears_them(inject, reason: st
 
 
 def test_real_time_loop_counts_misses_and_never_applies_a_late_action() -> None:
-    device = RecordingQube(seed=2, period_s=0, clock=time.perf_counter)
-    core = RecordingCore(device, ControlConfig(action_timeout_s=5.0))
-    states: queue.Queue[QubeState] = queue.Queue()
+    """The real-time loop (not lockstep) on a stepped clock: the worker answers every state 0.5-4 ms after it is
+    published, and every tenth one 8 ms late (past the 5 ms deadline) with a marker command. Each late answer is
+    counted and dropped, its state gets the safe action, and the marker never reaches the motor. The clock moves
+    only when the worker answers or the loop sleeps, so the outcome does not depend on the machine's speed (how
+    fast real answers are is bench/latency.py's business)."""
+    clock = SteppedClock()
+    device = RecordingQube(seed=2, period_s=0, clock=clock)
+    core = RecordingCore(device, ControlConfig(action_timeout_s=5.0), clock=clock)
     statuses: list[str] = []
+    stop = threading.Event()
+    answered = late = 0
+    runner: BridgeRunner
+
+    def sleep(seconds: float) -> None:
+        clock.now += seconds
 
     def publish(topic: str, payload: bytes, qos: int) -> None:
+        nonlocal answered, late
         msg = decode(payload, QubeState, QubeStatus, QubeTelemetry)
-        if isinstance(msg, QubeState):
-            states.put(msg)
-        elif isinstance(msg, QubeStatus):
+        if isinstance(msg, QubeStatus):
             statuses.append(msg.state)
+        if not isinstance(msg, QubeState) or msg.phase not in ("ready", "running"):
+            return
+        if (answered + late) % 10 == 9:  # every tenth state: answer 8 ms late with a marker command
+            clock.now += 0.008
+            runner.on_action(QubeAction(rig_id="rig0", seq=msg.seq, command=77))
+            late += 1
+        else:
+            clock.now += 0.0005 + 0.0035 * ((answered * 7) % 8) / 7
+            u = -(12.7 * msg.theta - 563.3 * msg.alpha + 13.3 * msg.theta_dot - 39.0 * msg.alpha_dot)
+            runner.on_action(QubeAction(rig_id="rig0", seq=msg.seq, command=max(-300, min(300, round(u)))))
+            answered += 1
+        if answered + late >= 300:
+            stop.set()
 
-    runner = BridgeRunner(core, "rig0", publish, deadline_s=0.005)
-    stop = threading.Event()
-    loop = threading.Thread(target=runner.run, args=(stop,), daemon=True)
-    loop.start()
+    runner = BridgeRunner(core, "rig0", publish, deadline_s=0.005, clock=clock, sleep=sleep)
     runner.on_reset(1)
-    answered = late = 0
-    try:
-        deadline = time.monotonic() + 30
-        while answered + late < 300 and time.monotonic() < deadline:
-            s = states.get(timeout=10)
-            if s.phase not in ("ready", "running"):
-                continue
-            if (answered + late) % 10 == 9:  # every tenth state: answer 8 ms late with a marker command
-                time.sleep(0.008)
-                runner.on_action(QubeAction(rig_id="rig0", seq=s.seq, command=77))
-                late += 1
-            else:
-                u = -(12.7 * s.theta - 563.3 * s.alpha + 13.3 * s.theta_dot - 39.0 * s.alpha_dot)
-                runner.on_action(QubeAction(rig_id="rig0", seq=s.seq, command=max(-300, min(300, round(u)))))
-                answered += 1
-    finally:
-        stop.set()
-        loop.join(timeout=5)
-    assert late == 30
+    runner.run(stop, max_ticks=5000)
+    assert (answered, late) == (270, 30), core.events
     assert 77 not in core.acted, "a late action was applied"  # (the reset controller may send 77 itself)
-    assert runner.slot.late >= 30  # every late answer was counted and dropped
+    assert runner.slot.late == 30  # every late answer was counted and dropped
     assert core.counters.misses >= 30  # each of those states got the safe action instead
+    assert core.counters.late_at_motor == 0  # every answer in time was written in time
     assert "ready" in statuses and statuses[-1] == "offline"
-    # How fast the in-time answers were depends on the machine's load: bench/latency.py measures it.
-    assert runner.telemetry().latency_ms["n"] > 0
+    assert runner.telemetry().latency_ms["n"] == 270
+    assert runner.telemetry().latency_ms["max"] <= 4.0 + 1e-6
 
 
 # -- the deadline held at the motor -------------------------------------------------------------------------------

@@ -16,7 +16,7 @@ from deploy.reference import PROCESSES, markdown, variables_module
 from deploy.run_local import Fleet
 from deploy.settings import DockerSettings, LocalRunSettings
 from rpi_bridge.settings import BridgeSettings
-from runtime.settings import ENV_FILE_VAR, Settings, to_env
+from runtime.settings import ENV_FILE_VAR, Settings, env_name, flags, to_env
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings
 from tests.paths import ROOT
@@ -91,6 +91,41 @@ def test_a_bad_setting_is_one_line_and_exit_2(argv: list[str], env: dict[str, st
     assert out.returncode == 2, out.stderr
     assert out.stderr.startswith(needle) and len(out.stderr.strip().splitlines()) == 1, out.stderr
     assert "Traceback" not in out.stderr and out.stdout == ""
+
+
+ID_FIELDS = ("run_id", "worker_id", "rig_id", "edge", "edge_id")
+
+
+@pytest.mark.parametrize(("command", "cls", "name"),
+                         [(c, cls, n) for c, _, cls in PROCESSES for n in ID_FIELDS if n in cls.model_fields],
+                         ids=lambda v: v if isinstance(v, str) else getattr(v, "__name__", ""))
+@pytest.mark.parametrize("value", ["", " ", "\t"], ids=["empty", "space", "tab"])
+def test_an_empty_or_blank_id_flag_is_one_line_and_exit_2(command: str, cls: type[Settings], name: str, value: str,
+                                                          clean_env: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """pydantic-settings drops an empty flag as it drops an empty variable, so `--run-id "$RUN"` with RUN unset
+    joined the run `default`: every command refuses it instead (an empty variable still means unset)."""
+    flag = flags(name, cls.model_fields[name])[0]
+    with pytest.raises(SystemExit) as exit_:
+        cls.load([*example(cls), flag, value], prog=command)
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and err == f"{command}: bad setting {flag} {value!r} (command line): empty; leave " \
+        "the flag out for its default\n", err
+    clean_env.setenv(env_name(name, cls.model_fields[name]) or "", "")
+    assert cls.load(example(cls), prog=command) is not None  # an empty variable: unset
+
+
+@pytest.mark.parametrize("argv", [["worker", "--id", ""], ["worker", "--run-id", ""], ["worker", "--run-id="],
+                                  ["services.qube_sim", "--rig-id", ""], ["chief", "--role", "edge", "--edge-id", " "],
+                                  ["deploy.sites", "--site", "a=1", "--core", "h:1883", "--run", ""]])
+def test_the_commands_refuse_an_empty_id(argv: list[str], tmp_path: Path) -> None:
+    clean = {k: v for k, v in os.environ.items() if not k.startswith("FEDRL_")}
+    out = subprocess.run([sys.executable, "-m", *argv, "--broker" if argv[0] != "deploy.sites" else "-o",
+                          "mqtt://127.0.0.1:9" if argv[0] != "deploy.sites" else str(tmp_path / "out")],
+                         capture_output=True, text=True, timeout=60, cwd=tmp_path,
+                         env={**clean, "PYTHONPATH": str(ROOT)})
+    assert out.returncode == 2 and len(out.stderr.strip().splitlines()) == 1, out.stderr
+    assert "id" in out.stderr and "Traceback" not in out.stderr and not (tmp_path / "out").exists()
 
 
 def example(cls: type) -> list[str]:

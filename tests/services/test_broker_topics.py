@@ -109,3 +109,36 @@ def test_a_subscribe_filter_with_nul_is_refused(any_broker: str) -> None:
 ])
 def test_topic_fault(topic: str, publish_: bool, fault: str | None) -> None:
     assert topic_fault(topic, publish_) == fault
+
+
+def test_a_stalled_subscriber_costs_one_warning_line_per_timeout_and_no_traceback(amqtt_broker: str,
+                                                                                  tmp_path: Path) -> None:
+    """A subscriber that never acknowledges a QoS 1 message: amqtt gives up after 5 s and logged a traceback for
+    each (36 in one probe); now each is one warning line with the count so far."""
+    stalled = raw_client(amqtt_broker, "stalled")
+    try:
+        stalled.sendall(_packet(0x82, struct.pack("!H", 1) + _string("stall/#") + bytes([1])))
+        assert stalled.recv(5) == bytes([0x90, 3, 0, 1, 1])  # SUBACK, QoS 1
+        host, port = amqtt_broker.removeprefix("mqtt://").rsplit(":", 1)
+        sender = paho.Client(CallbackAPIVersion.VERSION2, client_id="sender", protocol=paho.MQTTv311)
+        sender.connect(host, int(port))
+        sender.loop_start()
+        log = tmp_path / "amqtt.log"
+        try:
+            for i in range(2):
+                sender.publish(f"stall/{i}", b"x", qos=1).wait_for_publish(10)
+            deadline = time.monotonic() + 60  # amqtt's 5 s for each PUBACK, however loaded the machine
+            while log.read_text().count("such timeouts so far") < 2 and "Traceback" not in log.read_text():
+                assert time.monotonic() < deadline, log.read_text()
+                sender.publish("poke", b"", qos=0)  # amqtt reports a failed delivery at its next broadcast
+                time.sleep(0.5)
+        finally:
+            sender.loop_stop()
+            sender.disconnect()
+    finally:
+        stalled.close()
+    text = log.read_text()
+    assert "Traceback" not in text and "Timeout waiting for" not in text, text
+    lines = [line for line in text.splitlines() if "such timeouts" in line]
+    assert [line.split(": ")[-1] for line in lines] == ["1 such timeouts so far", "2 such timeouts so far"], lines
+    assert all(" WARNING a client did not acknowledge in time (PUBACK for packet ID " in line for line in lines), lines

@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 
 from protocol import topics
+from protocol.auth import signed
 from protocol.codec import encode
 from protocol.messages import (
     ChiefAggregate,
@@ -426,6 +427,59 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
             reader.until(lambda n, d: n == "delta" and any(e.get("worker") == "w1" for e in d))
     finally:
         pub.stop()
+
+
+KEY = b"dashboard-test-run-key-0123456789"
+
+
+def test_view_shows_only_chief_messages_tagged_with_the_run_key() -> None:
+    """An unsigned or wrongly tagged RunStart/RunStop/aggregate changes nothing shown and is counted as refused; the
+    chief's own (tagged) ones are shown. Worker messages are not the chief's and are not checked here."""
+    view = RunView(RUN, key=KEY)
+    chief = lambda leaf: topics.chief(RUN, leaf)  # noqa: E731
+    assert view.apply(chief(topics.START), start(["w0"]), 1.0) == []  # unsigned
+    assert view.snapshot()["run"]["phase"] == "waiting"
+    assert view.apply(chief(topics.START), signed(start(["w0"]), KEY), 2.0) != []
+    stop = RunStop(run_id=RUN, reason="forged by an outsider", episodes=1, all_solved=False)
+    assert view.apply(chief(topics.STOP), stop, 3.0) == []
+    assert view.apply(chief(topics.STOP), signed(stop, b"another-key-of-somebody-else"), 4.0) == []
+    assert view.apply(chief(topics.AGGREGATE), aggregate(1, {"w0": 1.0}), 5.0) == []
+    snap = view.snapshot()
+    assert snap["run"]["phase"] == "running" and snap["rounds"] == []
+    assert snap["refused"] == {"unsigned run_start": 1, "unsigned run_stop": 1, "forged run_stop": 1,
+                               "unsigned aggregate": 1}
+    assert view.apply(topics.worker(RUN, "w0", topics.UPDATE), update("w0", 1, 10.0), 6.0) != []  # not the chief's
+    view.apply(chief(topics.STOP), signed(stop.model_copy(update={"reason": "episode limit"}), KEY), 7.0)
+    assert view.snapshot()["run"]["phase"] == "stopped"
+    assert RunView(RUN).apply(chief(topics.STOP), stop, 1.0) != []  # without a key: trusted, as before
+
+
+def test_a_forged_run_stop_never_reaches_the_snapshot_over_a_real_broker(amqtt_broker: str) -> None:
+    service = DashboardService(DashboardConfig(broker=BrokerAddress.parse(amqtt_broker), run_id=RUN, port=0,
+                                               key=KEY)).start()
+    pub = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="dash-forger").start()
+    try:
+        host, port = service.server.server_address[:2]
+        sse = SseReader(host, port)
+        sse.until(lambda n, d: n == "snapshot")
+
+        def send(topic: str, payload: Any) -> None:
+            pub.publish(topic, encode(payload), qos=1).wait_for_publish(5)
+
+        send_until(send, sse, topics.chief(RUN, topics.START), signed(start(["w0", "w1"]), KEY),
+                   lambda n, d: n == "delta" and any(e["type"] == "run" and e["phase"] == "running" for e in d),
+                   tries=100, timeout=0.3)
+        forged = RunStop(run_id=RUN, reason="forged by an outsider", episodes=3, all_solved=False)
+        send(topics.chief(RUN, topics.STOP), forged)
+        sse.until(lambda n, d: n == "stats" and d.get("refused", {}).get("unsigned run_stop") == 1)
+        http_conn = http.client.HTTPConnection(host, port, timeout=10)
+        http_conn.request("GET", "/api/snapshot")
+        snap = json.loads(http_conn.getresponse().read())
+        assert snap["run"]["phase"] == "running" and snap["run"].get("stop") is None, snap["run"]
+        assert snap["refused"] == {"unsigned run_stop": 1} and snap["stats"]["refused"] == {"unsigned run_stop": 1}
+    finally:
+        pub.stop()
+        service.stop()
 
 
 def test_command_line_errors_are_one_line(tmp_path: Path) -> None:

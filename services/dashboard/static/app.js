@@ -261,9 +261,12 @@ function renderStats() {
   const nRejected = rejected.reduce((a, [, n]) => a + n, 0);
   const unknown = Object.values(s.unknown || {}).reduce((a, n) => a + n, 0);
   const ignored = Object.values(s.ignored || {}).reduce((a, n) => a + n, 0);
+  const refused = Object.entries(s.refused || {});
+  const nRefused = refused.reduce((a, [, n]) => a + n, 0);
   const parts = [
     `${s.received} messages`,
     `${nRejected} rejected` + (rejected.length ? ` (${rejected.map(([k, n]) => `${k} ${n}`).join(", ")})` : ""),
+    `${nRefused} refused as not the chief's` + (refused.length ? ` (${refused.map(([k, n]) => `${k} ${n}`).join(", ")})` : ""),
     `${unknown} of unknown kinds`, `${ignored} not shown`, `${s.dropped} dropped`,
     s.connected ? "broker connected" : "broker disconnected", `${s.pages} page(s) open`,
   ];

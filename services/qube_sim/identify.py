@@ -201,15 +201,20 @@ def _relative_scale(name: str, value: float) -> float:
 def _covariance(jac: np.ndarray, residuals: np.ndarray, windows: int) -> np.ndarray:
     """Covariance of the fitted (log) parameters, robust to the residuals of one window being correlated (they
     share its start state's error): the sandwich (J^T J)^-1 (sum over windows of J_w^T r_w r_w^T J_w) (J^T J)^-1,
-    windows as independent clusters. Infinite where J^T J is singular (a parameter the recording does not see)."""
+    windows as independent clusters. A parameter the recording does not see (its column of J vanishes, e.g. a
+    deadzone or static friction fitted to nothing) gets an infinite variance and is left out of the others'."""
     k = jac.shape[1]
+    norms = np.linalg.norm(jac, axis=0)
+    seen = np.flatnonzero(norms > 1e-6 * max(float(norms.max()), 1e-300))
+    cov = np.full((k, k), np.inf)
+    j = jac[:, seen]
     try:
-        bread = np.linalg.inv(jac.T @ jac)
+        bread = np.linalg.inv(j.T @ j)
     except np.linalg.LinAlgError:
-        return np.full((k, k), np.inf)
-    scores = (jac * residuals[:, None]).reshape(windows, -1, k).sum(axis=1)  # (windows, k)
-    meat = scores.T @ scores * windows / max(1, windows - k)
-    cov = bread @ meat @ bread
+        return cov
+    scores = (j * residuals[:, None]).reshape(windows, -1, len(seen)).sum(axis=1)  # (windows, seen)
+    meat = scores.T @ scores * windows / max(1, windows - len(seen))
+    cov[np.ix_(seen, seen)] = bread @ meat @ bread
     return np.where(np.isfinite(cov), cov, np.inf)
 
 
@@ -253,7 +258,8 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
 
     def residuals(z: np.ndarray, w: Windows) -> np.ndarray:
         v = values_of(z)
-        pred = simulate(_params(nominal, v, sp_ratio), w, v["delay_ms"] / 1e3, cfg.substeps)
+        with np.errstate(all="ignore"):  # a trial step may make the integration blow up: a large residual then
+            pred = simulate(_params(nominal, v, sp_ratio), w, v["delay_ms"] / 1e3, cfg.substeps)
         r = (pred - w.measured).ravel()
         return np.where(np.isfinite(r), r, 10.0)
 
@@ -267,7 +273,8 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         tiled = Windows(np.tile(train.x0, (len(zs), 1)), np.tile(train.commands, (len(zs), 1)),
                         np.tile(train.dt, (len(zs), 1)), train.measured)
         delays = np.repeat([values_of(zi)["delay_ms"] / 1e3 for zi in zs], n)
-        pred = simulate(stacked, tiled, delays, cfg.substeps).reshape(len(zs), *train.measured.shape)
+        with np.errstate(all="ignore"):
+            pred = simulate(stacked, tiled, delays, cfg.substeps).reshape(len(zs), *train.measured.shape)
         r = (pred - train.measured[None]).reshape(len(zs), -1)
         return np.where(np.isfinite(r), r, 10.0)
 
@@ -299,7 +306,7 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         sigma[name] = sd * DELAY_SCALE_MS if name == "delay_ms" else sd * _relative_scale(name, values[name])
     i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
     w = _relative_scale("static_ratio", values["static_ratio"])
-    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r]
+    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r] if np.isfinite(var[i_r]) else var[i_c]
     sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
     values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
     return Fit(values=values, sigma=sigma,

@@ -44,10 +44,12 @@ from services.qube_sim.spi_peer import SimulatedQube
 #: plausible ones; a fit outside it is refused). ``static_ratio`` is static_arm / coulomb_arm (>= 1), ``motor`` km = kt,
 #: ``delay_ms`` a command's delay after its read (fitted linearly, as delay / 7 ms; everything else in log space).
 FITTED: dict[str, tuple[float, float]] = {
-    "Dr": (1e-7, 0.05), "Dp": (1e-8, 0.01), "coulomb_arm": (0.0, 0.05), "static_ratio": (1.0, 10.0),
+    "Dr": (1e-7, 0.05), "Dp": (1e-8, 0.01), "coulomb_arm": (0.0, 0.05), "static_ratio": (1.0, 5.0),
     "coulomb_pendulum": (0.0, 0.01), "motor": (0.005, 0.5), "deadzone_v": (0.0, 3.0), "mr": (0.01, 1.0),
     "Lr": (0.01, 0.5), "Lp": (0.01, 0.5), "delay_ms": (0.0, 7.0),
 }
+#: Fitted first, the others held at the base's values (see :func:`fit`).
+FIRST_STAGE = ("Dr", "Dp", "coulomb_arm", "coulomb_pendulum", "motor", "mr")
 #: The QubeParams fields that the fitted values set (see :func:`_params`).
 _VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr", "Lp")
 #: Parameters whose uncertainty decides whether the fit is trusted (the ones that decide control).
@@ -64,7 +66,7 @@ class FitConfig:
     substeps: int = 2  # RK4 steps per tick (3.5 ms at 7 ms: the simulator uses 1 ms; see the docs for the effect)
     savgol: int = 11  # samples in the velocity estimate's window (polynomial of order 3)
     holdout: float = 0.25  # fraction of the prbs segment, at its end, held out
-    max_nfev: int = 60
+    max_nfev: int = 100
     ftol: float = 1e-4  # least_squares' tolerances: relative change of the cost, and of the parameters (log space)
     xtol: float = 1e-4
     max_sigma: float = 0.25
@@ -172,16 +174,18 @@ def simulate(p: QubeParams, w: Windows, delay_s: float | np.ndarray, substeps: i
     return out
 
 
+STATIC_RATIO_MAX = 5.0  # static / Coulomb arm friction: the lab profile has 1.33
 DELAY_SCALE_MS = 7.0  # delay_ms is fitted as delay / 7 ms (linear, clipped to [0, 7] ms when used)
 
 
 def _to_z(name: str, value: float) -> float:
-    """The optimiser's coordinate of a value: log (static_ratio: log(ratio - 1), so that static >= Coulomb; the
-    delay: linear). Unbounded, so that least_squares can use Levenberg-Marquardt."""
+    """The optimiser's coordinate of a value: log (static_ratio: the logit of its place in [1, STATIC_RATIO_MAX], so
+    that static >= Coulomb; the delay: linear). Unbounded, so that least_squares can use Levenberg-Marquardt."""
     if name == "delay_ms":
         return value / DELAY_SCALE_MS
-    if name == "static_ratio":
-        return math.log(max(1e-3, value - 1.0))
+    if name == "static_ratio":  # 1 + (hi - 1) * sigmoid(z): bounded, so that a trial step cannot glue the arm
+        f = min(1 - 1e-6, max(1e-6, (value - 1.0) / (STATIC_RATIO_MAX - 1.0)))
+        return math.log(f / (1.0 - f))
     return math.log(value)
 
 
@@ -189,13 +193,15 @@ def _from_z(name: str, z: float) -> float:
     if name == "delay_ms":
         return min(DELAY_SCALE_MS, max(0.0, z * DELAY_SCALE_MS))
     if name == "static_ratio":
-        return 1.0 + math.exp(min(z, 50.0))
+        return 1.0 + (STATIC_RATIO_MAX - 1.0) / (1.0 + math.exp(-max(-50.0, min(z, 50.0))))
     return math.exp(min(z, 50.0))
 
 
 def _relative_scale(name: str, value: float) -> float:
-    """d(value)/value per unit of z: 1 in log space; (ratio - 1)/ratio for static_ratio."""
-    return (value - 1.0) / value if name == "static_ratio" else 1.0
+    """d(value)/value per unit of z: 1 in log space; (r - 1)(1 - f)/r for static_ratio r, f = (r - 1)/(hi - 1)."""
+    if name == "static_ratio":
+        return (value - 1.0) * (1.0 - (value - 1.0) / (STATIC_RATIO_MAX - 1.0)) / value
+    return 1.0
 
 
 def _covariance(jac: np.ndarray, residuals: np.ndarray, windows: int) -> np.ndarray:
@@ -265,7 +271,7 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
 
     def batch(z: np.ndarray, steps: np.ndarray) -> np.ndarray:
         """Residuals at z and at z + steps[j] e_j for every j, in one vectorised simulation: (1 + k, m)."""
-        zs = np.vstack([z, z + np.diag(steps)])
+        zs = np.vstack([z, z + np.diag(steps)[np.flatnonzero(steps)]])
         sets = [_params(nominal, values_of(zi), sp_ratio) for zi in zs]
         n = len(train)
         arrays: dict[str, Any] = {f: np.repeat([getattr(q, f) for q in sets], n) for f in _VARIED}
@@ -278,23 +284,40 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         r = (pred - train.measured[None]).reshape(len(zs), -1)
         return np.where(np.isfinite(r), r, 10.0)
 
-    def jacobian(z: np.ndarray) -> np.ndarray:
-        steps = 1e-3 * np.maximum(1.0, np.abs(z))
-        r = batch(z, steps)
-        return ((r[1:] - r[0]) / steps[:, None]).T
-
     evaluations = [0]
 
-    def counted(z: np.ndarray) -> np.ndarray:
-        evaluations[0] += 1
-        r = residuals(z, train)
-        if progress is not None:
-            rms = math.degrees(float(np.sqrt(np.mean(r * r))))
-            progress(f"fit evaluation {evaluations[0]}: training RMS {rms:.3f} deg")
-        return r
+    def solve(start: np.ndarray, free: list[int]) -> Any:
+        """least_squares over the coordinates ``free``, the others held at ``start``'s."""
 
-    result = least_squares(counted, z0, jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
-                           xtol=cfg.xtol, ftol=cfg.ftol)
+        def full(x: np.ndarray) -> np.ndarray:
+            z = start.copy()
+            z[free] = x
+            return z
+
+        def counted(x: np.ndarray) -> np.ndarray:
+            evaluations[0] += 1
+            r = residuals(full(x), train)
+            if progress is not None:
+                rms = math.degrees(float(np.sqrt(np.mean(r * r))))
+                progress(f"fit evaluation {evaluations[0]} ({len(free)} parameters): training RMS {rms:.3f} deg")
+            return r
+
+        def jacobian(x: np.ndarray) -> np.ndarray:
+            z = full(x)
+            steps = np.zeros_like(z)
+            steps[free] = 1e-3 * np.maximum(1.0, np.abs(z[free]))
+            r = batch(z, steps)
+            return ((r[1:] - r[0]) / steps[free][:, None]).T
+
+        return least_squares(counted, start[free], jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
+                             xtol=cfg.xtol, ftol=cfg.ftol)
+
+    # first the parameters that set most of the motion (better conditioned: it finds the right basin from a base
+    # 10x off), then all of them from there
+    first = solve(z0, [names.index(k) for k in FIRST_STAGE])
+    z1 = z0.copy()
+    z1[[names.index(k) for k in FIRST_STAGE]] = first.x
+    result = solve(z1, list(range(len(names))))
     values = values_of(result.x)
     r_train = result.fun
     r_held = residuals(result.x, held)

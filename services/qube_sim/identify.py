@@ -4,14 +4,16 @@ Multiple shooting: the recording is cut into windows of ``window_s``; each start
 non-causal velocity estimates (Savitzky-Golay, ``savgol``), all windows are simulated at once with the vectorised
 equations of motion (services/qube_sim/dynamics.py, ``derivatives_array``: the simulator's own, RK4 in ``substeps``
 per tick) under the recorded commands, and ``scipy.optimize.least_squares`` minimises the angle prediction error
-(theta and alpha, rad) over the parameters in :data:`FITTED` (log space; the loop's delay linear). Each command acts
-from its read plus the fitted ``delay_ms`` (the previous command before). The rest comes from a base profile.
+(theta and alpha, rad) over the parameters in :data:`FITTED` (log space; the loop's delay linear; Levenberg-Marquardt,
+:data:`FIRST_STAGE` first). Each command acts from its read plus the fitted ``delay_ms`` (the previous command
+before). The rest comes from a base profile.
 
 Trust: the fit is refused (:class:`FitRefused`, one line; nothing written) unless the optimiser converged, the
-recording moved the arm, each parameter in :data:`GATED` has a relative 1-sigma (the sandwich covariance in log
-space, clustered by window: :func:`_covariance`) of at most ``max_sigma``, and the
-RMS angle error on the held-out block (the last ``holdout`` of the recording's ``prbs`` segment, contiguous in time,
-never fitted) is at most ``max_heldout_deg`` and at most ``max_heldout_ratio`` times the training RMS.
+recording moved the arm, every value is inside its range in :data:`FITTED`, each parameter in :data:`GATED` has a
+relative 1-sigma (the sandwich covariance in log space, clustered by window: :func:`_covariance`) of at most
+``max_sigma``, and the RMS angle error on the held-out block (the last ``holdout`` of the recording's ``prbs``
+segment, contiguous in time, never fitted) is at most ``max_heldout_deg`` and at most ``max_heldout_ratio`` times the
+training RMS.
 
 ``python -m services.qube_sim.identify RECORDING --out PROFILE.json [--base lab]``.
 """

@@ -242,6 +242,86 @@ def _initial(base: RigProfile) -> dict[str, float]:
     return {k: min(FITTED[k][1], max(FITTED[k][0], v)) for k, v in guess.items()}  # every log value > 0 already
 
 
+@dataclass
+class _Problem:
+    """The residuals of one fit: the base's plant, the training windows, the coordinates of :data:`FITTED`."""
+
+    nominal: QubeParams
+    static_pendulum_ratio: float
+    train: Windows
+    substeps: int
+    names: tuple[str, ...] = tuple(FITTED)
+
+    def values_of(self, z: np.ndarray) -> dict[str, float]:
+        return {k: _from_z(k, float(zi)) for k, zi in zip(self.names, z, strict=True)}
+
+    def params(self, values: dict[str, float]) -> QubeParams:
+        return _params(self.nominal, values, self.static_pendulum_ratio)
+
+    def residuals(self, z: np.ndarray, w: Windows) -> np.ndarray:
+        v = self.values_of(z)
+        with np.errstate(all="ignore"):  # a trial step may make the integration blow up: a large residual then
+            pred = simulate(self.params(v), w, v["delay_ms"] / 1e3, self.substeps)
+        r = (pred - w.measured).ravel()
+        return np.where(np.isfinite(r), r, 10.0)
+
+    def batch(self, z: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Residuals at z and at z + steps[j] e_j for every non-zero step, in one vectorised simulation."""
+        train = self.train
+        zs = np.vstack([z, z + np.diag(steps)[np.flatnonzero(steps)]])
+        sets = [self.params(self.values_of(zi)) for zi in zs]
+        n = len(train)
+        arrays: dict[str, Any] = {f: np.repeat([getattr(q, f) for q in sets], n) for f in _VARIED}
+        tiled = Windows(np.tile(train.x0, (len(zs), 1)), np.tile(train.commands, (len(zs), 1)),
+                        np.tile(train.dt, (len(zs), 1)), train.measured)
+        delays = np.repeat([self.values_of(zi)["delay_ms"] / 1e3 for zi in zs], n)
+        with np.errstate(all="ignore"):
+            pred = simulate(replace(self.nominal, **arrays), tiled, delays, self.substeps)
+        r = (pred.reshape(len(zs), *train.measured.shape) - train.measured[None]).reshape(len(zs), -1)
+        return np.where(np.isfinite(r), r, 10.0)
+
+    def solve(self, start: np.ndarray, free: list[int], cfg: FitConfig, progress: Callable[[str], None] | None,
+              evaluations: list[int]) -> Any:
+        """least_squares over the coordinates ``free``, the others held at ``start``'s."""
+
+        def full(x: np.ndarray) -> np.ndarray:
+            z = start.copy()
+            z[free] = x
+            return z
+
+        def counted(x: np.ndarray) -> np.ndarray:
+            evaluations[0] += 1
+            r = self.residuals(full(x), self.train)
+            if progress is not None:
+                rms = math.degrees(float(np.sqrt(np.mean(r * r))))
+                progress(f"fit evaluation {evaluations[0]} ({len(free)} parameters): training RMS {rms:.3f} deg")
+            return r
+
+        def jacobian(x: np.ndarray) -> np.ndarray:
+            z = full(x)
+            steps = np.zeros_like(z)
+            steps[free] = 1e-3 * np.maximum(1.0, np.abs(z[free]))
+            r = self.batch(z, steps)
+            return ((r[1:] - r[0]) / steps[free][:, None]).T
+
+        return least_squares(counted, start[free], jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
+                             xtol=cfg.xtol, ftol=cfg.ftol)
+
+
+def _sigmas(names: tuple[str, ...], values: dict[str, float], cov: np.ndarray) -> dict[str, float]:
+    """Each fitted value's 1-sigma (relative; delay_ms in ms), and static_arm's (coulomb_arm x static_ratio)."""
+    var = np.diag(cov)
+    sigma = {}
+    for i, name in enumerate(names):
+        sd = math.sqrt(var[i]) if var[i] >= 0 else math.inf
+        sigma[name] = sd * DELAY_SCALE_MS if name == "delay_ms" else sd * _relative_scale(name, values[name])
+    i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
+    w = _relative_scale("static_ratio", values["static_ratio"])
+    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r] if np.isfinite(var[i_r]) else var[i_c]
+    sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
+    return sigma
+
+
 def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         progress: Callable[[str], None] | None = None) -> Fit:
     """Fit ``rec`` from ``base``'s values (the starting point and everything not fitted). FitRefused when the
@@ -255,98 +335,36 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         raise FitRefused(f"the arm moved {travel:.1f} deg over the whole recording (at least "
                          f"{cfg.min_arm_travel_deg:.0f} needed): the rig did not respond to the protocol")
     train, held = cut(rec, cfg)
-    names = list(FITTED)
+    sp_ratio = base.static_pendulum / base.coulomb_pendulum if base.coulomb_pendulum and base.static_pendulum else 0.0
+    problem = _Problem(base.params(), sp_ratio, train, cfg.substeps)
+    names = problem.names
     start = _initial(base)
     z0 = np.array([_to_z(k, start[k]) for k in names])
-    nominal = base.params()
-    sp_ratio = base.static_pendulum / base.coulomb_pendulum if base.coulomb_pendulum and base.static_pendulum else 0.0
-
-    def values_of(z: np.ndarray) -> dict[str, float]:
-        return {k: _from_z(k, float(zi)) for k, zi in zip(names, z, strict=True)}
-
-    def residuals(z: np.ndarray, w: Windows) -> np.ndarray:
-        v = values_of(z)
-        with np.errstate(all="ignore"):  # a trial step may make the integration blow up: a large residual then
-            pred = simulate(_params(nominal, v, sp_ratio), w, v["delay_ms"] / 1e3, cfg.substeps)
-        r = (pred - w.measured).ravel()
-        return np.where(np.isfinite(r), r, 10.0)
-
-    def batch(z: np.ndarray, steps: np.ndarray) -> np.ndarray:
-        """Residuals at z and at z + steps[j] e_j for every j, in one vectorised simulation: (1 + k, m)."""
-        zs = np.vstack([z, z + np.diag(steps)[np.flatnonzero(steps)]])
-        sets = [_params(nominal, values_of(zi), sp_ratio) for zi in zs]
-        n = len(train)
-        arrays: dict[str, Any] = {f: np.repeat([getattr(q, f) for q in sets], n) for f in _VARIED}
-        stacked = replace(nominal, **arrays)
-        tiled = Windows(np.tile(train.x0, (len(zs), 1)), np.tile(train.commands, (len(zs), 1)),
-                        np.tile(train.dt, (len(zs), 1)), train.measured)
-        delays = np.repeat([values_of(zi)["delay_ms"] / 1e3 for zi in zs], n)
-        with np.errstate(all="ignore"):
-            pred = simulate(stacked, tiled, delays, cfg.substeps).reshape(len(zs), *train.measured.shape)
-        r = (pred - train.measured[None]).reshape(len(zs), -1)
-        return np.where(np.isfinite(r), r, 10.0)
-
     evaluations = [0]
-
-    def solve(start: np.ndarray, free: list[int]) -> Any:
-        """least_squares over the coordinates ``free``, the others held at ``start``'s."""
-
-        def full(x: np.ndarray) -> np.ndarray:
-            z = start.copy()
-            z[free] = x
-            return z
-
-        def counted(x: np.ndarray) -> np.ndarray:
-            evaluations[0] += 1
-            r = residuals(full(x), train)
-            if progress is not None:
-                rms = math.degrees(float(np.sqrt(np.mean(r * r))))
-                progress(f"fit evaluation {evaluations[0]} ({len(free)} parameters): training RMS {rms:.3f} deg")
-            return r
-
-        def jacobian(x: np.ndarray) -> np.ndarray:
-            z = full(x)
-            steps = np.zeros_like(z)
-            steps[free] = 1e-3 * np.maximum(1.0, np.abs(z[free]))
-            r = batch(z, steps)
-            return ((r[1:] - r[0]) / steps[free][:, None]).T
-
-        return least_squares(counted, start[free], jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
-                             xtol=cfg.xtol, ftol=cfg.ftol)
-
     # first the parameters that set most of the motion (better conditioned: it finds the right basin from a base
     # 10x off), then all of them from there
-    first = solve(z0, [names.index(k) for k in FIRST_STAGE])
+    first_free = [names.index(k) for k in FIRST_STAGE]
+    first = problem.solve(z0, first_free, cfg, progress, evaluations)
     z1 = z0.copy()
-    z1[[names.index(k) for k in FIRST_STAGE]] = first.x
-    result = solve(z1, list(range(len(names))))
-    values = values_of(result.x)
+    z1[first_free] = first.x
+    result = problem.solve(z1, list(range(len(names))), cfg, progress, evaluations)
+    values = problem.values_of(result.x)
     r_train = result.fun
-    r_held = residuals(result.x, held)
-    cov = _covariance(np.asarray(result.jac), r_train, len(train))
-    var = np.diag(cov)
-    sigma = {}
-    for i, name in enumerate(names):
-        sd = math.sqrt(var[i]) if var[i] >= 0 else math.inf
-        sigma[name] = sd * DELAY_SCALE_MS if name == "delay_ms" else sd * _relative_scale(name, values[name])
-    i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
-    w = _relative_scale("static_ratio", values["static_ratio"])
-    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r] if np.isfinite(var[i_r]) else var[i_c]
-    sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
+    r_held = problem.residuals(result.x, held)
+    sigma = _sigmas(names, values, _covariance(np.asarray(result.jac), r_train, len(train)))
     values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
     return Fit(values=values, sigma=sigma,
                train_rms_deg=math.degrees(float(np.sqrt(np.mean(r_train**2)))),
                heldout_rms_deg=math.degrees(float(np.sqrt(np.mean(r_held**2)))),
-               iterations=int(result.nfev), converged=result.status > 0, message=str(result.message),
-               wall_s=time.perf_counter() - began, params=_params(nominal, values, sp_ratio),
-               windows=(len(train), len(held)))
+               iterations=evaluations[0], converged=result.status > 0, message=str(result.message),
+               wall_s=time.perf_counter() - began, params=problem.params(values), windows=(len(train), len(held)))
 
 
 def check(result: Fit, cfg: FitConfig | None = None) -> None:
     """FitRefused (one line) unless the fit is to be trusted (see the module docstring)."""
     cfg = cfg or FitConfig()
     if not result.converged:
-        raise FitRefused(f"the fit did not converge in {result.iterations} evaluations ({result.message})")
+        raise FitRefused(f"the fit did not converge ({result.iterations} evaluations in all: {result.message})")
     loose = [f"{k} +-{result.sigma[k]:.0%}" for k in GATED if not result.sigma[k] <= cfg.max_sigma]
     if loose:
         raise FitRefused(f"the fit is too uncertain: {', '.join(loose)} (at most +-{cfg.max_sigma:.0%} trusted): "

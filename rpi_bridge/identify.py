@@ -67,6 +67,8 @@ class IdentifyConfig:
     # arm PD: volts = kp * (theta - target) + kd * theta_dot (a positive command drives theta negative)
     centre_kp: float = 8.0
     centre_kd: float = 0.5
+    centre_ki: float = 20.0  # V per rad s, while the arm is stuck outside half the tolerance
+    centre_ki_max: float = 3.0  # V: the integral's clamp
     hold_kp: float = 4.0  # the weak PD of excite, decay and prbs
     hold_kd: float = 0.2
     centre_tolerance: float = math.radians(5.0)
@@ -309,17 +311,23 @@ class Identification:
         yield from self._centre("return")
 
     def _centre(self, label: str, target: float = 0.0) -> Generator[float, _Tick, None]:
-        """PD to ``target`` until the arm has been within tolerance and slow for ``settle_s``."""
+        """PD to ``target``, plus an integral while the arm is stuck outside half the tolerance (dry friction would
+        otherwise hold it short: arm friction 3x lab's stops a PD 9 deg out), until the arm has been within the
+        tolerance and slow for ``settle_s``."""
         cfg = self.config
         self._begin(label)
         still = 0
+        integral = 0.0  # volts
         for _ in range(self._ticks(cfg.centre_timeout_s)):
             s = self._tick
-            near = abs(s.theta - target) < cfg.centre_tolerance and abs(s.theta_dot) < 0.3
+            error = s.theta - target
+            near = abs(error) < cfg.centre_tolerance and abs(s.theta_dot) < 0.3
             still = still + 1 if near else 0
             if still >= self._ticks(cfg.settle_s):
                 return
-            yield self._pd(cfg.centre_kp, cfg.centre_kd, target)
+            if abs(error) > cfg.centre_tolerance / 2 and abs(s.theta_dot) < 0.3:  # held short by friction
+                integral = max(-cfg.centre_ki_max, min(cfg.centre_ki_max, integral + cfg.centre_ki * error * s.dt))
+            yield self._pd(cfg.centre_kp, cfg.centre_kd, target) + volts_to_counts(integral)
         raise Abort(f"the arm did not settle within {math.degrees(cfg.centre_tolerance):.0f} deg of "
                     f"{math.degrees(target):.0f} deg in {cfg.centre_timeout_s:.0f} s (at "
                     f"{math.degrees(self._tick.theta):.0f} deg): blocked arm or a rig much weaker than assumed?")

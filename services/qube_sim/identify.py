@@ -4,14 +4,16 @@ Multiple shooting: the recording is cut into windows of ``window_s``; each start
 non-causal velocity estimates (Savitzky-Golay, ``savgol``), all windows are simulated at once with the vectorised
 equations of motion (services/qube_sim/dynamics.py, ``derivatives_array``: the simulator's own, RK4 in ``substeps``
 per tick) under the recorded commands, and ``scipy.optimize.least_squares`` minimises the angle prediction error
-(theta and alpha, rad) over the parameters in :data:`FITTED` (log space; the loop's delay linear). Each command acts
-from its read plus the fitted ``delay_ms`` (the previous command before). The rest comes from a base profile.
+(theta and alpha, rad) over the parameters in :data:`FITTED` (log space; the loop's delay linear; Levenberg-Marquardt,
+:data:`FIRST_STAGE` first). Each command acts from its read plus the fitted ``delay_ms`` (the previous command
+before). The rest comes from a base profile.
 
 Trust: the fit is refused (:class:`FitRefused`, one line; nothing written) unless the optimiser converged, the
-recording moved the arm, each parameter in :data:`GATED` has a relative 1-sigma (the sandwich covariance in log
-space, clustered by window: :func:`_covariance`) of at most ``max_sigma``, and the
-RMS angle error on the held-out block (the last ``holdout`` of the recording's ``prbs`` segment, contiguous in time,
-never fitted) is at most ``max_heldout_deg`` and at most ``max_heldout_ratio`` times the training RMS.
+recording moved the arm, every value is inside its range in :data:`FITTED`, each parameter in :data:`GATED` has a
+relative 1-sigma (the sandwich covariance in log space, clustered by window: :func:`_covariance`) of at most
+``max_sigma``, and the RMS angle error on the held-out block (the last ``holdout`` of the recording's ``prbs``
+segment, contiguous in time, never fitted) is at most ``max_heldout_deg`` and at most ``max_heldout_ratio`` times the
+training RMS.
 
 ``python -m services.qube_sim.identify RECORDING --out PROFILE.json [--base lab]``.
 """
@@ -44,10 +46,12 @@ from services.qube_sim.spi_peer import SimulatedQube
 #: plausible ones; a fit outside it is refused). ``static_ratio`` is static_arm / coulomb_arm (>= 1), ``motor`` km = kt,
 #: ``delay_ms`` a command's delay after its read (fitted linearly, as delay / 7 ms; everything else in log space).
 FITTED: dict[str, tuple[float, float]] = {
-    "Dr": (1e-7, 0.05), "Dp": (1e-8, 0.01), "coulomb_arm": (0.0, 0.05), "static_ratio": (1.0, 10.0),
+    "Dr": (1e-7, 0.05), "Dp": (1e-8, 0.01), "coulomb_arm": (0.0, 0.05), "static_ratio": (1.0, 5.0),
     "coulomb_pendulum": (0.0, 0.01), "motor": (0.005, 0.5), "deadzone_v": (0.0, 3.0), "mr": (0.01, 1.0),
     "Lr": (0.01, 0.5), "Lp": (0.01, 0.5), "delay_ms": (0.0, 7.0),
 }
+#: Fitted first, the others held at the base's values (see :func:`fit`).
+FIRST_STAGE = ("Dr", "Dp", "coulomb_arm", "coulomb_pendulum", "motor", "mr")
 #: The QubeParams fields that the fitted values set (see :func:`_params`).
 _VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr", "Lp")
 #: Parameters whose uncertainty decides whether the fit is trusted (the ones that decide control).
@@ -64,7 +68,7 @@ class FitConfig:
     substeps: int = 2  # RK4 steps per tick (3.5 ms at 7 ms: the simulator uses 1 ms; see the docs for the effect)
     savgol: int = 11  # samples in the velocity estimate's window (polynomial of order 3)
     holdout: float = 0.25  # fraction of the prbs segment, at its end, held out
-    max_nfev: int = 60
+    max_nfev: int = 100
     ftol: float = 1e-4  # least_squares' tolerances: relative change of the cost, and of the parameters (log space)
     xtol: float = 1e-4
     max_sigma: float = 0.25
@@ -172,16 +176,18 @@ def simulate(p: QubeParams, w: Windows, delay_s: float | np.ndarray, substeps: i
     return out
 
 
+STATIC_RATIO_MAX = 5.0  # static / Coulomb arm friction: the lab profile has 1.33
 DELAY_SCALE_MS = 7.0  # delay_ms is fitted as delay / 7 ms (linear, clipped to [0, 7] ms when used)
 
 
 def _to_z(name: str, value: float) -> float:
-    """The optimiser's coordinate of a value: log (static_ratio: log(ratio - 1), so that static >= Coulomb; the
-    delay: linear). Unbounded, so that least_squares can use Levenberg-Marquardt."""
+    """The optimiser's coordinate of a value: log (static_ratio: the logit of its place in [1, STATIC_RATIO_MAX], so
+    that static >= Coulomb; the delay: linear). Unbounded, so that least_squares can use Levenberg-Marquardt."""
     if name == "delay_ms":
         return value / DELAY_SCALE_MS
-    if name == "static_ratio":
-        return math.log(max(1e-3, value - 1.0))
+    if name == "static_ratio":  # 1 + (hi - 1) * sigmoid(z): bounded, so that a trial step cannot glue the arm
+        f = min(1 - 1e-6, max(1e-6, (value - 1.0) / (STATIC_RATIO_MAX - 1.0)))
+        return math.log(f / (1.0 - f))
     return math.log(value)
 
 
@@ -189,27 +195,34 @@ def _from_z(name: str, z: float) -> float:
     if name == "delay_ms":
         return min(DELAY_SCALE_MS, max(0.0, z * DELAY_SCALE_MS))
     if name == "static_ratio":
-        return 1.0 + math.exp(min(z, 50.0))
+        return 1.0 + (STATIC_RATIO_MAX - 1.0) / (1.0 + math.exp(-max(-50.0, min(z, 50.0))))
     return math.exp(min(z, 50.0))
 
 
 def _relative_scale(name: str, value: float) -> float:
-    """d(value)/value per unit of z: 1 in log space; (ratio - 1)/ratio for static_ratio."""
-    return (value - 1.0) / value if name == "static_ratio" else 1.0
+    """d(value)/value per unit of z: 1 in log space; (r - 1)(1 - f)/r for static_ratio r, f = (r - 1)/(hi - 1)."""
+    if name == "static_ratio":
+        return (value - 1.0) * (1.0 - (value - 1.0) / (STATIC_RATIO_MAX - 1.0)) / value
+    return 1.0
 
 
 def _covariance(jac: np.ndarray, residuals: np.ndarray, windows: int) -> np.ndarray:
     """Covariance of the fitted (log) parameters, robust to the residuals of one window being correlated (they
     share its start state's error): the sandwich (J^T J)^-1 (sum over windows of J_w^T r_w r_w^T J_w) (J^T J)^-1,
-    windows as independent clusters. Infinite where J^T J is singular (a parameter the recording does not see)."""
+    windows as independent clusters. A parameter the recording does not see (its column of J vanishes, e.g. a
+    deadzone or static friction fitted to nothing) gets an infinite variance and is left out of the others'."""
     k = jac.shape[1]
+    norms = np.linalg.norm(jac, axis=0)
+    seen = np.flatnonzero(norms > 1e-6 * max(float(norms.max()), 1e-300))
+    cov = np.full((k, k), np.inf)
+    j = jac[:, seen]
     try:
-        bread = np.linalg.inv(jac.T @ jac)
+        bread = np.linalg.inv(j.T @ j)
     except np.linalg.LinAlgError:
-        return np.full((k, k), np.inf)
-    scores = (jac * residuals[:, None]).reshape(windows, -1, k).sum(axis=1)  # (windows, k)
-    meat = scores.T @ scores * windows / max(1, windows - k)
-    cov = bread @ meat @ bread
+        return cov
+    scores = (j * residuals[:, None]).reshape(windows, -1, len(seen)).sum(axis=1)  # (windows, seen)
+    meat = scores.T @ scores * windows / max(1, windows - len(seen))
+    cov[np.ix_(seen, seen)] = bread @ meat @ bread
     return np.where(np.isfinite(cov), cov, np.inf)
 
 
@@ -229,6 +242,86 @@ def _initial(base: RigProfile) -> dict[str, float]:
     return {k: min(FITTED[k][1], max(FITTED[k][0], v)) for k, v in guess.items()}  # every log value > 0 already
 
 
+@dataclass
+class _Problem:
+    """The residuals of one fit: the base's plant, the training windows, the coordinates of :data:`FITTED`."""
+
+    nominal: QubeParams
+    static_pendulum_ratio: float
+    train: Windows
+    substeps: int
+    names: tuple[str, ...] = tuple(FITTED)
+
+    def values_of(self, z: np.ndarray) -> dict[str, float]:
+        return {k: _from_z(k, float(zi)) for k, zi in zip(self.names, z, strict=True)}
+
+    def params(self, values: dict[str, float]) -> QubeParams:
+        return _params(self.nominal, values, self.static_pendulum_ratio)
+
+    def residuals(self, z: np.ndarray, w: Windows) -> np.ndarray:
+        v = self.values_of(z)
+        with np.errstate(all="ignore"):  # a trial step may make the integration blow up: a large residual then
+            pred = simulate(self.params(v), w, v["delay_ms"] / 1e3, self.substeps)
+        r = (pred - w.measured).ravel()
+        return np.where(np.isfinite(r), r, 10.0)
+
+    def batch(self, z: np.ndarray, steps: np.ndarray) -> np.ndarray:
+        """Residuals at z and at z + steps[j] e_j for every non-zero step, in one vectorised simulation."""
+        train = self.train
+        zs = np.vstack([z, z + np.diag(steps)[np.flatnonzero(steps)]])
+        sets = [self.params(self.values_of(zi)) for zi in zs]
+        n = len(train)
+        arrays: dict[str, Any] = {f: np.repeat([getattr(q, f) for q in sets], n) for f in _VARIED}
+        tiled = Windows(np.tile(train.x0, (len(zs), 1)), np.tile(train.commands, (len(zs), 1)),
+                        np.tile(train.dt, (len(zs), 1)), train.measured)
+        delays = np.repeat([self.values_of(zi)["delay_ms"] / 1e3 for zi in zs], n)
+        with np.errstate(all="ignore"):
+            pred = simulate(replace(self.nominal, **arrays), tiled, delays, self.substeps)
+        r = (pred.reshape(len(zs), *train.measured.shape) - train.measured[None]).reshape(len(zs), -1)
+        return np.where(np.isfinite(r), r, 10.0)
+
+    def solve(self, start: np.ndarray, free: list[int], cfg: FitConfig, progress: Callable[[str], None] | None,
+              evaluations: list[int]) -> Any:
+        """least_squares over the coordinates ``free``, the others held at ``start``'s."""
+
+        def full(x: np.ndarray) -> np.ndarray:
+            z = start.copy()
+            z[free] = x
+            return z
+
+        def counted(x: np.ndarray) -> np.ndarray:
+            evaluations[0] += 1
+            r = self.residuals(full(x), self.train)
+            if progress is not None:
+                rms = math.degrees(float(np.sqrt(np.mean(r * r))))
+                progress(f"fit evaluation {evaluations[0]} ({len(free)} parameters): training RMS {rms:.3f} deg")
+            return r
+
+        def jacobian(x: np.ndarray) -> np.ndarray:
+            z = full(x)
+            steps = np.zeros_like(z)
+            steps[free] = 1e-3 * np.maximum(1.0, np.abs(z[free]))
+            r = self.batch(z, steps)
+            return ((r[1:] - r[0]) / steps[free][:, None]).T
+
+        return least_squares(counted, start[free], jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
+                             xtol=cfg.xtol, ftol=cfg.ftol)
+
+
+def _sigmas(names: tuple[str, ...], values: dict[str, float], cov: np.ndarray) -> dict[str, float]:
+    """Each fitted value's 1-sigma (relative; delay_ms in ms), and static_arm's (coulomb_arm x static_ratio)."""
+    var = np.diag(cov)
+    sigma = {}
+    for i, name in enumerate(names):
+        sd = math.sqrt(var[i]) if var[i] >= 0 else math.inf
+        sigma[name] = sd * DELAY_SCALE_MS if name == "delay_ms" else sd * _relative_scale(name, values[name])
+    i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
+    w = _relative_scale("static_ratio", values["static_ratio"])
+    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r] if np.isfinite(var[i_r]) else var[i_c]
+    sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
+    return sigma
+
+
 def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         progress: Callable[[str], None] | None = None) -> Fit:
     """Fit ``rec`` from ``base``'s values (the starting point and everything not fitted). FitRefused when the
@@ -242,79 +335,36 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         raise FitRefused(f"the arm moved {travel:.1f} deg over the whole recording (at least "
                          f"{cfg.min_arm_travel_deg:.0f} needed): the rig did not respond to the protocol")
     train, held = cut(rec, cfg)
-    names = list(FITTED)
+    sp_ratio = base.static_pendulum / base.coulomb_pendulum if base.coulomb_pendulum and base.static_pendulum else 0.0
+    problem = _Problem(base.params(), sp_ratio, train, cfg.substeps)
+    names = problem.names
     start = _initial(base)
     z0 = np.array([_to_z(k, start[k]) for k in names])
-    nominal = base.params()
-    sp_ratio = base.static_pendulum / base.coulomb_pendulum if base.coulomb_pendulum and base.static_pendulum else 0.0
-
-    def values_of(z: np.ndarray) -> dict[str, float]:
-        return {k: _from_z(k, float(zi)) for k, zi in zip(names, z, strict=True)}
-
-    def residuals(z: np.ndarray, w: Windows) -> np.ndarray:
-        v = values_of(z)
-        pred = simulate(_params(nominal, v, sp_ratio), w, v["delay_ms"] / 1e3, cfg.substeps)
-        r = (pred - w.measured).ravel()
-        return np.where(np.isfinite(r), r, 10.0)
-
-    def batch(z: np.ndarray, steps: np.ndarray) -> np.ndarray:
-        """Residuals at z and at z + steps[j] e_j for every j, in one vectorised simulation: (1 + k, m)."""
-        zs = np.vstack([z, z + np.diag(steps)])
-        sets = [_params(nominal, values_of(zi), sp_ratio) for zi in zs]
-        n = len(train)
-        arrays: dict[str, Any] = {f: np.repeat([getattr(q, f) for q in sets], n) for f in _VARIED}
-        stacked = replace(nominal, **arrays)
-        tiled = Windows(np.tile(train.x0, (len(zs), 1)), np.tile(train.commands, (len(zs), 1)),
-                        np.tile(train.dt, (len(zs), 1)), train.measured)
-        delays = np.repeat([values_of(zi)["delay_ms"] / 1e3 for zi in zs], n)
-        pred = simulate(stacked, tiled, delays, cfg.substeps).reshape(len(zs), *train.measured.shape)
-        r = (pred - train.measured[None]).reshape(len(zs), -1)
-        return np.where(np.isfinite(r), r, 10.0)
-
-    def jacobian(z: np.ndarray) -> np.ndarray:
-        steps = 1e-3 * np.maximum(1.0, np.abs(z))
-        r = batch(z, steps)
-        return ((r[1:] - r[0]) / steps[:, None]).T
-
     evaluations = [0]
-
-    def counted(z: np.ndarray) -> np.ndarray:
-        evaluations[0] += 1
-        r = residuals(z, train)
-        if progress is not None:
-            rms = math.degrees(float(np.sqrt(np.mean(r * r))))
-            progress(f"fit evaluation {evaluations[0]}: training RMS {rms:.3f} deg")
-        return r
-
-    result = least_squares(counted, z0, jac=jacobian, method="lm", x_scale="jac", max_nfev=cfg.max_nfev,
-                           xtol=cfg.xtol, ftol=cfg.ftol)
-    values = values_of(result.x)
+    # first the parameters that set most of the motion (better conditioned: it finds the right basin from a base
+    # 10x off), then all of them from there
+    first_free = [names.index(k) for k in FIRST_STAGE]
+    first = problem.solve(z0, first_free, cfg, progress, evaluations)
+    z1 = z0.copy()
+    z1[first_free] = first.x
+    result = problem.solve(z1, list(range(len(names))), cfg, progress, evaluations)
+    values = problem.values_of(result.x)
     r_train = result.fun
-    r_held = residuals(result.x, held)
-    cov = _covariance(np.asarray(result.jac), r_train, len(train))
-    var = np.diag(cov)
-    sigma = {}
-    for i, name in enumerate(names):
-        sd = math.sqrt(var[i]) if var[i] >= 0 else math.inf
-        sigma[name] = sd * DELAY_SCALE_MS if name == "delay_ms" else sd * _relative_scale(name, values[name])
-    i_c, i_r = names.index("coulomb_arm"), names.index("static_ratio")
-    w = _relative_scale("static_ratio", values["static_ratio"])
-    v_static = var[i_c] + w * w * var[i_r] + 2 * w * cov[i_c, i_r]
-    sigma["static_arm"] = math.sqrt(v_static) if v_static >= 0 else math.inf
+    r_held = problem.residuals(result.x, held)
+    sigma = _sigmas(names, values, _covariance(np.asarray(result.jac), r_train, len(train)))
     values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
     return Fit(values=values, sigma=sigma,
                train_rms_deg=math.degrees(float(np.sqrt(np.mean(r_train**2)))),
                heldout_rms_deg=math.degrees(float(np.sqrt(np.mean(r_held**2)))),
-               iterations=int(result.nfev), converged=result.status > 0, message=str(result.message),
-               wall_s=time.perf_counter() - began, params=_params(nominal, values, sp_ratio),
-               windows=(len(train), len(held)))
+               iterations=evaluations[0], converged=result.status > 0, message=str(result.message),
+               wall_s=time.perf_counter() - began, params=problem.params(values), windows=(len(train), len(held)))
 
 
 def check(result: Fit, cfg: FitConfig | None = None) -> None:
     """FitRefused (one line) unless the fit is to be trusted (see the module docstring)."""
     cfg = cfg or FitConfig()
     if not result.converged:
-        raise FitRefused(f"the fit did not converge in {result.iterations} evaluations ({result.message})")
+        raise FitRefused(f"the fit did not converge ({result.iterations} evaluations in all: {result.message})")
     loose = [f"{k} +-{result.sigma[k]:.0%}" for k in GATED if not result.sigma[k] <= cfg.max_sigma]
     if loose:
         raise FitRefused(f"the fit is too uncertain: {', '.join(loose)} (at most +-{cfg.max_sigma:.0%} trusted): "

@@ -128,7 +128,7 @@ def test_sigterm_or_sighup_to_the_launcher_ends_the_run_as_ctrl_c_does_and_leave
     does a Ctrl-C (the chief ends the run resumably, the summary is written and the audit passes on it, the resume
     command is printed), then stops the broker, the dashboard and the workers. It died at once and left them all
     running."""
-    marker = f"FEDRL_TEST_MARK=launcher-{sig.name}-{os.getpid()}"
+    marker = f"TEST_RUN_MARK=launcher-{sig.name}-{os.getpid()}"
     run_dir = tmp_path / "run"
     out = tmp_path / "launcher.log"
     said = lambda: out.read_text() + ((run_dir / "logs" / "launcher.log").read_text()  # noqa: E731

@@ -207,7 +207,8 @@ def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, see
 
 def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device_noise: float = 1.0,
              video_dir: Path | None = None, video_episodes: int = 1, rig_id: str | None = None,
-             conn: Any = None, rig_profile: str | None = None, algo: str | None = None) -> Evaluation:
+             conn: Any = None, rig_profile: str | None = None, algo: str | None = None,
+             rig_model: str | None = None) -> Evaluation:
     """Run ``model`` greedily for ``episodes`` episodes of ``env_id``; see the module docstring."""
     spec = env_spec(env_id)
     if video_dir is not None:
@@ -215,6 +216,8 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
     extra: dict[str, Any] = {"rig_id": rig_id, "conn": conn} if spec.factory is not None else {}
     if rig_profile is not None:
         extra["rig_profile"] = rig_profile
+    if rig_model is not None:
+        extra["rig_model"] = rig_model
     if spec.factory is not None:
         extra.update(actions_of_model(model))
     environment = make_env(env_id, seed, DeviceNoise(scale=device_noise),
@@ -289,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         env = task_of(s.model, s.env, s.rig_id)
         if env != s.env:
             print(f"task: {env} (from the model)", flush=True)
-        if (s.rigs or s.rig_profile) and env != "qube-local":
+        if (s.rigs or s.rig_profile or s.rig_model) and env != "qube-local":
             raise EvalError(f"--rig-profile and --rigs are for the simulated rigs of qube-local, not {env}")
         if s.eval_video is not None:
             check_video_support(env)
@@ -306,7 +309,8 @@ def main(argv: list[str] | None = None) -> int:
                 Disturbances(pulse_ms=s.pulse_ms, sensor_noise_counts=s.sensor_noise), s.algo)
         else:
             result = evaluate(s.model, env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
-                              s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile, s.algo)
+                              s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile, s.algo,
+                              s.rig_model)
     except EvalError as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2

@@ -137,6 +137,9 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     rig_id: str | None = setting(None, "the rig to drive with --env qube (give --broker too)")
     rig_profile: str | None = setting(None, "--env qube-local: the simulated rigs' profile, a built-in (ideal, lab) "
                                       "or a JSON file (default ideal)", metavar="NAME|FILE")
+    rig_model: str | None = setting(None, "--env qube-local: the bridge's model of the simulated rigs for their "
+                                    "resets (an identified profile, or a folder with one per rig; unset: the nominal "
+                                    "rig)", metavar="FILE|DIR")
     rigs: int = setting(0, "--env qube-local: a robustness test instead, two disturbed episodes (the trial and the "
                         "sweep) on each of N rigs drawn from --rig-profile (torque pulses and extra sensor noise, "
                         "docs/rig-profiles.md)",
@@ -158,12 +161,13 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
     def _task_given(self) -> EvaluateSettings:
         if self.env == "qube" and not self.rig_id:
             raise ValueError("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
-        if (self.rigs or self.rig_profile) and self.env not in ("qube-local", None):
-            raise ValueError("--rig-profile and --rigs are for the simulated rigs of --env qube-local")
-        if self.rig_profile is not None:
-            from services.qube_sim.profile import load_profile  # torch-free, pydantic only
+        if (self.rigs or self.rig_profile or self.rig_model) and self.env not in ("qube-local", None):
+            raise ValueError("--rig-profile, --rig-model and --rigs are for the simulated rigs of --env qube-local")
+        from services.qube_sim.profile import load_profile  # torch-free, pydantic only
 
-            load_profile(self.rig_profile)
+        for source in (self.rig_profile, self.rig_model):
+            if source is not None:
+                load_profile(source)
         return self
 
 

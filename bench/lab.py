@@ -224,7 +224,8 @@ def main(argv: list[str] | None = None) -> int:
     table = aggregate(results)
     write_report(args.out, "bench.lab", argv, {
         "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
-        "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2), "wall_s": round(time.monotonic() - began, 1),
+        "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
+        "wall_s": round(time.monotonic() - began, 1),
         "targets": TARGETS, "table": table, "results": results})
     print(json.dumps(table, indent=1))
     write_pages(args.out)

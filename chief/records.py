@@ -210,6 +210,8 @@ class RigTime(Record):
     idle_s: float = Field(ge=0)
     rig_s: float = Field(ge=0)
     idle: Literal["measured", "modelled"]
+    #: Rig seconds of the rig's identification before the run (deploy.lab writes it; no chief knows it).
+    identify_s: float | None = Field(default=None, ge=0)
 
 
 class LastRig(RigTime):

@@ -208,8 +208,9 @@ def check_children(s: LocalRunSettings) -> None:
     where: dict[str, Any] = {"broker": s.broker or DEFAULT_BROKER, "run_id": s.run_id}
     s.child(ChiefSettings, **where, run_dir=s.run_dir)
     s.child(WorkerSettings, **where, worker_id="w0")
-    if s.env == "qube":
-        s.child(SimRigSettings, **where, rig_id="rig0")
+    if s.env == "qube" and s.simulate_rigs:
+        for i in range(s.workers or 0):  # each rig: a profile or model folder must hold its file
+            s.child(SimRigSettings, **where, rig_id=f"rig{i}", seed=worker_seed(s.seed, i))
     if s.dashboard_port is not None:
         s.child(DashboardSettings, **where, dashboard_host="127.0.0.1", dashboard_port=s.dashboard_port)
 

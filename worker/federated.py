@@ -66,7 +66,7 @@ from worker import learners
 from worker.envs import rng_states, set_rng_states
 from worker.episode import run_episode
 from worker.learners import Learner
-from worker.ppo import StepGradients
+from worker.nets import StepGradients
 
 log = logging.getLogger("worker")
 
@@ -344,8 +344,8 @@ class Algorithm2:
         batch = learners.get(learners.recorded(state["learner"])).batch_class
         self._batch = None if state["batch"] is None else batch(**state["batch"])
         own = state["own"]
-        self._own = None if own is None else StepGradients(**{**own, "critic": _numpy(own["critic"]),
-                                                              "actor": _numpy(own["actor"])})
+        self._own = None if own is None else self.learner.STEP(**{**own, "critic": _numpy(own["critic"]),
+                                                                  "actor": _numpy(own["actor"])})
 
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)

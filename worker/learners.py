@@ -41,6 +41,7 @@ class Learner(Protocol):
     config: Any
     actor: Any
     critic: Any
+    STEP: type  # its StepGradients class (worker/nets.py), rebuilt when a worker resumes mid-episode
 
     def act(self, obs: Any) -> Any: ...
     def act_greedy(self, obs: Any) -> Any: ...
@@ -100,8 +101,8 @@ class LearnerKind:
 
 _KINDS: dict[str, LearnerKind] = {
     "ppo": LearnerKind("ppo", "worker.ppo", "PPOLearner", "PPOConfig", "Batch"),
-    "sac": LearnerKind("sac", "worker.sac", "SACLearner", "SACConfig", "SACBatch"),
-    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner", "DQNConfig", "SACBatch"),
+    "sac": LearnerKind("sac", "worker.sac", "SACLearner", "SACConfig", "ReplayBatch"),
+    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner", "DQNConfig", "ReplayBatch"),
 }
 assert set(_KINDS) == set(learners.LEARNERS), "protocol/learners.py and worker/learners.py name the same learners"
 

@@ -42,8 +42,8 @@ class FederatedLearner:
     SKIP_ZERO_STEPS: ClassVar[bool] = False
 
     config: Any
-    actor: nn.Module
-    critic: nn.Module
+    actor: Any  # an nn.Module, of the learner's own class
+    critic: Any
     actor_optimizer: Adam
     generator: torch.Generator
     _episode_gradient: dict[str, np.ndarray] | None = None

@@ -25,7 +25,7 @@ import copy
 import math
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -34,7 +34,7 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import StepGradients, UpdateStats, mlp, network_fields, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp, network_fields, seeded
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
 from worker.replay import FiniteTransitions, Replay
 
@@ -44,7 +44,7 @@ __all__ = ["DQNConfig", "DQNLearner", "ReplayBatch", "double_q_target", "n_step_
 
 
 @dataclass
-class DQNConfig:
+class DQNConfig(FromDict):
     """Hyper-parameters. ``actor_lr`` is the Q network's learning rate (the Q network is the federation's actor);
     ``update_epochs`` is K, the gradient steps per episode under a per-step strategy; ``update()`` alone takes
     round(utd_ratio * new transitions). Exploration: epsilon falls linearly from ``eps_start`` to ``eps_end`` over
@@ -86,13 +86,6 @@ class DQNConfig:
         if problems:
             raise ValueError("invalid DQNConfig: " + "; ".join(problems))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> DQNConfig:
-        """Build from ``asdict(config)``; unknown keys are an error."""
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown DQNConfig keys: {sorted(unknown)}")
-        return cls(**dict(values))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -147,16 +140,10 @@ class DQNLearner(OffPolicyLearner):
 
     def __init__(self, obs_space: spaces.Space, action_space: spaces.Space, config: DQNConfig | None = None,
                  seed: int = 0, init_seed: int | None = None) -> None:
-        if not isinstance(obs_space, spaces.Box):
-            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"DQN needs Discrete actions, got {action_space!r} (use sac or ppo)")
         self.config = cfg = config if config is not None else DQNConfig()
-        self.obs_space, self.action_space = obs_space, action_space
-        self.obs_shape = tuple(obs_space.shape)
-        obs_dim, self.n_actions = int(np.prod(self.obs_shape)), int(action_space.n)
-        if cfg.obs_scale is not None and len(cfg.obs_scale) != obs_dim:
-            raise ValueError(f"obs_scale has {len(cfg.obs_scale)} entries for observations of shape {self.obs_shape}")
+        obs_dim, self.n_actions = self._observations(obs_space, action_space), int(action_space.n)
         with seeded(seed if init_seed is None else init_seed):
             self.actor = mlp(obs_dim, cfg.hidden_sizes, self.n_actions, cfg.activation, ortho=False, out_gain=1.0)
         self.critic = nn.Module()  # DQN has no critic: nothing of it travels
@@ -174,10 +161,6 @@ class DQNLearner(OffPolicyLearner):
                 "terminated": ((), bool), "discounts": ((), np.float64)}
 
     # -- acting and storing ----------------------------------------------------------------------------------------
-
-    def _obs_tensor(self, obs: Any) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, int(np.prod(self.obs_shape)))
-        return x if self.config.obs_scale is None else x * torch.tensor(self.config.obs_scale)
 
     @torch.no_grad()
     def act(self, obs: Any) -> Any:

@@ -24,6 +24,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch
+from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
@@ -47,6 +48,33 @@ class FederatedLearner:
     actor_optimizer: Adam
     generator: torch.Generator
     _episode_gradient: dict[str, np.ndarray] | None = None
+
+    # -- the observations ------------------------------------------------------------------------------------------
+
+    def _observations(self, obs_space: spaces.Space, action_space: spaces.Space) -> int:
+        """Take the spaces (observations must be a Box; ``config.obs_scale``, when given, one entry per dimension);
+        returns the input size of the networks."""
+        if not isinstance(obs_space, spaces.Box):
+            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
+        self.obs_space, self.action_space = obs_space, action_space
+        self.obs_shape = tuple(obs_space.shape)
+        obs_dim = int(np.prod(self.obs_shape))
+        scale = self.config.obs_scale
+        if scale is not None and len(scale) != obs_dim:
+            raise ValueError(f"obs_scale has {len(scale)} entries for observations of shape {self.obs_shape}")
+        self._obs_scale = None if scale is None else torch.tensor(scale, dtype=torch.float32).reshape(self.obs_shape)
+        return obs_dim
+
+    def _obs_tensor(self, obs: Any) -> torch.Tensor:
+        """The networks' input of one observation or a batch: float32, times ``obs_scale``, flat per sample."""
+        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
+        if self._obs_scale is not None:
+            x = x * self._obs_scale
+        return self._normalized(x).flatten(1)
+
+    def _normalized(self, x: torch.Tensor) -> torch.Tensor:
+        """A learner's own normalisation of its scaled inputs (PPO's running statistics); none by default."""
+        return x
 
     # -- the episode's gradient steps -----------------------------------------------------------------------------
 
@@ -73,10 +101,34 @@ class FederatedLearner:
         """Critic and actor steps skipped because a loss or gradient was not finite."""
         return sum((s.critic is None) + (s.actor is None) for s in steps)
 
+    # -- what each learner writes: acting, its memory, its update -------------------------------------------------
+
+    def act(self, obs: Any) -> Any:
+        raise NotImplementedError
+
+    def act_greedy(self, obs: Any) -> Any:
+        raise NotImplementedError
+
+    def remember(self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool,
+                 truncated: bool) -> None:
+        raise NotImplementedError
+
+    def update(self) -> Any:
+        raise NotImplementedError
+
+    def prepare(self) -> Any:
+        raise NotImplementedError
+
     def minibatch_gradients(self, batch: Any) -> StepGradients:
         raise NotImplementedError
 
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
+        raise NotImplementedError
+
+    def memory_state(self) -> dict[str, torch.Tensor]:
+        raise NotImplementedError
+
+    def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
         raise NotImplementedError
 
     def _step(self, net: nn.Module, optimizer: Adam, grads: Mapping[str, np.ndarray] | None) -> bool:

@@ -11,7 +11,7 @@ import itertools
 import math
 import threading
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
@@ -22,6 +22,17 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "le
 #: Held while a learner seeds its networks from torch's process-wide RNG, so that learners built in several threads at
 #: once (deploy/inprocess.py) each draw from their own seed.
 _GLOBAL_RNG = threading.Lock()
+
+
+class FromDict:
+    """A learner configuration (a dataclass) built from ``asdict(config)``; unknown keys are an error."""
+
+    @classmethod
+    def from_dict(cls, values: Mapping[str, Any]) -> Any:
+        unknown = set(values) - {f.name for f in fields(cls)}  # type: ignore[arg-type]
+        if unknown:
+            raise ValueError(f"unknown {cls.__name__} keys: {sorted(unknown)}")
+        return cls(**dict(values))
 
 
 def network_fields(hidden_sizes: tuple[int, ...], activation: str, obs_scale: tuple[float, ...] | None

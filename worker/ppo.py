@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -25,7 +25,7 @@ from torch import nn
 
 from worker.adam import Adam
 from worker.federation import FederatedLearner
-from worker.nets import StepGradients, mlp, network_fields, seeded
+from worker.nets import FromDict, StepGradients, mlp, network_fields, seeded
 from worker.nets import UpdateStats as CommonStats
 
 VALUE_LOSSES = ("l1", "huber", "mse")
@@ -37,7 +37,7 @@ VALUE_LOSSES = ("l1", "huber", "mse")
 
 
 @dataclass
-class PPOConfig:
+class PPOConfig(FromDict):
     """Hyper-parameters; the defaults are the paper's (Section V-A) where it gives one.
 
     Paper: actor and critic are separate MLPs with three hidden layers of 128 units, Adam with learning rate
@@ -95,14 +95,6 @@ class PPOConfig:
         if problems:
             raise ValueError("invalid PPOConfig: " + "; ".join(problems))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> PPOConfig:
-        """Build from ``asdict(config)``; unknown keys are an error."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown PPOConfig keys: {sorted(unknown)}")
-        return cls(**dict(values))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -328,21 +320,12 @@ class PPOLearner(FederatedLearner):
         seed: int = 0,
         init_seed: int | None = None,
     ) -> None:
-        if not isinstance(obs_space, spaces.Box):
-            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
         self.config = config if config is not None else PPOConfig()
-        self.obs_space, self.action_space = obs_space, action_space
-        self.obs_shape = tuple(obs_space.shape)
-        obs_dim = int(np.prod(self.obs_shape))
+        obs_dim = self._observations(obs_space, action_space)
         with seeded(seed if init_seed is None else init_seed):
             self.actor = Actor(obs_dim, action_space, self.config)
             self.critic = Critic(obs_dim, self.config)
         self.obs_norm = RunningObsNorm(self.obs_shape)
-        if self.config.obs_scale is not None:
-            if len(self.config.obs_scale) != int(np.prod(self.obs_shape)):
-                raise ValueError(f"obs_scale has {len(self.config.obs_scale)} entries for observations of shape "
-                                 f"{self.obs_shape}")
-            self._obs_scale = torch.tensor(self.config.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
         self.actor_optimizer = Adam(self.actor.parameters(), lr=self.config.actor_lr)
         self.critic_optimizer = Adam(self.critic.parameters(), lr=self.config.critic_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
@@ -353,13 +336,8 @@ class PPOLearner(FederatedLearner):
 
     # -- acting --------------------------------------------------------------------------------------------
 
-    def _obs_tensor(self, obs: Any) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
-        if self.config.obs_scale is not None:
-            x = x * self._obs_scale
-        if self.config.normalize_obs:
-            x = self.obs_norm.normalize(x)
-        return x.flatten(1)
+    def _normalized(self, x: torch.Tensor) -> torch.Tensor:
+        return self.obs_norm.normalize(x) if self.config.normalize_obs else x
 
     def _to_env(self, action: torch.Tensor) -> Any:
         if self.actor.discrete:

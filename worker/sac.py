@@ -1,4 +1,4 @@
-"""Soft Actor-Critic as a second learner of the worker, beside PPO (worker/ppo.py), with the same public interface.
+"""Soft Actor-Critic, a learner of the worker beside PPO (worker/ppo.py) and DQN (worker/dqn.py).
 
 One module covers both kinds of action space:
 
@@ -10,16 +10,8 @@ One module covers both kinds of action space:
 
 Read it top to bottom: the configuration, the networks (an actor and ONE critic module holding both Q networks), the
 pure math (soft state value, soft Q target, the critic loss J_Q, the actor loss J_pi, the temperature loss J(alpha),
-the Polyak update) and the learner, which owns the replay buffer, the target critic, log alpha and three Adam
-optimizers, and the hooks the federation needs, exactly those of ``PPOLearner``:
-
-- ``update()``: after an episode of n env steps, round(utd_ratio * n) gradient steps (none before
-  ``learning_starts`` transitions are in the replay); also records the episode's actor gradient, the mean of its
-  applied actor mini-batch gradients (``actor_gradient()``),
-- ``prepare()``, ``minibatch_gradients()``, ``apply_step()``: one gradient step at a time, for strategies that share
-  every step's gradients; they take a FIXED K = ``update_epochs`` steps per episode (the federation's schedule),
-- ``apply_gradient(g_bar)``: one actor-optimizer step with the chief's weighted mean gradient (paper Eq. 9),
-- ``blend_actor(theta_bar, w_T)``: the soft transfer of a mature actor, paper Eq. 11.
+the Polyak update) and the learner, which owns the target critic, log alpha and three Adam optimizers; the replay and
+the schedule of gradient steps are worker/offpolicy.py's, the federation's seams worker/federation.py's.
 
 What travels: the actor (its per-episode gradient, and its parameters in a transfer); under a per-step strategy also
 the gradients of both Q networks (``critic`` = q1 and q2). What never leaves the device: the target critics, the
@@ -40,7 +32,7 @@ from __future__ import annotations
 import copy
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -49,7 +41,7 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import StepGradients, UpdateStats, mlp, network_fields, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp, network_fields, seeded
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
 from worker.replay import FiniteTransitions, Replay
 
@@ -63,7 +55,7 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
 
 @dataclass
-class SACConfig:
+class SACConfig(FromDict):
     """Hyper-parameters; the defaults are Haarnoja et al.'s (2018) where they give one: two hidden layers of 256 ReLU
     units, Adam 3e-4 for every network and for alpha, gamma 0.99, tau 0.005, batch 256, one gradient step per env step,
     target entropy -dim(A).
@@ -131,14 +123,6 @@ class SACConfig:
         if problems:
             raise ValueError("invalid SACConfig: " + "; ".join(problems))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> SACConfig:
-        """Build from ``asdict(config)``; unknown keys are an error."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown SACConfig keys: {sorted(unknown)}")
-        return cls(**dict(values))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -362,22 +346,13 @@ class SACLearner(OffPolicyLearner):
         seed: int = 0,
         init_seed: int | None = None,
     ) -> None:
-        if not isinstance(obs_space, spaces.Box):
-            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
         self.config = cfg = config if config is not None else SACConfig()
-        self.obs_space, self.action_space = obs_space, action_space
-        self.obs_shape = tuple(obs_space.shape)
-        obs_dim = int(np.prod(self.obs_shape))
+        obs_dim = self._observations(obs_space, action_space)
         with seeded(seed if init_seed is None else init_seed):
             self.actor = SACActor(obs_dim, action_space, cfg)
             self.critic = TwinQ(obs_dim, self.actor.action_dim, self.actor.discrete, cfg)
         self.target_critic = copy.deepcopy(self.critic)
         self.target_critic.requires_grad_(False)
-        if cfg.obs_scale is not None:
-            if len(cfg.obs_scale) != obs_dim:
-                raise ValueError(f"obs_scale has {len(cfg.obs_scale)} entries for observations of shape "
-                                 f"{self.obs_shape}")
-            self._obs_scale = torch.tensor(cfg.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
         if not self.actor.discrete:
             assert isinstance(action_space, spaces.Box)
             low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
@@ -414,12 +389,6 @@ class SACLearner(OffPolicyLearner):
         return float(self.log_alpha.detach().exp())
 
     # -- acting --------------------------------------------------------------------------------------------
-
-    def _obs_tensor(self, obs: Any) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
-        if self.config.obs_scale is not None:
-            x = x * self._obs_scale
-        return x.flatten(1)
 
     def _to_env(self, action: torch.Tensor) -> Any:
         if self.actor.discrete:

@@ -65,15 +65,15 @@ TARGETS: dict[str, dict[str, dict[str, float]]] = {
         "qube-local": {"balance_s": 240.0},  # 4 min of simulated balance time per rig (steps of 7 ms)
         "qube": {"balance_s": 240.0},
     },
-    "sac": {  # issue 16: an off-policy learner's sample efficiency
+    "sac": {  # the targets of an off-policy learner's sample efficiency
         "CartPole-v0": {"episodes": 15},
         "Acrobot-v1": {"episodes": 15},
         "MountainCarContinuous-v0": {"episodes": 12, "solved_share": 0.9},
         "Pendulum-v1": {"episodes": 20},
-        "qube-local": {"balance_s": 210.0},  # issue 16: 30,000 balance steps of 7 ms per rig, from scratch
+        "qube-local": {"balance_s": 210.0},  # 30,000 balance steps of 7 ms per rig, from scratch
         "qube": {"balance_s": 210.0},
     },
-    "dqn": {  # issue 16's off-policy targets, on the discrete tasks (DQN has no continuous actions)
+    "dqn": {  # the same off-policy targets, on the discrete tasks (DQN has no continuous actions)
         "CartPole-v0": {"episodes": 15},
         "Acrobot-v1": {"episodes": 15},
         "qube-local": {"balance_s": 210.0},

@@ -34,7 +34,7 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import FromDict, StepGradients, UpdateStats, mlp, network_fields, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
 from worker.replay import FiniteTransitions, Replay
 
@@ -69,22 +69,13 @@ class DQNConfig(FromDict):
     reward_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
-                                                                     self.obs_scale)
-        for name in ("actor_lr", "reward_scale", "utd_ratio"):
-            if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
-                problems.append(f"{name} must be finite and > 0")
-        for name in ("n_step", "replay_size", "batch_size", "update_epochs", "target_update_interval"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        if self.learning_starts < 0 or self.eps_decay_steps < 0:
-            problems.append("learning_starts and eps_decay_steps must be >= 0")
-        if not (0.0 <= self.gamma <= 1.0 and 0.0 <= self.eps_end <= self.eps_start <= 1.0):
-            problems.append("need gamma in [0, 1] and 0 <= eps_end <= eps_start <= 1")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            problems.append("max_grad_norm must be > 0 or None")
-        if problems:
-            raise ValueError("invalid DQNConfig: " + "; ".join(problems))
+        self._validate(positive=("actor_lr", "reward_scale", "utd_ratio"),
+                       at_least_one=("n_step", "replay_size", "batch_size", "update_epochs", "target_update_interval"),
+                       unit=("gamma",),
+                       problems=((self.learning_starts < 0 or self.eps_decay_steps < 0,
+                                  "learning_starts and eps_decay_steps must be >= 0"),
+                                 (not 0.0 <= self.eps_end <= self.eps_start <= 1.0,
+                                  "need 0 <= eps_end <= eps_start <= 1")))
 
 
 

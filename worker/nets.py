@@ -25,7 +25,35 @@ _GLOBAL_RNG = threading.Lock()
 
 
 class FromDict:
-    """A learner configuration (a dataclass) built from ``asdict(config)``; unknown keys are an error."""
+    """A learner configuration (a dataclass): built from ``asdict(config)`` (unknown keys are an error), and checked
+    with ``_validate`` after its init."""
+
+    hidden_sizes: tuple[int, ...]
+    activation: str
+    obs_scale: tuple[float, ...] | None
+    max_grad_norm: float | None
+
+    def _validate(self, positive: tuple[str, ...] = (), at_least_one: tuple[str, ...] = (), unit: tuple[str, ...] = (),
+                  problems: tuple[tuple[bool, str], ...] = ()) -> None:
+        """Normalise the network fields (hidden sizes as ints, the input scale as floats) and raise one ValueError
+        naming every problem: ``positive`` fields must be finite and > 0, ``at_least_one`` >= 1, ``unit`` in [0, 1],
+        max_grad_norm > 0 or None; ``problems``: the learner's own (is it wrong, what to say)."""
+        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
+        self.obs_scale = None if self.obs_scale is None else tuple(float(x) for x in self.obs_scale)
+        found = [message for wrong, message in (
+            (self.obs_scale is not None and not all(0 < x < float("inf") for x in self.obs_scale),
+             "obs_scale entries must be finite and > 0"),
+            (not self.hidden_sizes or min(self.hidden_sizes) < 1, "hidden_sizes must be non-empty positive integers"),
+            (self.activation not in ACTIVATIONS, f"activation must be one of {sorted(ACTIVATIONS)}")) if wrong]
+        found += [f"{n} must be finite and > 0" for n in positive
+                  if not (getattr(self, n) > 0 and math.isfinite(getattr(self, n)))]
+        found += [f"{n} must be >= 1" for n in at_least_one if getattr(self, n) < 1]
+        found += [f"{n} must be in [0, 1]" for n in unit if not 0.0 <= getattr(self, n) <= 1.0]
+        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
+            found.append("max_grad_norm must be > 0 or None")
+        found += [message for wrong, message in problems if wrong]
+        if found:
+            raise ValueError(f"invalid {type(self).__name__}: " + "; ".join(found))
 
     @classmethod
     def from_dict(cls, values: Mapping[str, Any]) -> Any:
@@ -33,22 +61,6 @@ class FromDict:
         if unknown:
             raise ValueError(f"unknown {cls.__name__} keys: {sorted(unknown)}")
         return cls(**dict(values))
-
-
-def network_fields(hidden_sizes: tuple[int, ...], activation: str, obs_scale: tuple[float, ...] | None
-                   ) -> tuple[tuple[int, ...], tuple[float, ...] | None, list[str]]:
-    """A learner configuration's network fields normalised (hidden sizes as ints, the input scale as floats), and
-    what is wrong with them (each learner's config lists these first among its problems)."""
-    hidden = tuple(int(h) for h in hidden_sizes)
-    scale = None if obs_scale is None else tuple(float(x) for x in obs_scale)
-    problems = []
-    if scale is not None and not all(x > 0 and x < float("inf") for x in scale):
-        problems.append("obs_scale entries must be finite and > 0")
-    if not hidden or min(hidden) < 1:
-        problems.append("hidden_sizes must be non-empty positive integers")
-    if activation not in ACTIVATIONS:
-        problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
-    return hidden, scale, problems
 
 
 def mlp(

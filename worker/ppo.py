@@ -25,7 +25,7 @@ from torch import nn
 
 from worker.adam import Adam
 from worker.federation import FederatedLearner
-from worker.nets import FromDict, StepGradients, mlp, network_fields, seeded
+from worker.nets import FromDict, StepGradients, mlp, seeded
 from worker.nets import UpdateStats as CommonStats
 
 VALUE_LOSSES = ("l1", "huber", "mse")
@@ -75,25 +75,10 @@ class PPOConfig(FromDict):
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
 
     def __post_init__(self) -> None:
-        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
-                                                                     self.obs_scale)
-        if self.value_loss not in VALUE_LOSSES:
-            problems.append(f"value_loss must be one of {VALUE_LOSSES}")
-        for name in ("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"):
-            if not getattr(self, name) > 0:
-                problems.append(f"{name} must be > 0")
-        for name in ("memory_size", "batch_size", "update_epochs"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        for name in ("gamma", "gae_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                problems.append(f"{name} must be in [0, 1]")
-        if self.entropy_coef < 0:
-            problems.append("entropy_coef must be >= 0")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            problems.append("max_grad_norm must be > 0 or None")
-        if problems:
-            raise ValueError("invalid PPOConfig: " + "; ".join(problems))
+        self._validate(positive=("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"),
+                       at_least_one=("memory_size", "batch_size", "update_epochs"), unit=("gamma", "gae_lambda"),
+                       problems=((self.value_loss not in VALUE_LOSSES, f"value_loss must be one of {VALUE_LOSSES}"),
+                                 (self.entropy_coef < 0, "entropy_coef must be >= 0")))
 
 
 

@@ -41,7 +41,7 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import FromDict, StepGradients, UpdateStats, mlp, network_fields, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
 from worker.replay import FiniteTransitions, Replay
 
@@ -94,34 +94,15 @@ class SACConfig(FromDict):
     noise_horizon: int = 1000  # length of one noise sequence (one per episode; a longer episode draws another)
 
     def __post_init__(self) -> None:
-        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
-                                                                     self.obs_scale)
-        for name in ("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
-            if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
-                problems.append(f"{name} must be finite and > 0")
-        for name in ("replay_size", "batch_size", "update_epochs"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        if self.learning_starts < 0:
-            problems.append("learning_starts must be >= 0")
-        if not (self.utd_ratio > 0 and math.isfinite(self.utd_ratio)):
-            problems.append("utd_ratio must be finite and > 0")
-        if not 0.0 <= self.gamma <= 1.0:
-            problems.append("gamma must be in [0, 1]")
-        if not 0.0 < self.tau <= 1.0:
-            problems.append("tau must be in (0, 1]")
-        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
-            problems.append("target_entropy must be finite or None")
-        if not 0.0 <= self.target_entropy_ratio <= 1.0:
-            problems.append("target_entropy_ratio must be in [0, 1]")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            problems.append("max_grad_norm must be > 0 or None")
-        if not 0.0 <= self.noise_beta <= 4.0:
-            problems.append("noise_beta must be in [0, 4]")
-        if self.noise_horizon < 2:
-            problems.append("noise_horizon must be >= 2")
-        if problems:
-            raise ValueError("invalid SACConfig: " + "; ".join(problems))
+        self._validate(
+            positive=("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale", "utd_ratio"),
+            at_least_one=("replay_size", "batch_size", "update_epochs"), unit=("gamma", "target_entropy_ratio"),
+            problems=((self.learning_starts < 0, "learning_starts must be >= 0"),
+                      (not 0.0 < self.tau <= 1.0, "tau must be in (0, 1]"),
+                      (self.target_entropy is not None and not math.isfinite(self.target_entropy),
+                       "target_entropy must be finite or None"),
+                      (not 0.0 <= self.noise_beta <= 4.0, "noise_beta must be in [0, 4]"),
+                      (self.noise_horizon < 2, "noise_horizon must be >= 2")))
 
 
 

@@ -13,7 +13,6 @@ reproducible given the seed and the environment, and the learner never touches t
 from __future__ import annotations
 
 import math
-from collections import deque
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any, ClassVar
@@ -27,6 +26,7 @@ from worker.adam import Adam
 from worker.federation import FederatedLearner
 from worker.nets import FromDict, StepGradients, mlp, seeded
 from worker.nets import UpdateStats as CommonStats
+from worker.replay import Replay
 
 VALUE_LOSSES = ("l1", "huber", "mse")
 
@@ -315,9 +315,13 @@ class PPOLearner(FederatedLearner):
         self.critic_optimizer = Adam(self.critic.parameters(), lr=self.config.critic_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
         # trajectory memory: (s_t, a_t, r_{t+1}, s_{t+1}, terminated, truncated), oldest first
-        self.memory: deque[tuple[np.ndarray, Any, float, np.ndarray, bool, bool]] = deque(
-            maxlen=self.config.memory_size
-        )
+        self.memory = Replay(self.config.memory_size, self._columns())
+
+    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        obs = (self.obs_shape, np.float32)
+        actions = ((), np.int64) if self.actor.discrete else (self.actor.action_shape, np.float32)
+        return {"obs": obs, "actions": actions, "rewards": ((), np.float64), "next_obs": obs,
+                "terminated": ((), bool), "truncated": ((), bool)}
 
     # -- acting --------------------------------------------------------------------------------------------
 
@@ -344,9 +348,9 @@ class PPOLearner(FederatedLearner):
     ) -> None:
         """Store <s_t, a_t, r_{t+1}, s_{t+1}> (plus the episode flags) in the FIFO trajectory memory."""
         obs_arr = np.asarray(obs, dtype=np.float32).reshape(self.obs_shape).copy()
-        next_arr = np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape).copy()
-        stored = int(action) if self.actor.discrete else np.asarray(action, dtype=np.float32).copy()
-        self.memory.append((obs_arr, stored, float(reward), next_arr, bool(terminated), bool(truncated)))
+        self.memory.add(obs=obs_arr, actions=int(action) if self.actor.discrete else np.asarray(action, np.float32),
+                        rewards=float(reward), next_obs=np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape),
+                        terminated=bool(terminated), truncated=bool(truncated))
         if self.config.normalize_obs:
             self.obs_norm.update(torch.from_numpy(obs_arr))
 
@@ -372,24 +376,21 @@ class PPOLearner(FederatedLearner):
         n = len(self.memory)
         if n == 0:
             raise ValueError("update() needs transitions in the memory: call remember() first")
-        obs_np, actions_list, rewards_list, next_np, term_list, trunc_list = zip(*self.memory, strict=True)
-        obs = self._obs_tensor(np.stack(obs_np))
-        next_obs = self._obs_tensor(np.stack(next_np))
-        if self.actor.discrete:
-            actions = torch.as_tensor(actions_list, dtype=torch.int64)
-        else:
-            actions = torch.as_tensor(np.stack(actions_list)).reshape(n, -1)
-        terminated = np.asarray(term_list, dtype=bool)
-        episode_end = terminated | np.asarray(trunc_list, dtype=bool)
+        m = self.memory.ordered()
+        obs, next_obs = self._obs_tensor(m["obs"]), self._obs_tensor(m["next_obs"])
+        actions = torch.from_numpy(m["actions"])
+        actions = actions if self.actor.discrete else actions.reshape(n, -1)
+        terminated = m["terminated"]
+        episode_end = terminated | m["truncated"]
         if n > 1:  # a gap between consecutive transitions (an episode cut short by the caller) also ends one
-            gap = np.stack(next_np[:-1]).reshape(n - 1, -1) != np.stack(obs_np[1:]).reshape(n - 1, -1)
+            gap = m["next_obs"][:-1].reshape(n - 1, -1) != m["obs"][1:].reshape(n - 1, -1)
             episode_end[:-1] |= gap.any(axis=1)
         episode_end[-1] = True  # nothing follows the newest transition yet
         with torch.no_grad():
             old_logp, _ = self.actor.log_prob_entropy(obs, actions)
             values = self.critic(obs).numpy()
             next_values = self.critic(next_obs).numpy()
-        rewards = np.asarray(rewards_list, dtype=np.float64) * cfg.reward_scale
+        rewards = m["rewards"] * cfg.reward_scale
         adv_np, ret_np = compute_gae(
             rewards, values, next_values, terminated, episode_end, cfg.gamma, cfg.gae_lambda
         )
@@ -446,26 +447,14 @@ class PPOLearner(FederatedLearner):
     # -- persistence ----------------------------------------------------------------------------------------
 
     def _resized(self, old: Any) -> None:
-        self.memory = deque(self.memory, maxlen=self.config.memory_size)
+        self.memory = self.memory.resized(self.config.memory_size)
 
     def memory_state(self) -> dict[str, torch.Tensor]:
         """The trajectory memory (which spans episodes) as tensors, oldest first, for a worker's resumable state
         (worker/resume.py); ``load_memory`` restores it exactly."""
-        if not self.memory:
-            return {}
-        obs, actions, rewards, next_obs, terminated, truncated = zip(*self.memory, strict=True)
-        return {"obs": torch.from_numpy(np.stack(obs)), "next_obs": torch.from_numpy(np.stack(next_obs)),
-                "actions": torch.as_tensor(np.asarray(actions, dtype=np.int64) if self.actor.discrete
-                                           else np.stack(actions)),
-                "rewards": torch.tensor(rewards, dtype=torch.float64), "terminated": torch.tensor(terminated),
-                "truncated": torch.tensor(truncated)}
+        return self.memory.state()
 
     def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
         """Replace the trajectory memory with ``memory_state()`` output."""
-        self.memory.clear()
-        for i in range(len(state["rewards"]) if state else 0):
-            action = state["actions"][i]
-            self.memory.append((state["obs"][i].numpy().copy(), int(action) if self.actor.discrete
-                                else action.numpy().copy(), float(state["rewards"][i]),
-                                state["next_obs"][i].numpy().copy(), bool(state["terminated"][i]),
-                                bool(state["truncated"][i])))
+        self.memory = Replay(self.config.memory_size, self._columns())
+        self.memory.load(state)

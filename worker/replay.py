@@ -1,5 +1,6 @@
-"""The replay buffer of the off-policy learners (worker/sac.py, worker/dqn.py): a FIFO ring of transitions in named
-numpy columns, which never leaves the device, and the guard that keeps a non-finite transition out of it."""
+"""The learners' memory, which never leaves the device: a FIFO ring of transitions in named numpy columns (PPO's
+trajectory memory, the replay buffer of SAC and DQN), and the guard that keeps a non-finite transition out of a
+replay."""
 
 from __future__ import annotations
 
@@ -27,6 +28,16 @@ class Replay:
     def __len__(self) -> int:
         return self.size
 
+    def __getitem__(self, i: int) -> tuple[Any, ...]:
+        """The ``i``-th oldest transition, its values in the columns' order."""
+        position = self.order()[i]
+        return tuple(column[position] for column in self.data.values())
+
+    def ordered(self) -> dict[str, np.ndarray]:
+        """Every column, oldest first."""
+        order = self.order()
+        return {name: column[order] for name, column in self.data.items()}
+
     def add(self, **values: Any) -> None:
         """Store one transition (a value for every column)."""
         for name, value in values.items():
@@ -51,8 +62,7 @@ class Replay:
         """The transitions as tensors, oldest first, with ``pending`` (empty when there are none)."""
         if self.size == 0:
             return {}
-        order = self.order()
-        return {**{name: torch.from_numpy(column[order]) for name, column in self.data.items()},
+        return {**{name: torch.from_numpy(column) for name, column in self.ordered().items()},
                 "pending": torch.tensor(self.pending, dtype=torch.int64)}
 
     def load(self, state: Mapping[str, torch.Tensor]) -> None:
@@ -66,7 +76,7 @@ class Replay:
         for name, (shape, _) in self.columns.items():
             self.data[name][:m] = state[name][keep].numpy().reshape(m, *shape)
         self.size, self.pos = m, m % self.capacity
-        self.pending = min(int(state["pending"]), m)
+        self.pending = min(int(state.get("pending", 0)), m)
 
     def resized(self, capacity: int) -> Replay:
         """A replay of ``capacity`` with this one's newest transitions."""

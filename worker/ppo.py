@@ -53,7 +53,7 @@ class PPOConfig(FromDict):
     """
 
     hidden_sizes: tuple[int, ...] = (128, 128, 128)
-    activation: str = "tanh"  # one of ACTIVATIONS
+    activation: str = "tanh"  # one of worker.nets.ACTIVATIONS
     ortho_init: bool = True  # orthogonal weights (gain sqrt 2; policy head 0.01, value head 1), zero biases
     actor_lr: float = 1e-3  # eta_theta, Eq. 7
     critic_lr: float = 1e-3  # eta_mu, Eq. 4

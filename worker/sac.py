@@ -70,7 +70,7 @@ class SACConfig(FromDict):
     """
 
     hidden_sizes: tuple[int, ...] = (256, 256)
-    activation: str = "relu"  # one of worker.ppo.ACTIVATIONS
+    activation: str = "relu"  # one of worker.nets.ACTIVATIONS
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4  # both Q networks (one optimizer)
     alpha_lr: float = 3e-4  # the temperature, optimised as log alpha

@@ -3,7 +3,8 @@ aggregates (paper Eq. 8-9), the actor's spec, parameters, blend (Eq. 11) and ste
 
 A learner (worker/ppo.py, worker/sac.py, worker/dqn.py) subclasses it and declares:
 
-- ``ALGO`` (its registry name, worker/learners.py) and ``CONFIG`` (its configuration dataclass);
+- ``ALGO`` (its registry name, worker/learners.py), ``CONFIG`` (its configuration dataclass) and ``BATCH`` (what its
+  ``prepare`` returns, rebuilt from ``vars(batch)`` when a worker resumes);
 - ``NETWORKS``: its attributes that a model holds and a warm start takes (modules, or tensors such as SAC's log
   alpha), by name; ``OPTIMIZERS``: each optimizer's attribute and the configuration field of its learning rate;
 - ``STEP``: its ``StepGradients`` class, when its steps report more than the common statistics;
@@ -38,6 +39,7 @@ class FederatedLearner:
     CONFIG: ClassVar[Any]
     NETWORKS: ClassVar[tuple[str, ...]]
     OPTIMIZERS: ClassVar[dict[str, str]]
+    BATCH: ClassVar[type]
     STEP: ClassVar[type[StepGradients]] = StepGradients
     GRADIENT_DTYPE: ClassVar[type[np.floating]] = np.float32
     SKIP_ZERO_STEPS: ClassVar[bool] = False

@@ -41,42 +41,37 @@ Learner = FederatedLearner
 
 @dataclass(frozen=True)
 class LearnerKind:
-    """Where a learner lives: ``module`` defines the learner class ``learner``, its configuration dataclass
-    ``config`` and the per-step batch ``batch`` (rebuilt from ``vars(batch)`` when a worker resumes)."""
+    """Where a learner lives: ``module`` defines the learner class ``learner``, which declares its configuration
+    dataclass (``CONFIG``) and its per-step batch (``BATCH``, rebuilt from ``vars(batch)`` when a worker resumes)."""
 
     name: str
     module: str
     learner: str
-    config: str
-    batch: str
-
-    def _attr(self, name: str) -> Any:
-        return getattr(importlib.import_module(self.module), name)
 
     @property
-    def learner_class(self) -> type:
-        return self._attr(self.learner)
+    def learner_class(self) -> type[FederatedLearner]:
+        return getattr(importlib.import_module(self.module), self.learner)
 
     @property
     def config_class(self) -> Any:
-        return self._attr(self.config)
+        return self.learner_class.CONFIG
 
     @property
     def batch_class(self) -> type:
-        return self._attr(self.batch)
+        return self.learner_class.BATCH
 
     def config_fields(self) -> list[str]:
         return [f.name for f in fields(self.config_class)]
 
     def build(self, obs_space: spaces.Space, action_space: spaces.Space, config: Any, seed: int,
               init_seed: int | None = None) -> Learner:
-        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)
+        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)  # type: ignore[call-arg]
 
 
 _KINDS: dict[str, LearnerKind] = {
-    "ppo": LearnerKind("ppo", "worker.ppo", "PPOLearner", "PPOConfig", "Batch"),
-    "sac": LearnerKind("sac", "worker.sac", "SACLearner", "SACConfig", "ReplayBatch"),
-    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner", "DQNConfig", "ReplayBatch"),
+    "ppo": LearnerKind("ppo", "worker.ppo", "PPOLearner"),
+    "sac": LearnerKind("sac", "worker.sac", "SACLearner"),
+    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner"),
 }
 assert set(_KINDS) == set(learners.LEARNERS), "protocol/learners.py and worker/learners.py name the same learners"
 

@@ -36,6 +36,7 @@ class ReplayBatch:
 class OffPolicyLearner(FederatedLearner):
     """The replay and the schedule of an off-policy learner (see the module)."""
 
+    BATCH = ReplayBatch
     SKIP_ZERO_STEPS = True  # sync's mean of zeros (every worker before learning_starts) is no step
     replay: Replay
     _finite: FiniteTransitions

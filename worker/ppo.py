@@ -295,6 +295,7 @@ class PPOLearner(FederatedLearner):
     CONFIG = PPOConfig
     NETWORKS = ("actor", "critic", "obs_norm")
     OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr", "critic_optimizer": "critic_lr"}
+    BATCH = Batch
     STEP = PPOStepGradients
 
     def __init__(

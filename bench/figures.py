@@ -20,8 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from bench.paper import learner_blocks
-from bench.runs import algo_of, outcome
+from bench.runs import algo_of, learner_blocks, outcome
 
 REFERENCE_LABELS = {"single": "1 worker (ours)", "sb3": "SB3 zoo"}
 

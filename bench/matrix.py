@@ -1,5 +1,5 @@
 """Every task x learner x strategy, over MQTT and in process: does each federation run, do what its strategy says, and
-pass its audit? (issue 16: ``--algo`` works for every task and strategy.)
+pass its audit? (``--algo`` works for every task and strategy.)
 
     python -m bench.matrix                      # the whole matrix, 2 workers, M = 2, both modes
     python -m bench.matrix --tasks Acrobot-v1 --algos sac --modes mqtt --broker mqtt://127.0.0.1:1884

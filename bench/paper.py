@@ -31,14 +31,13 @@ import platform
 import sys
 import time
 from collections.abc import Iterable
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
-from multiprocessing import get_context
+from concurrent.futures import FIRST_COMPLETED, Future, wait
 from pathlib import Path
 from typing import Any
 
 from bench import stats
 from bench.output import command
-from bench.runs import Job, algo_of, code_fingerprint, execute, outcome
+from bench.runs import BASELINE, Job, algo_of, code_fingerprint, execute, learner_blocks, outcome, process_pool
 from chief import strategies as registry
 from protocol import learners
 from protocol.qube import PERIOD_S
@@ -51,7 +50,6 @@ REPORT_SEEDS = tuple(range(101, 111))
 #: worker seeds 1000-1003, 2000-2003, 3000-3003 of base seeds 1-3), the earlier per-policy comparisons and the
 #: README's earlier tables (1-5), the end-to-end tests (1-3). Never reported here.
 TUNING_SEEDS = tuple(range(1, 13))
-BASELINE = "independent"
 #: The learners of ``make bench`` by default: PPO and SAC run every task; DQN (discrete actions only) on request.
 BENCH_ALGOS = ("ppo", "sac")
 DEFAULT_M = 2000
@@ -67,15 +65,15 @@ TARGETS: dict[str, dict[str, dict[str, float]]] = {
         "qube-local": {"balance_s": 240.0},  # 4 min of simulated balance time per rig (steps of 7 ms)
         "qube": {"balance_s": 240.0},
     },
-    "sac": {  # issue 16: an off-policy learner's sample efficiency
+    "sac": {  # the targets of an off-policy learner's sample efficiency
         "CartPole-v0": {"episodes": 15},
         "Acrobot-v1": {"episodes": 15},
         "MountainCarContinuous-v0": {"episodes": 12, "solved_share": 0.9},
         "Pendulum-v1": {"episodes": 20},
-        "qube-local": {"balance_s": 210.0},  # issue 16: 30,000 balance steps of 7 ms per rig, from scratch
+        "qube-local": {"balance_s": 210.0},  # 30,000 balance steps of 7 ms per rig, from scratch
         "qube": {"balance_s": 210.0},
     },
-    "dqn": {  # issue 16's off-policy targets, on the discrete tasks (DQN has no continuous actions)
+    "dqn": {  # the same off-policy targets, on the discrete tasks (DQN has no continuous actions)
         "CartPole-v0": {"episodes": 15},
         "Acrobot-v1": {"episodes": 15},
         "qube-local": {"balance_s": 210.0},
@@ -122,12 +120,6 @@ def plan(tasks: Iterable[str], strategy_names: Iterable[str], seeds: Iterable[in
     return jobs
 
 
-def _init_worker() -> None:
-    import torch
-
-    torch.set_num_threads(1)
-
-
 def run_jobs(jobs: list[Job], parallel: int, runs_dir: Path, resume: bool = False) -> list[dict[str, Any]]:
     """Run every job, ``parallel`` at a time (1: in this process); results in the jobs' order. Each result is also
     appended to ``runs_dir/results.jsonl`` as it comes. ``resume`` reuses those of the same jobs made by the same
@@ -164,9 +156,7 @@ def run_jobs(jobs: list[Job], parallel: int, runs_dir: Path, resume: bool = Fals
             for job in todo:
                 record(execute(job, runs_dir))
         else:
-            os.environ.setdefault("OMP_NUM_THREADS", "1")
-            with ProcessPoolExecutor(max_workers=parallel, mp_context=get_context("spawn"),
-                                     initializer=_init_worker) as pool:
+            with process_pool(parallel) as pool:
                 pending: set[Future] = {pool.submit(execute, job, runs_dir) for job in todo}
                 while pending:
                     finished, pending = wait(pending, return_when=FIRST_COMPLETED)
@@ -315,14 +305,6 @@ def task_report(task: str, results: list[dict[str, Any]], cfg: dict[str, Any]) -
     return {"task": task, "tc": TASK_SPECS[task].tc, "workers": first["workers"],
             "max_episodes": cfg["max_episodes"], "mode": cfg["mode"], "seeds": cfg["seeds"], "learners": blocks,
             "runs": mine}
-
-
-def learner_blocks(rep: dict[str, Any]) -> dict[str, dict[str, Any]]:
-    """A task report's blocks per learner; a report from before learners were a dimension is PPO's alone."""
-    if "learners" in rep:
-        return dict(rep["learners"])
-    keys = ("workers", "max_episodes", "seeds", "strategies", "summary", "significance", "references", "target")
-    return {learners.DEFAULT: {"algo": learners.DEFAULT, **{k: rep[k] for k in keys if k in rep}}}
 
 
 def merge_task(old: dict[str, Any], new: dict[str, Any]) -> dict[str, Any]:

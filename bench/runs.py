@@ -40,11 +40,38 @@ import subprocess
 import sys
 import time
 import traceback
+from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 from chief.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_metrics
+from protocol import learners
+
+#: The strategy every other is compared with (bench.paper, bench.report).
+BASELINE = "independent"
+
+
+def learner_blocks(rep: dict[str, Any]) -> dict[str, dict[str, Any]]:
+    """A task report's blocks per learner; a report from before learners were a dimension is PPO's alone."""
+    if "learners" in rep:
+        return dict(rep["learners"])
+    keys = ("workers", "max_episodes", "seeds", "strategies", "summary", "significance", "references", "target")
+    return {learners.DEFAULT: {"algo": learners.DEFAULT, **{k: rep[k] for k in keys if k in rep}}}
+
+
+def process_pool(jobs: int) -> ProcessPoolExecutor:
+    """The benchmarks' one process pool (bench.paper, bench.sim2real): ``jobs`` spawned processes, torch on one
+    thread in each (the runs share the cores, not threads within a run)."""
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    return ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn"), initializer=_one_thread)
+
+
+def _one_thread() -> None:
+    import torch
+
+    torch.set_num_threads(1)
 
 #: Most points a run's learning curve keeps (evenly spaced, the last one always).
 CURVE_POINTS = 250

@@ -32,13 +32,12 @@ import re
 import subprocess
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 from bench import stats
+from bench.runs import process_pool
 
 TASK = "qube-local"
 POLICY = "plain"  # the QUBE's best strategy in bench/results/paper.json (plain 108 episodes, weighted 128, sync 131)
@@ -186,7 +185,7 @@ def fine_tune(models: dict[str, str | None], seeds: list[int], clocks: list[str]
               max_episodes: int, jobs: int, setup: Setup) -> list[dict[str, Any]]:
     """Every setting on every report seed and clock, ``jobs`` at a time (each single-threaded)."""
     work = [(clock, setting, seed) for clock in clocks for seed in seeds for setting in models]
-    with ProcessPoolExecutor(max_workers=jobs, mp_context=get_context("spawn")) as pool:
+    with process_pool(jobs) as pool:
         futures = [pool.submit(_job, setting, seed, clock, runs_dir, max_episodes, models[setting], setup)
                    for clock, setting, seed in work]
         out = []

@@ -1,7 +1,10 @@
-"""The worker: Actor-Critic PPO on its own environment (paper Section III, Algorithm 2).
+"""The worker: a learner on its own environment, federated by the chief (paper Section III, Algorithm 2).
 
-- ``worker.ppo``: the learner as pure code (networks, Eq. 2-7 as functions, ``PPOLearner``).
-- ``worker.envs``: the supported environments, their termination conditions and PPO presets, and the
+- ``worker.learners``: the registry of learners, each one file beside the others: ``worker.ppo`` (Actor-Critic PPO,
+  the paper's: Eq. 2-7 as functions, ``PPOLearner``), ``worker.sac`` (Soft Actor-Critic), ``worker.dqn`` (Double
+  DQN); what they share: ``worker.federation`` (the federation's seams), ``worker.offpolicy`` and ``worker.replay``
+  (the off-policy learners' replay and schedule), ``worker.nets`` (the network pieces).
+- ``worker.envs``: the supported environments, their termination conditions and learner presets, and the
   per-device action noise of Section V-B-1.
 - ``worker.train_local``: one worker without federation, for experiments and preset tuning.
 - ``worker.service``: the MQTT adapter that runs Algorithm 2 against the chief.

@@ -25,9 +25,8 @@ import copy
 import math
 from collections import deque
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, fields
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -35,26 +34,17 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.ppo import (
-    _GLOBAL_RNG,
-    StepGradients,
-    UpdateStats,
-    _tensors,
-    blend,
-    mlp,
-    network_fields,
-    save_model,
-    take_optimizers,
-)
-from worker.sac import FiniteTransitions, SACBatch
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
+from worker.offpolicy import OffPolicyLearner, ReplayBatch
+from worker.replay import FiniteTransitions, Replay
 
-#: A replay transition: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m.
-Transition = tuple[np.ndarray, int, float, np.ndarray, bool, float]
-__all__ = ["DQNConfig", "DQNLearner", "SACBatch", "double_q_target", "n_step_return", "td_loss"]
+#: A replay transition's columns: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m.
+COLUMNS = ("obs", "actions", "returns", "next_obs", "terminated", "discounts")
+__all__ = ["DQNConfig", "DQNLearner", "ReplayBatch", "double_q_target", "n_step_return", "td_loss"]
 
 
 @dataclass
-class DQNConfig:
+class DQNConfig(FromDict):
     """Hyper-parameters. ``actor_lr`` is the Q network's learning rate (the Q network is the federation's actor);
     ``update_epochs`` is K, the gradient steps per episode under a per-step strategy; ``update()`` alone takes
     round(utd_ratio * new transitions). Exploration: epsilon falls linearly from ``eps_start`` to ``eps_end`` over
@@ -79,30 +69,14 @@ class DQNConfig:
     reward_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
-                                                                     self.obs_scale)
-        for name in ("actor_lr", "reward_scale", "utd_ratio"):
-            if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
-                problems.append(f"{name} must be finite and > 0")
-        for name in ("n_step", "replay_size", "batch_size", "update_epochs", "target_update_interval"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        if self.learning_starts < 0 or self.eps_decay_steps < 0:
-            problems.append("learning_starts and eps_decay_steps must be >= 0")
-        if not (0.0 <= self.gamma <= 1.0 and 0.0 <= self.eps_end <= self.eps_start <= 1.0):
-            problems.append("need gamma in [0, 1] and 0 <= eps_end <= eps_start <= 1")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            problems.append("max_grad_norm must be > 0 or None")
-        if problems:
-            raise ValueError("invalid DQNConfig: " + "; ".join(problems))
+        self._validate(positive=("actor_lr", "reward_scale", "utd_ratio"),
+                       at_least_one=("n_step", "replay_size", "batch_size", "update_epochs", "target_update_interval"),
+                       unit=("gamma",),
+                       problems=((self.learning_starts < 0 or self.eps_decay_steps < 0,
+                                  "learning_starts and eps_decay_steps must be >= 0"),
+                                 (not 0.0 <= self.eps_end <= self.eps_start <= 1.0,
+                                  "need 0 <= eps_end <= eps_start <= 1")))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> DQNConfig:
-        """Build from ``asdict(config)``; unknown keys are an error."""
-        unknown = set(values) - {f.name for f in fields(cls)}
-        if unknown:
-            raise ValueError(f"unknown DQNConfig keys: {sorted(unknown)}")
-        return cls(**dict(values))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -144,24 +118,24 @@ def epsilon(config: DQNConfig, env_steps: int) -> float:
 # ----------------------------------------------------------------------------------------------------
 
 
-class DQNLearner:
-    """One worker's Double DQN: acting (epsilon-greedy), the n-step replay, the per-episode update and the federation
-    hooks, as ``SACLearner`` (``seed``: init, exploration and mini-batch draws; ``init_seed``: the init alone)."""
+class DQNLearner(OffPolicyLearner):
+    """One worker's Double DQN: acting (epsilon-greedy), the n-step window into the replay, the TD loss; the replay,
+    the schedule and the federation's seams are worker/offpolicy.py's (``seed``: init, exploration and mini-batch
+    draws; ``init_seed``: the init alone)."""
+
+    ALGO = "dqn"
+    CONFIG = DQNConfig
+    NETWORKS = ("actor", "critic", "target")
+    OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr"}
+    GRADIENT_DTYPE = np.float64
 
     def __init__(self, obs_space: spaces.Space, action_space: spaces.Space, config: DQNConfig | None = None,
                  seed: int = 0, init_seed: int | None = None) -> None:
-        if not isinstance(obs_space, spaces.Box):
-            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"DQN needs Discrete actions, got {action_space!r} (use sac or ppo)")
         self.config = cfg = config if config is not None else DQNConfig()
-        self.obs_space, self.action_space = obs_space, action_space
-        self.obs_shape = tuple(obs_space.shape)
-        obs_dim, self.n_actions = int(np.prod(self.obs_shape)), int(action_space.n)
-        if cfg.obs_scale is not None and len(cfg.obs_scale) != obs_dim:
-            raise ValueError(f"obs_scale has {len(cfg.obs_scale)} entries for observations of shape {self.obs_shape}")
-        with _GLOBAL_RNG, torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed if init_seed is None else init_seed)
+        obs_dim, self.n_actions = self._observations(obs_space, action_space), int(action_space.n)
+        with seeded(seed if init_seed is None else init_seed):
             self.actor = mlp(obs_dim, cfg.hidden_sizes, self.n_actions, cfg.activation, ortho=False, out_gain=1.0)
         self.critic = nn.Module()  # DQN has no critic: nothing of it travels
         self.target = copy.deepcopy(self.actor).requires_grad_(False)
@@ -170,21 +144,14 @@ class DQNLearner:
         self.env_steps = self.gradient_steps = 0
         self._finite = FiniteTransitions("DQN")
         self._window: deque[tuple[np.ndarray, int, float]] = deque()  # the open n-step window of this episode
-        self._replay: list[Transition] = []  # a ring of replay_size: the oldest is overwritten when it is full
-        self._pos = 0
-        self._pending = 0
-        self._episode_gradient: dict[str, np.ndarray] | None = None
+        self.replay = Replay(cfg.replay_size, self._columns())
+
+    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        obs = ((int(np.prod(self.obs_shape)),), np.float32)
+        return {"obs": obs, "actions": ((), np.int64), "returns": ((), np.float64), "next_obs": obs,
+                "terminated": ((), bool), "discounts": ((), np.float64)}
 
     # -- acting and storing ----------------------------------------------------------------------------------------
-
-    @property
-    def rejected_transitions(self) -> int:
-        """Transitions ``remember`` refused because a value was not finite."""
-        return self._finite.refused
-
-    def _obs_tensor(self, obs: Any) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, int(np.prod(self.obs_shape)))
-        return x if self.config.obs_scale is None else x * torch.tensor(self.config.obs_scale)
 
     @torch.no_grad()
     def act(self, obs: Any) -> Any:
@@ -201,7 +168,7 @@ class DQNLearner:
                  truncated: bool) -> None:
         """Add the step to the episode's n-step window; a full window (or the episode's end, for every step left in
         it) becomes a replay transition <s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m>. A transition with a value
-        that is not finite is refused, counted (``rejected_transitions``) and logged (worker.sac.FiniteTransitions);
+        that is not finite is refused, counted (``rejected_transitions``) and logged (worker.replay.FiniteTransitions);
         it ends the window, and the steps still in it are dropped with it (their returns would run through it)."""
         self.env_steps += 1
         if not self._finite.admit(reward, obs, next_obs, action):
@@ -219,174 +186,63 @@ class DQNLearner:
     def _emit(self, next_obs: np.ndarray, terminated: bool) -> None:
         ret, discount = n_step_return([r for _, _, r in self._window], self.config.gamma)
         obs, action, _ = self._window.popleft()
-        self._store((obs, action, ret, next_obs, terminated, discount))
-        self._pending += 1
+        self.replay.add(obs=obs, actions=action, returns=ret, next_obs=next_obs, terminated=terminated,
+                        discounts=discount)
 
-    def _store(self, transition: Transition) -> None:
-        if len(self._replay) < self.config.replay_size:
-            self._replay.append(transition)
-        else:
-            self._replay[self._pos] = transition
-            self._pos = (self._pos + 1) % self.config.replay_size
-
-    def _ordered(self) -> list[Transition]:
-        """The replay, oldest first."""
-        return self._replay[self._pos:] + self._replay[:self._pos]
-
-    @property
-    def memory_size(self) -> int:
-        return len(self._replay)
+    def _ordered(self) -> list[tuple[Any, ...]]:
+        """The replay's transitions, oldest first, as tuples of COLUMNS."""
+        order = self.replay.order()
+        return list(zip(*(self.replay.data[c][order] for c in COLUMNS), strict=True))
 
     # -- updates ------------------------------------------------------------------------------------------------
 
     def update(self) -> UpdateStats:
         """round(utd_ratio * n) gradient steps for the n transitions stored since the last update (at least one; none
-        while the replay holds fewer than ``learning_starts``); records the episode's mean Q-network gradient."""
-        new, batch = self._pending, self.prepare()
-        steps = 0 if batch.n < max(self.config.learning_starts, 1) else max(1, round(self.config.utd_ratio * new))
-        grad_sum = {name: np.zeros(p.shape, np.float64) for name, p in self.actor.named_parameters()}
-        losses, taken = [], 0
-        for _ in range(steps):
-            step = self.minibatch_gradients(batch)
-            self.apply_step(step.critic, step.actor)
-            if step.actor is not None:
-                taken += 1
-                losses.append(step.actor_loss)
-                for name, g in step.actor.items():
-                    grad_sum[name] += g
-        self._episode_gradient = {k: (g / max(taken, 1)).astype(np.float32) for k, g in grad_sum.items()}
+        while the replay holds fewer than ``learning_starts``); records the episode's mean Q-network gradient. Its
+        statistics: the mean TD loss (as both losses; no entropy)."""
+        batch, steps = self._episode_steps()
+        losses = [s.actor_loss for s in steps if s.actor is not None]
         loss = float(np.mean(losses)) if losses else 0.0
-        return UpdateStats(actor_loss=loss, critic_loss=loss, entropy=math.nan, approx_kl=math.nan,
-                           clip_fraction=math.nan, memory_size=batch.n, skipped_steps=steps - taken)
+        return UpdateStats(actor_loss=loss, critic_loss=loss, entropy=math.nan, memory_size=batch.n,
+                           skipped_steps=self._skipped(steps))
 
-    def prepare(self) -> SACBatch:
-        """The K steps of this episode draw from the replay as it is now (no step below ``learning_starts``)."""
-        self._pending = 0
-        return SACBatch(n=len(self._replay), steps=self.config.update_epochs)
-
-    def minibatch_gradients(self, batch: SACBatch) -> StepGradients:
+    def minibatch_gradients(self, batch: ReplayBatch) -> StepGradients:
         """One mini-batch's gradient of the TD loss against the Double DQN target, norm-clipped when configured;
         the actor's (the Q network's), None where not finite and while the replay holds fewer than
         ``learning_starts``; the critic's is empty (there is none)."""
-        cfg = self.config
-        if batch.n < max(cfg.learning_starts, 1):
-            return StepGradients(critic={}, actor=None, actor_loss=math.nan, critic_loss=math.nan,
-                                 entropy=math.nan, approx_kl=math.nan, clip_fraction=math.nan)
-        idx = torch.randint(0, min(batch.n, len(self._replay)), (cfg.batch_size,), generator=self.generator)
-        size = len(self._replay)
-        rows = [self._replay[(self._pos + i) % size] for i in idx.tolist()]  # logical index i: the i-th oldest
-        obs = self._obs_tensor(np.stack([r[0] for r in rows]))
-        next_obs = self._obs_tensor(np.stack([r[3] for r in rows]))
-        actions = torch.tensor([r[1] for r in rows])
-        returns, discounts = (torch.tensor([r[i] for r in rows], dtype=torch.float32) for i in (2, 5))
+        if not self._learning(batch):
+            return StepGradients(critic={}, actor=None, actor_loss=math.nan, critic_loss=math.nan, entropy=math.nan)
+        rows = self.replay.sample(batch.n, self.config.batch_size, self.generator)
+        obs, next_obs = self._obs_tensor(rows["obs"]), self._obs_tensor(rows["next_obs"])
+        actions = torch.from_numpy(rows["actions"])
+        returns, discounts = (torch.from_numpy(rows[c]).float() for c in ("returns", "discounts"))
         with torch.no_grad():
-            target = double_q_target(returns, discounts, torch.tensor([r[4] for r in rows]), self.actor(next_obs),
+            target = double_q_target(returns, discounts, torch.from_numpy(rows["terminated"]), self.actor(next_obs),
                                      self.target(next_obs))
         loss = td_loss(self.actor(obs).gather(1, actions.unsqueeze(-1)).squeeze(-1), target)
-        grads = None
-        if torch.isfinite(loss):
-            named = list(self.actor.named_parameters())
-            raw = torch.autograd.grad(loss, [p for _, p in named])
-            if cfg.max_grad_norm is not None:
-                total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in raw]))
-                raw = tuple(g * torch.clamp(cfg.max_grad_norm / (total + 1e-6), max=1.0) for g in raw)
-            grads = {n: g.numpy().astype(np.float32, copy=True) for (n, _), g in zip(named, raw, strict=True)}
-            if not all(bool(np.isfinite(g).all()) for g in grads.values()):
-                grads = None
-        return StepGradients(critic={}, actor=grads, actor_loss=loss.item(), critic_loss=loss.item(),
-                             entropy=math.nan, approx_kl=math.nan, clip_fraction=math.nan)
+        return StepGradients(critic={}, actor=self._gradients(loss, self.actor), actor_loss=loss.item(),
+                             critic_loss=loss.item(), entropy=math.nan)
 
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         """One Q-network step with ``actor`` (None or all zeros: none), counting it; every ``target_update_interval``
         steps the target network becomes a copy of the Q network. ``critic`` is ignored (there is none)."""
         del critic
-        if actor is None or not any(np.any(g) for g in actor.values()):
+        if not self._step(self.actor, self.actor_optimizer, actor):
             return
-        self.apply_gradient(actor)
         self.gradient_steps += 1
         if self.gradient_steps % self.config.target_update_interval == 0:
             self.target.load_state_dict(self.actor.state_dict())
 
-    # -- federation hooks ---------------------------------------------------------------------------------------
+    # -- persistence beyond the declared names ------------------------------------------------------------------
 
-    def actor_spec(self) -> dict[str, tuple[int, ...]]:
-        return {name: tuple(p.shape) for name, p in self.actor.named_parameters()}
+    def _own_state(self) -> dict[str, Any]:
+        return {"counters": torch.tensor([self.env_steps, self.gradient_steps], dtype=torch.int64)}
 
-    def critic_spec(self) -> dict[str, tuple[int, ...]]:
-        return {}
-
-    def actor_parameters(self) -> dict[str, np.ndarray]:
-        return {name: p.detach().numpy().astype(np.float32, copy=True) for name, p in self.actor.named_parameters()}
-
-    def actor_gradient(self) -> dict[str, np.ndarray]:
-        """The last ``update()``'s mean Q-network gradient (zeros after no step)."""
-        if self._episode_gradient is None:
-            raise RuntimeError("no actor gradient yet: call update() first")
-        return {name: g.copy() for name, g in self._episode_gradient.items()}
-
-    def apply_gradient(self, grad: Mapping[str, np.ndarray]) -> None:
-        """One Adam step of the Q network with ``grad`` (Algorithm 2's g_bar); nothing for all zeros."""
-        if not any(np.any(g) for g in grad.values()):
-            return
-        self.actor_optimizer.zero_grad()
-        for name, g in _tensors(grad, self.actor).items():
-            self.actor.get_parameter(name).grad = g
-        self.actor_optimizer.step()
-        self.actor_optimizer.zero_grad()
-
-    @torch.no_grad()
-    def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None:
-        """Eq. 11 on the Q network: theta = w_T theta + (1 - w_T) theta_bar (the target network stays)."""
-        blend(self.actor, params, keep_weight)
-
-    # -- persistence --------------------------------------------------------------------------------------------
-
-    def state_dict(self) -> dict[str, Any]:
-        """Networks, optimizer, counters, RNG state and config; not the replay (``memory_state``)."""
-        return {"algo": "dqn", "config": asdict(self.config), "actor": self.actor.state_dict(),
-                "critic": {}, "target": self.target.state_dict(),
-                "actor_optimizer": self.actor_optimizer.state_dict(), "generator": self.generator.get_state(),
-                "counters": torch.tensor([self.env_steps, self.gradient_steps], dtype=torch.int64)}
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        if state.get("algo") != "dqn":
-            raise ValueError(f"not a DQN checkpoint (algo {state.get('algo')!r})")
-        config = DQNConfig.from_dict(state["config"])
-        if (config.hidden_sizes, config.activation) != (self.config.hidden_sizes, self.config.activation):
-            raise ValueError("checkpoint architecture does not match")
-        self.warm_start(state)
-        self.generator.set_state(state["generator"])
+    def _load_own(self, state: Mapping[str, Any]) -> None:
         self.env_steps, self.gradient_steps = (int(x) for x in state["counters"])
-        kept = self._ordered()[-config.replay_size:]
-        self.config = config
-        self._replay, self._pos = kept, 0
-
-    def memory_state(self) -> dict[str, torch.Tensor]:
-        """The replay (oldest first), with ``pending``; the open n-step window is not kept (a resumed worker starts
-        a new episode)."""
-        if not self._replay:
-            return {}
-        obs, actions, returns, next_obs, terminated, discounts = zip(*self._ordered(), strict=True)
-        return {"obs": torch.from_numpy(np.stack(obs)), "actions": torch.tensor(actions),
-                "returns": torch.tensor(returns, dtype=torch.float64), "next_obs": torch.from_numpy(np.stack(next_obs)),
-                "terminated": torch.tensor(terminated), "discounts": torch.tensor(discounts, dtype=torch.float64),
-                "pending": torch.tensor(self._pending)}
 
     def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
-        self._replay, self._pos = [], 0
+        """Replace the replay with ``memory_state()`` output; the open n-step window is not kept (a resumed worker
+        starts a new episode)."""
+        super().load_memory(state)
         self._window.clear()
-        n = len(state["actions"]) if state else 0
-        for i in range(n):
-            self._store((state["obs"][i].numpy().copy(), int(state["actions"][i]), float(state["returns"][i]),
-                                 state["next_obs"][i].numpy().copy(), bool(state["terminated"][i]),
-                                 float(state["discounts"][i])))
-        self._pending = min(int(state["pending"]), len(self._replay)) if n else 0
-
-    def warm_start(self, state: Mapping[str, Any]) -> None:
-        """Another DQN model's Q network, target network and Adam moments (this learner's learning rate)."""
-        self.actor.load_state_dict(state["actor"])
-        self.target.load_state_dict(state["target"])
-        take_optimizers(state, (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),))
-
-    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
-        save_model(self.state_dict(), path, provenance)

@@ -282,7 +282,7 @@ def make_env(env_id: str, seed: int, device_noise: DeviceNoise | None = None, re
 
 # The paper's configuration with a lower actor learning rate: at 1e-3 the actor collapses to a deterministic
 # policy (entropy 0, it never recovers) on 4 of 12 seeds; at 3e-4 all 12 solved (table above).
-# DQN (issue 16), tuned for 4 workers under ``sync`` on tuning seeds 1-3 only (python -m bench.tune CartPole-v0 sync
+# DQN, tuned for 4 workers under ``sync`` on tuning seeds 1-3 only (python -m bench.tune CartPole-v0 sync
 # --algo dqn --max-episodes 60; bench/results/tuning.jsonl lines 7-9, line 6 is K = 50): learning from 64 transitions
 # on (the default 500 is about 25 early episodes of one worker), epsilon down to 0.02 within the first 500 env steps,
 # K = 200 gradient steps per episode (K = 50: stuck near return 100, unsolved at 60 episodes), the target network
@@ -297,7 +297,7 @@ register_env(_task("CartPole-v0", config=PPOConfig(actor_lr=3e-4), noise_target=
 # Returns of -1 per step (down to -500) are far from the critic's initial 0: with the L1 loss of Eq. 3 the
 # critic needs many episodes to catch up, the advantages are noise meanwhile, and some seeds collapse to a
 # deterministic policy that never reaches the goal. Scaling rewards by 0.1 fixes that.
-# DQN on Acrobot-v1 (issue 16): CartPole-v0's DQN values with epsilon falling over 1,000 env steps (an early
+# DQN on Acrobot-v1: CartPole-v0's DQN values with epsilon falling over 1,000 env steps (an early
 # Acrobot episode is 500), tried on tuning seed 1 only (python -m bench.tune Acrobot-v1 sync --algo dqn --seeds 1
 # --max-episodes 60 --set ...; bench/results/tuning.jsonl): every worker solved, the last at episode 38 (6,834 steps).
 # Report seeds 101-110 (docs/results.md): sync 48 episodes, independent 47.5; no gain from sync.
@@ -307,7 +307,7 @@ register_env(_task("Acrobot-v1", config=PPOConfig(reward_scale=0.1), noise_targe
 
 # As in the SB3 zoo: a short horizon (gamma 0.9, lambda 0.95); plus reward scale 0.1 (costs up to -16.3 per
 # step) and gradient-norm clipping 0.5 (rare large steps from Gaussian tails otherwise undo progress).
-# SAC (issue 16), tuned for 4 workers under ``sync`` on tuning seeds 1-2 only (python -m deploy.inprocess-style runs,
+# SAC, tuned for 4 workers under ``sync`` on tuning seeds 1-2 only (python -m deploy.inprocess-style runs,
 # docs/explanation/learners.md): the zoo's Pendulum learning rate (1e-3 for every network), learning from 200
 # transitions on, and two gradient steps per env step (K = 400 per 200-step episode under sync, utd_ratio 2 for the
 # per-episode strategies). Smaller networks and batches than SAC's defaults, for the 2-core machine (tuning runs, last
@@ -322,7 +322,7 @@ register_env(_task("Pendulum-v1", config=PPOConfig(
 # A wide initial Gaussian (std e^1 = 2.7, clipped to [-1, 1] by the env: near bang-bang random pushes) reaches
 # the goal by chance in the first episodes; observation normalisation (the velocity is O(0.01)) is essential
 # to learn from it; reward scale 0.1 helps a little.
-# SAC (issue 16): its untrained policy with white noise pushes back and forth and almost never reaches the goal, so
+# SAC: its untrained policy with white noise pushes back and forth and almost never reaches the goal, so
 # nothing but the cost of moving enters the replay; pink acting noise (noise_beta 1, Eberhard et al. 2023) swings the
 # car up (python -m bench.exploration, bench/results/exploration.json). Tuned for 4 workers under sync on tuning
 # seeds 1-3 only (python -m bench.tune MountainCarContinuous-v0 sync --algo sac --seeds ... --max-episodes 40 --set

@@ -62,11 +62,10 @@ from protocol.rigtime import SECONDS_LIMIT, EpisodeTime
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, solved
 from protocol.tensors import answer_digest, check_spec, digest, pack_arrays, unpack_arrays
-from worker import learners
 from worker.envs import rng_states, set_rng_states
 from worker.episode import run_episode
 from worker.learners import Learner
-from worker.ppo import StepGradients
+from worker.nets import StepGradients
 
 log = logging.getLogger("worker")
 
@@ -341,11 +340,10 @@ class Algorithm2:
         self._noted = [Receipt.model_validate(r) for r in state["noted"]]
         self._sent = (state["sent"][0], [Receipt.model_validate(r) for r in state["sent"][1]])
         self._last, self._rig, self._finished = (state["last"][0], state["last"][1]), state["rig"], state["finished"]
-        batch = learners.get(learners.recorded(state["learner"])).batch_class
-        self._batch = None if state["batch"] is None else batch(**state["batch"])
+        self._batch = None if state["batch"] is None else self.learner.BATCH(**state["batch"])
         own = state["own"]
-        self._own = None if own is None else StepGradients(**{**own, "critic": _numpy(own["critic"]),
-                                                              "actor": _numpy(own["actor"])})
+        self._own = None if own is None else self.learner.STEP(**{**own, "critic": _numpy(own["critic"]),
+                                                                  "actor": _numpy(own["actor"])})
 
     def close(self) -> None:
         close: Any = getattr(self.env, "close", None)

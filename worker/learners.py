@@ -1,6 +1,6 @@
 """The worker's learners, a registry as the chief's strategies are (chief/strategies). Their names and one-line
-descriptions are the wire's (protocol/learners.py); this module maps each name to its module, whose learner has the
-seams every federation strategy uses (``Learner``):
+descriptions are the wire's (protocol/learners.py); this module maps each name to its module, whose learner subclasses
+worker/federation.py's ``FederatedLearner`` (``Learner``) and so has the seams every federation strategy uses:
 
 - acting and storing: ``act``, ``act_greedy``, ``remember`` (the memory, or replay buffer, never leaves the device);
 - per-episode strategies: ``update()`` after an episode, then ``actor_gradient()`` goes to the chief, whose answer is
@@ -17,12 +17,12 @@ import importlib
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from pathlib import Path
 from typing import Any, Protocol
 
 from gymnasium import spaces
 
 from protocol import learners
+from worker.federation import FederatedLearner
 
 
 class LearnerConfig(Protocol):
@@ -35,73 +35,43 @@ class LearnerConfig(Protocol):
     obs_scale: tuple[float, ...] | None
 
 
-class Learner(Protocol):
-    """The seams of a worker's learner (worker/ppo.py ``PPOLearner`` is the model)."""
-
-    config: Any
-    actor: Any
-    critic: Any
-
-    def act(self, obs: Any) -> Any: ...
-    def act_greedy(self, obs: Any) -> Any: ...
-    def remember(self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool,
-                 truncated: bool) -> None: ...
-    def update(self) -> Any: ...
-    def prepare(self) -> Any: ...
-    def minibatch_gradients(self, batch: Any) -> Any: ...
-    def apply_step(self, critic: Mapping[str, Any] | None, actor: Mapping[str, Any] | None) -> None: ...
-    def actor_spec(self) -> dict[str, tuple[int, ...]]: ...
-    def critic_spec(self) -> dict[str, tuple[int, ...]]: ...
-    def actor_parameters(self) -> dict[str, Any]: ...
-    def actor_gradient(self) -> dict[str, Any]: ...
-    def apply_gradient(self, grad: Mapping[str, Any]) -> None: ...
-    def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None: ...
-    def state_dict(self) -> dict[str, Any]: ...
-    def load_state_dict(self, state: Mapping[str, Any]) -> None: ...
-    def memory_state(self) -> dict[str, Any]: ...
-    def load_memory(self, state: Mapping[str, Any]) -> None: ...
-    def warm_start(self, state: Mapping[str, Any]) -> None: ...
-    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None: ...
+#: The seams of a worker's learner: worker/federation.py's base, which every learner subclasses.
+Learner = FederatedLearner
 
 
 @dataclass(frozen=True)
 class LearnerKind:
-    """Where a learner lives: ``module`` defines the learner class ``learner``, its configuration dataclass
-    ``config`` and the per-step batch ``batch`` (rebuilt from ``vars(batch)`` when a worker resumes)."""
+    """Where a learner lives: ``module`` defines the learner class ``learner``, which declares its configuration
+    dataclass (``CONFIG``) and its per-step batch (``BATCH``, rebuilt from ``vars(batch)`` when a worker resumes)."""
 
     name: str
     module: str
     learner: str
-    config: str
-    batch: str
-
-    def _attr(self, name: str) -> Any:
-        return getattr(importlib.import_module(self.module), name)
 
     @property
-    def learner_class(self) -> type:
-        return self._attr(self.learner)
+    def learner_class(self) -> type[FederatedLearner]:
+        return getattr(importlib.import_module(self.module), self.learner)
 
     @property
     def config_class(self) -> Any:
-        return self._attr(self.config)
+        return self.learner_class.CONFIG
 
     @property
     def batch_class(self) -> type:
-        return self._attr(self.batch)
+        return self.learner_class.BATCH
 
     def config_fields(self) -> list[str]:
         return [f.name for f in fields(self.config_class)]
 
     def build(self, obs_space: spaces.Space, action_space: spaces.Space, config: Any, seed: int,
               init_seed: int | None = None) -> Learner:
-        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)
+        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)  # type: ignore[call-arg]
 
 
 _KINDS: dict[str, LearnerKind] = {
-    "ppo": LearnerKind("ppo", "worker.ppo", "PPOLearner", "PPOConfig", "Batch"),
-    "sac": LearnerKind("sac", "worker.sac", "SACLearner", "SACConfig", "SACBatch"),
-    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner", "DQNConfig", "SACBatch"),
+    "ppo": LearnerKind("ppo", "worker.ppo", "PPOLearner"),
+    "sac": LearnerKind("sac", "worker.sac", "SACLearner"),
+    "dqn": LearnerKind("dqn", "worker.dqn", "DQNLearner"),
 }
 assert set(_KINDS) == set(learners.LEARNERS), "protocol/learners.py and worker/learners.py name the same learners"
 

@@ -2,13 +2,9 @@
 
 Read it top to bottom: the configuration (Section V-A), the networks (separate actor and critic MLPs), the
 pure math (GAE Eq. 2, critic loss Eq. 3, clipped surrogate Eq. 6) and the learner, which owns the trajectory
-memory, the two Adam optimizers (Eq. 4 and 7) and the hooks the federation needs:
-
-- ``actor_gradient()``: the episode's actor gradient g_theta^n sent to the chief (Algorithm 2),
-- ``prepare()``, ``minibatch_gradients()``, ``apply_step()``: the K steps of ``update()`` one at a time, for
-  strategies that share every mini-batch step's gradients,
-- ``apply_gradient(g_bar)``: one actor-optimizer step with the chief's weighted mean gradient (Eq. 9),
-- ``blend_actor(theta_bar, w_T)``: the soft transfer of a mature actor, Eq. 11.
+memory, the two Adam optimizers (Eq. 4 and 7), ``prepare()``, ``minibatch_gradients()`` and ``apply_step()`` (the K
+steps of ``update()`` one at a time, for strategies that share every mini-batch step's gradients). The federation's
+seams (the episode gradient g_theta^n, Eq. 9's step, Eq. 11's blend, persistence) are worker/federation.py's.
 
 Randomness (network init, action sampling, mini-batch draws) comes from the learner's own seed, so a run is
 reproducible given the seed and the environment, and the learner never touches the global RNGs.
@@ -16,14 +12,10 @@ reproducible given the seed and the environment, and the learner never touches t
 
 from __future__ import annotations
 
-import itertools
 import math
-import threading
-from collections import deque
-from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass, fields
-from pathlib import Path
-from typing import Any
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -31,12 +23,12 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
+from worker.federation import FederatedLearner
+from worker.nets import FromDict, StepGradients, mlp, seeded
+from worker.nets import UpdateStats as CommonStats
+from worker.replay import Replay
 
 VALUE_LOSSES = ("l1", "huber", "mse")
-#: Held while a learner seeds its networks from torch's process-wide RNG, so that learners built in several threads at
-#: once (deploy/inprocess.py) each draw from their own seed.
-_GLOBAL_RNG = threading.Lock()
-ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -44,25 +36,8 @@ ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "le
 # ----------------------------------------------------------------------------------------------------
 
 
-def network_fields(hidden_sizes: tuple[int, ...], activation: str, obs_scale: tuple[float, ...] | None
-                   ) -> tuple[tuple[int, ...], tuple[float, ...] | None, list[str]]:
-    """A learner configuration's network fields normalised (hidden sizes as ints, the input scale as floats), and
-    what is wrong with them (each learner's config lists these first among its problems)."""
-    hidden = tuple(int(h) for h in hidden_sizes)
-    scale = None if obs_scale is None else tuple(float(x) for x in obs_scale)
-    problems = []
-    if scale is not None and not all(x > 0 and x < float("inf") for x in scale):
-        problems.append("obs_scale entries must be finite and > 0")
-    if not hidden or min(hidden) < 1:
-        problems.append("hidden_sizes must be non-empty positive integers")
-    if activation not in ACTIVATIONS:
-        problems.append(f"activation must be one of {sorted(ACTIVATIONS)}")
-    return hidden, scale, problems
-
-
-
 @dataclass
-class PPOConfig:
+class PPOConfig(FromDict):
     """Hyper-parameters; the defaults are the paper's (Section V-A) where it gives one.
 
     Paper: actor and critic are separate MLPs with three hidden layers of 128 units, Adam with learning rate
@@ -78,7 +53,7 @@ class PPOConfig:
     """
 
     hidden_sizes: tuple[int, ...] = (128, 128, 128)
-    activation: str = "tanh"  # one of ACTIVATIONS
+    activation: str = "tanh"  # one of worker.nets.ACTIVATIONS
     ortho_init: bool = True  # orthogonal weights (gain sqrt 2; policy head 0.01, value head 1), zero biases
     actor_lr: float = 1e-3  # eta_theta, Eq. 7
     critic_lr: float = 1e-3  # eta_mu, Eq. 4
@@ -100,59 +75,16 @@ class PPOConfig:
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
 
     def __post_init__(self) -> None:
-        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
-                                                                     self.obs_scale)
-        if self.value_loss not in VALUE_LOSSES:
-            problems.append(f"value_loss must be one of {VALUE_LOSSES}")
-        for name in ("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"):
-            if not getattr(self, name) > 0:
-                problems.append(f"{name} must be > 0")
-        for name in ("memory_size", "batch_size", "update_epochs"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        for name in ("gamma", "gae_lambda"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                problems.append(f"{name} must be in [0, 1]")
-        if self.entropy_coef < 0:
-            problems.append("entropy_coef must be >= 0")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            problems.append("max_grad_norm must be > 0 or None")
-        if problems:
-            raise ValueError("invalid PPOConfig: " + "; ".join(problems))
+        self._validate(positive=("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"),
+                       at_least_one=("memory_size", "batch_size", "update_epochs"), unit=("gamma", "gae_lambda"),
+                       problems=((self.value_loss not in VALUE_LOSSES, f"value_loss must be one of {VALUE_LOSSES}"),
+                                 (self.entropy_coef < 0, "entropy_coef must be >= 0")))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> PPOConfig:
-        """Build from ``asdict(config)``; unknown keys are an error."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown PPOConfig keys: {sorted(unknown)}")
-        return cls(**dict(values))
 
 
 # ----------------------------------------------------------------------------------------------------
 # Networks
 # ----------------------------------------------------------------------------------------------------
-
-
-def mlp(
-    in_dim: int, hidden: tuple[int, ...], out_dim: int, activation: str, ortho: bool, out_gain: float
-) -> nn.Sequential:
-    """Linear-activation stack; orthogonal init (CleanRL style) when ``ortho``."""
-    layers: list[nn.Module] = []
-    sizes = (in_dim, *hidden)
-    for a, b in itertools.pairwise(sizes):
-        layers += [_linear(a, b, ortho, math.sqrt(2.0)), ACTIVATIONS[activation]()]
-    layers.append(_linear(sizes[-1], out_dim, ortho, out_gain))
-    return nn.Sequential(*layers)
-
-
-def _linear(in_dim: int, out_dim: int, ortho: bool, gain: float) -> nn.Linear:
-    layer = nn.Linear(in_dim, out_dim)
-    if ortho:
-        nn.init.orthogonal_(layer.weight, gain)
-        nn.init.zeros_(layer.bias)
-    return layer
 
 
 class Actor(nn.Module):
@@ -332,41 +264,24 @@ class Batch:
     returns: torch.Tensor
 
 
-def _tensors(arrays: Mapping[str, np.ndarray], net: nn.Module) -> dict[str, torch.Tensor]:
-    """The learner's one conversion from its API's arrays to torch: float32 copies of those of ``arrays`` named like a
-    parameter of ``net``. The names and shapes were checked where the arrays came in (the worker checks the chief's
-    answers against its networks, protocol.tensors.check_spec; the codec that they are finite)."""
-    return {name: torch.from_numpy(np.array(arrays[name], dtype=np.float32))
-            for name, _ in net.named_parameters() if name in arrays}
+@dataclass
+class PPOStepGradients(StepGradients):
+    """One mini-batch step's gradients and statistics, with PPO's own: the ratio's spread (see ``UpdateStats``)."""
+
+    approx_kl: float = math.nan
+    clip_fraction: float = math.nan
 
 
 @dataclass
-class StepGradients:
-    """One mini-batch step's gradients (float32 arrays; None where not finite) and its statistics."""
+class UpdateStats(CommonStats):
+    """Means over the K mini-batch steps of one ``update()``: actor_loss is -L^CLIP - entropy_coef * entropy,
+    critic_loss L^V (Eq. 3, or the configured alternative); and PPO's own statistics."""
 
-    critic: dict[str, np.ndarray] | None
-    actor: dict[str, np.ndarray] | None
-    actor_loss: float
-    critic_loss: float
-    entropy: float
-    approx_kl: float
-    clip_fraction: float
+    approx_kl: float = math.nan  # mean (r - 1) - log r, an estimate of KL(pi_old || pi)
+    clip_fraction: float = math.nan  # share of samples whose ratio left [1-eps, 1+eps]
 
 
-@dataclass
-class UpdateStats:
-    """Means over the K mini-batch steps of one ``update()``."""
-
-    actor_loss: float  # -L^CLIP - entropy_coef * entropy
-    critic_loss: float  # L^V (Eq. 3, or the configured alternative)
-    entropy: float
-    approx_kl: float  # mean (r - 1) - log r, an estimate of KL(pi_old || pi)
-    clip_fraction: float  # share of samples whose ratio left [1-eps, 1+eps]
-    memory_size: int
-    skipped_steps: int = 0  # critic/actor steps skipped because the loss or gradient was not finite
-
-
-class PPOLearner:
+class PPOLearner(FederatedLearner):
     """One worker's Actor-Critic PPO: acting, the trajectory memory, Algorithm 2's update, federation hooks.
 
     ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the
@@ -376,6 +291,13 @@ class PPOLearner:
     (Eq. 9) and the parameter blend (Eq. 11) act on aligned parameters.
     """
 
+    ALGO = "ppo"
+    CONFIG = PPOConfig
+    NETWORKS = ("actor", "critic", "obs_norm")
+    OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr", "critic_optimizer": "critic_lr"}
+    BATCH = Batch
+    STEP = PPOStepGradients
+
     def __init__(
         self,
         obs_space: spaces.Space,
@@ -384,40 +306,28 @@ class PPOLearner:
         seed: int = 0,
         init_seed: int | None = None,
     ) -> None:
-        if not isinstance(obs_space, spaces.Box):
-            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
         self.config = config if config is not None else PPOConfig()
-        self.obs_space, self.action_space = obs_space, action_space
-        self.obs_shape = tuple(obs_space.shape)
-        obs_dim = int(np.prod(self.obs_shape))
-        with _GLOBAL_RNG, torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
-            torch.manual_seed(seed if init_seed is None else init_seed)
+        obs_dim = self._observations(obs_space, action_space)
+        with seeded(seed if init_seed is None else init_seed):
             self.actor = Actor(obs_dim, action_space, self.config)
             self.critic = Critic(obs_dim, self.config)
         self.obs_norm = RunningObsNorm(self.obs_shape)
-        if self.config.obs_scale is not None:
-            if len(self.config.obs_scale) != int(np.prod(self.obs_shape)):
-                raise ValueError(f"obs_scale has {len(self.config.obs_scale)} entries for observations of shape "
-                                 f"{self.obs_shape}")
-            self._obs_scale = torch.tensor(self.config.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
         self.actor_optimizer = Adam(self.actor.parameters(), lr=self.config.actor_lr)
         self.critic_optimizer = Adam(self.critic.parameters(), lr=self.config.critic_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
         # trajectory memory: (s_t, a_t, r_{t+1}, s_{t+1}, terminated, truncated), oldest first
-        self.memory: deque[tuple[np.ndarray, Any, float, np.ndarray, bool, bool]] = deque(
-            maxlen=self.config.memory_size
-        )
-        self._episode_gradient: dict[str, np.ndarray] | None = None
+        self.memory = Replay(self.config.memory_size, self._columns())
+
+    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        obs = (self.obs_shape, np.float32)
+        actions = ((), np.int64) if self.actor.discrete else (self.actor.action_shape, np.float32)
+        return {"obs": obs, "actions": actions, "rewards": ((), np.float64), "next_obs": obs,
+                "terminated": ((), bool), "truncated": ((), bool)}
 
     # -- acting --------------------------------------------------------------------------------------------
 
-    def _obs_tensor(self, obs: Any) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
-        if self.config.obs_scale is not None:
-            x = x * self._obs_scale
-        if self.config.normalize_obs:
-            x = self.obs_norm.normalize(x)
-        return x.flatten(1)
+    def _normalized(self, x: torch.Tensor) -> torch.Tensor:
+        return self.obs_norm.normalize(x) if self.config.normalize_obs else x
 
     def _to_env(self, action: torch.Tensor) -> Any:
         if self.actor.discrete:
@@ -439,9 +349,9 @@ class PPOLearner:
     ) -> None:
         """Store <s_t, a_t, r_{t+1}, s_{t+1}> (plus the episode flags) in the FIFO trajectory memory."""
         obs_arr = np.asarray(obs, dtype=np.float32).reshape(self.obs_shape).copy()
-        next_arr = np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape).copy()
-        stored = int(action) if self.actor.discrete else np.asarray(action, dtype=np.float32).copy()
-        self.memory.append((obs_arr, stored, float(reward), next_arr, bool(terminated), bool(truncated)))
+        self.memory.add(obs=obs_arr, actions=int(action) if self.actor.discrete else np.asarray(action, np.float32),
+                        rewards=float(reward), next_obs=np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape),
+                        terminated=bool(terminated), truncated=bool(truncated))
         if self.config.normalize_obs:
             self.obs_norm.update(torch.from_numpy(obs_arr))
 
@@ -451,30 +361,14 @@ class PPOLearner:
         """theta_old <- theta, then K times: a random mini-batch of U from memory, a critic step (Eq. 3-4)
         and an actor step (Eq. 6-7). Also records the episode's actor gradient (see ``actor_gradient``)."""
         batch = self.prepare()
-        grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
+        steps = self._steps(batch, self.config.update_epochs)
         totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"), 0.0)
-        actor_steps, skipped = 0, 0
-        for _ in range(self.config.update_epochs):
-            step = self.minibatch_gradients(batch)
-            self.apply_step(step.critic, step.actor)
-            skipped += (step.critic is None) + (step.actor is None)
-            if step.actor is not None:
-                actor_steps += 1
-                for name, g in step.actor.items():
-                    grad_sum[name] += torch.from_numpy(g)
+        for step in steps:
             for key in totals:
                 totals[key] += getattr(step, key)
-
-        # The gradient shared with the chief: the mean of the K actor mini-batch gradients of this episode
-        # (as applied, i.e. after clipping). The paper says "the last gradient"; the mean over the episode
-        # estimates the same direction with less mini-batch noise.
-        self._episode_gradient = {
-            name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True)
-            for name, g in grad_sum.items()
-        }
         k = float(self.config.update_epochs)
         means = {key: value / k for key, value in totals.items()}
-        return UpdateStats(**means, memory_size=batch.n, skipped_steps=skipped)
+        return UpdateStats(**means, memory_size=batch.n, skipped_steps=self._skipped(steps))
 
     def prepare(self) -> Batch:
         """theta_old <- theta: the whole memory's inputs, log-probs under the current actor, GAE advantages and
@@ -483,24 +377,21 @@ class PPOLearner:
         n = len(self.memory)
         if n == 0:
             raise ValueError("update() needs transitions in the memory: call remember() first")
-        obs_np, actions_list, rewards_list, next_np, term_list, trunc_list = zip(*self.memory, strict=True)
-        obs = self._obs_tensor(np.stack(obs_np))
-        next_obs = self._obs_tensor(np.stack(next_np))
-        if self.actor.discrete:
-            actions = torch.as_tensor(actions_list, dtype=torch.int64)
-        else:
-            actions = torch.as_tensor(np.stack(actions_list)).reshape(n, -1)
-        terminated = np.asarray(term_list, dtype=bool)
-        episode_end = terminated | np.asarray(trunc_list, dtype=bool)
+        m = self.memory.ordered()
+        obs, next_obs = self._obs_tensor(m["obs"]), self._obs_tensor(m["next_obs"])
+        actions = torch.from_numpy(m["actions"])
+        actions = actions if self.actor.discrete else actions.reshape(n, -1)
+        terminated = m["terminated"]
+        episode_end = terminated | m["truncated"]
         if n > 1:  # a gap between consecutive transitions (an episode cut short by the caller) also ends one
-            gap = np.stack(next_np[:-1]).reshape(n - 1, -1) != np.stack(obs_np[1:]).reshape(n - 1, -1)
+            gap = m["next_obs"][:-1].reshape(n - 1, -1) != m["obs"][1:].reshape(n - 1, -1)
             episode_end[:-1] |= gap.any(axis=1)
         episode_end[-1] = True  # nothing follows the newest transition yet
         with torch.no_grad():
             old_logp, _ = self.actor.log_prob_entropy(obs, actions)
             values = self.critic(obs).numpy()
             next_values = self.critic(next_obs).numpy()
-        rewards = np.asarray(rewards_list, dtype=np.float64) * cfg.reward_scale
+        rewards = m["rewards"] * cfg.reward_scale
         adv_np, ret_np = compute_gae(
             rewards, values, next_values, terminated, episode_end, cfg.gamma, cfg.gae_lambda
         )
@@ -508,7 +399,7 @@ class PPOLearner:
                      advantages=torch.as_tensor(adv_np, dtype=torch.float32),
                      returns=torch.as_tensor(ret_np, dtype=torch.float32))
 
-    def minibatch_gradients(self, batch: Batch) -> StepGradients:
+    def minibatch_gradients(self, batch: Batch) -> PPOStepGradients:
         """One random mini-batch of U: the critic's gradient of L^V (Eq. 3) and the actor's of -L^CLIP (Eq. 6,
         with the entropy bonus), each after optional norm clipping; None where the loss or a gradient is not
         finite. Nothing is applied: ``apply_step`` does that (with these, or with a federation's mean of them)."""
@@ -528,7 +419,7 @@ class PPOLearner:
             ratio = log_ratio.exp()
             approx_kl = float(((ratio - 1) - log_ratio).mean())
             clip_fraction = float(((ratio - 1).abs() > cfg.clip_epsilon).float().mean())
-        return StepGradients(critic=critic_grad, actor=actor_grad, actor_loss=actor_loss.item(),
+        return PPOStepGradients(critic=critic_grad, actor=actor_grad, actor_loss=actor_loss.item(),
                              critic_loss=critic_loss.item(), entropy=entropy.mean().item(), approx_kl=approx_kl,
                              clip_fraction=clip_fraction)
 
@@ -551,149 +442,20 @@ class PPOLearner:
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         """One critic-optimizer step (Eq. 4) and one actor-optimizer step (Eq. 7) with the given gradients; a
         network whose gradient is None is not stepped."""
-        for grads, net, optimizer in ((critic, self.critic, self.critic_optimizer),
-                                      (actor, self.actor, self.actor_optimizer)):
-            if grads is None:
-                continue
-            optimizer.zero_grad()
-            for name, g in _tensors(grads, net).items():
-                net.get_parameter(name).grad = g
-            optimizer.step()
-            optimizer.zero_grad()
-
-    # -- federation hooks ---------------------------------------------------------------------------------
-
-    def actor_spec(self) -> dict[str, tuple[int, ...]]:
-        """Names and shapes of the actor's parameters (``actor.named_parameters()`` order)."""
-        return {name: tuple(p.shape) for name, p in self.actor.named_parameters()}
-
-    def critic_spec(self) -> dict[str, tuple[int, ...]]:
-        """Names and shapes of the critic's parameters."""
-        return {name: tuple(p.shape) for name, p in self.critic.named_parameters()}
-
-    def actor_parameters(self) -> dict[str, np.ndarray]:
-        """A float32 copy of theta."""
-        return {
-            name: p.detach().numpy().astype(np.float32, copy=True)
-            for name, p in self.actor.named_parameters()
-        }
-
-    def actor_gradient(self) -> dict[str, np.ndarray]:
-        """g_theta^n of the last ``update()``: the mean of its K actor mini-batch gradients (float32)."""
-        if self._episode_gradient is None:
-            raise RuntimeError("no actor gradient yet: call update() first")
-        return {name: g.copy() for name, g in self._episode_gradient.items()}
-
-    def apply_gradient(self, grad: Mapping[str, np.ndarray]) -> None:
-        """Algorithm 2, "update pi_theta with the received g_bar": one actor-optimizer (Adam) step with ``grad``."""
-        self.apply_step(None, grad)
-
-    @torch.no_grad()
-    def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None:
-        """Eq. 11 in place: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1].
-
-        Only the actor is blended (the critic and, with ``normalize_obs``, the observation statistics stay the
-        worker's own). A ValueError for a weight outside [0, 1], before anything changed."""
-        blend(self.actor, params, keep_weight)
+        self._step(self.critic, self.critic_optimizer, critic)
+        self._step(self.actor, self.actor_optimizer, actor)
 
     # -- persistence ----------------------------------------------------------------------------------------
 
-    def state_dict(self) -> dict[str, Any]:
-        """The learner's name (worker/learners.py), networks, optimizers, observation statistics, RNG state and config
-        (the memory is not included)."""
-        return {
-            "algo": "ppo",
-            "config": asdict(self.config),
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "obs_norm": self.obs_norm.state_dict(),
-            "actor_optimizer": self.actor_optimizer.state_dict(),
-            "critic_optimizer": self.critic_optimizer.state_dict(),
-            "generator": self.generator.get_state(),
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore ``state_dict()`` output; the network architecture must match this learner's."""
-        config = PPOConfig.from_dict(state["config"])
-        arch = ("hidden_sizes", "activation")
-        if any(getattr(config, a) != getattr(self.config, a) for a in arch):
-            raise ValueError(f"checkpoint architecture {[getattr(config, a) for a in arch]} does not match "
-                             f"{[getattr(self.config, a) for a in arch]}")
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.obs_norm.load_state_dict(state["obs_norm"])
-        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
-        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self.generator.set_state(state["generator"])
-        self.config = config
-        self.memory = deque(self.memory, maxlen=config.memory_size)
+    def _resized(self, old: Any) -> None:
+        self.memory = self.memory.resized(self.config.memory_size)
 
     def memory_state(self) -> dict[str, torch.Tensor]:
         """The trajectory memory (which spans episodes) as tensors, oldest first, for a worker's resumable state
         (worker/resume.py); ``load_memory`` restores it exactly."""
-        if not self.memory:
-            return {}
-        obs, actions, rewards, next_obs, terminated, truncated = zip(*self.memory, strict=True)
-        return {"obs": torch.from_numpy(np.stack(obs)), "next_obs": torch.from_numpy(np.stack(next_obs)),
-                "actions": torch.as_tensor(np.asarray(actions, dtype=np.int64) if self.actor.discrete
-                                           else np.stack(actions)),
-                "rewards": torch.tensor(rewards, dtype=torch.float64), "terminated": torch.tensor(terminated),
-                "truncated": torch.tensor(truncated)}
+        return self.memory.state()
 
     def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
         """Replace the trajectory memory with ``memory_state()`` output."""
-        self.memory.clear()
-        for i in range(len(state["rewards"]) if state else 0):
-            action = state["actions"][i]
-            self.memory.append((state["obs"][i].numpy().copy(), int(action) if self.actor.discrete
-                                else action.numpy().copy(), float(state["rewards"][i]),
-                                state["next_obs"][i].numpy().copy(), bool(state["terminated"][i]),
-                                bool(state["truncated"][i])))
-
-    def warm_start(self, state: Mapping[str, Any]) -> None:
-        """Start from another learner's ``state_dict()`` (a warm start, ``--init-model``): its actor and critic, its
-        observation statistics and its optimizers' Adam moments, so that fine-tuning goes on where the model's training
-        stopped. Not taken: its configuration (this learner's, whose architecture the caller checked is the same; the
-        optimizers keep this learner's learning rates) and its sampling RNG (each worker keeps its own seed's)."""
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.obs_norm.load_state_dict(state["obs_norm"])
-        take_optimizers(state, (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
-                                ("critic_optimizer", self.critic_optimizer, self.config.critic_lr)))
-
-    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
-        """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
-        save_model(self.state_dict(), path, provenance)
-
-    def load(self, path: str | Path) -> None:
-        self.load_state_dict(torch.load(Path(path), weights_only=True))
-
-
-@torch.no_grad()
-def blend(net: nn.Module, params: Mapping[str, Any], keep_weight: float) -> None:
-    """Eq. 11 in place on ``net``: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1]
-    (every learner's ``blend_actor``). A ValueError for a weight outside [0, 1], before anything changed."""
-    w = float(keep_weight)
-    if not (math.isfinite(w) and 0.0 <= w <= 1.0):
-        raise ValueError(f"transfer: keep_weight must be in [0, 1], got {keep_weight!r}")
-    theta_bar = _tensors(params, net)
-    for name, p in net.named_parameters():
-        p.mul_(w).add_(theta_bar[name], alpha=1.0 - w)
-
-
-def take_optimizers(state: Mapping[str, Any],
-                    optimizers: Iterable[tuple[str, Adam, float]]) -> None:
-    """A warm start's optimizers: each (key, optimizer, lr) takes the Adam moments of ``state[key]`` when the model
-    has them, and keeps this learner's learning rate ``lr``."""
-    for name, optimizer, lr in optimizers:
-        if name in state:
-            optimizer.load_state_dict(state[name])
-            for group in optimizer.param_groups:
-                group["lr"] = lr
-
-
-def save_model(state: dict[str, Any], path: str | Path, provenance: Mapping[str, Any] | None) -> None:
-    """A learner's ``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
-    if provenance is not None:
-        state["provenance"] = dict(provenance)
-    torch.save(state, Path(path))
+        self.memory = Replay(self.config.memory_size, self._columns())
+        self.memory.load(state)

@@ -1,4 +1,4 @@
-"""Soft Actor-Critic as a second learner of the worker, beside PPO (worker/ppo.py), with the same public interface.
+"""Soft Actor-Critic, a learner of the worker beside PPO (worker/ppo.py) and DQN (worker/dqn.py).
 
 One module covers both kinds of action space:
 
@@ -10,16 +10,8 @@ One module covers both kinds of action space:
 
 Read it top to bottom: the configuration, the networks (an actor and ONE critic module holding both Q networks), the
 pure math (soft state value, soft Q target, the critic loss J_Q, the actor loss J_pi, the temperature loss J(alpha),
-the Polyak update) and the learner, which owns the replay buffer, the target critic, log alpha and three Adam
-optimizers, and the hooks the federation needs, exactly those of ``PPOLearner``:
-
-- ``update()``: after an episode of n env steps, round(utd_ratio * n) gradient steps (none before
-  ``learning_starts`` transitions are in the replay); also records the episode's actor gradient, the mean of its
-  applied actor mini-batch gradients (``actor_gradient()``),
-- ``prepare()``, ``minibatch_gradients()``, ``apply_step()``: one gradient step at a time, for strategies that share
-  every step's gradients; they take a FIXED K = ``update_epochs`` steps per episode (the federation's schedule),
-- ``apply_gradient(g_bar)``: one actor-optimizer step with the chief's weighted mean gradient (paper Eq. 9),
-- ``blend_actor(theta_bar, w_T)``: the soft transfer of a mature actor, paper Eq. 11.
+the Polyak update) and the learner, which owns the target critic, log alpha and three Adam optimizers; the replay and
+the schedule of gradient steps are worker/offpolicy.py's, the federation's seams worker/federation.py's.
 
 What travels: the actor (its per-episode gradient, and its parameters in a transfer); under a per-step strategy also
 the gradients of both Q networks (``critic`` = q1 and q2). What never leaves the device: the target critics, the
@@ -34,15 +26,14 @@ the learner's own seed, so a run is reproducible given the seed and the environm
 the global RNGs.
 """
 
+
 from __future__ import annotations
 
 import copy
-import logging
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import asdict, dataclass, fields
-from pathlib import Path
-from typing import Any
+from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
 import torch
@@ -50,19 +41,9 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.ppo import (
-    _GLOBAL_RNG,
-    StepGradients,
-    UpdateStats,
-    _tensors,
-    blend,
-    mlp,
-    network_fields,
-    save_model,
-    take_optimizers,
-)
-
-log = logging.getLogger("worker")
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
+from worker.offpolicy import OffPolicyLearner, ReplayBatch
+from worker.replay import FiniteTransitions, Replay
 
 #: Bounds of the Gaussian's log standard deviation (before the tanh squashing), as is usual for SAC.
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -74,7 +55,7 @@ LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
 
 
 @dataclass
-class SACConfig:
+class SACConfig(FromDict):
     """Hyper-parameters; the defaults are Haarnoja et al.'s (2018) where they give one: two hidden layers of 256 ReLU
     units, Adam 3e-4 for every network and for alpha, gamma 0.99, tau 0.005, batch 256, one gradient step per env step,
     target entropy -dim(A).
@@ -89,7 +70,7 @@ class SACConfig:
     """
 
     hidden_sizes: tuple[int, ...] = (256, 256)
-    activation: str = "relu"  # one of worker.ppo.ACTIVATIONS
+    activation: str = "relu"  # one of worker.nets.ACTIVATIONS
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4  # both Q networks (one optimizer)
     alpha_lr: float = 3e-4  # the temperature, optimised as log alpha
@@ -113,43 +94,16 @@ class SACConfig:
     noise_horizon: int = 1000  # length of one noise sequence (one per episode; a longer episode draws another)
 
     def __post_init__(self) -> None:
-        self.hidden_sizes, self.obs_scale, problems = network_fields(self.hidden_sizes, self.activation,
-                                                                     self.obs_scale)
-        for name in ("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale"):
-            if not (getattr(self, name) > 0 and math.isfinite(getattr(self, name))):
-                problems.append(f"{name} must be finite and > 0")
-        for name in ("replay_size", "batch_size", "update_epochs"):
-            if getattr(self, name) < 1:
-                problems.append(f"{name} must be >= 1")
-        if self.learning_starts < 0:
-            problems.append("learning_starts must be >= 0")
-        if not (self.utd_ratio > 0 and math.isfinite(self.utd_ratio)):
-            problems.append("utd_ratio must be finite and > 0")
-        if not 0.0 <= self.gamma <= 1.0:
-            problems.append("gamma must be in [0, 1]")
-        if not 0.0 < self.tau <= 1.0:
-            problems.append("tau must be in (0, 1]")
-        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
-            problems.append("target_entropy must be finite or None")
-        if not 0.0 <= self.target_entropy_ratio <= 1.0:
-            problems.append("target_entropy_ratio must be in [0, 1]")
-        if self.max_grad_norm is not None and not self.max_grad_norm > 0:
-            problems.append("max_grad_norm must be > 0 or None")
-        if not 0.0 <= self.noise_beta <= 4.0:
-            problems.append("noise_beta must be in [0, 4]")
-        if self.noise_horizon < 2:
-            problems.append("noise_horizon must be >= 2")
-        if problems:
-            raise ValueError("invalid SACConfig: " + "; ".join(problems))
+        self._validate(
+            positive=("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale", "utd_ratio"),
+            at_least_one=("replay_size", "batch_size", "update_epochs"), unit=("gamma", "target_entropy_ratio"),
+            problems=((self.learning_starts < 0, "learning_starts must be >= 0"),
+                      (not 0.0 < self.tau <= 1.0, "tau must be in (0, 1]"),
+                      (self.target_entropy is not None and not math.isfinite(self.target_entropy),
+                       "target_entropy must be finite or None"),
+                      (not 0.0 <= self.noise_beta <= 4.0, "noise_beta must be in [0, 4]"),
+                      (self.noise_horizon < 2, "noise_horizon must be >= 2")))
 
-    @classmethod
-    def from_dict(cls, values: Mapping[str, Any]) -> SACConfig:
-        """Build from ``asdict(config)``; unknown keys are an error."""
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown SACConfig keys: {sorted(unknown)}")
-        return cls(**dict(values))
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -339,53 +293,31 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
 # ----------------------------------------------------------------------------------------------------
 
 
-class FiniteTransitions:
-    """Keeps a transition with a value that is not finite out of a learner's replay: in it, it would poison every
-    mini-batch that draws it, for as long as it stays. Counts what it refuses (``refused``) and logs the first, then
-    every 100th."""
-
-    def __init__(self, learner: str) -> None:
-        self.learner = learner
-        self.refused = 0
-
-    def admit(self, reward: float, *arrays: Any) -> bool:
-        """Whether the reward and every value of ``arrays`` are finite (else the transition is counted and logged)."""
-        if math.isfinite(reward) and all(bool(np.isfinite(np.asarray(a, dtype=np.float64)).all()) for a in arrays):
-            return True
-        self.refused += 1
-        if self.refused == 1 or self.refused % 100 == 0:
-            log.warning("%s refused a transition with a non-finite value (%d so far): not in the replay",
-                        self.learner, self.refused)
-        return False
-
-
-@dataclass
-class SACBatch:
-    """What ``prepare()`` fixes for the K per-step rounds of an episode: ``n``, the number of transitions in the
-    replay then (each step draws its mini-batch from those), and ``steps`` = K. Plain ints, so ``vars(batch)`` can be
-    saved with torch.save and rebuilt with ``SACBatch(**d)``."""
-
-    n: int
-    steps: int
-
 
 @dataclass
 class SACUpdateStats(UpdateStats):
     """Means over the gradient steps of one ``update()`` (zeros when it took none). actor_loss is J_pi, critic_loss
-    J_Q, entropy the policy's mean entropy estimate; approx_kl and clip_fraction are PPO's and NaN here (not sent)."""
+    J_Q, entropy the policy's mean entropy estimate."""
 
     alpha: float = 0.0  # the temperature after the update
     gradient_steps: int = 0
 
 
-class SACLearner:
-    """One worker's SAC: acting, the replay buffer, the per-episode update, federation hooks (as ``PPOLearner``).
+class SACLearner(OffPolicyLearner):
+    """One worker's SAC: acting, the soft actor-critic losses, the temperature and the target critics; the replay,
+    the schedule and the federation's seams are worker/offpolicy.py's.
 
     ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the global RNGs
     are left alone), so the same seed and the same transitions give the same parameters. ``init_seed``, when given,
     seeds only the network init (federated workers share it, as for PPO). The target critic starts as a copy of the
     critic.
     """
+
+    ALGO = "sac"
+    CONFIG = SACConfig
+    NETWORKS = ("actor", "critic", "target_critic", "log_alpha")
+    OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr", "critic_optimizer": "critic_lr",
+                                            "alpha_optimizer": "alpha_lr"}
 
     def __init__(
         self,
@@ -395,23 +327,13 @@ class SACLearner:
         seed: int = 0,
         init_seed: int | None = None,
     ) -> None:
-        if not isinstance(obs_space, spaces.Box):
-            raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
         self.config = cfg = config if config is not None else SACConfig()
-        self.obs_space, self.action_space = obs_space, action_space
-        self.obs_shape = tuple(obs_space.shape)
-        obs_dim = int(np.prod(self.obs_shape))
-        with _GLOBAL_RNG, torch.random.fork_rng(devices=[]):  # seeded init without disturbing the global RNG
-            torch.manual_seed(seed if init_seed is None else init_seed)
+        obs_dim = self._observations(obs_space, action_space)
+        with seeded(seed if init_seed is None else init_seed):
             self.actor = SACActor(obs_dim, action_space, cfg)
             self.critic = TwinQ(obs_dim, self.actor.action_dim, self.actor.discrete, cfg)
         self.target_critic = copy.deepcopy(self.critic)
         self.target_critic.requires_grad_(False)
-        if cfg.obs_scale is not None:
-            if len(cfg.obs_scale) != obs_dim:
-                raise ValueError(f"obs_scale has {len(cfg.obs_scale)} entries for observations of shape "
-                                 f"{self.obs_shape}")
-            self._obs_scale = torch.tensor(cfg.obs_scale, dtype=torch.float32).reshape(self.obs_shape)
         if not self.actor.discrete:
             assert isinstance(action_space, spaces.Box)
             low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
@@ -421,18 +343,18 @@ class SACLearner:
         self.critic_optimizer = Adam(self.critic.parameters(), lr=cfg.critic_lr)
         self.alpha_optimizer = Adam([self.log_alpha], lr=cfg.alpha_lr)
         self.generator = torch.Generator().manual_seed(seed + 1_000_003)
-        self._alloc_replay(cfg.replay_size)
-        self._episode_gradient: dict[str, np.ndarray] | None = None
+        self.replay = Replay(cfg.replay_size, self._columns())
         # the latest mini-batch's mean log pi estimate, for the temperature step of apply_step
         self._alpha_term: torch.Tensor | None = None
         self._finite = FiniteTransitions("SAC")
         self._noise: torch.Tensor | None = None  # this episode's coloured noise, shape (dim(A), noise_horizon)
         self._noise_pos = 0
 
-    @property
-    def rejected_transitions(self) -> int:
-        """Transitions ``remember`` refused because a value was not finite (they never entered the replay)."""
-        return self._finite.refused
+    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        obs = (self.obs_shape, np.float32)
+        actions = ((), np.int64) if self.actor.discrete else ((self.actor.action_dim,), np.float32)
+        return {"obs": obs, "next_obs": obs, "actions": actions, "rewards": ((), np.float64),
+                "terminated": ((), bool), "truncated": ((), bool)}
 
     @property
     def target_entropy(self) -> float:
@@ -447,36 +369,7 @@ class SACLearner:
     def alpha(self) -> float:
         return float(self.log_alpha.detach().exp())
 
-    # -- the replay buffer (a ring: logical index 0 is the oldest transition) -------------------------------
-
-    def _alloc_replay(self, capacity: int) -> None:
-        obs_dim = int(np.prod(self.obs_shape))
-        self._capacity, self._pos, self._size, self._pending = capacity, 0, 0, 0
-        self._obs = np.zeros((capacity, obs_dim), dtype=np.float32)
-        self._next_obs = np.zeros((capacity, obs_dim), dtype=np.float32)
-        self._actions = (np.zeros(capacity, dtype=np.int64) if self.actor.discrete
-                         else np.zeros((capacity, self.actor.action_dim), dtype=np.float32))
-        self._rewards = np.zeros(capacity, dtype=np.float64)
-        self._terminated = np.zeros(capacity, dtype=bool)
-        self._truncated = np.zeros(capacity, dtype=bool)
-
-    def _order(self) -> np.ndarray:
-        """Physical positions of the stored transitions, oldest first."""
-        start = self._pos if self._size == self._capacity else 0
-        return (start + np.arange(self._size)) % self._capacity
-
-    @property
-    def memory_size(self) -> int:
-        """Transitions in the replay."""
-        return self._size
-
     # -- acting --------------------------------------------------------------------------------------------
-
-    def _obs_tensor(self, obs: Any) -> torch.Tensor:
-        x = torch.as_tensor(np.asarray(obs, dtype=np.float32)).reshape(-1, *self.obs_shape)
-        if self.config.obs_scale is not None:
-            x = x * self._obs_scale
-        return x.flatten(1)
 
     def _to_env(self, action: torch.Tensor) -> Any:
         if self.actor.discrete:
@@ -519,84 +412,47 @@ class SACLearner:
             self._noise = None  # the next episode draws its own noise sequence
         if not self._finite.admit(reward, obs, next_obs, action):
             return
-        i = self._pos
-        self._obs[i] = np.asarray(obs, dtype=np.float32).reshape(-1)
-        self._next_obs[i] = np.asarray(next_obs, dtype=np.float32).reshape(-1)
         if self.actor.discrete:
-            self._actions[i] = int(action)
+            stored: Any = int(action)
         else:
             a = np.asarray(action, dtype=np.float64).reshape(-1)
-            self._actions[i] = np.clip((a - self._action_center.reshape(-1)) / self._action_half.reshape(-1),
-                                       -1.0, 1.0)
-        self._rewards[i] = float(reward)
-        self._terminated[i], self._truncated[i] = bool(terminated), bool(truncated)
-        self._pos = (i + 1) % self._capacity
-        self._size = min(self._size + 1, self._capacity)
-        self._pending += 1
+            stored = np.clip((a - self._action_center.reshape(-1)) / self._action_half.reshape(-1), -1.0, 1.0)
+        self.replay.add(obs=np.asarray(obs, dtype=np.float32).reshape(self.obs_shape),
+                        next_obs=np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape), actions=stored,
+                        rewards=float(reward), terminated=bool(terminated), truncated=bool(truncated))
 
     # -- the update after an episode --------------------------------------------------------------------------
 
     def update(self) -> SACUpdateStats:
-        """round(utd_ratio * n) gradient steps for the n transitions remembered since the last update (at least one;
-        none while the replay holds fewer than ``learning_starts``), each: a twin soft Q critic step, an actor step,
-        a temperature step and the Polyak update of the target critics. Also records the episode's actor gradient
-        (see ``actor_gradient``)."""
-        cfg = self.config
-        new = self._pending
-        batch = self.prepare()
-        steps = 0 if batch.n < max(cfg.learning_starts, 1) else max(1, round(cfg.utd_ratio * new))
-        grad_sum = {name: torch.zeros_like(p) for name, p in self.actor.named_parameters()}
+        """round(utd_ratio * n) gradient steps for the n transitions remembered since the last update (worker/
+        offpolicy.py), each: a twin soft Q critic step, an actor step, a temperature step and the Polyak update of the
+        target critics. Also records the episode's actor gradient (see ``actor_gradient``)."""
+        batch, steps = self._episode_steps()
         totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy"), 0.0)
-        actor_steps, skipped = 0, 0
-        for _ in range(steps):
-            step = self.minibatch_gradients(batch)
-            self.apply_step(step.critic, step.actor)
-            skipped += (step.critic is None) + (step.actor is None)
-            if step.actor is not None:
-                actor_steps += 1
-                for name, g in step.actor.items():
-                    grad_sum[name] += torch.from_numpy(g)
+        for step in steps:
             for key in totals:
                 totals[key] += getattr(step, key)
-        # As PPO: the mean of the episode's applied (clipped) actor mini-batch gradients; zeros after no step.
-        self._episode_gradient = {
-            name: (g / max(actor_steps, 1)).numpy().astype(np.float32, copy=True) for name, g in grad_sum.items()
-        }
-        means = {key: value / max(steps, 1) for key, value in totals.items()}
-        return SACUpdateStats(**means, approx_kl=math.nan, clip_fraction=math.nan, memory_size=batch.n,
-                              skipped_steps=skipped, alpha=self.alpha, gradient_steps=steps)
-
-    def prepare(self) -> SACBatch:
-        """The K = ``update_epochs`` steps of this episode draw from the replay as it is now: its size (they take no
-        step while it holds fewer than ``learning_starts``, or nothing). The new transitions count as used
-        (``update()`` takes its number of steps from them before calling this)."""
-        self._pending = 0
-        return SACBatch(n=self._size, steps=self.config.update_epochs)
+        means = {key: value / max(len(steps), 1) for key, value in totals.items()}
+        return SACUpdateStats(**means, memory_size=batch.n, skipped_steps=self._skipped(steps), alpha=self.alpha,
+                              gradient_steps=len(steps))
 
     def _sample(self, n: int) -> tuple[torch.Tensor, ...]:
-        """A mini-batch of ``batch_size`` transitions drawn uniformly, with replacement, from the replay's oldest ``n``
-        (the replay as ``prepare`` saw it; fewer if the FIFO dropped some since)."""
-        logical = torch.randint(0, n, (self.config.batch_size,), generator=self.generator).numpy()
-        order = self._order()
-        idx = order[np.minimum(logical, len(order) - 1)]
-        obs = self._obs_tensor(self._obs[idx])
-        next_obs = self._obs_tensor(self._next_obs[idx])
-        actions = torch.from_numpy(self._actions[idx].copy())
-        rewards = torch.from_numpy(self._rewards[idx] * self.config.reward_scale).float()
-        terminated = torch.from_numpy(self._terminated[idx].copy())
-        return obs, actions, rewards, next_obs, terminated
+        """A mini-batch of ``batch_size`` transitions from the replay's oldest ``n`` (worker/replay.py)."""
+        rows = self.replay.sample(n, self.config.batch_size, self.generator)
+        rewards = torch.from_numpy(rows["rewards"] * self.config.reward_scale).float()
+        return (self._obs_tensor(rows["obs"]), torch.from_numpy(rows["actions"]), rewards,
+                self._obs_tensor(rows["next_obs"]), torch.from_numpy(rows["terminated"]))
 
-    def minibatch_gradients(self, batch: SACBatch) -> StepGradients:
+    def minibatch_gradients(self, batch: ReplayBatch) -> StepGradients:
         """One random mini-batch from the replay: the critic's gradient of J_Q (both Q networks, against the soft Q
         target of the target critics) and the actor's of J_pi (with the critic's current parameters), each after
         optional norm clipping; None where the loss or a gradient is not finite, and both None (losses NaN) while the
         replay holds fewer than ``learning_starts`` transitions. Nothing is applied: ``apply_step`` does that (with
-        these, or with a federation's mean of them). approx_kl and clip_fraction are NaN (PPO's: not sent)."""
+        these, or with a federation's mean of them)."""
         cfg = self.config
-        if batch.n < max(cfg.learning_starts, 1):  # no gradients yet: shared as zeros, and a step of zeros is none
+        if not self._learning(batch):  # no gradients yet: shared as zeros, and a step of zeros is none
             self._alpha_term = None
-            return StepGradients(critic=None, actor=None, actor_loss=math.nan, critic_loss=math.nan,
-                                 entropy=math.nan, approx_kl=math.nan, clip_fraction=math.nan)
+            return StepGradients(critic=None, actor=None, actor_loss=math.nan, critic_loss=math.nan, entropy=math.nan)
         obs, actions, rewards, next_obs, terminated = self._sample(batch.n)
         alpha = self.log_alpha.detach().exp()
         discrete = self.actor.discrete
@@ -629,38 +485,7 @@ class SACLearner:
         actor_grad = self._gradients(a_loss, self.actor)
         self._alpha_term = log_pi_per_state.mean()
         return StepGradients(critic=critic_grad, actor=actor_grad, actor_loss=a_loss.item(),
-                             critic_loss=c_loss.item(), entropy=-self._alpha_term.item(),
-                             approx_kl=math.nan, clip_fraction=math.nan)
-
-    def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
-        """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is
-        accumulated in any .grad), norm-clipped when configured; None when the loss or a gradient is not finite."""
-        if not torch.isfinite(loss):
-            return None
-        named = list(net.named_parameters())
-        raw = torch.autograd.grad(loss, [p for _, p in named], allow_unused=True)
-        grads = [torch.zeros_like(p) if g is None else g.detach() for (_, p), g in zip(named, raw, strict=True)]
-        if self.config.max_grad_norm is not None:
-            total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
-            coef = torch.clamp(self.config.max_grad_norm / (total + 1e-6), max=1.0)
-            grads = [g * coef for g in grads]
-        out = {name: g.numpy().astype(np.float32, copy=True) for (name, _), g in zip(named, grads, strict=True)}
-        if not all(bool(np.isfinite(g).all()) for g in out.values()):
-            return None
-        return out
-
-    @staticmethod
-    def _step(net: nn.Module, optimizer: Adam, grads: Mapping[str, np.ndarray] | None) -> bool:
-        """One optimizer step of ``net`` with ``grads``; none (False) for None or all zeros: no worker had a
-        gradient (every one before ``learning_starts``), and Adam's step count and moments stay as they are."""
-        if grads is None or not any(np.any(g) for g in grads.values()):
-            return False
-        optimizer.zero_grad()
-        for name, g in _tensors(grads, net).items():
-            net.get_parameter(name).grad = g
-        optimizer.step()
-        optimizer.zero_grad()
-        return True
+                             critic_loss=c_loss.item(), entropy=-self._alpha_term.item())
 
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         """One critic-optimizer step and one actor-optimizer step with the given gradients (None or all zeros: that
@@ -677,130 +502,11 @@ class SACLearner:
         if stepped:
             polyak_update(self.target_critic.parameters(), self.critic.parameters(), self.config.tau)
 
-    # -- federation hooks ---------------------------------------------------------------------------------
+    # -- persistence beyond the declared names ------------------------------------------------------------------
 
-    def actor_spec(self) -> dict[str, tuple[int, ...]]:
-        """Names and shapes of the actor's parameters (``actor.named_parameters()`` order)."""
-        return {name: tuple(p.shape) for name, p in self.actor.named_parameters()}
+    def _own_state(self) -> dict[str, Any]:
+        return {"alpha_term": None if self._alpha_term is None else self._alpha_term.clone()}
 
-    def critic_spec(self) -> dict[str, tuple[int, ...]]:
-        """Names and shapes of the critic's parameters (both Q networks: ``q1.*`` then ``q2.*``)."""
-        return {name: tuple(p.shape) for name, p in self.critic.named_parameters()}
-
-    def actor_parameters(self) -> dict[str, np.ndarray]:
-        """A float32 copy of theta."""
-        return {name: p.detach().numpy().astype(np.float32, copy=True) for name, p in self.actor.named_parameters()}
-
-    def actor_gradient(self) -> dict[str, np.ndarray]:
-        """g_theta^n of the last ``update()``: the mean of its applied actor mini-batch gradients (float32); zeros of
-        the actor's shapes when that update took no gradient step (before ``learning_starts``, or all skipped)."""
-        if self._episode_gradient is None:
-            raise RuntimeError("no actor gradient yet: call update() first")
-        return {name: g.copy() for name, g in self._episode_gradient.items()}
-
-    def apply_gradient(self, grad: Mapping[str, np.ndarray]) -> None:
-        """Algorithm 2, "update pi_theta with the received g_bar": one actor-optimizer (Adam) step with ``grad``
-        (nothing else: no temperature step, no target update)."""
-        self._step(self.actor, self.actor_optimizer, grad)
-
-    @torch.no_grad()
-    def blend_actor(self, params: Mapping[str, Any], keep_weight: float) -> None:
-        """Eq. 11 in place: theta = w_T * theta + (1 - w_T) * theta_bar, with w_T = ``keep_weight`` in [0, 1].
-
-        Only the actor is blended (critics, targets and alpha stay the worker's own). A ValueError for a weight
-        outside [0, 1], before anything changed."""
-        blend(self.actor, params, keep_weight)
-
-    # -- persistence ----------------------------------------------------------------------------------------
-
-    def state_dict(self) -> dict[str, Any]:
-        """Networks (with the target critic), log alpha, optimizers, RNG state and config; not the replay
-        (``memory_state``)."""
-        return {
-            "algo": "sac",
-            "config": asdict(self.config),
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "target_critic": self.target_critic.state_dict(),
-            "log_alpha": self.log_alpha.detach().clone(),
-            "actor_optimizer": self.actor_optimizer.state_dict(),
-            "critic_optimizer": self.critic_optimizer.state_dict(),
-            "alpha_optimizer": self.alpha_optimizer.state_dict(),
-            "generator": self.generator.get_state(),
-            "alpha_term": None if self._alpha_term is None else self._alpha_term.clone(),
-        }
-
-    def load_state_dict(self, state: Mapping[str, Any]) -> None:
-        """Restore ``state_dict()`` output; the network architecture must match this learner's (ValueError)."""
-        if state.get("algo") != "sac":
-            raise ValueError(f"not a SAC checkpoint (algo {state.get('algo')!r})")
-        config = SACConfig.from_dict(state["config"])
-        arch = ("hidden_sizes", "activation")
-        if any(getattr(config, a) != getattr(self.config, a) for a in arch):
-            raise ValueError(f"checkpoint architecture {[getattr(config, a) for a in arch]} does not match "
-                             f"{[getattr(self.config, a) for a in arch]}")
-        self._load_networks(state)
-        self.actor_optimizer.load_state_dict(state["actor_optimizer"])
-        self.critic_optimizer.load_state_dict(state["critic_optimizer"])
-        self.alpha_optimizer.load_state_dict(state["alpha_optimizer"])
-        self.generator.set_state(state["generator"])
+    def _load_own(self, state: Mapping[str, Any]) -> None:
         term = state.get("alpha_term")
         self._alpha_term = None if term is None else term.clone()
-        replay_changed = config.replay_size != self.config.replay_size
-        self.config = config
-        if replay_changed:
-            self.load_memory(self.memory_state())
-
-    def _load_networks(self, state: Mapping[str, Any]) -> None:
-        self.actor.load_state_dict(state["actor"])
-        self.critic.load_state_dict(state["critic"])
-        self.target_critic.load_state_dict(state["target_critic"])
-        with torch.no_grad():
-            self.log_alpha.copy_(state["log_alpha"])
-
-    def memory_state(self) -> dict[str, torch.Tensor]:
-        """The replay as tensors, oldest first, with ``pending`` (transitions not yet used by an update), for a
-        worker's resumable state (worker/resume.py); ``load_memory`` restores it exactly."""
-        if self._size == 0:
-            return {}
-        order = self._order()
-        return {"obs": torch.from_numpy(self._obs[order].reshape(-1, *self.obs_shape)),
-                "next_obs": torch.from_numpy(self._next_obs[order].reshape(-1, *self.obs_shape)),
-                "actions": torch.from_numpy(self._actions[order]), "rewards": torch.from_numpy(self._rewards[order]),
-                "terminated": torch.from_numpy(self._terminated[order]),
-                "truncated": torch.from_numpy(self._truncated[order]),
-                "pending": torch.tensor(self._pending, dtype=torch.int64)}
-
-    def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
-        """Replace the replay with ``memory_state()`` output (the newest ``replay_size`` of it)."""
-        self._alloc_replay(self.config.replay_size)
-        n = len(state["rewards"]) if state else 0
-        if n == 0:
-            return
-        keep = slice(max(0, n - self._capacity), n)
-        m = keep.stop - keep.start
-        self._obs[:m] = state["obs"][keep].numpy().reshape(m, -1)
-        self._next_obs[:m] = state["next_obs"][keep].numpy().reshape(m, -1)
-        self._actions[:m] = state["actions"][keep].numpy()
-        self._rewards[:m] = state["rewards"][keep].numpy()
-        self._terminated[:m] = state["terminated"][keep].numpy()
-        self._truncated[:m] = state["truncated"][keep].numpy()
-        self._size, self._pos = m, m % self._capacity
-        self._pending = min(int(state["pending"]), m)
-
-    def warm_start(self, state: Mapping[str, Any]) -> None:
-        """Start from another learner's ``state_dict()``: its actor, critic, target critic and log alpha, and its
-        optimizers' Adam moments with this learner's learning rates. Not taken: its configuration (the caller checked
-        the architecture is the same) and its sampling RNG (each worker keeps its own seed's)."""
-        self._load_networks(state)
-        take_optimizers(state, (("actor_optimizer", self.actor_optimizer, self.config.actor_lr),
-                                ("critic_optimizer", self.critic_optimizer, self.config.critic_lr),
-                                ("alpha_optimizer", self.alpha_optimizer, self.config.alpha_lr)))
-
-    def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
-        """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""
-        save_model(self.state_dict(), path, provenance)
-
-    def load(self, path: str | Path) -> None:
-        self.load_state_dict(torch.load(Path(path), weights_only=True))
-

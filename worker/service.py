@@ -2,8 +2,8 @@
 PI, apply the chief's answer (mean gradient through the optimizer, or the Eq. 11 blend), hand over the mature
 actor when PI >= TC and wait until the chief confirms it holds it. Every submission carries a receipt of what the
 worker did with the previous round's answer. On the RunStop of an interrupted run it saves its resumable state, and
-takes it up when the resumed run names it again (worker/resume.py). The learning itself is worker/ppo.py; the
-environments are worker/envs.py."""
+takes it up when the resumed run names it again (worker/resume.py). The learning itself is the run's learner
+(worker/learners.py: PPO, SAC or DQN); the environments are worker/envs.py."""
 
 from __future__ import annotations
 

@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         if stats is None or episode % s.print_every == 0:
             extra = "" if stats is None else (
                 f" | actor {stats.actor_loss:+.3f} critic {stats.critic_loss:.3f} entropy {stats.entropy:.3f}"
-                + (f" kl {stats.approx_kl:.4f}" if math.isfinite(stats.approx_kl) else ""))
+                + (f" kl {stats.approx_kl:.4f}" if math.isfinite(getattr(stats, "approx_kl", math.nan)) else ""))
             print(f"ep {episode:5d} steps {total_steps:8d} return {ret:9.2f} PI {pi:9.2f}"
                   f" t {time.monotonic() - start:6.1f}s{extra}", flush=True)
 

@@ -1,5 +1,5 @@
-"""bench.behaviour: the grid is make bench-quick's plus make run's federation, and two result files compare run by
-run."""
+"""bench.behaviour: the grid is make run's federation, make bench-quick's and the off-policy learners' short runs, and
+two result files compare run by run."""
 
 from __future__ import annotations
 
@@ -11,10 +11,16 @@ from bench.paper import QUICK
 from chief import strategies
 
 
-def test_the_grid_is_bench_quick_and_make_run() -> None:
+def test_the_grid_is_make_run_bench_quick_and_the_off_policy_learners() -> None:
     runs = behaviour.grid()
-    assert runs[0] == ("CartPole-v0", "weighted", 1, 2000)
-    assert len(runs) == 1 + len(QUICK["tasks"]) * len(strategies.names()) * len(QUICK["seeds"])
+    assert runs[0] == ("CartPole-v0", "weighted", 1, 2000, "ppo") and runs[0].name == "CartPole-v0-weighted-s1"
+    ppo = 1 + len(QUICK["tasks"]) * len(strategies.names()) * len(QUICK["seeds"])
+    assert len(runs) == ppo + 8 and {r.algo for r in runs[:ppo]} == {"ppo"}
+    assert {(r.algo, r.task, r.strategy) for r in runs[ppo:]} == {
+        (algo, task, strategy) for algo, task in (("sac", "Pendulum-v1"), ("sac", "MountainCarContinuous-v0"),
+                                                  ("dqn", "CartPole-v0"), ("dqn", "Acrobot-v1"))
+        for strategy in ("sync", "independent")}
+    assert runs[-1].name == "dqn-Acrobot-v1-independent-s101"
 
 
 def test_two_files_compare_run_by_run(tmp_path: Path) -> None:

@@ -30,7 +30,7 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    budget. "holding" while |alpha| is inside the balance band and |theta| inside the arm band, "catch" while not.
 5. **ready** after ``hold_time_s`` continuously inside the band; the hold command keeps going. **failed**
    (command 0, latched until :meth:`ResetController.reset`) when ``timeout_s`` passes without reaching ready (an
-   arm still moving fast is first stopped, for at most ``wind_down_s``).
+   arm still moving fast or a pendulum still swinging is first calmed, for at most ``wind_down_s``).
 6. **retries**: :meth:`ResetController.reset` takes the number of attempts that failed in a row on this rig (the
    control core counts them) and picks the attempt's strategy from :data:`STRATEGIES`; a failure names it.
 
@@ -87,8 +87,9 @@ class ResetConfig:
     settle_energy: float = -0.9  # ... until its energy is below this (fraction of swing_depth; -1 is at rest)
     settle_max_s: float = 5.0  # ... or this long at most
     max_catches: int = 12  # an attempt whose catches keep failing gives up after this many (the next one retries)
-    wind_down_speed: float = 1.0  # rad/s: at the timeout a faster arm is first stopped (centred) ...
-    wind_down_s: float = 1.0  # ... for at most this long, before the attempt fails
+    wind_down_speed: float = 0.3  # rad/s: giving up, a faster arm (or a pendulum above settle_energy) is first held
+    wind_down_s: float = 3.0  # ... in the middle for at most this long, before the attempt fails
+    wind_down_wn: float = 8.0  # rad/s: the arm PD while winding down
     # the arm's travel
     arm_soft_limit: float = math.radians(80.0)  # the swing-up keeps the arm inside (the bridge faults at 110)
     brake_accel: float = 100.0  # braking assumed available at full voltage
@@ -205,20 +206,24 @@ class ResetController:
                 return direction
         return 0
 
-    def centre_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
-        """The arm centering PD alone (settling): an arm acceleration through the model."""
+    def centre_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float,
+                       wn: float | None = None) -> int:
+        """The arm centering PD alone (settling, winding down; ``wn`` default ``arm_wn``): an arm acceleration
+        through the model."""
         cfg = self.config
-        accel = -cfg.arm_wn**2 * theta - 2.0 * cfg.arm_wn * theta_dot
+        wn = cfg.arm_wn if wn is None else wn
+        accel = -wn * wn * theta - 2.0 * wn * theta_dot
         return clamp_command(cfg.model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command)
 
-    def swing_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
-        """Energy pump plus arm centering, as an arm acceleration turned into counts through the model; never
-        outwards past the soft limit."""
+    def swing_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float,
+                      target: float | None = None) -> int:
+        """Energy pump towards ``target`` (default the energy target) plus arm centering, as an arm acceleration
+        turned into counts through the model; never outwards past the soft limit."""
         cfg, model = self.config, self.config.model
         energy = self.normalised_energy(alpha, alpha_dot)
-        shortfall = self.energy_target - energy
+        shortfall = (self.energy_target if target is None else target) - energy
         s = alpha_dot * math.cos(alpha)
-        if abs(s) < cfg.kick_threshold and energy < -0.9:
+        if abs(s) < cfg.kick_threshold and energy < -0.9 and shortfall > 0:
             # hanging (almost) at rest: kick it to get a swing going (on the energy, not the shortfall: a raised
             # target must not turn a turnaround near horizontal into a kick the wrong way)
             pump = cfg.swing_accel
@@ -349,11 +354,12 @@ class ResetController:
 
         if self.phase != "ready" and (self.elapsed >= cfg.timeout_s or self.catches > cfg.max_catches):
             self._give_up_at = min(self._give_up_at, self.elapsed)
-            if abs(theta_dot) > cfg.wind_down_speed and self.elapsed < self._give_up_at + cfg.wind_down_s:
-                # stop the arm before giving up: the amplifier goes off after a failure and a fast arm would coast
-                # towards the end stop
+            calm = abs(theta_dot) < cfg.wind_down_speed and self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy
+            if not calm and self.elapsed < self._give_up_at + cfg.wind_down_s:
+                # before giving up, hold the arm in the middle while the pendulum's swing dies down: the amplifier
+                # goes off after a failure, and a fast arm, or a big swing dragging a free arm, would reach the stop
                 command = brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot,
-                                                                                    alpha_dot)
+                                                                                    alpha_dot, cfg.wind_down_wn)
                 return command, "swing_up"
             if self.catches > cfg.max_catches:
                 return self._fail(f"{self.catches - 1} catches did not hold the pendulum (strategy '{self.strategy}', "

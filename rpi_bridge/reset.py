@@ -164,6 +164,8 @@ class ResetController:
 
     def __init__(self, config: ResetConfig | None = None) -> None:
         self.base_config = config or ResetConfig()
+        for failures in range(len(STRATEGIES)):  # every strategy's gains designed now, not in a control tick
+            strategy(self.base_config, failures)[1].hold_gains()
         self.reset()
 
     def reset(self, failures: int = 0) -> None:

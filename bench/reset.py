@@ -24,6 +24,7 @@ from pathlib import Path
 
 from bench.output import write_report
 from rpi_bridge.control import ControlConfig, with_model
+from rpi_bridge.reset import STRATEGIES, ResetConfig, strategy
 from services.qube_sim import families
 from services.qube_sim.profile import RigProfile
 from services.qube_sim.trials import PERIOD_S, run_trial, summary, varied_start
@@ -31,6 +32,8 @@ from worker.qube_env import RESET_ATTEMPTS
 
 RESULTS = Path("bench/results")
 MODELS = ("nominal", "true")
+#: How long one request is watched: the longest strategy's timeout, its winding down and a second (34 s).
+WINDOW_S = max(strategy(ResetConfig(), n)[1].timeout_s for n in range(len(STRATEGIES))) + ResetConfig().wind_down_s + 1
 
 
 def all_families() -> list[tuple[str, str, RigProfile]]:
@@ -44,7 +47,7 @@ def run_family(profile: RigProfile, model: str, resets: int, rig_seed: int, star
     config = ControlConfig(period_s=PERIOD_S)
     if model == "true":
         config = with_model(config, profile.plant_model())
-    return [run_trial(profile.rig_params(rig_seed + i), varied_start(start + i), config, max_seconds=31.0,
+    return [run_trial(profile.rig_params(rig_seed + i), varied_start(start + i), config, max_seconds=WINDOW_S,
                       device_options=profile.device_options(), attempts=RESET_ATTEMPTS) for i in range(resets)]
 
 

@@ -12,21 +12,27 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    k*(E0 - E)*alpha_dot*cos(alpha), saturated, plus a weak PD that centres the arm. The acceleration becomes a
    command through the model (computed torque, :class:`PlantModel`), applied to the state predicted over the
    actuation delay.
-2. **adaptive energy target**: damping (up to 5x the nominal one here) and a rig that differs from the model make
-   the pendulum turn back short of the top at E = E0. Each turnaround above horizontal but outside the catch
-   region raises E0 by ``boost_gain`` times the energy it lacked; each pass over the top (the catch did not take
-   it) or each catch that did not hold a pendulum which came in with excess energy lowers E0 by
-   ``overshoot_gain`` times the excess. E0 starts at 0 on every reset.
+2. **adaptive energy target**: damping and a rig that differs from the model make the pendulum turn back short
+   of the top at E = E0. Each turnaround above horizontal but outside the catch region raises E0 by
+   ``boost_gain`` times the energy it lacked, each turnaround below horizontal by ``low_boost_gain`` times it (a
+   heavily damped pendulum that never gets above horizontal still raises it); each pass over the top (the catch
+   did not take it) or each catch that did not hold a pendulum which came in with excess energy lowers E0 by
+   ``overshoot_gain`` times the excess. E0 starts at ``initial_energy`` on every attempt.
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum
    horizontal), so 100 rad/s^2 leaves a margin for weaker rigs.
-4. **catch** / **holding**: linear state feedback (LQR, below) once |alpha| < ``catch_angle``, but only if the
-   arm is within ``catch_arm_limit`` and not heading for the soft limit; a catch is abandoned (back to swing-up,
-   braking) as soon as the arm could not stop inside the soft limit with ``catch_abandon`` of the braking budget.
-   "holding" while |alpha| is inside the balance band and |theta| inside the arm band, "catch" while not yet.
+4. **catch** / **holding**: LQR state feedback designed from the model (rpi_bridge/plant.py ``lqr_gains``: the
+   one-tick actuation delay and the arm angle's integral in the state) once |alpha| < ``catch_angle``, but only if
+   the arm is within ``catch_arm_limit`` and not heading for the soft limit; plus a breakaway feed-forward of the
+   model's arm friction and deadzone (:meth:`ResetController.friction_feedforward`). A catch is abandoned (back to
+   swing-up, braking) as soon as the arm could not stop inside the soft limit with ``catch_abandon`` of the braking
+   budget. "holding" while |alpha| is inside the balance band and |theta| inside the arm band, "catch" while not.
 5. **ready** after ``hold_time_s`` continuously inside the band; the hold command keeps going. **failed**
-   (command 0, latched until :meth:`ResetController.reset`) when ``timeout_s`` passes without reaching ready.
+   (command 0, latched until :meth:`ResetController.reset`) when ``timeout_s`` passes without reaching ready (an
+   arm still moving fast or a pendulum still swinging is first calmed, for at most ``wind_down_s``).
+6. **retries**: :meth:`ResetController.reset` takes the number of attempts that failed in a row on this rig (the
+   control core counts them) and picks the attempt's strategy from :data:`STRATEGIES`; a failure names it.
 
 The controller estimates alpha_dot itself from the angles (a 50s/(s+50)-type filter with a faster 100 rad/s
 cutoff): the 7 ms tick plus a 20 ms filter lag cost too much phase for the catch. The gains were tuned on
@@ -80,6 +86,10 @@ class ResetConfig:
     settle_first: bool = False  # centre the arm and let the pendulum calm down before pumping
     settle_energy: float = -0.9  # ... until its energy is below this (fraction of swing_depth; -1 is at rest)
     settle_max_s: float = 5.0  # ... or this long at most
+    max_catches: int = 12  # an attempt whose catches keep failing gives up after this many (the next one retries)
+    wind_down_speed: float = 0.3  # rad/s: giving up, a faster arm (or a pendulum above settle_energy) is first held
+    wind_down_s: float = 3.0  # ... in the middle for at most this long, before the attempt fails
+    wind_down_wn: float = 8.0  # rad/s: the arm PD while winding down
     # the arm's travel
     arm_soft_limit: float = math.radians(80.0)  # the swing-up keeps the arm inside (the bridge faults at 110)
     brake_accel: float = 100.0  # braking assumed available at full voltage
@@ -120,17 +130,20 @@ class ResetConfig:
 
 
 #: The retry strategies: attempt n after n - 1 failures in a row on one rig uses STRATEGIES[n - 1] (the last one
-#: from then on). Each is (name, changes to the ResetConfig; "timeout_factor" scales its timeout_s). A settle first
-#: brings a drifted arm back and lets a messy swing die down; "wide" catches earlier and starts with energy to spare;
-#: "patient" gives a heavily damped pendulum time and adapts faster; "strong" pumps harder and compensates all of
-#: the model's friction.
+#: from then on). Each is (name, changes to the ResetConfig; "timeout_factor" scales its timeout_s, "model_factors"
+#: its model's values). Every retry first centres the arm and lets the pendulum calm down. "heavy" assumes an arm 3x
+#: as heavy and 3x as sticky as the model (the deviations that defeat the hold of a nominal model: the sweep of
+#: services/qube_sim/families.py); "wide" catches earlier and starts with energy to spare; "patient" gives a heavily
+#: damped pendulum time, adapts faster and assumes an arm 2x off; "strong" pumps harder and compensates all of the
+#: model's friction.
 STRATEGIES: tuple[tuple[str, dict[str, object]], ...] = (
     ("standard", {}),
-    ("settle", {"settle_first": True, "timeout_factor": 4 / 3}),
+    ("heavy", {"settle_first": True, "timeout_factor": 4 / 3,
+               "model_factors": {"mr": 3.0, "coulomb_arm": 3.0, "static_arm": 3.0}}),
     ("wide", {"settle_first": True, "catch_angle": math.radians(26.0), "boost_min_angle": math.radians(30.0),
               "initial_energy": 0.15, "timeout_factor": 4 / 3}),
     ("patient", {"settle_first": True, "timeout_factor": 2.0, "boost_gain": 0.9, "low_boost_gain": 0.25,
-                 "boost_max": 1.2}),
+                 "boost_max": 1.2, "model_factors": {"mr": 2.0, "coulomb_arm": 2.0, "static_arm": 2.0}}),
     ("strong", {"settle_first": True, "timeout_factor": 2.0, "swing_accel": 110.0, "initial_energy": 0.3,
                 "boost_max": 1.2, "friction_compensation": 1.0}),
 )
@@ -141,7 +154,9 @@ def strategy(config: ResetConfig, failures: int) -> tuple[str, ResetConfig]:
     name, changes = STRATEGIES[min(max(0, failures), len(STRATEGIES) - 1)]
     changes = dict(changes)
     factor = float(changes.pop("timeout_factor", 1.0))  # type: ignore[arg-type]
-    return name, replace(config, timeout_s=config.timeout_s * factor, **changes)  # type: ignore[arg-type]
+    scales: dict[str, float] = changes.pop("model_factors", {})  # type: ignore[assignment]
+    model = replace(config.model, **{k: getattr(config.model, k) * v for k, v in scales.items()})
+    return name, replace(config, timeout_s=config.timeout_s * factor, model=model, **changes)  # type: ignore[arg-type]
 
 
 class ResetController:
@@ -149,6 +164,8 @@ class ResetController:
 
     def __init__(self, config: ResetConfig | None = None) -> None:
         self.base_config = config or ResetConfig()
+        for failures in range(len(STRATEGIES)):  # every strategy's gains designed now, not in a control tick
+            strategy(self.base_config, failures)[1].hold_gains()
         self.reset()
 
     def reset(self, failures: int = 0) -> None:
@@ -169,6 +186,7 @@ class ResetController:
         self._last_alpha_dot = 0.0
         self._integral = 0.0  # the hold's integral of the arm angle (rad s)
         self._u_prev = 0.0  # the hold's last linear command, still on its way to the motor (counts)
+        self._give_up_at = math.inf  # when the attempt gave up (it then stops the arm before failing)
 
     # -- the pieces ----------------------------------------------------------------------------------------------
 
@@ -190,20 +208,24 @@ class ResetController:
                 return direction
         return 0
 
-    def centre_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
-        """The arm centering PD alone (settling): an arm acceleration through the model."""
+    def centre_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float,
+                       wn: float | None = None) -> int:
+        """The arm centering PD alone (settling, winding down; ``wn`` default ``arm_wn``): an arm acceleration
+        through the model."""
         cfg = self.config
-        accel = -cfg.arm_wn**2 * theta - 2.0 * cfg.arm_wn * theta_dot
+        wn = cfg.arm_wn if wn is None else wn
+        accel = -wn * wn * theta - 2.0 * wn * theta_dot
         return clamp_command(cfg.model.command_for_arm_accel(accel, alpha, theta_dot, alpha_dot), cfg.max_command)
 
-    def swing_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float) -> int:
-        """Energy pump plus arm centering, as an arm acceleration turned into counts through the model; never
-        outwards past the soft limit."""
+    def swing_command(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float,
+                      target: float | None = None) -> int:
+        """Energy pump towards ``target`` (default the energy target) plus arm centering, as an arm acceleration
+        turned into counts through the model; never outwards past the soft limit."""
         cfg, model = self.config, self.config.model
         energy = self.normalised_energy(alpha, alpha_dot)
-        shortfall = self.energy_target - energy
+        shortfall = (self.energy_target if target is None else target) - energy
         s = alpha_dot * math.cos(alpha)
-        if abs(s) < cfg.kick_threshold and energy < -0.9:
+        if abs(s) < cfg.kick_threshold and energy < -0.9 and shortfall > 0:
             # hanging (almost) at rest: kick it to get a swing going (on the energy, not the shortfall: a raised
             # target must not turn a turnaround near horizontal into a kick the wrong way)
             pump = cfg.swing_accel
@@ -332,7 +354,19 @@ class ResetController:
                 command = self.swing_command(theta + theta_dot * h, alpha + alpha_dot * h, theta_dot, alpha_dot)
         self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 
-        if self.phase != "ready" and self.elapsed >= cfg.timeout_s:
+        if self.phase != "ready" and (self.elapsed >= cfg.timeout_s or self.catches > cfg.max_catches):
+            self._give_up_at = min(self._give_up_at, self.elapsed)
+            calm = abs(theta_dot) < cfg.wind_down_speed and self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy
+            if not calm and self.elapsed < self._give_up_at + cfg.wind_down_s:
+                # before giving up, hold the arm in the middle while the pendulum's swing dies down: the amplifier
+                # goes off after a failure, and a fast arm, or a big swing dragging a free arm, would reach the stop
+                command = brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot,
+                                                                                    alpha_dot, cfg.wind_down_wn)
+                return command, "swing_up"
+            if self.catches > cfg.max_catches:
+                return self._fail(f"{self.catches - 1} catches did not hold the pendulum (strategy '{self.strategy}', "
+                                  f"arm up to {math.degrees(self.max_arm):.0f} deg, energy target "
+                                  f"{self.energy_target:+.2f})")
             return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s (strategy "
                               f"'{self.strategy}', {self.catches} catches started, arm up to "
                               f"{math.degrees(self.max_arm):.0f} deg, energy target {self.energy_target:+.2f})")

@@ -74,7 +74,7 @@ def test_reset_swings_up_and_hands_over_then_the_episode_runs() -> None:
 def test_a_reset_that_fails_reports_so() -> None:
     core, _, clock = lockstep_core(ControlConfig(reset=ResetConfig(timeout_s=0.3)))
     core.request_reset(3)
-    for _ in range(400):  # start-up checks (about 1.2 s), then 0.3 s of swing-up
+    for _ in range(1000):  # start-up checks (about 1.2 s), 0.3 s of swing-up, up to 3 s holding the arm still
         core.sense()
         core.act(None)
         clock.advance(PERIOD)

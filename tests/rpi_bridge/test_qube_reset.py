@@ -151,7 +151,7 @@ def test_fifty_resets_succeed_inside_the_arm_travel(condition: Condition, at_lea
 
 def test_resets_with_coulomb_friction() -> None:
     """Arm 1.5 mN m (about 0.3 V of motor voltage) and pendulum 0.1 mN m of Coulomb friction: the reset still
-    works on most starts (bench/results/reset.json has all 50) and never leaves the arm's travel."""
+    works on most starts and never leaves the arm's travel."""
     s = summary(run_condition(Condition("coulomb", coulomb=(1.5e-3, 1e-4)), trials=20))
     assert s["ready"] >= 16 and s["past_110_deg"] == 0 and s["end_stop_hits"] == 0, s
 

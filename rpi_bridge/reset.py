@@ -309,18 +309,9 @@ class ResetController:
         brake = self.must_brake(theta, theta_dot, dt)
         self.max_arm = max(self.max_arm, abs(theta))
         if self.phase == "settle":
-            calm = (self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy and abs(theta) < 0.2
-                    and abs(theta_dot) < 0.5)
-            if self.elapsed >= cfg.timeout_s:
-                return self._fail(f"the pendulum did not settle within {cfg.timeout_s:.0f} s (strategy "
-                                  f"'{self.strategy}')")
-            if calm or self.elapsed >= cfg.settle_max_s:
-                self.phase = "swing_up"
-            else:
-                self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
-                command = brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot,
-                                                                                    alpha_dot)
-                return command, "swing_up"
+            settling = self._settle(theta, alpha, theta_dot, alpha_dot, brake)
+            if settling is not None:
+                return settling
         caught = self.phase in ("catch", "holding", "ready")
         catchable = (
             abs(alpha) < cfg.catch_angle
@@ -355,22 +346,44 @@ class ResetController:
         self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 
         if self.phase != "ready" and (self.elapsed >= cfg.timeout_s or self.catches > cfg.max_catches):
-            self._give_up_at = min(self._give_up_at, self.elapsed)
-            calm = abs(theta_dot) < cfg.wind_down_speed and self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy
-            if not calm and self.elapsed < self._give_up_at + cfg.wind_down_s:
-                # before giving up, hold the arm in the middle while the pendulum's swing dies down: the amplifier
-                # goes off after a failure, and a fast arm, or a big swing dragging a free arm, would reach the stop
-                command = brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot,
-                                                                                    alpha_dot, cfg.wind_down_wn)
-                return command, "swing_up"
-            if self.catches > cfg.max_catches:
-                return self._fail(f"{self.catches - 1} catches did not hold the pendulum (strategy '{self.strategy}', "
-                                  f"arm up to {math.degrees(self.max_arm):.0f} deg, energy target "
-                                  f"{self.energy_target:+.2f})")
-            return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s (strategy "
-                              f"'{self.strategy}', {self.catches} catches started, arm up to "
-                              f"{math.degrees(self.max_arm):.0f} deg, energy target {self.energy_target:+.2f})")
+            return self._give_up(theta, alpha, theta_dot, alpha_dot, brake)
         return command, self.phase
+
+    def _settle(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float,
+                brake: int) -> tuple[int, str] | None:
+        """The ``settle`` phase of a strategy that lets the pendulum calm down first: its tick, or None once it is
+        calm (or has waited ``settle_max_s``) and the swing-up begins."""
+        cfg = self.config
+        calm = (self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy and abs(theta) < 0.2
+                and abs(theta_dot) < 0.5)
+        if self.elapsed >= cfg.timeout_s:
+            return self._fail(f"the pendulum did not settle within {cfg.timeout_s:.0f} s (strategy "
+                              f"'{self.strategy}')")
+        if calm or self.elapsed >= cfg.settle_max_s:
+            self.phase = "swing_up"
+            return None
+        self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
+        return (brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot, alpha_dot),
+                "swing_up")
+
+    def _give_up(self, theta: float, alpha: float, theta_dot: float, alpha_dot: float,
+                 brake: int) -> tuple[int, str]:
+        """Out of time or catches: hold the arm in the middle while the pendulum's swing dies down (the amplifier
+        goes off after a failure, and a fast arm, or a big swing dragging a free arm, would reach the stop), then
+        fail with the reason."""
+        cfg = self.config
+        self._give_up_at = min(self._give_up_at, self.elapsed)
+        calm = abs(theta_dot) < cfg.wind_down_speed and self.normalised_energy(alpha, alpha_dot) < cfg.settle_energy
+        if not calm and self.elapsed < self._give_up_at + cfg.wind_down_s:
+            return (brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot, alpha_dot,
+                                                                              cfg.wind_down_wn), "swing_up")
+        if self.catches > cfg.max_catches:
+            return self._fail(f"{self.catches - 1} catches did not hold the pendulum (strategy '{self.strategy}', "
+                              f"arm up to {math.degrees(self.max_arm):.0f} deg, energy target "
+                              f"{self.energy_target:+.2f})")
+        return self._fail(f"the pendulum was not held upright within {cfg.timeout_s:.0f} s (strategy "
+                          f"'{self.strategy}', {self.catches} catches started, arm up to "
+                          f"{math.degrees(self.max_arm):.0f} deg, energy target {self.energy_target:+.2f})")
 
     def _fail(self, reason: str) -> tuple[int, str]:
         self.phase = "failed"

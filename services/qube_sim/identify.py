@@ -68,7 +68,7 @@ class FitConfig:
     substeps: int = 2  # RK4 steps per tick (3.5 ms at 7 ms: the simulator uses 1 ms; see the docs for the effect)
     savgol: int = 11  # samples in the velocity estimate's window (polynomial of order 3)
     holdout: float = 0.25  # fraction of the prbs segment, at its end, held out
-    max_nfev: int = 100
+    max_nfev: int = 300  # evaluations per stage; a fit still moving after them is refused
     ftol: float = 1e-4  # least_squares' tolerances: relative change of the cost, and of the parameters (log space)
     xtol: float = 1e-4
     max_sigma: float = 0.25

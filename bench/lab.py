@@ -72,11 +72,16 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
                str(seed), "--run-dir", str(folder), "--max-episodes", str(args.max_episodes), "--pretrain-episodes",
                str(args.pretrain_episodes), "--qube-actions", args.qube_actions]
     began = time.monotonic()
-    with (runs / f"{folder.name}.log").open("w") as log:
-        code = subprocess.run(command, env=env, stdout=log, stderr=subprocess.STDOUT, check=False).returncode
+    code: int | None = None
+    if args.collect:  # what an earlier invocation left in the folder
+        if not (folder / "lab.json").exists():
+            return {"seed": seed, "not_run": True}
+    else:
+        with (runs / f"{folder.name}.log").open("w") as log:
+            code = subprocess.run(command, env=env, stdout=log, stderr=subprocess.STDOUT, check=False).returncode
     wall = time.monotonic() - began
     print(f"seed {seed}: exit code {code}, {wall / 60:.1f} wall minutes ({folder})", flush=True)
-    return {"seed": seed, "exit_code": code, "wall_s": round(wall, 1), **measure(folder),
+    return {"seed": seed, "exit_code": code, "wall_s": None if args.collect else round(wall, 1), **measure(folder),
             "zero_shot_returns": zero_shot(folder, truth_file(family, runs), seed, args.workers)}
 
 
@@ -103,7 +108,7 @@ def measure(folder: Path) -> dict[str, Any]:
     summary = json.loads((finetune / "summary.json").read_text()) if (finetune / "summary.json").exists() else None
     pretrain = folder / "pretrain" / "summary.json"
     pre = json.loads(pretrain.read_text()) if pretrain.exists() else None
-    out: dict[str, Any] = {"stages_done": progress.get("done", []),
+    out: dict[str, Any] = {"stages_done": progress.get("done", []), "lab_wall_s": progress.get("wall_s"),
                            "pretrain_episodes": pre.get("episodes_to_all_solved") if pre else None}
     if summary is None or not rows:
         return {**out, "finished": False}
@@ -155,6 +160,11 @@ def _cell(s: dict[str, Any], digits: int = 0) -> str:
     return f"{fmt(s['median'])} [{fmt(s['q1'])} to {fmt(s['q3'])}]"
 
 
+def _lab_minutes(report: dict[str, Any]) -> str:
+    walls = sorted(r["lab_wall_s"] / 60 for r in report["results"] if r.get("lab_wall_s"))
+    return f"{walls[len(walls) // 2]:.0f}" if walls else "-"
+
+
 def render(report: dict[str, Any], source: str) -> str:
     """The markdown of one lab.json: the last rig per seed, median [IQR], and the targets."""
     t = report["table"]
@@ -164,7 +174,9 @@ def render(report: dict[str, Any], source: str) -> str:
         f"`{report['family']}` family (true physics given to the simulators only), action set "
         f"`{report['qube_actions']}`, report seeds {report['seeds']} ({t['seeds']} labs), the last of each lab's "
         f"rigs, median [IQR], unfinished counted as worse; generated from `{source}` ({report['cpus']} cores, load "
-        f"{report['load_at_start']} at the start, {report['wall_s'] / 60:.0f} wall minutes).",
+        f"{report['load_at_start']} at the start, {_lab_minutes(report)} wall minutes per lab, median)"
+        + (f"; seeds {', '.join(map(str, report['not_run']))} were not run in the time this session had"
+           if report.get("not_run") else "") + ".",
         "",
         "| labs finished | fine-tune episodes | balance steps | rig minutes (identification + balance + reset) | "
         "zero-shot after identification | workers stopped on their rig |",
@@ -209,6 +221,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs-dir", type=Path, default=Path("runs/bench-lab"))
     p.add_argument("--jobs", type=int, default=1, help="labs at a time (each runs 3-4 processes)")
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--collect", action="store_true", help="run nothing: measure the labs an earlier invocation left "
+                   "in --runs-dir (an unfinished lab counts as unfinished, a seed without a folder as not run)")
     p.add_argument("--report", action="store_true", help="only write the table of --out into README.md and "
                    "docs/how-to/lab.md (runs nothing)")
     args = p.parse_args(argv)
@@ -221,12 +235,14 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()[0]
     with ThreadPoolExecutor(max_workers=args.jobs) as pool:  # each lab is its own processes
         results = list(pool.map(lambda seed: run_seed(seed, args.family, args, runs), seeds_of(args.seeds)))
+    not_run = [r["seed"] for r in results if r.get("not_run")]
+    results = [r for r in results if not r.get("not_run")]
     table = aggregate(results)
     write_report(args.out, "bench.lab", argv, {
         "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
         "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
         "wall_s": round(time.monotonic() - began, 1),
-        "targets": TARGETS, "table": table, "results": results})
+        "collected": args.collect, "not_run": not_run, "targets": TARGETS, "table": table, "results": results})
     print(json.dumps(table, indent=1))
     write_pages(args.out)
     return 0

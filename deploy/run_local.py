@@ -115,18 +115,17 @@ class Fleet:
             fh.close()
 
 
-def stop_like_ctrl_c(log_dir: Path) -> None:
+def stop_like_ctrl_c(log_dir: Path) -> dict[int, Any]:
     """Handle SIGTERM and SIGHUP as Ctrl-C (a KeyboardInterrupt): the run ends resumably, with its summary and its
     resume command, and no process of it is left behind. After a SIGHUP the terminal is gone: what the launcher
-    prints from then on is appended to ``log_dir/launcher.log``."""
+    prints from then on is appended to ``log_dir/launcher.log``. Returns the handlers it replaced."""
 
     def handler(signum: int, frame: object) -> None:
         if signum == signal.SIGHUP and not getattr(sys.stdout, "name", "").endswith("launcher.log"):
             sys.stdout = sys.stderr = open(log_dir / "launcher.log", "a", buffering=1)  # to the end
         raise KeyboardInterrupt
 
-    for sig in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(sig, handler)
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGTERM, signal.SIGHUP)}
 
 
 @returns_code
@@ -140,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
     run_dir: Path = s.run_dir
     log_dir = run_dir / "logs"
     log_dir.mkdir(parents=True, exist_ok=True)
-    stop_like_ctrl_c(log_dir)
+    found = stop_like_ctrl_c(log_dir)
     fleet = Fleet(log_dir, fork_workers=s.fork_workers)
     t0 = time.monotonic()
     worker_ids = [f"w{i}" for i in range(s.workers)]
@@ -196,9 +195,15 @@ def main(argv: list[str] | None = None) -> int:
         fleet.stop(grace=5)
         return 130
     finally:
-        for sig in (signal.SIGTERM, signal.SIGHUP):  # stopping already: a repeated kill must not cut the stop short
+        # Stopping already: a repeated kill must not cut the stop short. The handlers it found come back afterwards,
+        # so that a caller in this process (a test, a benchmark) and what it starts later still end on SIGTERM.
+        for sig in found:
             signal.signal(sig, signal.SIG_IGN)
-        fleet.stop()
+        try:
+            fleet.stop()
+        finally:
+            for sig, handler in found.items():
+                signal.signal(sig, handler)
 
 
 def check_children(s: LocalRunSettings) -> None:

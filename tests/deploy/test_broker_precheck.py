@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import threading
@@ -155,7 +156,11 @@ def test_the_launcher_refuses_in_one_line_before_anything_starts(case: str, lab:
         env.setenv("FEDRL_MQTT_CA_FILE", lab.ca)
     broker = {"password": f"mqtt://{HOST}:{lab.plain}", "no CA": f"mqtts://{HOST}:{lab.tls}",
               "host name": f"mqtts://localhost:{lab.tls}", "not MQTT": f"mqtt://{HOST}:{not_mqtt}"}[case]
+    handlers = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGHUP)}
     code = run_local.main(["--broker", broker, "--run-dir", str(tmp_path / "run"), "--dashboard-port", "off"])
+    # the launcher ignores a repeated kill while it stops, then gives the handlers back: a SIGTERM ignored for good
+    # in this process would be inherited by whatever it starts later (a fork server's workers ignored theirs)
+    assert {sig: signal.getsignal(sig) for sig in handlers} == handlers
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 1 and len(err) == 1 and err[0].startswith("cannot reach the MQTT broker at "), err
     assert {"password": REFUSED, "no CA": "does not verify", "host name": "not for host 'localhost'",

@@ -233,13 +233,15 @@ def main(argv: list[str] | None = None) -> int:
         summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
                                  device_noise=s.device_noise, progress=True, init_model=s.init_model,
                                  max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum,
-                                 env_options=options)
+                                 env_options=options, tolerate_failures=True)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2
     last = summary["episodes_to_all_solved"]
     reason = summary["end_reason"]
-    outcome = f"all workers solved by episode {last}" if last is not None else f"not all solved ({reason})"
+    failed = [w["id"] for w in summary["workers"] if not w["solved"] and str(w.get("detail", "")).startswith("error")]
+    outcome = (f"all workers solved by episode {last}" if last is not None else f"not all solved ({reason}"
+               + (f"; failed: {', '.join(failed)}, see the lines above" if failed else "") + ")")
     print(f"{s.env} / {s.policy} / seed {s.seed}: {outcome}; {summary['wall_s']:.1f} s; results in {s.run_dir}")
     return 0
 

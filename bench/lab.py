@@ -190,7 +190,8 @@ def render(report: dict[str, Any], source: str) -> str:
         f"{met(t['targets']['no_worker_stopped'])}."]
     for r in report["results"]:
         if not r.get("finished"):
-            lines.append(f"- Seed {r['seed']} unfinished: exit code {r['exit_code']}, stages done "
+            code = f"exit code {r['exit_code']}, " if r.get("exit_code") is not None else ""
+            lines.append(f"- Seed {r['seed']} unfinished: {code}stages done "
                          f"{', '.join(r.get('stages_done', [])) or 'none'}"
                          + (f", end reason: {r['end_reason']}" if r.get("end_reason") else "") + ".")
     return "\n".join(lines) + "\n"

@@ -161,7 +161,8 @@ def _cell(s: dict[str, Any], digits: int = 0) -> str:
 
 
 def _lab_minutes(report: dict[str, Any]) -> str:
-    walls = sorted(r["lab_wall_s"] / 60 for r in report["results"] if r.get("lab_wall_s"))
+    walls = sorted((r.get("lab_wall_s") or r["wall_s"]) / 60 for r in report["results"]
+                   if r.get("lab_wall_s") or r.get("wall_s"))
     return f"{walls[len(walls) // 2]:.0f}" if walls else "-"
 
 

@@ -117,7 +117,7 @@ def request_recording(conn: MqttConnection, rig_id: str, timeout_s: float,
 def main(argv: list[str] | None = None) -> int:
     s = IdentifySettings.load(argv, prog="python -m worker.identify", description=__doc__.splitlines()[0])
     setup_logging(s.log_level, f"identify[{s.rig_id}]")
-    from services.qube_sim.identify import FitRefused, fit_and_write
+    from services.qube_sim.identify import fit_to_file
     from services.qube_sim.profile import load_profile
 
     conn = MqttConnection(s.address(), client_id=f"identify-{s.rig_id}")
@@ -133,14 +133,7 @@ def main(argv: list[str] | None = None) -> int:
     if s.recording_out is not None:
         recording.save(s.recording_out)
     print(f"rig {s.rig_id}: {recording.rig_seconds:.0f} s recorded; fitting", flush=True)
-    try:
-        _, profile = fit_and_write(recording, load_profile(s.base), s.out, f"rig {s.rig_id} over MQTT",
-                                   progress=lambda line: print(line, flush=True))
-    except FitRefused as err:
-        print(f"python -m worker.identify: refused: {err}", file=sys.stderr)
-        return 1
-    print(f"wrote {s.out}: profile {profile.name!r} from {recording.rig_seconds:.0f} s of rig time")
-    return 0
+    return fit_to_file(recording, load_profile(s.base), s.out, f"rig {s.rig_id} over MQTT", "python -m worker.identify")
 
 
 if __name__ == "__main__":

@@ -444,6 +444,22 @@ def record_simulated(truth: RigProfile, seed: int, control: ControlConfig | None
     return recording.model_copy(update={"rig": rig or f"{truth.name}-seed{seed}"})
 
 
+def fit_to_file(rec: Recording, base: RigProfile, out: Path, source: str, prog: str) -> int:
+    """The host's end of every identification command: fit ``rec`` over ``base`` with progress, write the profile to
+    ``out`` only if trusted; 0 with the line that says so, or 1 with one line naming ``prog`` (refused, unwritable)."""
+    try:
+        result, profile = fit_and_write(rec, base, out, source, progress=lambda line: print(line, flush=True))
+    except FitRefused as err:
+        print(f"{prog}: refused: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:
+        print(f"{prog}: cannot write {out}: {err}", file=sys.stderr)
+        return 1
+    print(f"identify: wrote {out}: profile {profile.name!r} from {rec.rig_seconds:.1f} s of rig time, fit "
+          f"{result.wall_s:.1f} s")
+    return 0
+
+
 def identify_simulated(truth: RigProfile, seed: int, control: ControlConfig, base: RigProfile, out: Path,
                        faults: dict[str, bool] | None = None) -> int:
     """``python -m services.qube_sim --identify OUT``: record simulated rig ``seed`` of ``truth`` (its truth only
@@ -457,18 +473,7 @@ def identify_simulated(truth: RigProfile, seed: int, control: ControlConfig, bas
         return 1
     print(f"identify: recorded {rec.rig_seconds:.1f} s of rig time ({len(rec.t)} ticks) in "
           f"{time.perf_counter() - began:.1f} s; fitting over {base.name}", flush=True)
-    try:
-        result, profile = fit_and_write(rec, base, out, f"simulated rig {rec.rig}",
-                                        progress=lambda line: print(line, flush=True))
-    except FitRefused as err:
-        print(f"qube_sim: refused: {err}", file=sys.stderr)
-        return 1
-    except OSError as err:
-        print(f"qube_sim: cannot write {out}: {err}", file=sys.stderr)
-        return 1
-    print(f"identify: wrote {out}: profile {profile.name!r} from {rec.rig_seconds:.1f} s of rig time, fit "
-          f"{result.wall_s:.1f} s")
-    return 0
+    return fit_to_file(rec, base, out, f"simulated rig {rec.rig}", "qube_sim")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -485,16 +490,7 @@ def main(argv: list[str] | None = None) -> int:
     except (ProfileError, RecordingError) as err:
         print(f"identify: {err}", file=sys.stderr)
         return 2
-    try:
-        _, profile = fit_and_write(rec, base, args.out, str(args.recording), progress=print)
-    except FitRefused as err:
-        print(f"identify: refused: {err}", file=sys.stderr)
-        return 1
-    except OSError as err:
-        print(f"identify: cannot write {args.out}: {err}", file=sys.stderr)
-        return 1
-    print(f"wrote {args.out}: profile {profile.name!r} from {rec.rig_seconds:.0f} s of rig time")
-    return 0
+    return fit_to_file(rec, base, args.out, str(args.recording), "identify")
 
 
 if __name__ == "__main__":

@@ -471,9 +471,15 @@ class RoundKeeper:
             self.done_reason, self.interrupted = INTERRUPTED, True
 
     def resume(self) -> None:
-        """Take up an interrupted run again (a run that ended for good stays over)."""
+        """Take up an interrupted run again (a run that ended for good stays over). Every worker the stop left
+        ``offline`` is waited for again: the command that resumes the run starts them all, and what one said about
+        its stop (a storage fault, its ``stopped`` on the RunStop) does not excuse it from a run that goes on. A
+        worker that had timed out (``lagging``) stays excused until it submits, as in a run that never stopped."""
         if self.interrupted:
             self.done_reason, self.interrupted = None, False
+            for rec in self.workers.values():
+                if rec.state == "offline":
+                    rec.state, rec.excused, rec.detail = "active", False, ""
 
     # -- internals -------------------------------------------------------------------------------------------
 

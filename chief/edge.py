@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import threading
 import time
 from typing import Any
 
@@ -51,7 +52,7 @@ from protocol.transport import Connect, Transport
 
 log = logging.getLogger("edge")
 
-EXIT_OK, EXIT_NOT_STARTED = 0, 3
+EXIT_OK, EXIT_NOT_STARTED, EXIT_INTERRUPTED = 0, 3, 130
 #: Closed rounds whose root answers an edge keeps, to answer a worker again that missed one.
 ANSWERS_KEPT = 32
 #: Seconds between two further copies of one round's partial: the workers of an edge that send a round again (all at
@@ -80,11 +81,17 @@ class EdgeService:
         self.resent: dict[int, float] = {}  # round -> when its partial last went again
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
+        self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
         self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
 
     def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
         return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
                               rejects=rejects)
+
+    def interrupt(self) -> None:
+        """Stop within a tenth of a second (SIGTERM, SIGINT, SIGHUP): the root goes on, and this edge's workers
+        are lagging until an edge speaks for them again. Safe from any thread or a signal handler."""
+        self._interrupt.set()
 
     # -- network thread: decode, enqueue -----------------------------------------------------------------------
 
@@ -113,7 +120,7 @@ class EdgeService:
             self.conn.subscribe(route_for(WORKER, "hello").filter(run=run), self._on_worker, qos=1)
             log.info("edge %s of run %s: waiting for the root's RunStart", self.edge, run)
             deadline = time.monotonic() + self.cfg.start_timeout
-            while True:
+            while not self._interrupt.is_set():
                 try:
                     topic, msg, payload = self.events.get(timeout=0.1)
                 except queue.Empty:
@@ -134,6 +141,9 @@ class EdgeService:
                         self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
                 if self.keeper is not None:
                     self._forward(self.keeper.tick(time.monotonic()))
+            log.warning("edge %s: interrupted after %d partials; the root goes on, and this edge's workers are "
+                        "lagging until an edge speaks for them", self.edge, self.partials)
+            return EXIT_INTERRUPTED
         finally:
             self.conn.stop()
 

@@ -23,14 +23,20 @@ from typing import Any
 
 from bench.output import command
 from chief.audit import audit
+from chief.records import RoundRecord, read_metrics
 from deploy.inprocess import run_federation
 
 OUT = Path("bench/results/stragglers.json")
 
 
+def rounds_of(run_dir: Path) -> list[RoundRecord]:
+    """A run's round records, in order (metrics.jsonl)."""
+    return [r for r in read_metrics(run_dir) if isinstance(r, RoundRecord)]
+
+
 def seconds_per_round(run_dir: Path) -> float:
     """The median gap between two consecutive rounds' close times (s)."""
-    times = [r["t"] for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
+    times = [r.t for r in rounds_of(run_dir)]
     return statistics.median(b - a for a, b in itertools.pairwise(times))
 
 
@@ -42,11 +48,11 @@ def measure(name: str, workers: int, episodes: int, seed: int, env: str, folder:
     summary = run_federation(env, "weighted", seed, workers, episodes, run_dir, plot=False, tensorboard_files=False,
                              models=False, quorum=quorum, pace=pace)
     report = audit(run_dir)
-    rounds = [r for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
+    rounds = rounds_of(run_dir)
     return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {},
             "rounds": summary["rounds"], "s_per_round": round(seconds_per_round(run_dir), 4),
             "wall_s": round(time.monotonic() - began, 1),
-            "rounds_without": sum(1 for r in rounds if r.get("late")),
+            "rounds_without": sum(1 for r in rounds if r.late),
             "late_refused": summary.get("rejected_messages", {}).get("late", 0), "audit": str(report)}
 
 

@@ -27,6 +27,7 @@ from typing import Any
 from bench.output import write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
+from chief.records import SUMMARY, RunSummary
 from protocol.qube import MAX_RETURN
 
 OUT = Path("bench/results/lab.json")
@@ -105,30 +106,29 @@ def measure(folder: Path) -> dict[str, Any]:
     progress = json.loads((folder / "lab.json").read_text()) if (folder / "lab.json").exists() else {}
     rows = progress.get("rigs", [])
     finetune = folder / "finetune"
-    summary = json.loads((finetune / "summary.json").read_text()) if (finetune / "summary.json").exists() else None
-    pretrain = folder / "pretrain" / "summary.json"
-    pre = json.loads(pretrain.read_text()) if pretrain.exists() else None
+    summary = RunSummary.read(finetune) if (finetune / SUMMARY).exists() else None
+    pre = RunSummary.read(folder / "pretrain") if (folder / "pretrain" / SUMMARY).exists() else None
     out: dict[str, Any] = {"stages_done": progress.get("done", []), "lab_wall_s": progress.get("wall_s"),
-                           "pretrain_episodes": pre.get("episodes_to_all_solved") if pre else None}
+                           "pretrain_episodes": pre.episodes_to_all_solved if pre else None}
     if summary is None or not rows:
         return {**out, "finished": False}
     first: dict[str, float] = {}
     for e in read_records(finetune)[1]:
         if e.worker not in first:
             first[e.worker] = e.return_
-    workers = {w["id"]: w for w in summary["workers"]}
+    workers = {w.id: w for w in summary.workers}
     per_rig = []
     for row in rows:
-        w = workers.get(row["worker"], {})
-        rig = w.get("rig") or {}
-        minutes = (rig.get("rig_s", 0.0) + row["identify_s"]) / 60
-        per_rig.append({"rig": row["rig"], "solved": bool(w.get("solved")), "episodes": w.get("episodes"),
-                        "balance_steps": rig.get("balance_steps"), "identify_s": row["identify_s"],
-                        "rig_min": round(minutes, 3), "stopped": w.get("state") in ("failed", "stopped"),
+        w = workers.get(row["worker"])
+        rig = w.rig if w is not None else None
+        minutes = ((rig.rig_s if rig else 0.0) + row["identify_s"]) / 60
+        per_rig.append({"rig": row["rig"], "solved": bool(w and w.solved), "episodes": w.episodes if w else None,
+                        "balance_steps": rig.balance_steps if rig else None, "identify_s": row["identify_s"],
+                        "rig_min": round(minutes, 3), "stopped": w is not None and w.state == "stopped",
                         "first_episode": first.get(row["worker"])})
     last = max(per_rig, key=lambda r: r["rig_min"])
     finished = all(r["solved"] for r in per_rig)
-    return {**out, "finished": finished, "end_reason": summary.get("end_reason"), "rigs": per_rig,
+    return {**out, "finished": finished, "end_reason": summary.end_reason, "rigs": per_rig,
             "last": {k: last[k] for k in ("rig", "episodes", "balance_steps", "rig_min")},
             "stopped": sum(r["stopped"] for r in per_rig)}
 

@@ -65,6 +65,18 @@ FULL = [(4, "flat", 0), (16, "flat", 0), (64, "flat", 0), (256, "flat", 0), (16,
         (256, "tiered", 16), (1024, "tiered", 16), (1024, "flat", 0)]
 QUICK = [(4, "flat", 0), (16, "flat", 0), (64, "flat", 0), (256, "tiered", 4)]
 ROUNDS = 6
+#: The root's and the edges' round and start timeouts (s): a safety net, never reached by a healthy point at any
+#: speed. The devices wait longer (ANSWER_WAIT_S), and fail at once when a process of the federation dies.
+ROUND_TIMEOUT_S = 600
+#: How long the devices wait for an answer: past the chiefs' own timeout, so that a round the root gave up on shows
+#: as a round that did not count every device (a clear error), not as a device's timeout racing the root's.
+ANSWER_WAIT_S = ROUND_TIMEOUT_S + 60
+#: The broker's configuration for every point. ``max_queued_messages 0``: no limit on the QoS 1 messages Mosquitto
+#: holds for one client beyond its 20 in flight (default 1,000). A flat root gets N updates at once; where the
+#: devices publish faster than it reads (a quiet machine with fast cores), more than 1,000 waited for it, Mosquitto
+#: dropped the rest ("Outgoing messages are being dropped"), and the round waited for them until the timeout. The
+#: devices wait for each answer before they publish again, so what it holds is bounded by one round (N updates).
+BROKER_CONF = "sys_interval 1\nmax_queued_messages 0\n"
 #: The flat chief's round at 64 workers over Mosquitto (bench/results/cost.json, round_s median): the target.
 FLAT_64_MS = 82.0
 
@@ -144,6 +156,24 @@ class EdgeHosts:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # its end of the veth pair goes with it
 
 
+def gone(procs: list[tuple[str, subprocess.Popen[bytes]]]) -> str | None:
+    """Why the federation cannot answer any more: the first of its processes that failed (None while none has; one
+    that exited 0 has ended its run, and its last answers may still be on their way)."""
+    for name, proc in procs:
+        if proc.poll() not in (None, 0):
+            return f"{name} exited with code {proc.returncode}"
+    return None
+
+
+def check_counted(run_dir: Path, devices: int) -> None:
+    """Every round of the root counted every device (RuntimeError naming the first that did not: the root gave up
+    on some, and the point did not measure what it says)."""
+    for rec in read_metrics(run_dir):
+        if isinstance(rec, RoundRecord) and len(rec.contributors) != devices:
+            raise RuntimeError(f"round {rec.round} counted {len(rec.contributors)} of {devices} devices (timed out: "
+                               f"{len(rec.timed_out)})")
+
+
 def root_times(run_dir: Path) -> list[float]:
     """Per round, from the root's records: its first counted submission to the round's record (s)."""
     first: dict[int, float] = {}
@@ -164,7 +194,7 @@ def measured_rounds(fleet: SpreadFleet, root: subprocess.Popen[bytes], port: int
     stats = proc_stats(root.pid, port)
     msgs, began = counters.total(), time.monotonic()
     for episode in range(1, rounds + 1):
-        times.append(fleet.round(episode, timeout=600))
+        times.append(fleet.round(episode, timeout=ANSWER_WAIT_S))
         now = proc_stats(root.pid, port) if root.poll() is None else stats
         cpu.append(now[0] - stats[0])
         read.append(now[1] - stats[1])
@@ -187,12 +217,12 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
     hosts = EdgeHosts.make(edges) if netns and edges else None
     outer = free_port()  # the listener the namespaces reach (every address), beside the loopback one
     broker_proc, port = mosquitto.start(work, max_packet_size=8 * 1024 * 1024,
-                                        extra=f"sys_interval 1\nlistener {outer}\n" if hosts else "sys_interval 1\n")
+                                        extra=BROKER_CONF + (f"listener {outer}\n" if hosts else ""))
     broker = f"mqtt://{HOST}:{port}"
     run_dir = work / "run"
     logs = [(work / f"{n}.log").open("wb") for n in ["root", *(f"e{k}" for k in range(edges))]]
-    common = ["--broker", broker, "--run-id", RUN, "--env", "CartPole-v0", "--round-timeout", "600",
-              "--start-timeout", "600", "--log-level", "WARNING"]
+    common = ["--broker", broker, "--run-id", RUN, "--env", "CartPole-v0", "--round-timeout", str(ROUND_TIMEOUT_S),
+              "--start-timeout", str(ROUND_TIMEOUT_S), "--log-level", "WARNING"]
     root = subprocess.Popen([sys.executable, "-m", "chief", *common, "--workers", str(devices), "--edges", str(edges),
                              "--max-episodes", str(rounds), "--run-dir", str(run_dir)],
                             stdout=logs[0], stderr=subprocess.STDOUT)
@@ -207,8 +237,10 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
     try:
         print(f"scale: {name}: connecting {devices} devices", flush=True)
         counters = BrokerCounters(broker)
-        fleet = SpreadFleet(broker, devices, arrays, edges=edges, per_process=per_process)
-        fleet.join(timeout=600)
+        fleet = SpreadFleet(broker, devices, arrays, edges=edges, per_process=per_process,
+                            watch=lambda: gone([("the broker", broker_proc), ("the root chief", root),
+                                                *((f"edge chief e{k}", p) for k, p in enumerate(edge_procs))]))
+        fleet.join(timeout=ANSWER_WAIT_S)
         answered = [AnsweredRig(broker, f"scale-rig{k}") for k in range(rigs)]
         for r in answered:
             r.answering()  # the rounds start once every rig is balancing: its latencies are those of the rounds
@@ -219,6 +251,7 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
         for p in edge_procs:
             p.wait(120)
         report = audit(run_dir)
+        check_counted(run_dir, devices)
     finally:
         for r in answered:
             r.kill()

@@ -51,7 +51,7 @@ class SpreadFleet:
             self.procs.append(proc)
             lines: queue.Queue[str] = queue.Queue()
             assert proc.stdout is not None
-            threading.Thread(target=_pump, args=(proc.stdout, lines), daemon=True).start()
+            threading.Thread(target=pump, args=(proc.stdout, lines), daemon=True).start()
             self.lines.append(lines)
         try:
             self._answers(timeout)  # every slice connected
@@ -124,7 +124,7 @@ class SpreadFleet:
                 proc.wait()
 
 
-def _pump(stream: IO[str], lines: queue.Queue[str]) -> None:
+def pump(stream: IO[str], lines: queue.Queue[str]) -> None:
     """A device process's answers, line by line; an empty line when it exits."""
     for line in stream:
         lines.put(line)

@@ -11,7 +11,8 @@ import pytest
 
 from bench.cost import actor_arrays
 from bench.fleets import SpreadFleet
-from bench.scale import check_counted, gone, point
+from bench.rigs import RigProcess
+from bench.scale import check_counted, gone, point, rig_row
 from chief.records import RoundRecord
 
 
@@ -65,3 +66,21 @@ def test_a_point_whose_root_gave_up_on_devices_is_an_error(tmp_path: Path) -> No
     (tmp_path / "metrics.jsonl").write_text("".join(r.model_dump_json() + "\n" for r in rounds))
     with pytest.raises(RuntimeError, match=r"round 2 counted 1 of 2 devices \(timed out: 1\)"):
         check_counted(tmp_path, 2)
+
+
+@pytest.mark.slow
+def test_a_rig_answered_from_its_own_process_reports_what_it_saw(mosquitto_broker: str) -> None:
+    """bench.rigs: a real-time simulated rig answered from a process of its own; its measurement is the rig's own
+    telemetry (ticks in time or missed), and its worker answered states."""
+    rig = RigProcess(mosquitto_broker, "test-rig", timeout=120)
+    try:
+        rig.answering()
+        time.sleep(1.0)
+        stats = rig.finish()
+    except BaseException:
+        rig.kill()
+        raise
+    assert stats["ticks_answered"] > 0 and stats["latency_ms"]["n"] + stats["deadline_misses"] > 0
+    row = rig_row([stats])
+    assert row["rig_answered_from"] == "its own process" and 0 <= row["rig_miss_rate"] <= 1
+    assert rig.proc.returncode == 0

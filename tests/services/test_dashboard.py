@@ -24,6 +24,7 @@ from protocol.codec import encode
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
+    EdgePartial,
     MatureParams,
     QubeAction,
     QubeState,
@@ -195,6 +196,52 @@ def test_view_resent_points_replace_and_long_curves_are_thinned() -> None:
     curve = [p[0] for p in workers_of(view)["w0"]["curve"]]
     assert len(curve) <= 8 and curve[-1] == 9 and curve == sorted(curve)
     assert curve[0] <= 2, "thinning keeps the start of the curve"
+
+
+def partial(edge: str, episode: int, *submissions: WorkerUpdate | MatureParams) -> EdgePartial:
+    """Edge ``edge``'s part of round ``episode``: its workers' submissions as the root gets them, without tensors."""
+    return EdgePartial(edge_id=edge, round=episode, episode=episode,
+                       updates=[u.model_copy(update={"gradient": {}}) for u in submissions
+                                if isinstance(u, WorkerUpdate)],
+                       matures=[m for m in submissions if isinstance(m, MatureParams)], count=len(submissions))
+
+
+def test_view_shows_the_workers_of_a_tiered_run_from_their_edges_partials() -> None:
+    """A dashboard that sees only the root's side of a tiered run (the edges' partials and the chief's answers)
+    shows every worker's episodes, PI and finish; one that sees the workers' own updates as well shows one point
+    per episode, and a partial seen after the worker's newer update neither regresses its PI nor its curve's order."""
+    edge = lambda e: topics.edge(RUN, e, topics.PARTIAL)  # noqa: E731
+    view = RunView(RUN)
+    feed(view, start(["w0", "w1", "w2"]))
+    for episode in (1, 2):
+        events = view.apply(edge("e0"), partial("e0", episode, update("w0", episode, 10.0 * episode),
+                                                update("w2", episode, 5.0 * episode)), 10.0 + episode)
+        assert {"type": "point", "worker": "w2", "point": [episode, 5.0 * episode, 5.0 * episode]} in events
+        view.apply(edge("e1"), partial("e1", episode, update("w1", episode, 1.0)), 10.5 + episode)
+        feed(view, aggregate(episode, {"w0": 0.5, "w1": 0.25, "w2": 0.25}))
+    view.apply(edge("e1"), partial("e1", 3, mature("w1", 3, 196.0)), 14.0)
+    workers = workers_of(view)
+    assert {w: (v["episode"], v["pi"], [p[0] for p in v["curve"]]) for w, v in workers.items()} == {
+        "w0": (2, 20.0, [1, 2]), "w2": (2, 10.0, [1, 2]), "w1": (3, 196.0, [1, 2, 3])}
+    assert workers["w1"]["state"] == "finished" and workers["w1"]["solved_episode"] == 3
+    assert view.snapshot()["kinds"]["partial"] == 5
+
+    both = RunView(RUN)  # the workers' own updates and the partials
+    feed(both, start(["w0"]), update("w0", 1, 10.0), update("w0", 2, 20.0))  # w0 ahead of its edge's round 1
+    events = both.apply(edge("e0"), partial("e0", 1, update("w0", 1, 10.0)), 5.0)
+    assert events and all(e["type"] != "point" for e in events)  # the page's curve takes no older point
+    w0 = workers_of(both)["w0"]
+    assert ([p[0] for p in w0["curve"]], w0["episode"], w0["pi"]) == ([1, 2], 2, 20.0)
+
+
+def test_view_refuses_an_edge_partial_without_the_run_key() -> None:
+    view = RunView(RUN, key=KEY)
+    view.apply(topics.chief(RUN, topics.START), signed(start(["w0"]), KEY), 1.0)
+    topic = topics.edge(RUN, "e0", topics.PARTIAL)
+    assert view.apply(topic, partial("e0", 1, update("w0", 1, 10.0)), 2.0) == []
+    assert view.snapshot()["refused"] == {"unsigned partial": 1} and workers_of(view)["w0"]["episode"] == 0
+    assert view.apply(topic, signed(partial("e0", 1, update("w0", 1, 10.0)), KEY), 3.0) != []
+    assert workers_of(view)["w0"]["episode"] == 1
 
 
 def test_view_end_state_says_the_run_is_over() -> None:

@@ -225,6 +225,9 @@ def test_view_shows_the_workers_of_a_tiered_run_from_their_edges_partials() -> N
         "w0": (2, 20.0, [1, 2]), "w2": (2, 10.0, [1, 2]), "w1": (3, 196.0, [1, 2, 3])}
     assert workers["w1"]["state"] == "finished" and workers["w1"]["solved_episode"] == 3
     assert view.snapshot()["kinds"]["partial"] == 5
+    # An edge's copy of the chief's answer is not shown again: the chief's own is.
+    assert view.apply(topics.relayed(RUN, "e0", topics.AGGREGATE), aggregate(2, {"w0": 1.0}), 15.0) == []
+    assert view.snapshot()["run"]["rounds"] == 2 and view.snapshot()["ignored"] == {"aggregate": 1}
 
     both = RunView(RUN)  # the workers' own updates and the partials
     feed(both, start(["w0"]), update("w0", 1, 10.0), update("w0", 2, 20.0))  # w0 ahead of its edge's round 1

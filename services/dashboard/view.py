@@ -415,6 +415,11 @@ class RunView:
 
     # -- reading ---------------------------------------------------------------------------------------------
 
+    @property
+    def tiered(self) -> bool:
+        """Whether the run goes through edge chiefs (its RunStart names each worker's edge)."""
+        return self.start is not None and bool(self.start.edges)
+
     def run_summary(self) -> Event:
         start, stop = self.start, self.stop
         solved = sorted(((w.id, w.solved_episode) for w in self.workers.values() if w.status == "finished"),

@@ -310,10 +310,45 @@ def test_view_same_run_id_again_starts_afresh() -> None:
 
 def test_subscriptions_leave_out_the_143_hz_state_topic() -> None:
     subs = dict(subscriptions(RUN, None))
-    assert subs == {f"fedrl/{RUN}/#": 1, "qube/+/status": 1, "qube/+/telemetry": 0}
-    assert dict(subscriptions(RUN, ["rigA"])) == {f"fedrl/{RUN}/#": 1, "qube/rigA/status": 1, "qube/rigA/telemetry": 0}
+    run = {f: q for f, q in subs.items() if f.startswith(f"fedrl/{RUN}/")}
+    assert {f: q for f, q in subs.items() if f not in run} == {"qube/+/status": 1, "qube/+/telemetry": 0}
+    assert {f"fedrl/{RUN}/worker/+/update", f"fedrl/{RUN}/edge/+/partial", f"fedrl/{RUN}/chief/aggregate"} <= set(run)
+    assert dict(subscriptions(RUN, ["rigA"])) == {**run, "qube/rigA/status": 1, "qube/rigA/telemetry": 0}
     with pytest.raises(ValueError):
         subscriptions(RUN, ["bad/rig"])
+
+
+class Subscriber:
+    """What a feed asked its connection to subscribe to and unsubscribe from."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, str]] = []
+
+    def subscribe(self, topic_filter: str, handler: Any, qos: int = 1) -> None:
+        self.calls.append(("subscribe", topic_filter))
+
+    def unsubscribe(self, topic_filter: str) -> None:
+        self.calls.append(("unsubscribe", topic_filter))
+
+
+def test_feed_reads_no_worker_updates_in_a_tiered_run() -> None:
+    """Once the run's RunStart names edges, the feed stops reading the workers' updates (their edges' partials carry
+    them, without gradients); a flat run under the same id reads them again."""
+    hub = Hub(RunView(RUN))
+    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, hub)  # never started
+    fd.conn = Subscriber()  # type: ignore[assignment]
+    fd.follow_tier(hub.view.tiered)
+    hub.apply([("t", start(["w0"]), 1.0)])
+    fd.follow_tier(hub.view.tiered)
+    assert fd.conn.calls == []  # type: ignore[attr-defined]  # a flat run: its updates are read
+    hub.apply([("t", RunStop(run_id=RUN, reason="done", episodes=1, all_solved=False), 2.0),
+               ("t", start(["w0", "w1"]).model_copy(update={"edges": {"w0": "e0", "w1": "e1"}}), 3.0)])
+    fd.follow_tier(hub.view.tiered)
+    fd.follow_tier(hub.view.tiered)
+    assert fd.conn.calls == [("unsubscribe", f"fedrl/{RUN}/worker/+/update")]  # type: ignore[attr-defined]
+    hub.apply([("t", RunStop(run_id=RUN, reason="done", episodes=1, all_solved=False), 4.0), ("t", start(["w0"]), 5.0)])
+    fd.follow_tier(hub.view.tiered)
+    assert fd.conn.calls[-1] == ("subscribe", f"fedrl/{RUN}/worker/+/update")  # type: ignore[attr-defined]
 
 
 def test_feed_rejects_counts_and_survives_bad_payloads() -> None:
@@ -450,7 +485,7 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
         # wrong_topic) until both have been seen.
         send_until(send, sse, "qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"),
                    lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), tries=100, timeout=0.3)
-        send_until(send, sse, f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0),
+        send_until(send, sse, topics.worker(RUN, "w9", topics.STATUS), QubeAction(rig_id="rigS", seq=0, command=0),
                    lambda n, d: n == "stats" and d["rejected"].get("wrong_topic"), tries=30, timeout=1.5)
         send(topics.chief(RUN, topics.START), start(["w0", "w1"]))
         send(topics.worker(RUN, "w0", topics.UPDATE), b"\x00garbage")  # must not stop anything

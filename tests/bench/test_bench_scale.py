@@ -84,3 +84,17 @@ def test_a_rig_answered_from_its_own_process_reports_what_it_saw(mosquitto_broke
     row = rig_row([stats])
     assert row["rig_answered_from"] == "its own process" and 0 <= row["rig_miss_rate"] <= 1
     assert rig.proc.returncode == 0
+
+
+def test_the_scale_table_says_what_the_rigs_saw() -> None:
+    """bench.report's rig column: misses of the rig's own ticks for rows measured with bench.rigs; rows from before
+    (their rig answered from the benchmark's process) keep their old column."""
+    from bench.report import _rig_cell, _rig_header
+
+    new = {"rigs": 1, "rig_state_to_action_p99_ms": 6.25, "rig_deadline_misses": 61, "rig_deadline_ticks": 524,
+           "rig_miss_rate": 0.1164, "rig_ticks": 500}
+    old = {"rigs": 1, "rig_state_to_action_p99_ms": 6.3, "rig_deadline_misses": 51, "rig_ticks": 324}
+    assert _rig_cell(new) == "6.2 (61 of 524, 11.6 %)" and _rig_cell(old) == "6.3 (51, 324)"
+    assert "own process" in _rig_header([old, new])
+    assert _rig_header([old]).endswith("(deadline misses, states answered)")
+    assert _rig_cell({"n": 4}) == "-"

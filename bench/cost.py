@@ -317,13 +317,15 @@ def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNT
     from bench.runs import Job, collect
     from bench.stats import spread
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     points = []
     for n in worker_counts:
         print(f"cost: {n} workers in process, {rounds} rounds of {task}", flush=True)
         job = Job("federation", task, strategy, seed, n, rounds)
         run_dir = runs_dir / f"scaling-{job.name}"
-        run_federation(task, strategy, seed, n, rounds, run_dir, plot=False, tensorboard_files=False)
+        run_federation(InprocessSettings.given(env=task, policy=strategy, seed=seed, workers=n, max_episodes=rounds,
+                       run_dir=run_dir), plot=False, tensorboard_files=False)
         result = collect(run_dir, job)
         chief_s = json.loads((run_dir / "timing.json").read_text())["chief_s"]
         workers = result["per_worker"]

@@ -50,9 +50,10 @@ from protocol.messages import (
     WorkerHello,
     WorkerUpdate,
 )
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import digest, pack_arrays
+from protocol.transport import Transport, connector
 from services.broker import mosquitto
 
 WORKER_COUNTS = (4, 16, 64)
@@ -144,10 +145,10 @@ class ScriptedFleet:
         self.arrivals: dict[int, dict[str, float]] = {}
         self.answers: queue.Queue[Any] = queue.Queue()
         self.lock = threading.Lock()
-        self.conns: list[MqttConnection] = []
-        address = BrokerAddress.parse(broker)
+        self.conns: list[Transport] = []
+        connect = connector(BrokerAddress.parse(broker))
         for w in self.ids:
-            conn = MqttConnection(address, client_id=f"{RUN}-fake-{w}")
+            conn = connect(f"{RUN}-fake-{w}")
             conn.subscribe(topics.relayed(RUN, self.edge[w], "+") if w in self.edge else topics.chief(RUN, "+"),
                            self._handler(w))
             self.conns.append(conn.start(connect_timeout))

@@ -34,7 +34,7 @@ from protocol import topics
 from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import RunStop
-from protocol.transport import Handler
+from protocol.transport import Connect, Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
 from worker.service import EXIT_ERROR, WorkerService
@@ -145,7 +145,7 @@ class _Timed(MemoryConnection):
     publishes from it) plus its handlers' (decoding, on the delivery thread). A unit ends at a publication that
     ``ends`` accepts; the first ends at the first one on the topic ending with ``start``."""
 
-    def __init__(self, hub: Hub, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter,
+    def __init__(self, hub: Hub, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter | None,
                  start: str, ends: Callable[[str, bytes], bool]) -> None:
         super().__init__(hub, client_id, will, rejects)
         self.seconds: list[float] = []
@@ -174,10 +174,9 @@ class _Timed(MemoryConnection):
         return super().publish(topic, payload, qos, retain)
 
 
-def _timed(hub: Hub, start: str, ends: Callable[[str, bytes], bool], into: list[_Timed]
-           ) -> Callable[[str, tuple[str, bytes] | None, RejectCounter], _Timed]:
+def _timed(hub: Hub, start: str, ends: Callable[[str, bytes], bool], into: list[_Timed]) -> Connect:
     """A protocol.transport.Connect that makes a _Timed connection and keeps it in ``into``."""
-    def connect(client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> _Timed:
+    def connect(client_id: str, will: tuple[str, bytes] | None = None, rejects: RejectCounter | None = None) -> _Timed:
         conn = _Timed(hub, client_id, will, rejects, start, ends)
         into.append(conn)
         return conn

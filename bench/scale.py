@@ -53,9 +53,10 @@ from chief.audit import audit
 from chief.records import EpisodeRecord, RoundRecord, read_metrics
 from protocol.codec import encode
 from protocol.messages import WorkerUpdate
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import pack_arrays
+from protocol.transport import connector
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
 
@@ -102,7 +103,7 @@ class BrokerCounters:
     def __init__(self, broker: str) -> None:
         self.values: dict[str, int] = {}
         self.updates: queue.Queue[str] = queue.Queue()
-        self.conn = MqttConnection(BrokerAddress.parse(broker), client_id=f"{RUN}-sys")
+        self.conn = connector(BrokerAddress.parse(broker))(f"{RUN}-sys")
         for leaf in ("received", "sent"):
             self.conn.subscribe(f"$SYS/broker/messages/{leaf}", self._note, qos=0)
         self.conn.start()

@@ -82,11 +82,12 @@ def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str,
     if summary_path.exists():
         return {**json.loads(summary_path.read_text()), "run_dir": str(run_dir)}
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    summary = run_federation(TASK, setup.policy, seed, RIGS, max_episodes, run_dir, plot=False,
-                             tensorboard_files=False, tolerate_failures=True, env_options=env_options,
-                             init_model=init_model, algo=setup.algo)
+    summary = run_federation(InprocessSettings.given(env=TASK, policy=setup.policy, seed=seed, workers=RIGS,
+                             max_episodes=max_episodes, run_dir=run_dir, **env_options, init_model=init_model,
+                             algo=setup.algo), plot=False, tensorboard_files=False, tolerate_failures=True)
     return {**summary, "run_dir": str(run_dir)}
 
 

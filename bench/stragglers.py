@@ -25,6 +25,7 @@ from bench.output import command
 from chief.audit import audit
 from chief.records import RoundRecord, read_metrics
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 
 OUT = Path("bench/results/stragglers.json")
 
@@ -45,8 +46,9 @@ def measure(name: str, workers: int, episodes: int, seed: int, env: str, folder:
     """One federation, audited: its median seconds per round and what it did."""
     run_dir = folder / name
     began = time.monotonic()
-    summary = run_federation(env, "weighted", seed, workers, episodes, run_dir, plot=False, tensorboard_files=False,
-                             models=False, quorum=quorum, pace=pace)
+    summary = run_federation(InprocessSettings.given(env=env, policy="weighted", seed=seed, workers=workers,
+                             max_episodes=episodes, run_dir=run_dir, quorum=quorum), plot=False,
+                             tensorboard_files=False, models=False, pace=pace)
     report = audit(run_dir)
     rounds = rounds_of(run_dir)
     return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {},

@@ -43,7 +43,6 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection
 from protocol.rounds import RoundShape
 from protocol.routes import WORKER, route_for
 from protocol.tasks import task
@@ -82,11 +81,7 @@ class EdgeService:
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
-        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
-
-    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
-        return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
-                              rejects=rejects)
+        self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
 
     def interrupt(self) -> None:
         """Stop within a tenth of a second (SIGTERM, SIGINT, SIGHUP): the root goes on, and this edge's workers

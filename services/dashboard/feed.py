@@ -20,8 +20,8 @@ from typing import Any
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode
 from protocol.messages import Message
-from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.routes import DASHBOARD, qos_of, received_by
+from protocol.transport import Connect
 from services.dashboard.hub import Hub
 
 log = logging.getLogger("dashboard")
@@ -46,8 +46,9 @@ def updates_filter(run_id: str) -> str:
 class MqttFeed:
     """Decoded messages of one run into a Hub."""
 
-    def __init__(self, broker: BrokerAddress, run_id: str, hub: Hub, rigs: list[str] | None = None,
-                 max_queue: int = 50_000) -> None:
+    def __init__(self, connect: Connect, run_id: str, hub: Hub, rigs: list[str] | None = None,
+                 max_queue: int = 50_000, where: str = "the broker") -> None:
+        """``connect`` makes its connection (protocol.transport.Connect); ``where`` names it in the log."""
         self.run_id = topics.check_id(run_id, "run id")
         self.hub = hub
         self.subs = subscriptions(run_id, rigs)
@@ -56,7 +57,8 @@ class MqttFeed:
         self.received = 0
         self.dropped = 0
         self.inbox: queue.Queue[tuple[str, Message, float]] = queue.Queue(maxsize=max_queue)
-        self.conn = MqttConnection(broker, client_id=f"fedrl-{run_id}-dashboard", rejects=self.rejects)
+        self.conn = connect(f"fedrl-{run_id}-dashboard", None, self.rejects)
+        self.where = where
         self.updates = updates_filter(self.run_id)  # the workers' updates: not read in a tiered run
         self.reading_updates = True
         self._stop = threading.Event()
@@ -121,7 +123,7 @@ class MqttFeed:
         self.conn.start(timeout, stop)
         for topic_filter, qos in self.subs:
             self.conn.subscribe(topic_filter, self.on_message, qos=qos)
-        log.info("dashboard following run %s on %s (%s)", self.run_id, self.conn.address,
+        log.info("dashboard following run %s on %s (%s)", self.run_id, self.where,
                  ", ".join(t for t, _ in self.subs))
         return self
 

@@ -21,6 +21,7 @@ import pytest
 from chief.audit import AuditFailure, audit
 from chief.records import GRADIENTS, ROOT, gradient_key
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 from tests.federations import federate_through
 
 pytestmark = pytest.mark.slow
@@ -29,8 +30,9 @@ ENV, SEED, WORKERS, EDGES, EPISODES = "CartPole-v0", 3, 4, 2, 25  # w0 (edge e0)
 
 
 def test_a_tiered_federation_is_the_flat_one_across_levels(tmp_path: Path) -> None:
-    summary = run_federation(ENV, "weighted", SEED, WORKERS, EPISODES, tmp_path, plot=False, tensorboard_files=False,
-                             models=False, edges=EDGES)
+    summary = run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
+                             max_episodes=EPISODES, run_dir=tmp_path, edges=EDGES), plot=False, tensorboard_files=False,
+                             models=False)
     assert (tmp_path / GRADIENTS).exists()
     report = audit(tmp_path)
     rounds = [r for r in map(json.loads, (tmp_path / "metrics.jsonl").open()) if r["type"] == "round"]

@@ -39,6 +39,7 @@ from protocol.messages import (
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.rounds import RoundShape
 from protocol.tensors import pack_arrays
+from protocol.transport import connector
 from services.dashboard.feed import MqttFeed, subscriptions
 from services.dashboard.hub import Hub
 from services.dashboard.service import DashboardConfig, DashboardService
@@ -335,7 +336,7 @@ def test_feed_reads_no_worker_updates_in_a_tiered_run() -> None:
     """Once the run's RunStart names edges, the feed stops reading the workers' updates (their edges' partials carry
     them, without gradients); a flat run under the same id reads them again."""
     hub = Hub(RunView(RUN))
-    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, hub)  # never started
+    fd = MqttFeed(connector(BrokerAddress.parse("mqtt://127.0.0.1:9")), RUN, hub)  # never started
     fd.conn = Subscriber()  # type: ignore[assignment]
     fd.follow_tier(hub.view.tiered)
     hub.apply([("t", start(["w0"]), 1.0)])
@@ -353,7 +354,8 @@ def test_feed_reads_no_worker_updates_in_a_tiered_run() -> None:
 
 def test_feed_rejects_counts_and_survives_bad_payloads() -> None:
     hub = Hub(RunView(RUN))
-    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, hub)  # never started: on_message is called directly
+    # never started: on_message is called directly
+    fd = MqttFeed(connector(BrokerAddress.parse("mqtt://127.0.0.1:9")), RUN, hub)
     topic = topics.worker(RUN, "w0", topics.UPDATE)
     fd.on_message(topic, b"\x00junk")
     fd.on_message(topic, msgpack.packb({"schema_version": 1, "kind": "future_thing", "x": 1}))
@@ -371,7 +373,7 @@ def test_feed_rejects_counts_and_survives_bad_payloads() -> None:
 
 
 def test_feed_never_blocks_the_network_thread() -> None:
-    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, Hub(RunView(RUN)), max_queue=2)
+    fd = MqttFeed(connector(BrokerAddress.parse("mqtt://127.0.0.1:9")), RUN, Hub(RunView(RUN)), max_queue=2)
     for e in range(1, 5):
         fd.on_message(topics.worker(RUN, "w0", topics.UPDATE), encode(update("w0", e, 1.0)))
     assert fd.inbox.qsize() == 2 and fd.stats()["dropped"] == 2

@@ -51,7 +51,9 @@ from bench.stats import spread_censored
 OUT = Path("bench/results/ood.json")
 RUNS = Path("runs/bench-ood")
 MEASURES = ("selftest", "reset", "zeroshot", "finetune")
-VARIANTS = ("nominal", "identified")
+VARIANTS = ("nominal", "identified", "around")
+#: The bridge-side measures do not depend on the controller: ``around`` is ``identified`` for them.
+RIG_VARIANTS = ("nominal", "identified")
 ACTIONS = ("paper", "levels")
 RIGS = 3
 SEEDS = "601-610"  # never used for tuning (sim2real 101-110, bench.lab and bench.identify 501-510)
@@ -263,9 +265,12 @@ def last_rig(summary: dict[str, Any], identify_s: list[float]) -> dict[str, Any]
             "end_reason": summary.get("end_reason")}
 
 
-def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str) -> dict[str, Any]:
-    """The ``lab``-randomised pretrain of ``actions`` (bench.sim2real's ``randomised``): a federation of RIGS rigs on
-    lockstep, each rig's physics drawn afresh within +-RANDOMIZE at every reset; reused when finished."""
+def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int = PRETRAIN_SEED,
+             identified: list[str] | None = None) -> dict[str, Any]:
+    """A pretrain of ``actions``: a federation of RIGS rigs on lockstep, reused when finished. Without
+    ``identified``, the ``lab``-randomised one (bench.sim2real's ``randomised``: each rig's physics drawn afresh within
+    +-RANDOMIZE at every reset); with the identified profiles of a lab's rigs, deploy.lab's, randomised around them
+    (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model."""
     from deploy.inprocess import run_federation
 
     t0 = time.process_time()
@@ -275,9 +280,16 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str) -> dict[s
     else:
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True)
-        options = {"rig_profile": "lab", "randomize": RANDOMIZE, "qube_actions": actions}
-        summary = run_federation(TASK, POLICY, PRETRAIN_SEED, RIGS, max_episodes, folder, plot=False,
-                                 tensorboard_files=False, tolerate_failures=True, env_options=options, algo=algo)
+        options: dict[str, Any] = {"rig_profile": "lab", "randomize": RANDOMIZE, "qube_actions": actions}
+        if identified is not None:
+            from services.qube_sim.pretrain import around
+            from services.qube_sim.profile import load_profile
+
+            profile = folder.parent / f"{folder.name}-profile.json"
+            profile.write_text(around([load_profile(f) for f in identified], name="around-identified").to_json())
+            options = {"rig_profile": str(profile), "rig_model": str(profile), "qube_actions": actions}
+        summary = run_federation(TASK, POLICY, seed, RIGS, max_episodes, folder, plot=False, tensorboard_files=False,
+                                 tolerate_failures=True, env_options=options, algo=algo)
     solved = any(w["solved"] for w in summary.get("workers", []))
     return {"finished": solved, "model": run_dir if solved else None, "end_reason": summary.get("end_reason"),
             "episodes": summary.get("episodes_to_all_solved"), "cpu_s": round(time.process_time() - t0, 1)}
@@ -301,13 +313,34 @@ def prerequisites(args: argparse.Namespace, store: Store) -> list[Unit]:
                                   {"actions": actions, "run_dir": str(args.runs_dir / f"pretrain-{actions}"),
                                    "max_episodes": args.pretrain_episodes, "algo": args.algo},
                                   {"max_episodes": args.pretrain_episodes, "algo": args.algo}))
-    if "identified" in args.variants:
+    if {"identified", "around"} & set(args.variants):
         for setting in args.settings:
             for seed in args.seeds:
                 for i in range(RIGS):
                     out = identified_file(args.runs_dir, setting, seed, i)
                     units.append(Unit(f"identify/{setting}/s{seed}/rig{i}", identify,
                                       {"setting": setting, "seed": rig_seed(seed, i), "out": str(out)}))
+    return [u for u in units if not store.done(u)]
+
+
+def around_pretrains(args: argparse.Namespace, store: Store) -> list[Unit]:
+    """Variant ``around``: a pretrain per setting, lab and action set around the lab's identified rigs (once every
+    rig of the lab is identified)."""
+    if "around" not in args.variants or not {"zeroshot", "finetune"} & set(args.measures):
+        return []
+    units = []
+    for setting in args.settings:
+        for seed in args.seeds:
+            files = bridge_models(store, args, setting, seed, "around")
+            if "missing" in files:
+                continue
+            for actions in args.actions:
+                units.append(Unit(f"pretrain/{actions}/around/{setting}/s{seed}", pretrain,
+                                  {"actions": actions, "run_dir": str(args.runs_dir / "pretrain-around" / setting
+                                                                      / actions / f"s{seed}"),
+                                   "max_episodes": args.pretrain_episodes, "algo": args.algo, "seed": seed,
+                                   "identified": files},
+                                  {"max_episodes": args.pretrain_episodes, "algo": args.algo}))
     return [u for u in units if not store.done(u)]
 
 
@@ -322,8 +355,11 @@ def bridge_models(store: Store, args: argparse.Namespace, setting: str, seed: in
     return out
 
 
-def model_of(store: Store, args: argparse.Namespace, actions: str) -> str | None:
-    """The controller of ``actions``: ``--model``, else its pretrain's run folder (None: none finished)."""
+def model_of(store: Store, args: argparse.Namespace, actions: str, around: str | None = None) -> str | None:
+    """The controller of ``actions``: ``--model``, else its pretrain's run folder; ``around``: "<setting>/s<seed>",
+    the pretrain around that lab's identified rigs (None: none finished)."""
+    if around is not None:
+        return store.entries.get(f"pretrain/{actions}/around/{around}", {}).get("model")
     if actions in args.model:
         return str(args.model[actions])
     return store.entries.get(f"pretrain/{actions}", {}).get("model")
@@ -345,6 +381,8 @@ def _rig_units(args: argparse.Namespace, store: Store, setting: str, variant: st
     models = bridge_models(store, args, setting, seed, variant)
     rigs = [rig_seed(seed, i) for i in range(RIGS)]
     units = []
+    if variant not in RIG_VARIANTS:
+        return []
     if "selftest" in args.measures:
         units.append(Unit(f"selftest/{setting}/{variant}/s{seed}", selftest,
                           {"setting": setting, "seeds": rigs, "models": models}, {"models": models}))
@@ -363,7 +401,7 @@ def _controller_units(args: argparse.Namespace, store: Store, setting: str, vari
     rigs = [rig_seed(seed, i) for i in range(RIGS)]
     units = []
     for actions in args.actions:
-        model = model_of(store, args, actions)
+        model = model_of(store, args, actions, f"{setting}/s{seed}" if variant == "around" else None)
         if model is None or not {"zeroshot", "finetune"} & set(args.measures):
             continue
         params = {"model": model, "clock": args.clock, "models": models}
@@ -374,9 +412,9 @@ def _controller_units(args: argparse.Namespace, store: Store, setting: str, vari
         if "finetune" in args.measures and "missing" not in models:
             options = {"rig_profile": truth, "qube_actions": actions,
                        **({"qube_clock": "delayed"} if args.clock == "delayed" else {}),
-                       **({"rig_model": str(Path(models[0] or "").parent)} if variant == "identified" else {})}
+                       **({"rig_model": str(Path(models[0] or "").parent)} if variant != "nominal" else {})}
             ident = [store.entries.get(f"identify/{setting}/s{seed}/rig{i}", {}).get("rig_s", 0.0)
-                     if variant == "identified" else 0.0 for i in range(RIGS)]
+                     if variant != "nominal" else 0.0 for i in range(RIGS)]
             units.append(Unit(f"finetune/{setting}/{actions}/{variant}/s{seed}", finetune,
                               {"seed": seed, "run_dir": str(args.runs_dir / "finetune" / setting / actions / variant
                                                             / f"s{seed}"), "options": options, "model": model,
@@ -467,18 +505,20 @@ def render_docs(data: dict[str, Any], source: str) -> str:
     """The docs page's tables: the rig side per setting, then per action set the controller side."""
     entries = data["entries"]
     names = settings_of(entries)
-    variants = [v for v in VARIANTS if any(f"/{v}/" in k for k in entries)]
+    variants = [v for v in VARIANTS if any(f"/{v}/" in k for k in entries if k.split("/")[0] in MEASURES)]
+    rig_variants = [v for v in variants if v in RIG_VARIANTS]
     cfg = data.get("config", {})
     lines = [f"Generated from `{source}` by `{cfg.get('command', 'python -m bench.sim2real ood')}` (the last "
              f"invocation; units measured earlier are kept), {cfg.get('rigs', RIGS)} rigs per report seed, clock "
              f"`{cfg.get('clock', 'delayed')}` for the controller's episodes. `nominal`: the bridge's nominal model, "
              "no identification; `identified`: every rig identified first and the bridge's model is its identified "
-             "profile (the controller is still the `lab`-randomised pretrain; rig minutes include identification).",
-             "", "| setting | " + " | ".join(f"self-test passed ({v})" for v in variants) + " | "
-             + " | ".join(f"resets ready ({v})" for v in variants) + " |",
-             "| --- |" + " --- |" * (2 * len(variants))]
+             "profile (the controller is still the `lab`-randomised pretrain; rig minutes include identification); "
+             "`around`: as `identified`, the controller pretrained around each lab's identified rigs.",
+             "", "| setting | " + " | ".join(f"self-test passed ({v})" for v in rig_variants) + " | "
+             + " | ".join(f"resets ready ({v})" for v in rig_variants) + " |",
+             "| --- |" + " --- |" * (2 * len(rig_variants))]
     for name in names:
-        rows = [rig_row(entries, name, v) for v in variants]
+        rows = [rig_row(entries, name, v) for v in rig_variants]
         lines.append(f"| `{name}` | " + " | ".join(_frac(r["selftest"]) for r in rows) + " | "
                      + " | ".join(_frac(r["reset"]) for r in rows) + " |")
     for actions in [a for a in _present(entries, 2) if a in _action_sets()]:
@@ -545,11 +585,12 @@ def targets(rows: dict[str, dict[str, Any]]) -> list[str]:
         if pair and pair[1]:
             ok = pair[0] / pair[1] >= TARGETS[key]
             out.append(f"reset success {group} >= {TARGETS[key]:.0%} {'met' if ok else '**missed**'}")
-    for k, pair in rows.get("combined/identified", {}).items():
-        if k.startswith("zeroshot-") and pair[1]:
-            ok = pair[0] / pair[1] >= TARGETS["zero_shot_combined"]
-            out.append(f"zero-shot combined `{k[9:]}` >= {TARGETS['zero_shot_combined']:.0%} "
-                       f"{'met' if ok else '**missed**'}")
+    for variant in ("identified", "around"):
+        for k, pair in rows.get(f"combined/{variant}", {}).items():
+            if k.startswith("zeroshot-") and pair[1]:
+                ok = pair[0] / pair[1] >= TARGETS["zero_shot_combined"]
+                out.append(f"zero-shot combined `{k[9:]}` ({variant}) >= {TARGETS['zero_shot_combined']:.0%} "
+                           f"{'met' if ok else '**missed**'}")
     return out
 
 
@@ -602,7 +643,11 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
                    + ", ".join(settings()))
     p.add_argument("--seeds", default=SEEDS, help=f"report seeds LO-HI or a comma list (default {SEEDS}); each a lab "
                    f"of {RIGS} rigs")
-    p.add_argument("--variants", default=",".join(VARIANTS), help="nominal, identified or both (default)")
+    p.add_argument("--variants", default=",".join(RIG_VARIANTS),
+                   help="nominal (the bridge's nominal model, the lab-randomised pretrain), identified (every rig "
+                   "identified, the bridge's model from it, the same pretrain), around (as identified, with a "
+                   "pretrain around each lab's identified rigs: a pretrain per setting, seed and action set); "
+                   "default nominal,identified")
     p.add_argument("--actions", default=",".join(ACTIONS), help="QUBE action sets (default paper,levels)")
     p.add_argument("--model", action="append", default=[], metavar="ACTIONS=PATH",
                    help="the controller of an action set (a model file or a run folder) instead of its pretrain")
@@ -657,6 +702,10 @@ def main(argv: list[str] | None = None) -> int:
     first = prerequisites(args, store)
     print(f"{len(first)} pretrains and identifications to make", flush=True)
     run_units(first, store, args.jobs)
+    second = around_pretrains(args, store)
+    if second:
+        print(f"{len(second)} pretrains around identified rigs to make", flush=True)
+        run_units(second, store, args.jobs)
     todo = measures(args, store)
     print(f"{len(todo)} measure units to make ({', '.join(args.measures)})", flush=True)
     run_units(todo, store, args.jobs)

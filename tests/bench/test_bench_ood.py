@@ -32,6 +32,7 @@ def test_parse_picks_subsets_and_refuses_unknown_names(tmp_path: Path) -> None:
     assert a.measures == ["reset"] and a.settings == ["combined", "Dp-x10"] and a.seeds == [601, 602, 603]
     assert a.model == {"paper": Path("x/pretrain")}
     assert len(args(tmp_path, "--settings", "sweep").settings) == 25
+    assert args(tmp_path).variants == ["nominal", "identified"]
     for bad in (["--measures", "speed"], ["--settings", "Dp-x7"], ["--model", "paper"], ["--variants", "true"]):
         with pytest.raises(SystemExit):
             args(tmp_path, *bad)
@@ -118,7 +119,8 @@ def test_the_tables_sum_the_seeds_and_count_unfinished_runs_as_worse() -> None:
     assert "finetune 300 s (12 units)" in docs and "identify 40 s (1 units)" in docs
     readme = ood.render_readme(data, "ood.json")
     assert "| sweep (1 settings) | identified | 3/3 (100%) | 5/5 (100%) | 2/3 (67%) |" in readme
-    assert "zero-shot combined `paper` >= 90% **missed**" in readme and "self-test on every rig met" in readme
+    assert "zero-shot combined `paper` (identified) >= 90% **missed**" in readme
+    assert "self-test on every rig met" in readme
 
 
 def test_report_writes_between_the_markers_only(tmp_path: Path) -> None:
@@ -150,3 +152,20 @@ def test_run_units_stores_each_result_as_it_comes(tmp_path: Path) -> None:
 def test_the_self_test_passes_on_lab_rigs_and_counts_a_rig_not_identified() -> None:
     result = ood.selftest("lab", [601000, 601001], [None, "missing"])
     assert result["passed"] == 1 and result["failures"] == ["rig 601001: not identified"]
+
+
+def test_the_around_variant_pretrains_per_lab_once_its_rigs_are_identified(tmp_path: Path) -> None:
+    a = args(tmp_path, "--measures", "zeroshot,selftest", "--settings", "combined", "--seeds", "601",
+             "--actions", "paper", "--variants", "around", "--model", "paper=m")
+    store = ood.Store(a.out)
+    assert ood.around_pretrains(a, store) == []  # nothing identified yet
+    for u in ood.prerequisites(a, store):
+        Path(u.kwargs["out"]).parent.mkdir(parents=True, exist_ok=True)
+        Path(u.kwargs["out"]).write_text("{}")
+        store.put(u, {"ok": True, "file": u.kwargs["out"], "rig_s": 110.0})
+    [unit] = ood.around_pretrains(a, store)
+    assert unit.key == "pretrain/paper/around/combined/s601" and len(unit.kwargs["identified"]) == 3
+    assert ood.measures(a, store) == []  # no rig measure for around, and its controller is not made yet
+    store.put(unit, {"finished": True, "model": "runs/around"})
+    [shot] = ood.measures(a, store)
+    assert shot.key == "zeroshot/combined/paper/around/s601" and shot.kwargs["model"] == "runs/around"

@@ -13,12 +13,13 @@ of RIGS rigs, rig i of seed S simulated with seed S*1000 + i (as deploy.run_loca
 - ``finetune``: the rigs of a seed fine-tuned federated in process from the pretrained controller; the last rig's
   episodes and rig minutes (the rig that needed the most rig time; identification included where identified).
 
-Each measure comes in two variants. ``nominal``: the bridge computes the swing-up, hold and self-test from its
+Each measure comes in variants. ``nominal``: the bridge computes the swing-up, hold and self-test from its
 nominal model (no identification). ``identified``: every rig is identified first (rpi_bridge/identify.py's protocol
 on the simulated rig, services/qube_sim/identify.py's fit over ``lab``: the pipeline of deploy.lab), and the bridge's
-model is the rig's identified profile; the controller is still the nominal pretrain (a pretrain around the identified
-rigs per lab costs a pretrain per seed and setting: bench.lab measures that on the combined family). A rig the
-identification refuses counts as failed in every identified measure, as deploy.lab stops there.
+model is the rig's identified profile; the controller is still the nominal pretrain. ``around`` (opt-in): as
+``identified``, with the controller pretrained around each lab's identified rigs (deploy.lab's pipeline, a pretrain
+per setting, seed and action set); the self-test and resets do not depend on the controller and are ``identified``'s.
+A rig the identification refuses counts as failed in every identified measure, as deploy.lab stops there.
 
 The zero-shot and fine-tune episodes run on the ``delayed`` clock (the loop's delay and lost actions of the rig's
 profile: what the loop-delay sweep varies) unless ``--clock lockstep``; the self-test and resets run inside the bridge,

@@ -55,6 +55,8 @@ MEASURES = ("selftest", "reset", "zeroshot", "finetune")
 VARIANTS = ("nominal", "identified", "around")
 #: The bridge-side measures do not depend on the controller: ``around`` is ``identified`` for them.
 RIG_VARIANTS = ("nominal", "identified")
+SHORT = {"nominal": "nominal (`lab` pretrain)", "identified": "identified (`lab` pretrain)",
+         "around": "identified (pretrain around it)"}
 ACTIONS = ("paper", "levels")
 RIGS = 3
 SEEDS = "601-610"  # never used for tuning (sim2real 101-110, bench.lab and bench.identify 501-510)
@@ -509,8 +511,8 @@ def render_docs(data: dict[str, Any], source: str) -> str:
     variants = [v for v in VARIANTS if any(f"/{v}/" in k for k in entries if k.split("/")[0] in MEASURES)]
     rig_variants = [v for v in variants if v in RIG_VARIANTS]
     cfg = data.get("config", {})
-    lines = [f"Generated from `{source}` by `{cfg.get('command', 'python -m bench.sim2real ood')}` (the last "
-             f"invocation; units measured earlier are kept), {cfg.get('rigs', RIGS)} rigs per report seed, clock "
+    made = "; ".join(f"`{c}`" for c in cfg.get("commands", [])) or "`python -m bench.sim2real ood`"
+    lines = [f"Generated from `{source}`, made by {made}; {cfg.get('rigs', RIGS)} rigs per report seed, clock "
              f"`{cfg.get('clock', 'delayed')}` for the controller's episodes. `nominal`: the bridge's nominal model, "
              "no identification; `identified`: every rig identified first and the bridge's model is its identified "
              "profile (the controller is still the `lab`-randomised pretrain; rig minutes include identification); "
@@ -570,6 +572,9 @@ def summary_rows(entries: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]
                          if (c := controller_row(entries, s, actions, variant))["zeroshot"] is not None]
                 if pairs:
                     row[f"zeroshot-{actions}"] = (sum(p[0] for p in pairs), sum(p[1] for p in pairs))
+                runs = [e for s in names for e in _entries(entries, f"finetune/{s}/{actions}/{variant}")]
+                if runs:
+                    row[f"finetune-{actions}"] = spread_censored([e["rig_min"] for e in runs])
             if any(v is not None for k, v in row.items() if k != "settings"):
                 out[f"{group}/{variant}"] = row
     return out
@@ -599,17 +604,21 @@ def render_readme(data: dict[str, Any], source: str) -> str:
     """README's short block: totals per group of settings."""
     rows = summary_rows(data["entries"])
     shots = [a for a in _action_sets() if any(f"zeroshot-{a}" in r for r in rows.values())]
-    lines = [f"Rigs outside `lab`, one parameter at a time (RealAIGym's style), the combined family and the course "
-             f"files' damping; totals over each group's settings and seeds, from `{source}` (every setting: "
+    tuned = [a for a in _action_sets() if any(f"finetune-{a}" in r for r in rows.values())]
+    lines = ["Rigs outside `lab`, one parameter at a time (RealAIGym's style), the combined family and the course "
+             "files' damping; totals over each group's settings and seeds (fine-tune: median [IQR] over its runs, "
+             f"unfinished counted as worse), from `{source}` (every setting: "
              "[Out of distribution](docs/how-to/ood.md)).", "",
-             "| rigs | bridge model | self-test passed | resets ready | "
-             + " | ".join(f"zero-shot `{a}`" for a in shots) + " |",
-             "| --- | --- | --- | --- |" + " --- |" * len(shots)]
+             "| rigs | bridge model (controller) | self-test passed | resets ready | "
+             + " | ".join([f"zero-shot `{a}`" for a in shots] + [f"fine-tune `{a}`: last rig's rig minutes"
+                                                                for a in tuned]) + " |",
+             "| --- | --- | --- | --- |" + " --- |" * (len(shots) + len(tuned))]
     for key, row in rows.items():
         group, variant = key.split("/")
         label = f"sweep ({row['settings']} settings)" if group == "sweep" else group
-        lines.append(f"| {label} | {variant} | {_pct(row['selftest'])} | {_pct(row['reset'])} | "
-                     + " | ".join(_pct(row.get(f"zeroshot-{a}")) for a in shots) + " |")
+        lines.append(f"| {label} | {SHORT[variant]} | {_pct(row['selftest'])} | {_pct(row['reset'])} | "
+                     + " | ".join([_pct(row.get(f"zeroshot-{a}")) for a in shots]
+                                  + [_med(row.get(f"finetune-{a}"), 1) for a in tuned]) + " |")
     met = targets(rows)
     if met:
         lines += ["", "Targets: " + "; ".join(met) + "."]
@@ -697,8 +706,9 @@ def main(argv: list[str] | None = None) -> int:
         write_pages(args.out)
         return 0
     store = Store(args.out)
-    store.config = {"command": command("bench.sim2real ood", argv), "rigs": RIGS, "clock": args.clock,
-                    "cpus": os.cpu_count(), "load_at_start": round(os.getloadavg()[0], 2)}
+    made = command("bench.sim2real ood", argv)
+    store.config = {"commands": [*(c for c in store.config.get("commands", []) if c != made), made], "rigs": RIGS,
+                    "clock": args.clock, "cpus": os.cpu_count(), "load_at_start": round(os.getloadavg()[0], 2)}
     began = time.monotonic()
     first = prerequisites(args, store)
     print(f"{len(first)} pretrains and identifications to make", flush=True)

@@ -118,7 +118,8 @@ def test_the_tables_sum_the_seeds_and_count_unfinished_runs_as_worse() -> None:
     assert "**Actions `paper`**" in docs and "| `Dp-x10` | 2/3 | 2/3 | 1/2 | 1/2 |" in docs
     assert "finetune 300 s (12 units)" in docs and "identify 40 s (1 units)" in docs
     readme = ood.render_readme(data, "ood.json")
-    assert "| sweep (1 settings) | identified | 3/3 (100%) | 5/5 (100%) | 2/3 (67%) |" in readme
+    assert ("| sweep (1 settings) | identified (`lab` pretrain) | 3/3 (100%) | 5/5 (100%) | 2/3 (67%) | "
+            "unfinished (1 of 2) |") in readme
     assert "zero-shot combined `paper` (identified) >= 90% **missed**" in readme
     assert "self-test on every rig met" in readme
 

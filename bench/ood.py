@@ -434,19 +434,28 @@ def _not_identified() -> dict[str, Any]:
 
 
 def run_units(units: list[Unit], store: Store, jobs: int,
-              executor: Callable[[int], Executor] = process_pool) -> None:
+              executor: Callable[[int], Executor] = process_pool) -> int:
     """Run ``units`` ``jobs`` at a time (in ``executor``'s workers: processes, one torch thread each); each result goes
-    into the store as it comes."""
+    into the store as it comes. A unit that raises is reported in one line and left out (the next invocation tries it
+    again); returns how many did."""
     if not units:
-        return
+        return 0
+    failed = 0
     with executor(jobs) as pool:
         futures: dict[Future[dict[str, Any]], Unit] = {pool.submit(u.run, **u.kwargs): u for u in units}
         for fut in _as_completed(futures):
             unit = futures[fut]
-            result = fut.result()
+            try:
+                result = fut.result()
+            except Exception as err:  # one unit's error is a line, not the end of the sweep
+                failed += 1
+                print(f"{unit.key}: failed, not stored: {type(err).__name__}: {str(err).splitlines()[0][:300]}",
+                      flush=True)
+                continue
             store.put(unit, result)
             brief = {k: v for k, v in result.items() if k not in ("failures", "returns", "run_dir", "file")}
             print(f"{unit.key}: {json.dumps(brief)}", flush=True)
+    return failed
 
 
 def _as_completed(futures: Iterable[Future[dict[str, Any]]]) -> Iterable[Future[dict[str, Any]]]:
@@ -712,22 +721,23 @@ def main(argv: list[str] | None = None) -> int:
     began = time.monotonic()
     first = prerequisites(args, store)
     print(f"{len(first)} pretrains and identifications to make", flush=True)
-    run_units(first, store, args.jobs)
+    failed = run_units(first, store, args.jobs)
     second = around_pretrains(args, store)
     if second:
         print(f"{len(second)} pretrains around identified rigs to make", flush=True)
-        run_units(second, store, args.jobs)
+        failed += run_units(second, store, args.jobs)
     todo = measures(args, store)
     print(f"{len(todo)} measure units to make ({', '.join(args.measures)})", flush=True)
-    run_units(todo, store, args.jobs)
+    failed += run_units(todo, store, args.jobs)
     store.config["wall_s"] = round(time.monotonic() - began, 1)
     store.save()
     missing = [a for a in args.actions if model_of(store, args, a) is None and {"zeroshot", "finetune"}
                & set(args.measures)]
     if missing:
         print(f"!! no controller for {', '.join(missing)}: its pretrain did not finish (give --model)", flush=True)
-    print(f"results in {args.out}; {math.ceil(time.monotonic() - began)} s", flush=True)
-    return 0
+    print(f"results in {args.out}; {math.ceil(time.monotonic() - began)} s"
+          + (f"; {failed} units failed (see above; the same command tries them again)" if failed else ""), flush=True)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -144,7 +144,9 @@ def test_report_writes_between_the_markers_only(tmp_path: Path) -> None:
 def test_run_units_stores_each_result_as_it_comes(tmp_path: Path) -> None:
     store = ood.Store(tmp_path / "ood.json")
     unit = ood.Unit("finetune/lab/paper/identified/s601", ood._not_identified, {}, {"model": "m"})
-    ood.run_units([unit], store, jobs=1, executor=ThreadPoolExecutor)
+    broken = ood.Unit("zeroshot/lab/paper/nominal/s601", ood.zeroshot, {}, {})  # missing arguments: it raises
+    assert ood.run_units([broken, unit], store, jobs=1, executor=ThreadPoolExecutor) == 1
+    assert not store.done(broken)
     saved = json.loads((tmp_path / "ood.json").read_text())["entries"][unit.key]
     assert saved["end_reason"] == "a rig was not identified" and saved["params"] == {"model": "m"}
     assert ood.Store(tmp_path / "ood.json").done(unit)

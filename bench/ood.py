@@ -80,6 +80,15 @@ def settings() -> list[str]:
     return ["lab", *sweep, "combined", "course"]
 
 
+def extremes() -> list[str]:
+    """``lab``, each parameter's lowest and highest factor, ``combined`` and ``course``: the settings that decide
+    whether the bridge and the controller hold (a subset for the costly stages)."""
+    from services.qube_sim.families import SWEEPS
+
+    ends = [f"{p}-x{k:g}" for p, factors in SWEEPS.items() for k in (min(factors), max(factors))]
+    return ["lab", *[e for e in ends if e in settings()], "combined", "course"]
+
+
 def group_of(setting: str) -> str:
     return setting if setting in ("lab", "combined", "course") else "sweep"
 
@@ -658,7 +667,8 @@ def write_pages(source: Path, readme: Path = README, docs: Path = DOCS) -> None:
 def parse(argv: list[str] | None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m bench.sim2real ood", description=__doc__.splitlines()[0])
     p.add_argument("--measures", default=",".join(MEASURES), help=f"comma list of {', '.join(MEASURES)} (default all)")
-    p.add_argument("--settings", default="all", help="comma list of settings, 'sweep' or 'all' (default): "
+    p.add_argument("--settings", default="all", help="comma list of settings, 'sweep', 'extremes' (each parameter's "
+                   "lowest and highest factor, lab, combined, course) or 'all' (default): "
                    + ", ".join(settings()))
     p.add_argument("--seeds", default=SEEDS, help=f"report seeds LO-HI or a comma list (default {SEEDS}); each a lab "
                    f"of {RIGS} rigs")
@@ -685,7 +695,7 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     args.variants = _choices(p, "--variants", args.variants, VARIANTS)
     args.actions = _choices(p, "--actions", args.actions, _action_sets())
     every = settings()
-    groups = {"all": every, "sweep": [s for s in every if group_of(s) == "sweep"]}
+    groups = {"all": every, "sweep": [s for s in every if group_of(s) == "sweep"], "extremes": extremes()}
     args.settings = _choices(p, "--settings", ",".join(groups.get(args.settings, [args.settings])), tuple(every))
     args.seeds = seeds_of(args.seeds) if "," not in args.seeds else [int(s) for s in args.seeds.split(",")]
     args.model = dict(_pair(p, m) for m in args.model)

@@ -32,6 +32,9 @@ def test_parse_picks_subsets_and_refuses_unknown_names(tmp_path: Path) -> None:
     assert a.measures == ["reset"] and a.settings == ["combined", "Dp-x10"] and a.seeds == [601, 602, 603]
     assert a.model == {"paper": Path("x/pretrain")}
     assert len(args(tmp_path, "--settings", "sweep").settings) == 25
+    assert args(tmp_path, "--settings", "extremes").settings == [
+        "lab", "arm_friction-x0.5", "arm_friction-x3", "Dp-x0.1", "Dp-x10", "Dr-x0.2", "Dr-x6",
+        "arm_inertia-x4", "motor-x0.8", "motor-x1.2", "loop_delay-x0", "loop_delay-x1", "combined", "course"]
     assert args(tmp_path).variants == ["nominal", "identified"]
     for bad in (["--measures", "speed"], ["--settings", "Dp-x7"], ["--model", "paper"], ["--variants", "true"]):
         with pytest.raises(SystemExit):

@@ -452,7 +452,9 @@ def config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0],
+                                     epilog="python -m bench.sim2real ood --help: the out-of-distribution sweep "
+                                     "(bench/ood.py)")
     parser.add_argument("--quick", action="store_true", help="one seed, small caps: checks the pipeline only")
     parser.add_argument("--report", action="store_true", help="write the table of <out>/sim2real.json into "
                         "docs/how-to/warm-start.md (runs nothing)")

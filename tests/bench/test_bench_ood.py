@@ -175,3 +175,11 @@ def test_the_around_variant_pretrains_per_lab_once_its_rigs_are_identified(tmp_p
     store.put(unit, {"finished": True, "model": "runs/around"})
     [shot] = ood.measures(a, store)
     assert shot.key == "zeroshot/combined/paper/around/s601" and shot.kwargs["model"] == "runs/around"
+
+
+def test_bench_sim2real_ood_is_this_command(capsys: pytest.CaptureFixture[str]) -> None:
+    from bench import sim2real
+
+    with pytest.raises(SystemExit) as stop:
+        sim2real.main(["ood", "--settings", "Dp-x7"])
+    assert stop.value.code == 2 and "python -m bench.sim2real ood: error: --settings" in capsys.readouterr().err

@@ -724,7 +724,11 @@ def main(argv: list[str] | None = None) -> int:
     if args.report:
         write_pages(args.out)
         return 0
-    store = Store(args.out)
+    try:
+        store = Store(args.out)
+    except (OSError, ValueError) as err:
+        print(f"python -m bench.sim2real ood: {args.out} is not a results file ({err}); move it away", file=sys.stderr)
+        return 2
     made = command("bench.sim2real ood", argv)
     store.config = {"commands": [*(c for c in store.config.get("commands", []) if c != made), made], "rigs": RIGS,
                     "clock": args.clock, "cpus": os.cpu_count(), "load_at_start": round(os.getloadavg()[0], 2)}

@@ -553,8 +553,25 @@ def render_docs(data: dict[str, Any], source: str) -> str:
             lines.append(f"| `{name}` | " + " | ".join(
                 [_frac(r["zeroshot"]) for r in rows] + [_frac(r["finished"]) for r in rows]
                 + [_med(r["episodes"]) for r in rows] + [_med(r["rig_min"], 1) for r in rows]) + " |")
-    lines += ["", cost_line(entries)]
+    lines += ["", *pretrain_lines(entries), cost_line(entries)]
     return "\n".join(lines) + "\n"
+
+
+def pretrain_lines(entries: dict[str, dict[str, Any]]) -> list[str]:
+    """One line per `lab`-randomised pretrain, and one for the pretrains around identified rigs."""
+    lines = []
+    for key, e in entries.items():
+        parts = key.split("/")
+        if parts[0] == "pretrain" and len(parts) == 2:
+            how = (f"every worker met TC by episode {e['episodes']}" if e.get("episodes") is not None else
+                   f"not every worker met TC ({e.get('end_reason')})"
+                   + ("; the controller is the first to meet it" if e.get("finished") else "; no controller"))
+            lines.append(f"- The `{parts[1]}` pretrain (`lab`, +-{RANDOMIZE:.0%}): {how}.")
+    around = [e for k, e in entries.items() if k.startswith("pretrain/") and "/around/" in k]
+    if around:
+        lines.append(f"- Pretrains around identified rigs: {sum(bool(e.get('finished')) for e in around)} of "
+                     f"{len(around)} made a controller.")
+    return lines + ([""] if lines else [])
 
 
 def _action_sets() -> tuple[str, ...]:

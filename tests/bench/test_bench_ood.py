@@ -111,6 +111,7 @@ def entries() -> dict[str, dict]:
                     "finished": episodes is not None, "episodes": episodes, "rig_min": 4.5 if episodes else None,
                     "cpu_s": 300.0}
     e["identify/combined/s601/rig0"] = {"ok": True, "cpu_s": 40.0}
+    e["pretrain/levels"] = {"finished": True, "episodes": None, "end_reason": "reached the maximum", "cpu_s": 500.0}
     return e
 
 
@@ -120,6 +121,8 @@ def test_the_tables_sum_the_seeds_and_count_unfinished_runs_as_worse() -> None:
     assert "| `lab` | 3/3 | 3/3 | 4/5 | 5/5 |" in docs
     assert "**Actions `paper`**" in docs and "| `Dp-x10` | 2/3 | 2/3 | 1/2 | 1/2 |" in docs
     assert "finetune 300 s (12 units)" in docs and "identify 40 s (1 units)" in docs
+    assert "- The `levels` pretrain (`lab`, +-20%): not every worker met TC (reached the maximum); the controller is " \
+        "the first to meet it." in docs
     readme = ood.render_readme(data, "ood.json")
     assert ("| sweep (1 settings) | identified (`lab` pretrain) | 3/3 (100%) | 5/5 (100%) | 2/3 (67%) | "
             "unfinished (1 of 2) |") in readme

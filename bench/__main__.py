@@ -12,6 +12,8 @@ BENCHES = {
     "bench.loop_cost": "per-tick cost of the bridge loop (SPI transfer, sense, publish, wait, write)",
     "bench.sim2real": "sim-to-real: lab rigs from scratch, warm-started from an ideal or a randomised pretrain, "
                       "zero-shot; the last rig's episodes, balance steps and rig minutes",
+    "bench.ood": "out of distribution (also python -m bench.sim2real ood): rigs off lab one parameter at a time; "
+                 "self-test, resets, zero-shot and fine-tune, with and without identification",
     "bench.staleness": "idle seconds per rig on qube-local, one rig resetting 3x slower, max staleness 0 and 1",
     "bench.soak": "16 workers over Mosquitto to the end: broker and chief memory over time, round latency",
     "bench.scale": "flat chief against a root fed by edge chiefs, 4 to 1,024 simulated devices (make scale)",

@@ -18,6 +18,9 @@ reset fails five times in a row stops its worker, as a real rig's would (worker/
 unfinished, and the report names it with its end reason. Results:
 ``<out>/sim2real.json``; run folders under ``<runs-dir>``. ``--quick`` is a smoke-sized variant (one seed, small caps)
 that checks the pipeline, not the figures.
+
+``python -m bench.sim2real ood ...``: the out-of-distribution sweep, rigs off ``lab`` one parameter at a time, with
+and without identification (bench/ood.py).
 """
 
 from __future__ import annotations
@@ -390,6 +393,11 @@ def write_report(json_path: Path, pages: list[Path]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    given = sys.argv[1:] if argv is None else argv
+    if given[:1] == ["ood"]:  # the out-of-distribution sweep (bench/ood.py)
+        from bench import ood
+
+        return ood.main(given[1:])
     args = parse(argv)
     if args.report:
         write_report(args.out / "sim2real.json", [Path("docs/how-to/warm-start.md")])
@@ -445,7 +453,9 @@ def config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0],
+                                     epilog="python -m bench.sim2real ood --help: the out-of-distribution sweep "
+                                     "(bench/ood.py)")
     parser.add_argument("--quick", action="store_true", help="one seed, small caps: checks the pipeline only")
     parser.add_argument("--report", action="store_true", help="write the table of <out>/sim2real.json into "
                         "docs/how-to/warm-start.md (runs nothing)")

@@ -7,6 +7,11 @@ tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of 
 transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 
+Under a quorum k of n (RunStart ``quorum``) the edge closes its part of a round with its share of k
+(chief/tiers.py ``edge_quorum``), and forwards a submission that comes after that in a partial of its own: the root
+counts k across all partials, and takes it or refuses it as late (docs/explanation/tiered.md, "k of n across
+edges").
+
 A worker that sends a closed round again missed something: the edge passes on the root's answer and acknowledgement
 it holds for that round, and sends the round's partial again when it holds none (a broker lost the partial or the
 answer; the root counts it once and answers again).

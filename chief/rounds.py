@@ -30,7 +30,9 @@ saved with the keeper and written to summary.json, where the audit finds it.
 
 A round collects one submission per waited-on worker. It closes when all of them are in, or ``round_timeout``
 seconds after its first submission arrived (silent workers are then marked lagging and not waited on until they
-submit again). A status message never removes a submission, and a ``finished`` status means nothing until its
+submit again). With a quorum k it closes once k of them are in; an edge's keeper (its share of k) forwards a
+submission for a round it closed without that worker in a partial of its own (``_late``), for the root to count.
+A status message never removes a submission, and a ``finished`` status means nothing until its
 MatureParams is in. A worker's last will (``offline``) does not stop the round from waiting for it: a broker restart
 delivers every client's will, and workers that merely reconnected must not lose their place (the round's timeout
 still ends the wait for one that really died); a worker that says it stopped or failed is not waited for at once.

@@ -14,6 +14,7 @@ import pytest
 
 from chief.audit import audit
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 
 pytestmark = pytest.mark.slow
 
@@ -29,8 +30,9 @@ def test_a_quorum_across_edges_in_process(tmp_path: Path) -> None:
     contributor comes in a partial of its own and closes the root's round; w3's late submissions are forwarded and
     dropped at the root as late, and the audit's quorum and tiered checks pass."""
     episodes = 8
-    summary = run_federation(ENV, "weighted", SEED, WORKERS, episodes, tmp_path, plot=False, tensorboard_files=False,
-                             models=False, edges=EDGES, quorum=3, pace={"w3": 3.0})
+    summary = run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
+                             max_episodes=episodes, run_dir=tmp_path, edges=EDGES, quorum=3), plot=False,
+                             tensorboard_files=False, models=False, pace={"w3": 3.0})
     report = audit(tmp_path)
     rounds = _rounds(tmp_path)
     assert summary["quorum"] == 3 and len(rounds) == summary["rounds"] == episodes
@@ -45,8 +47,9 @@ def test_bounded_staleness_with_edges_in_process(tmp_path: Path) -> None:
     """Staleness 1: a worker plays on with one round unanswered; its edge files the submission ahead for its round,
     the root keeps that round's partials until it opens; the audit's staleness and tiered checks pass."""
     episodes = 8
-    summary = run_federation(ENV, "weighted", SEED, WORKERS, episodes, tmp_path, plot=False, tensorboard_files=False,
-                             models=False, edges=EDGES, max_staleness=1)
+    summary = run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
+                             max_episodes=episodes, run_dir=tmp_path, edges=EDGES, max_staleness=1), plot=False,
+                             tensorboard_files=False, models=False)
     report = audit(tmp_path)
     rounds = _rounds(tmp_path)
     assert summary["max_staleness"] == 1 and len(rounds) == episodes

@@ -7,6 +7,11 @@ tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of 
 transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 
+Under a quorum k of n (RunStart ``quorum``) the edge closes its part of a round with its share of k
+(chief/tiers.py ``edge_quorum``), and forwards a submission that comes after that in a partial of its own: the root
+counts k across all partials, and takes it or refuses it as late (docs/explanation/tiered.md, "k of n across
+edges").
+
 A worker that sends a closed round again missed something: the edge passes on the root's answer and acknowledgement
 it holds for that round, and sends the round's partial again when it holds none (a broker lost the partial or the
 answer; the root counts it once and answers again).
@@ -25,6 +30,7 @@ import threading
 import time
 from typing import Any
 
+from chief import tiers
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
@@ -76,7 +82,7 @@ class EdgeService:
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
-        self.sent: dict[int, bytes] = {}  # round -> the partial sent for it (the last ANSWERS_KEPT rounds)
+        self.sent: dict[int, list[bytes]] = {}  # round -> the partials sent for it (the last ANSWERS_KEPT rounds)
         self.resent: dict[int, float] = {}  # round -> when its partial last went again
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
@@ -189,12 +195,14 @@ class EdgeService:
         known = [w for w in mine if w in self.specs]
         actor, critic = self.specs[known[0]] if known else (None, None)
         spec = task(start.env_id)
+        share = tiers.edge_quorum(start.quorum, len(start.workers), len(mine))
         self.keeper = RoundKeeper(mine, start.policy, spec, start.max_episodes, self.cfg.round_timeout,
                                   actor_spec=actor, critic_spec=critic or None,
                                   shape=RoundShape(per_episode=start.rounds_per_episode),
-                                  max_staleness=start.max_staleness, tier="edge")
+                                  max_staleness=start.max_staleness, tier="edge", quorum=share)
         self.start = start
-        log.info("edge %s: %d workers (%s), policy %s", self.edge, len(mine), ", ".join(mine), start.policy)
+        log.info("edge %s: %d workers (%s), policy %s%s", self.edge, len(mine), ", ".join(mine), start.policy,
+                 f", its share of the quorum {start.quorum} of {len(start.workers)}: {share}" if share else "")
 
     def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
         """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused
@@ -226,7 +234,8 @@ class EdgeService:
                 log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
                          msg.worker_id, r)
                 self.resent[r] = now
-                self._publish_partial(self.sent[r])
+                for payload in self.sent[r]:
+                    self._publish_partial(payload)
 
     def _forward(self, outcomes: list[RoundOutcome]) -> None:
         """Each of its closed rounds as one EdgePartial to the root."""
@@ -234,6 +243,8 @@ class EdgeService:
             part = outcome.partial
             assert part is not None
             subs = [self.held.pop((w, outcome.round)) for w in outcome.contributors]
+            if outcome.round in self.answers:  # a late worker's, and the root answered: it refuses it as late
+                part = tiers.Partial(None, 0.0, part.count)  # ... so its tensors need not travel
             msg = EdgePartial(
                 edge_id=self.edge, round=outcome.round, episode=outcome.episode, step=outcome.step,
                 updates=tuple(s.model_copy(update={"gradient": {}, "critic_gradient": None}) for s in subs
@@ -248,10 +259,11 @@ class EdgeService:
 
     def _partial(self, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
-        self.sent[msg.round] = encode(msg)
+        payload = encode(msg)
+        self.sent.setdefault(msg.round, []).append(payload)
         self.sent.pop(msg.round - ANSWERS_KEPT, None)
         self.resent.pop(msg.round - ANSWERS_KEPT, None)
-        self._publish_partial(self.sent[msg.round])
+        self._publish_partial(payload)
 
     def _publish_partial(self, payload: bytes) -> None:
         self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), payload, qos=1)

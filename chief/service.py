@@ -310,7 +310,7 @@ class ChiefService:
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
                        finishers_help=self.keeper.strategy.finishers_help,
-                       max_staleness=self.keeper.max_staleness,
+                       max_staleness=self.keeper.max_staleness, quorum=self.keeper.quorum,
                        edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers})
         self._send(msg)
 

@@ -35,7 +35,7 @@ from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy import sites
 from deploy.forked import ForkedProcess
-from deploy.settings import RIG_TASKS, LocalRunSettings
+from deploy.settings import RIG_TASKS, LocalRunSettings, default_workers
 from deploy.witness import Witness
 from protocol.messages import INTERRUPTED
 from protocol.mqtt import DEFAULT_BROKER, PROBE_TIMEOUT, BrokerAddress, connect_problem
@@ -59,11 +59,6 @@ def load(argv: list[str] | None = None) -> LocalRunSettings:
         "workers": s.workers or default_workers(s.env),
         "run_id": s.run_id or f"r{stamp}",
         "run_dir": s.run_dir or Path("runs") / f"{stamp}-{s.env}-{s.policy}-s{s.seed}"})
-
-
-def default_workers(env: str) -> int:
-    """The worker count of a run that does not say: 3 rigs for qube, as in the paper, else 4."""
-    return 3 if env == "qube" else 4
 
 
 class Fleet:

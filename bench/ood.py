@@ -241,11 +241,22 @@ def zeroshot(model: str, truth: str, seeds: list[int], models: list[str | None],
             "returns": returns, "failures": failures, "cpu_s": round(time.process_time() - t0, 1)}
 
 
+def federation(seed: int, rigs: int, max_episodes: int, folder: Path, options: dict[str, Any], algo: str,
+               init_model: str | None = None) -> dict[str, Any]:
+    """One in-process federation of the sweep's task and strategy on ``rigs`` rigs with the rig ``options``
+    (rig_profile, rig_model, randomize, qube_actions, qube_clock); its summary."""
+    from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
+
+    s = InprocessSettings.given(env=TASK, policy=POLICY, seed=seed, workers=rigs, max_episodes=max_episodes,
+                                run_dir=folder, algo=algo, init_model=init_model, **options)
+    return run_federation(s, plot=False, tensorboard_files=False, tolerate_failures=True)
+
+
 def finetune(seed: int, run_dir: str, options: dict[str, Any], model: str, max_episodes: int, algo: str,
              identify_s: list[float]) -> dict[str, Any]:
     """The lab of ``seed`` fine-tuned in process from ``model`` (a finished run is reused; an unfinished folder is
     started again); its last rig: the rig with the most rig minutes (identification + balance + reset)."""
-    from deploy.inprocess import run_federation
 
     t0 = time.process_time()
     folder = Path(run_dir)
@@ -254,9 +265,7 @@ def finetune(seed: int, run_dir: str, options: dict[str, Any], model: str, max_e
     else:
         shutil.rmtree(folder, ignore_errors=True)
         folder.mkdir(parents=True)
-        summary = run_federation(TASK, POLICY, seed, len(identify_s), max_episodes, folder, plot=False,
-                                 tensorboard_files=False, tolerate_failures=True, env_options=options,
-                                 init_model=Path(model), algo=algo)
+        summary = federation(seed, len(identify_s), max_episodes, folder, options, algo, init_model=model)
     return {**last_rig(summary, identify_s), "run_dir": run_dir, "cpu_s": round(time.process_time() - t0, 1)}
 
 
@@ -283,7 +292,6 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
     ``identified``, the ``lab``-randomised one (bench.sim2real's ``randomised``: each rig's physics drawn afresh within
     +-RANDOMIZE at every reset); with the identified profiles of a lab's rigs, deploy.lab's, randomised around them
     (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model."""
-    from deploy.inprocess import run_federation
 
     t0 = time.process_time()
     folder = Path(run_dir)
@@ -300,8 +308,7 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
             profile = folder.parent / f"{folder.name}-profile.json"
             profile.write_text(around([load_profile(f) for f in identified], name="around-identified").to_json())
             options = {"rig_profile": str(profile), "rig_model": str(profile), "qube_actions": actions}
-        summary = run_federation(TASK, POLICY, seed, RIGS, max_episodes, folder, plot=False, tensorboard_files=False,
-                                 tolerate_failures=True, env_options=options, algo=algo)
+        summary = federation(seed, RIGS, max_episodes, folder, options, algo)
     solved = any(w["solved"] for w in summary.get("workers", []))
     return {"finished": solved, "model": run_dir if solved else None, "end_reason": summary.get("end_reason"),
             "episodes": summary.get("episodes_to_all_solved"), "cpu_s": round(time.process_time() - t0, 1)}

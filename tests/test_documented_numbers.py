@@ -51,3 +51,15 @@ def test_the_sim_to_real_tables_are_sim2real_json() -> None:
     source = Path("bench/results/sim2real.json")
     expected = sim2real.report(json.loads((ROOT / source).read_text()), str(source))
     assert block(ROOT / "docs/how-to/warm-start.md", sim2real.BEGIN, sim2real.END) == expected + "\n"
+
+
+def test_the_out_of_distribution_tables_are_ood_json() -> None:
+    from bench import ood
+
+    source = Path("bench/results/ood.json")
+    if not (ROOT / source).exists():
+        assert block(ROOT / "README.md", ood.BEGIN, ood.END).strip() == "Not measured yet."
+        return
+    data = json.loads((ROOT / source).read_text())
+    assert block(ROOT / "README.md", ood.BEGIN, ood.END) == ood.render_readme(data, str(source))
+    assert block(ROOT / ood.DOCS, ood.BEGIN, ood.END) == ood.render_docs(data, str(source))

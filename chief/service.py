@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from chief import checkpoint, strategies, tensorboard
+from chief import checkpoint, tensorboard
 from chief.claim import EXIT_CLAIMED, RunClaim
 from chief.records import SUMMARY
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
@@ -190,7 +190,7 @@ class ChiefService:
                     log.error("no worker said hello within %.0f s; giving up", cfg.start_timeout)
                     self.claim.clear()  # nothing to resume
                     return EXIT_NO_WORKERS
-                shape = strategies.get(cfg.policy).rounds(self.roster.update_steps)  # ValueError if it cannot run
+                shape = cfg.strategy.rounds(self.roster.update_steps)  # ValueError if it cannot run
                 self.keeper = RoundKeeper(workers, cfg.policy, self.spec, cfg.max_episodes, cfg.round_timeout,
                                           actor_spec=self.roster.actor_spec, critic_spec=self.roster.critic_spec,
                                           shape=shape, max_staleness=cfg.max_staleness,

@@ -48,6 +48,19 @@ class FederationSettings(Settings):
                           "every worker. Per-episode strategies; with edges, k is counted across them "
                           "(docs/explanation/tiered.md)", ge=0)
 
+    @property
+    def strategy(self) -> strategies.Strategy:
+        """The run's strategy (chief/strategies), resolved from ``policy`` (which the settings checked)."""
+        return strategies.get(self.policy)
+
+    def tiering(self) -> tuple[int, str | None]:
+        """The edge chiefs the run gets (``edges`` of a tiered launcher, else 0) and, when its strategy cannot be
+        split across edges, 0 with the note that says it runs flat."""
+        edges = getattr(self, "edges", 0)
+        if edges and not tiers.decomposable(self.strategy):
+            return 0, tiers.why_flat(self.strategy)
+        return edges, None
+
     @model_validator(mode="after")
     def _learner_fits(self) -> FederationSettings:
         fits_task(self.algo, self.env, self.qube_actions)
@@ -55,14 +68,14 @@ class FederationSettings(Settings):
 
     @model_validator(mode="after")
     def _quorum_fits(self) -> FederationSettings:
-        if self.quorum and not strategies.get(self.policy).allows_staleness:
+        if self.quorum and not self.strategy.allows_staleness:
             raise ValueError(f"--quorum {self.quorum}: policy {self.policy!r} shares every PPO step, whose mean each "
                              "worker must apply with its own; use 0")
         return self
 
     @model_validator(mode="after")
     def _staleness_fits(self) -> FederationSettings:
-        if self.max_staleness and not strategies.get(self.policy).allows_staleness:
+        if self.max_staleness and not self.strategy.allows_staleness:
             raise ValueError(f"--max-staleness {self.max_staleness}: policy {self.policy!r} shares every PPO step, "
                              "whose answer each worker must apply before its next step; use 0")
         return self
@@ -107,8 +120,8 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
             raise ValueError("--edge-id goes with --role edge, and --role edge needs one")
         if self.role == "edge" and self.edges:
             raise ValueError("--edges is the root chief's setting, not an edge's")
-        if self.edges and not tiers.decomposable(strategies.get(self.policy)):
-            raise ValueError(f"--edges {self.edges}: {tiers.why_flat(strategies.get(self.policy))}")
+        if self.edges and not tiers.decomposable(self.strategy):
+            raise ValueError(f"--edges {self.edges}: {tiers.why_flat(self.strategy)}")
         problem = quorum_problem(self.quorum, self.workers if self.role == "chief" else None)
         if problem is not None:
             raise ValueError(problem)

@@ -23,7 +23,6 @@ from typing import Any
 
 import msgpack
 
-from chief import strategies, tiers
 from chief.edge import EdgeService
 from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
@@ -68,10 +67,9 @@ def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = 
     import torch  # after worker/'s check of the learn extra (one line where it is missing)
 
     torch.set_num_threads(1)
-    edges = s.edges
-    if edges and not tiers.decomposable(strategies.get(s.policy)):
-        print(f"note: {tiers.why_flat(strategies.get(s.policy))}", file=sys.stderr)
-        edges = 0
+    edges, flat = s.tiering()
+    if flat is not None:
+        print(f"note: {flat}", file=sys.stderr)
     hub = Hub()
     key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)
     common: dict[str, Any] = {"run_id": RUN_ID, "run_key": key, "start_timeout": START_TIMEOUT}

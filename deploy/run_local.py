@@ -29,7 +29,6 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
-from chief import strategies, tiers
 from chief.claim import EXIT_CLAIMED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
@@ -242,13 +241,10 @@ Login = Callable[[str], dict[str, Any]]
 def edge_of(s: LocalRunSettings, worker_ids: list[str]) -> dict[str, str]:
     """A tiered run's worker -> edge chief (worker i behind ``e<i mod N>``); empty for a flat run, and for a strategy
     that cannot be split (after a note saying so)."""
-    if not s.edges:
-        return {}
-    strategy = strategies.get(s.policy)
-    if not tiers.decomposable(strategy):
-        print(f"note: {tiers.why_flat(strategy)}", file=sys.stderr)
-        return {}
-    return {w: f"e{i % s.edges}" for i, w in enumerate(worker_ids)}
+    edges, flat = s.tiering()
+    if flat is not None:
+        print(f"note: {flat}", file=sys.stderr)
+    return {w: f"e{i % edges}" for i, w in enumerate(worker_ids)} if edges else {}
 
 
 def _observer(broker: str, run_id: str, login: Login) -> Connect:

@@ -28,7 +28,7 @@ from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
 from protocol import topics
-from protocol.auth import admitted, signed
+from protocol.auth import WorkerKeys, admitted, chief_key_of, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     ChiefAck,
@@ -68,7 +68,11 @@ class EdgeService:
         assert cfg.edge_id is not None
         self.cfg = cfg
         self.edge = cfg.edge_id
+        # protocol/auth.py: the run's key tags its partials, the chief key the root's answers it passes on (and its
+        # own refusals in the root's name), each worker's own key what that worker sends.
         self.key = cfg.key()
+        self.chief_key = chief_key_of(self.key)
+        self.worker_keys = WorkerKeys(self.key)
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any, bytes]] = queue.Queue()
         self.specs: dict[str, tuple[dict[str, tuple[int, ...]], dict[str, tuple[int, ...]]]] = {}
@@ -89,8 +93,8 @@ class EdgeService:
     # -- network thread: decode, enqueue -----------------------------------------------------------------------
 
     def _on_root(self, topic: str, payload: bytes) -> None:
-        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic, key=self.key,
-                       rejects=self.rejects)
+        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic,
+                       key=self.chief_key, rejects=self.rejects)
         if msg is None:
             return
         self.events.put((topic, msg, payload))
@@ -100,6 +104,10 @@ class EdgeService:
             msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
+            return
+        refused = self.worker_keys.refusal(msg)
+        if refused is not None:  # not its worker's
+            self.rejects.reject(topic, *refused)
             return
         self.events.put((topic, msg, payload))
 
@@ -204,7 +212,7 @@ class EdgeService:
                 ack = verdict.ack
                 self._relay(topics.ACK, encode(signed(ChiefAck(
                     worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=False,
-                    reason=ack.reason[:2000], session=self.start.session), self.key)))
+                    reason=ack.reason[:2000], session=self.start.session), self.chief_key)))
         if verdict.reason not in ("duplicate", "stale"):
             return
         answer = self.answers.get(verdict.round)

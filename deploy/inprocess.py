@@ -39,7 +39,7 @@ from protocol.transport import Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
 from worker.service import EXIT_ERROR, WorkerService
-from worker.settings import WorkerSettings
+from worker.settings import WorkerSettings, handed_keys
 
 RUN_ID = "inprocess"
 #: Seconds the chief waits for every worker's hello (building N learners at once can take a while on a busy machine).
@@ -102,7 +102,7 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
         cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, algo=algo, device_noise=device_noise,
                                    edge=f"e{i % edges}" if edges else None, slowdown=(pace or {}).get(wid, 1.0),
                                    reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
-                                   resend_interval=math.inf, init_model=init_model, run_key=key,
+                                   resend_interval=math.inf, init_model=init_model, **handed_keys(key, wid),
                                    model_dir=run_dir / "models" if models else None, **(env_options or {}))
         services[wid] = WorkerService(cfg, _timed(hub, topics.STATUS, _NewEpisode(), worker_conns[wid])).run
     codes = _run_threads(services)

@@ -19,8 +19,9 @@ Events (``type`` plus fields):
 - ``rig``: one QUBE-Servo 2 rig's phase and loop timing, or ``note`` saying why there is none;
 - ``reset``: a new run under the same id started; the page clears what it has.
 
-With the run's key, every chief message is checked as the workers check it (protocol/auth.py): one without a valid
-tag changes nothing shown; it is counted in ``refused`` (by reason and kind), which the page's footer shows.
+With the run's key, every chief message is checked as the workers check it, and every worker message as the chief
+does (protocol/auth.py): one without its sender's valid tag changes nothing shown; it is counted in ``refused`` (by
+reason and kind), which the page's footer shows.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from protocol.auth import TAG_FIELD, refusal
+from protocol.auth import TAG_FIELD, WorkerKeys, chief_key_of, refusal
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
@@ -45,7 +46,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
-from protocol.routes import CHIEF, EDGE, route_of
+from protocol.routes import CHIEF, EDGE, WORKER, route_of
 
 Event = dict[str, Any]
 
@@ -139,12 +140,15 @@ class RunView:
     """The state of one run (``run_id``) as the page shows it; fed decoded messages, one at a time."""
 
     def __init__(self, run_id: str, max_points: int = 4000, max_rounds: int = 300, key: bytes | None = None) -> None:
-        """``key``: the run's key, which every chief message shown must be tagged with (None: all are trusted)."""
+        """``key``: the run's key (None: every message is trusted). Every chief message shown must be tagged with the
+        chief key derived from it, every worker message with its worker's key (protocol/auth.py)."""
         if max_points < 2:
             raise ValueError("max_points must be at least 2")
         self.run_id = run_id
         self.key = key
-        self.refused: Counter[str] = Counter()  # chief messages without a valid tag: "<reason> <kind>" -> count
+        self.chief_key = chief_key_of(key)
+        self.worker_keys = WorkerKeys(key)
+        self.refused: Counter[str] = Counter()  # messages without their sender's valid tag: "<reason> <kind>" -> count
         self.max_points = max_points
         self.max_rounds = max_rounds
         self.kinds: Counter[str] = Counter()  # messages applied, by kind
@@ -187,9 +191,10 @@ class RunView:
         if handler is None:
             self.ignored[kind] += 1
             return []
-        if route is not None and route.publisher == CHIEF and TAG_FIELD in type(msg).model_fields:
-            refused = refusal(msg, self.key)
-            if refused is not None:  # not the chief's: shown as refused, never as the run's state
+        if route is not None and route.publisher in (CHIEF, WORKER) and TAG_FIELD in type(msg).model_fields:
+            refused = (refusal(msg, self.chief_key, "the chief key") if route.publisher == CHIEF
+                       else self.worker_keys.refusal(msg))
+            if refused is not None:  # not its sender's: shown as refused, never as the run's state
                 self.refused[f"{refused[0]} {kind}"] += 1
                 return []
         self.kinds[kind] += 1

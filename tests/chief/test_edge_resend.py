@@ -18,7 +18,7 @@ import pytest
 from chief.edge import EXIT_OK, EdgeService
 from chief.settings import ChiefSettings
 from protocol import topics
-from protocol.auth import signed
+from protocol.auth import chief_key_of, signed, worker_key
 from protocol.codec import RejectCounter, decode, encode
 from protocol.memory import Hub
 from protocol.messages import (
@@ -43,16 +43,17 @@ QUIET = 0.5  # seconds in which nothing more may come
 class Scene:
     """The edge's run: the root's and the worker's ends of the hub."""
 
-    key: bytes  # the run's key, as the edge holds it
+    key: bytes | None  # the run's key, as the edge holds it
     partials: queue.Queue[bytes]  # what the edge sent the root
     relayed: queue.Queue[tuple[str, bytes]]  # what the edge passed on to its worker (leaf, payload)
     hub: Hub
 
     def root(self, leaf: str, msg: RunStart | RunStop | ChiefAggregate | ChiefAck) -> None:
-        self.hub.route(topics.chief(RUN, leaf), encode(signed(msg, self.key)))
+        self.hub.route(topics.chief(RUN, leaf), encode(signed(msg, chief_key_of(self.key))))
 
     def worker(self, leaf: str, msg: WorkerHello | WorkerUpdate | MatureParams) -> None:
-        self.hub.route(topics.worker(RUN, WORKER, leaf), encode(msg))
+        assert self.key is not None
+        self.hub.route(topics.worker(RUN, WORKER, leaf), encode(signed(msg, worker_key(self.key, WORKER).encode())))
 
     def relayed_next(self, leaf: str, timeout: float = 10.0) -> bytes:
         while True:

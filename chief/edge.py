@@ -202,7 +202,7 @@ class EdgeService:
     def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
         """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused
         mature actor with the root's session, as the root would)."""
-        if verdict.status == "accepted":
+        if verdict.status in ("accepted", "held"):  # a held one counts, or is refused, when its round opens
             self.held[(msg.worker_id, verdict.round)] = msg
             return
         if verdict.status == "rejected":
@@ -248,6 +248,11 @@ class EdgeService:
                 critic_clipped=outcome.critic_clipped, timed_out=tuple(outcome.timed_out))
             self._partial(signed(msg, self.key))
             self.partials += 1
+            for verdict in outcome.taken_up:  # what the next round made of the submissions it held
+                held = self.held.get((verdict.submission.worker_id, verdict.round)) if verdict.submission else None
+                if verdict.status == "rejected" and held is not None:
+                    del self.held[(held.worker_id, verdict.round)]
+                    self._count(verdict, held)
 
     def _partial(self, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""

@@ -431,6 +431,9 @@ class ChiefService:
         topic = topics.worker(self.cfg.run_id, sub.worker_id, topics.UPDATE)
         if verdict.status == "accepted":
             self.metrics.episode(verdict.record(now - self.t0))
+        elif verdict.status == "held":  # beyond reach: counted, or refused, when its round opens (chief/rounds.py)
+            log.info("%s sent round %d while round %d is open: held until it opens", sub.worker_id, verdict.round,
+                     self.keeper.round if self.keeper is not None else 0)
         elif verdict.status == "duplicate":
             self.duplicates += 1  # sent again (a worker's resend, a broker's redelivery): counted once
         else:
@@ -456,8 +459,11 @@ class ChiefService:
         """Record the closed rounds, save the state, then answer the workers (in that order, so a chief that dies
         in between answers them again from its state)."""
         assert self.metrics is not None
+        now = time.monotonic()
         for outcome in outcomes:
-            self.metrics.round({**outcome.record(), "t": round(time.monotonic() - self.t0, 3)})
+            self.metrics.round({**outcome.record(), "t": round(now - self.t0, 3)})
+            for verdict in outcome.taken_up:  # held submissions the next round counted or refused
+                self._answer(verdict, now)
         self._save()
         for outcome in outcomes:
             self._log_outcome(outcome)

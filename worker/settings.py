@@ -106,6 +106,8 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
         if (self.worker_key is None) != (self.chief_key is None):
             raise ValueError("FEDRL_WORKER_KEY and FEDRL_CHIEF_KEY go together: a worker signs with its own key "
                              "and checks the chief with the chief key")
+        if self.worker_key is not None and self.worker_id == "auto":
+            raise ValueError("FEDRL_WORKER_KEY is the key of one worker id: give that id (--id, FEDRL_WORKER_ID)")
         return self
 
     def own_key(self, worker_id: str) -> bytes | None:

@@ -54,6 +54,8 @@ def test_a_worker_signs_with_its_own_key_and_checks_the_chief_with_the_chief_key
     assert plain.own_key("w1") is None and plain.chief_check_key() is None  # no key: as before
     with pytest.raises(ValueError, match="go together"):
         WorkerSettings.given(worker_id="w1", worker_key=worker_key(RAW, "w1"))
+    with pytest.raises(ValueError, match="one worker id"):
+        WorkerSettings.given(**handed_keys(KEY, "w1"))  # an automatic id would not be the key's
 
 
 def update(worker_id: str, episode: int = 1, ret: float = 20.0) -> WorkerUpdate:

@@ -47,13 +47,16 @@ class Scene:
     partials: queue.Queue[bytes]  # what the edge sent the root
     relayed: queue.Queue[tuple[str, bytes]]  # what the edge passed on to its worker (leaf, payload)
     hub: Hub
+    rejects: RejectCounter  # the edge's
 
     def root(self, leaf: str, msg: RunStart | RunStop | ChiefAggregate | ChiefAck) -> None:
         self.hub.route(topics.chief(RUN, leaf), encode(signed(msg, chief_key_of(self.key))))
 
-    def worker(self, leaf: str, msg: WorkerHello | WorkerUpdate | MatureParams) -> None:
+    def worker(self, leaf: str, msg: WorkerHello | WorkerUpdate | MatureParams, key: bytes | None = b"") -> None:
+        """The worker's message, tagged with its own key (or with ``key``: None leaves it untagged)."""
         assert self.key is not None
-        self.hub.route(topics.worker(RUN, WORKER, leaf), encode(signed(msg, worker_key(self.key, WORKER).encode())))
+        own = worker_key(self.key, WORKER).encode() if key == b"" else key
+        self.hub.route(topics.worker(RUN, WORKER, leaf), encode(signed(msg, own)))
 
     def relayed_next(self, leaf: str, timeout: float = 10.0) -> bytes:
         while True:
@@ -70,7 +73,7 @@ def scene() -> Iterator[Scene]:
     codes: list[int] = []
     thread = threading.Thread(target=lambda: codes.append(edge.run()), daemon=True)
     thread.start()
-    s = Scene(edge.key, queue.Queue(), queue.Queue(), hub)
+    s = Scene(edge.key, queue.Queue(), queue.Queue(), hub, edge.rejects)
     spy = hub.connect("spy", None, RejectCounter(logging.getLogger("spy")))
     spy.start()
     spy.subscribe(topics.edge(RUN, EDGE, topics.PARTIAL), lambda t, p: s.partials.put(p))
@@ -150,3 +153,17 @@ def test_a_finisher_whose_acknowledgement_was_lost_gets_it_through_the_partial_s
     scene.worker(topics.UPDATE, finish)  # the acknowledgement came and the worker missed it: passed on again
     assert decode(scene.relayed_next(topics.ACK), ChiefAck).accepted
     assert quiet(scene.partials)
+
+
+def test_an_edge_refuses_and_counts_what_is_not_its_workers_own(scene: Scene) -> None:
+    """Issue 32: an edge checks each worker's tag as the root would: an update untagged, or under another worker's
+    key, makes no partial and is counted; the worker's own makes one."""
+    assert scene.key is not None
+    update = WorkerUpdate(worker_id=WORKER, episode=1, episode_return=20.0, pi=20.0, recent_returns=[20.0], steps=20,
+                          gradient=pack_arrays({"w": np.array([0.5, -0.5], np.float32)}))
+    scene.worker(topics.UPDATE, update, key=None)
+    scene.worker(topics.UPDATE, update, key=worker_key(scene.key, "w9").encode())
+    assert quiet(scene.partials)
+    assert scene.rejects.as_dict() == {"unsigned": 1, "forged": 1}
+    scene.worker(topics.UPDATE, update)
+    assert decode(scene.partials.get(timeout=10), EdgePartial).round == 1

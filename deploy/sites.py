@@ -279,8 +279,8 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
     ``base`` plus its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site
     broker sees it).
     Each folder also holds the run's key (``run_key``, the same everywhere: an orchestrator takes a folder per
-    place), and so does each process's credentials/<user>.env. Passwords and the key are random; files with
-    secrets are private. Returns the folders."""
+    place), and so does each process's credentials/<user>.env, but a worker's, which holds its own key and the chief
+    key (``with_key``). Passwords and the key are random; files with secrets are private. Returns the folders."""
     base_conf = render(base.read_text(encoding="utf-8"), os.environ)  # its ${VAR:-default}s filled in
     run_args = ["--run", run] if run else []
     key = secrets.token_hex(32)

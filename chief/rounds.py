@@ -19,6 +19,10 @@ saved with the keeper and written to summary.json, where the audit finds it.
 
 - it must come from a worker of the run, for a round in the open round's window (the open round up to
   ``AHEAD_WINDOW`` episodes ahead, never past ``max_episodes``), with the run's tensor shapes;
+- one for a round beyond its worker's reach (more than S rounds past the open round, ``reachable``) is held,
+  counting nothing, until its round opens; it counts then only if it displaces nothing of the worker's own
+  (``displaces``: the chief heard nothing of the worker in the round before, and has not counted that round from it
+  since), so a forged update for a round ahead never makes the worker's real ones duplicates or ``inconsistent``;
 - its returns must lie within the task's bounds, agree with the returns the worker reported before, and its PI must be
   their mean (the chief uses its own mean from then on); a later step of an episode must repeat that episode's
   counted return and PI;

@@ -109,14 +109,18 @@ class Forger:
     reads sends one in w1's name for two rounds ahead (return 50, zero gradient), untagged, under w0's key and
     under a key of its own."""
 
-    def __init__(self, broker: str, run: str) -> None:
-        self.run = run
+    def __init__(self, broker: str, run: str, keyed: bool = True) -> None:
+        """``keyed``: the run has a key (else: only untagged forged updates, no hellos or statuses)."""
+        self.run, self.keyed = run, keyed
+        # Rounds ahead of the update it read. Without a key, 4: a forgery that arrived once its round was in reach
+        # would count (the limit chief/rounds.py names), and 4 rounds leave the forger's thread time on a busy machine.
+        self.ahead = 2 if keyed else 4
         self.conn = MqttConnection(BrokerAddress.parse(broker), client_id="forger").start()
         self.w0 = worker_key(RAW, "w0").encode()
         self.sent = 0
         self.conn.subscribe(topics.worker(run, "w1", topics.UPDATE), self._on_update)
         self._stop = threading.Event()
-        self.thread = threading.Thread(target=self._chatter, daemon=True)
+        self.thread = threading.Thread(target=self._chatter if keyed else self._stop.wait, daemon=True)
         self.thread.start()
 
     def _publish(self, worker_id: str, leaf: str, msg: Message) -> None:
@@ -124,7 +128,7 @@ class Forger:
         self.sent += 1
 
     def _each_key(self, msg: Any) -> list[Any]:
-        return [msg, signed(msg, self.w0), signed(msg, b"a key of the forger's own")]
+        return [msg, signed(msg, self.w0), signed(msg, b"a key of the forger's own")] if self.keyed else [msg]
 
     def _chatter(self) -> None:
         hello = WorkerHello(worker_id="w7", env_id=ENV, actor_spec={"w": (2,)})
@@ -137,10 +141,10 @@ class Forger:
 
     def _on_update(self, topic: str, payload: bytes) -> None:
         real = decode(payload)
-        if not isinstance(real, WorkerUpdate) or real.tag == "" or real.pi == 50.0:
+        if not isinstance(real, WorkerUpdate) or real.pi == 50.0:
             return  # its own forgeries come back on the same topic
         zeros = pack_arrays({k: np.zeros_like(v) for k, v in unpack_arrays(real.gradient).items()})
-        forged = real.model_copy(update={"episode": real.episode + 2, "episode_return": 50.0, "pi": 50.0,
+        forged = real.model_copy(update={"episode": real.episode + self.ahead, "episode_return": 50.0, "pi": 50.0,
                                          "recent_returns": (50.0,), "gradient": zeros, "steps": 50, "receipt": None,
                                          "played": None, "tag": ""})
         for msg in self._each_key(forged):
@@ -190,4 +194,38 @@ def test_forged_worker_messages_change_nothing(any_broker: str, tmp_path: Path, 
     refused = chief.rejects.as_dict()
     assert forger.sent > 0 and refused.get("unsigned", 0) > 0 and refused.get("forged", 0) > 0, refused
     assert set(refused) <= {"unsigned", "forged"}, refused  # nothing forged got as far as the rounds
+    audit(run_dir)
+
+
+@pytest.mark.slow
+def test_without_a_key_an_update_for_a_round_ahead_still_never_displaces_the_real_one(amqtt_broker: str,
+                                                                                      tmp_path: Path,
+                                                                                      clean: dict) -> None:
+    """Issue 32's probe on an open broker and a run without a key: for every update of w1, one in its name for
+    rounds ahead (return 50, zero gradient). Each is held and refused as unreachable when its round opens; w1's real
+    updates all count (none `inconsistent`), so the run is the clean one and the audit passes (chief/rounds.py)."""
+    run, run_dir = f"ahead-{time.monotonic_ns()}", tmp_path / "run"
+    chief = ChiefService(ChiefSettings.given(broker=amqtt_broker, run_id=run, workers=WORKERS, env=ENV,
+                                             policy="weighted", seed=SEED, max_episodes=EPISODES,
+                                             round_timeout=math.inf, start_timeout=60, idle_timeout=120,
+                                             run_dir=run_dir),
+                         outputs=Outputs(state=False, tensorboard=False, plot=False, progress=False))
+    forger = Forger(amqtt_broker, run, keyed=False)
+    workers = [WorkerService(WorkerSettings.given(broker=amqtt_broker, run_id=run, worker_id=f"w{i}", env=ENV,
+                                                  reply_timeout=120, start_timeout=60, ack_timeout=120,
+                                                  resend_interval=60)) for i in range(WORKERS)]
+    threads = [threading.Thread(target=w.run, daemon=True) for w in workers]
+    for t in threads:
+        t.start()
+    try:
+        assert chief.run() == 0
+    finally:
+        for t in threads:
+            t.join(timeout=60)
+        forger.stop()
+    summary = chief.summary("", True, 0)
+    assert [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]] == [
+        (w["id"], w["episodes"], w["steps"]) for w in clean["workers"]]
+    refused = chief.rejects.as_dict()
+    assert forger.sent > 0 and refused.get("unreachable", 0) > 0 and "inconsistent" not in refused, refused
     audit(run_dir)

@@ -54,9 +54,11 @@ def grid() -> list[Run]:
 
 def per_worker(run: Run, runs_dir: Path) -> list[list[object]]:
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
-    summary = run_federation(run.task, run.strategy, run.seed, WORKERS, run.cap, runs_dir / run.name, plot=False,
-                             tensorboard_files=False, models=False, algo=run.algo)
+    summary = run_federation(InprocessSettings.given(env=run.task, policy=run.strategy, seed=run.seed, workers=WORKERS,
+                             max_episodes=run.cap, run_dir=runs_dir / run.name, algo=run.algo), plot=False,
+                             tensorboard_files=False, models=False)
     return [[w["id"], w["episodes"], w["steps"], w.get("final_pi")] for w in summary["workers"]]
 
 

@@ -50,9 +50,10 @@ from protocol.messages import (
     WorkerHello,
     WorkerUpdate,
 )
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import digest, pack_arrays
+from protocol.transport import Transport, connector
 from services.broker import mosquitto
 
 WORKER_COUNTS = (4, 16, 64)
@@ -144,10 +145,10 @@ class ScriptedFleet:
         self.arrivals: dict[int, dict[str, float]] = {}
         self.answers: queue.Queue[Any] = queue.Queue()
         self.lock = threading.Lock()
-        self.conns: list[MqttConnection] = []
-        address = BrokerAddress.parse(broker)
+        self.conns: list[Transport] = []
+        connect = connector(BrokerAddress.parse(broker))
         for w in self.ids:
-            conn = MqttConnection(address, client_id=f"{RUN}-fake-{w}")
+            conn = connect(f"{RUN}-fake-{w}")
             conn.subscribe(topics.relayed(RUN, self.edge[w], "+") if w in self.edge else topics.chief(RUN, "+"),
                            self._handler(w))
             self.conns.append(conn.start(connect_timeout))
@@ -317,13 +318,15 @@ def worker_scaling(runs_dir: Path, worker_counts: tuple[int, ...] = WORKER_COUNT
     from bench.runs import Job, collect
     from bench.stats import spread
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     points = []
     for n in worker_counts:
         print(f"cost: {n} workers in process, {rounds} rounds of {task}", flush=True)
         job = Job("federation", task, strategy, seed, n, rounds)
         run_dir = runs_dir / f"scaling-{job.name}"
-        run_federation(task, strategy, seed, n, rounds, run_dir, plot=False, tensorboard_files=False)
+        run_federation(InprocessSettings.given(env=task, policy=strategy, seed=seed, workers=n, max_episodes=rounds,
+                       run_dir=run_dir), plot=False, tensorboard_files=False)
         result = collect(run_dir, job)
         chief_s = json.loads((run_dir / "timing.json").read_text())["chief_s"]
         workers = result["per_worker"]

@@ -16,12 +16,19 @@ import queue
 import subprocess
 import sys
 import threading
+import time
+from collections.abc import Callable
 from typing import IO, Any
 
 import numpy as np
 
 #: Devices per process: well under select()'s 1,024 descriptors, and few enough network threads per interpreter.
 PER_PROCESS = 128
+#: Seconds between two looks at the federation's processes while the devices wait for an answer.
+WATCH_S = 1.0
+#: What a fleet looks at while it waits: why the federation it talks to cannot answer any more (a process of it
+#: exited), or None while it can.
+Watch = Callable[[], str | None]
 
 
 class SpreadFleet:
@@ -29,7 +36,10 @@ class SpreadFleet:
     of at most ``per_process``; the same rounds as one ScriptedFleet."""
 
     def __init__(self, broker: str, devices: int, arrays: dict[str, np.ndarray], edges: int = 0,
-                 per_process: int = PER_PROCESS, timeout: float = 600.0) -> None:
+                 per_process: int = PER_PROCESS, timeout: float = 600.0, watch: Watch | None = None) -> None:
+        """``watch``: looked at every WATCH_S while waiting, a command fails at once when it names a reason."""
+        self.watch = watch
+        self.busy = True  # until every process said it is ready
         spec = json.dumps({k: list(v.shape) for k, v in arrays.items()})
         self.procs: list[subprocess.Popen[str]] = []
         self.lines: list[queue.Queue[str]] = []
@@ -41,33 +51,46 @@ class SpreadFleet:
             self.procs.append(proc)
             lines: queue.Queue[str] = queue.Queue()
             assert proc.stdout is not None
-            threading.Thread(target=_pump, args=(proc.stdout, lines), daemon=True).start()
+            threading.Thread(target=pump, args=(proc.stdout, lines), daemon=True).start()
             self.lines.append(lines)
         try:
             self._answers(timeout)  # every slice connected
+            self.busy = False
         except BaseException:
             self.stop()
             raise
 
     def _answers(self, timeout: float) -> list[dict[str, Any]]:
-        out = []
-        for k, lines in enumerate(self.lines):
+        """Every process's answer to the last command, waited for up to ``timeout`` s in all (TimeoutError), or
+        until ``watch`` says the federation is gone (RuntimeError)."""
+        deadline = time.monotonic() + timeout
+        return [self._answer(k, deadline) for k in range(len(self.lines))]
+
+    def _answer(self, k: int, deadline: float) -> dict[str, Any]:
+        while True:
             try:
-                line = lines.get(timeout=timeout)
+                line = self.lines[k].get(timeout=max(0.0, min(WATCH_S, deadline - time.monotonic())))
+                break
             except queue.Empty:
-                raise TimeoutError(f"device process {k} did not answer within {timeout:.0f} s") from None
-            answer = json.loads(line) if line else {"error": f"device process {k} exited ({self.procs[k].poll()})"}
-            if "error" in answer:
-                raise RuntimeError(f"device process {k}: {answer['error']}")
-            out.append(answer)
-        return out
+                gone = self.watch() if self.watch is not None else None
+                if gone is not None:
+                    raise RuntimeError(f"device process {k} waits in vain: {gone}") from None
+                if time.monotonic() >= deadline:
+                    raise TimeoutError(f"device process {k} did not answer in time") from None
+        answer = json.loads(line) if line else {"error": f"device process {k} exited ({self.procs[k].poll()})"}
+        if "error" in answer:
+            raise RuntimeError(f"device process {k}: {answer['error']}")
+        return dict(answer)
 
     def _command(self, cmd: dict[str, Any], timeout: float) -> list[dict[str, Any]]:
+        self.busy = True  # until every process answered: a process still at it does not read a "stop"
         for proc in self.procs:
             assert proc.stdin is not None
             proc.stdin.write(json.dumps(cmd) + "\n")
             proc.stdin.flush()
-        return self._answers(timeout)
+        answers = self._answers(timeout)
+        self.busy = False
+        return answers
 
     def join(self, timeout: float = 600.0) -> None:
         """Hellos until the chief's RunStart reaches every process."""
@@ -81,22 +104,27 @@ class SpreadFleet:
         return {"first_s": min(a["first"] for a in got) - start, "last_s": max(a["last"] for a in got) - start}
 
     def stop(self) -> None:
+        """Stop every process: a ``stop`` command, or SIGTERM where the last command failed (its processes may
+        still wait for their answers); each one left after 30 s is killed."""
         for proc in self.procs:
             try:
-                if proc.poll() is None and proc.stdin is not None:
+                if proc.poll() is None and self.busy:
+                    proc.terminate()
+                elif proc.poll() is None and proc.stdin is not None:
                     proc.stdin.write(json.dumps({"do": "stop"}) + "\n")
                     proc.stdin.close()
             except OSError:
                 pass
+        deadline = time.monotonic() + 30
         for proc in self.procs:
             try:
-                proc.wait(30)
+                proc.wait(max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 proc.kill()
                 proc.wait()
 
 
-def _pump(stream: IO[str], lines: queue.Queue[str]) -> None:
+def pump(stream: IO[str], lines: queue.Queue[str]) -> None:
     """A device process's answers, line by line; an empty line when it exits."""
     for line in stream:
         lines.put(line)

@@ -32,7 +32,8 @@ from protocol import learners as names
 from protocol import topics
 from protocol.codec import decode
 from protocol.messages import QubeTelemetry
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress
+from protocol.transport import connector
 from rpi_bridge.runner import percentiles
 from services.broker import mosquitto
 from services.broker.embedded import start_broker_process, stop_process
@@ -65,7 +66,7 @@ class AnsweredRig:
         self.rig_id, self.ticks = rig_id, ticks
         self.rig = subprocess.Popen([sys.executable, "-m", "services.qube_sim", "--broker", url, "--rig-id", rig_id,
                                      "--clock", "realtime", "--log-level", "WARNING"])
-        self.conn = MqttConnection(BrokerAddress.parse(url), client_id=f"bench-worker-{rig_id}").start()
+        self.conn = connector(BrokerAddress.parse(url))(f"bench-worker-{rig_id}").start()
         self.telemetry: queue.Queue[QubeTelemetry] = queue.Queue()
         self.conn.subscribe(topics.rig(rig_id, topics.TELEMETRY),
                             lambda t, p: self.telemetry.put(decode(p, QubeTelemetry)), qos=0)

@@ -36,7 +36,8 @@ from bench.output import write_report
 from protocol import qube
 from protocol.codec import decode
 from protocol.messages import QubeAction, QubeState, QubeStatus, QubeTelemetry
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress
+from protocol.transport import connector
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.runner import BridgeRunner
 from rpi_bridge.service import BridgeService
@@ -153,7 +154,7 @@ def run_broker(name: str, ticks: int, workdir: Path) -> dict:
         broker, port = start_broker_process(stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT)
     address = BrokerAddress.parse(f"mqtt://127.0.0.1:{port}")
     device = TimedQube(seed=1, period_s=0, clock=time.perf_counter)
-    service = BridgeService(device, "bench", address, client_prefix="loop-cost")
+    service = BridgeService(device, "bench", connector(address), client_prefix="loop-cost")
     core = TimedCore(device, ControlConfig())
     service.core = core
     service.runner = BridgeRunner(core, "bench", service._publish, deadline_s=qube.PERIOD_S)
@@ -168,7 +169,7 @@ def run_broker(name: str, ticks: int, workdir: Path) -> dict:
     service.conn.publish = timed_publish  # type: ignore[method-assign,assignment]
     loop = threading.Thread(target=service.run, daemon=True)
     loop.start()
-    conn = MqttConnection(address, client_id="loop-cost-worker").start()
+    conn = connector(address)("loop-cost-worker").start()
     try:
         env = QubeMqttEnv(conn, "bench", reset_timeout_s=60)
         while len(core.rows) < ticks:

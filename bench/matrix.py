@@ -18,7 +18,6 @@ wall seconds it records are of this host under this run's load.
 from __future__ import annotations
 
 import argparse
-import json
 import subprocess
 import sys
 import time
@@ -31,6 +30,7 @@ from typing import Any
 from bench.output import write_report
 from chief import strategies
 from chief.audit import AuditFailure, audit
+from chief.records import RunSummary
 from protocol import learners
 
 TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1", "qube-local")
@@ -69,19 +69,19 @@ def cells(tasks: Iterable[str], algos: Iterable[str], strategy_names: Iterable[s
     return out
 
 
-def problems(cell: Cell, summary: dict[str, Any], audit_passed: bool, audit_detail: str, m: int) -> list[str]:
+def problems(cell: Cell, summary: RunSummary, audit_passed: bool, audit_detail: str, m: int) -> list[str]:
     """What a finished cell's run folder says went wrong (empty: nothing)."""
     found = []
-    said = (summary["env"], summary["algo"], summary["policy"])
+    said = (summary.env, summary.algo, summary.policy)
     if said != (cell.env, cell.algo, cell.strategy):
         found.append(f"the run says env, learner, strategy = {said}")
-    short = {w["id"]: w["episodes"] for w in summary["workers"] if w["episodes"] < m and not w["solved"]}
+    short = {w.id: w.episodes for w in summary.workers if w.episodes < m and not w.solved}
     if short:
         found.append(f"workers that played fewer than M = {m} episodes: {short}")
-    played = max((w["episodes"] for w in summary["workers"]), default=0)
-    if summary["rounds"] != played * summary["rounds_per_episode"]:
-        found.append(f"{summary['rounds']} rounds for {played} episodes of {summary['rounds_per_episode']} rounds")
-    if refused := {k: v for k, v in (summary.get("rejected_messages") or {}).items() if v}:
+    played = max((w.episodes for w in summary.workers), default=0)
+    if summary.rounds != played * summary.rounds_per_episode:
+        found.append(f"{summary.rounds} rounds for {played} episodes of {summary.rounds_per_episode} rounds")
+    if refused := {k: v for k, v in (summary.rejected_messages or {}).items() if v}:
         found.append(f"refused messages: {refused}")
     if not audit_passed:
         found.append(f"audit failed: {audit_detail}")
@@ -113,11 +113,10 @@ def run_cell(cell: Cell, m: int, workers: int, seed: int, runs_dir: Path, round_
         passed, detail = True, str(audit(run_dir))
     except AuditFailure as failure:
         passed, detail = False, str(failure)
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = RunSummary.read(run_dir)
     found = problems(cell, summary, passed, detail, m)
-    return {**row, "ok": not found, "problems": found, "rounds": summary["rounds"],
-            "rounds_per_episode": summary["rounds_per_episode"],
-            "episodes": {w["id"]: w["episodes"] for w in summary["workers"]}}
+    return {**row, "ok": not found, "problems": found, "rounds": summary.rounds,
+            "rounds_per_episode": summary.rounds_per_episode, "episodes": {w.id: w.episodes for w in summary.workers}}
 
 
 def main(argv: list[str] | None = None) -> int:

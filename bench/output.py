@@ -21,3 +21,15 @@ def write_report(out: Path, module: str, argv: list[str] | None, fields: dict[st
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(report, indent=indent) + "\n")
     print(f"wrote {out}")
+
+
+def write_block(pages: tuple[Path, ...] | list[Path], begin: str, end: str, block: str) -> None:
+    """Put ``block`` between the ``begin`` and ``end`` markers of each page (generated tables in README and docs); a
+    ValueError for a page without them."""
+    for page in pages:
+        text = page.read_text()
+        start, stop = text.find(begin), text.find(end)
+        if start < 0 or stop < start:
+            raise ValueError(f"{page} has no {begin!r} ... {end!r} block")
+        page.write_text(text[:start + len(begin)] + "\n" + block + text[stop:])
+        print(f"wrote the table into {page}")

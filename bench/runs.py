@@ -162,9 +162,11 @@ def execute(job: Job, runs_dir: Path) -> dict[str, Any]:
                 shutil.rmtree(run_dir, ignore_errors=True)
                 if job.mode == "inprocess":
                     from deploy.inprocess import run_federation
+                    from deploy.settings import InprocessSettings
 
-                    run_federation(job.task, job.strategy, job.seed, job.workers, job.max_episodes, run_dir,
-                                   plot=False, tensorboard_files=False, algo=job.algo)
+                    run_federation(InprocessSettings.given(env=job.task, policy=job.strategy, seed=job.seed,
+                                   workers=job.workers, max_episodes=job.max_episodes, run_dir=run_dir, algo=job.algo),
+                                   plot=False, tensorboard_files=False)
                 else:
                     _run_mqtt(job, run_dir)
                 result = collect(run_dir, job)

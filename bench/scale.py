@@ -16,10 +16,11 @@ device publishes its update at once and waits for the answer. Per point, over th
 - ``broker_msgs_per_s``: the broker's messages received and sent per second over the measured rounds (its $SYS
   counters); ``update_bytes``: one device's update message;
 - with ``--rigs R`` (default 1): R simulated QUBE rigs in real time on the same broker during the rounds, from their
-  first answered state until the last round (bench.latency.AnsweredRig: the bridge's 7 ms loop in its own process,
-  its states answered as a worker does):
-  ``rig_state_to_action_p99_ms`` (the worst rig's p99 of state-publish -> action-arrival, from its telemetry),
-  ``rig_deadline_misses`` and ``rig_ticks`` (summed over the rigs).
+  first answered state until the last round, each answered from its own process as a worker does (bench.rigs: the
+  bridge's 7 ms loop in one process, its answering worker in another, neither sharing the benchmark's interpreter):
+  what the rigs saw, from their telemetry: ``rig_state_to_action_p99_ms`` (the worst rig's p99 of state-publish ->
+  action-arrival), ``rig_deadline_misses`` of ``rig_deadline_ticks`` (summed over the rigs: the ticks whose action
+  came in time or missed its deadline) and ``rig_miss_rate``; ``rig_ticks``: the states their workers answered.
 
 The audit (python -m chief.audit) checks every point's run folder. Hosts: one machine and one broker; the devices
 and the root chief on 127.0.0.1, each edge chief in its own network namespace acting as a host (a veth pair to this
@@ -47,14 +48,15 @@ import numpy as np
 from bench import output
 from bench.cost import RUN, actor_arrays
 from bench.fleets import PER_PROCESS, SpreadFleet
-from bench.latency import AnsweredRig
+from bench.rigs import RigProcess
 from chief.audit import audit
 from chief.records import EpisodeRecord, RoundRecord, read_metrics
 from protocol.codec import encode
 from protocol.messages import WorkerUpdate
-from protocol.mqtt import BrokerAddress, MqttConnection
+from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import pack_arrays
+from protocol.transport import connector
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
 
@@ -65,6 +67,18 @@ FULL = [(4, "flat", 0), (16, "flat", 0), (64, "flat", 0), (256, "flat", 0), (16,
         (256, "tiered", 16), (1024, "tiered", 16), (1024, "flat", 0)]
 QUICK = [(4, "flat", 0), (16, "flat", 0), (64, "flat", 0), (256, "tiered", 4)]
 ROUNDS = 6
+#: The root's and the edges' round and start timeouts (s): a safety net, never reached by a healthy point at any
+#: speed. The devices wait longer (ANSWER_WAIT_S), and fail at once when a process of the federation dies.
+ROUND_TIMEOUT_S = 600
+#: How long the devices wait for an answer: past the chiefs' own timeout, so that a round the root gave up on shows
+#: as a round that did not count every device (a clear error), not as a device's timeout racing the root's.
+ANSWER_WAIT_S = ROUND_TIMEOUT_S + 60
+#: The broker's configuration for every point. ``max_queued_messages 0``: no limit on the QoS 1 messages Mosquitto
+#: holds for one client beyond its 20 in flight (default 1,000). A flat root gets N updates at once; where the
+#: devices publish faster than it reads (a quiet machine with fast cores), more than 1,000 waited for it, Mosquitto
+#: dropped the rest ("Outgoing messages are being dropped"), and the round waited for them until the timeout. The
+#: devices wait for each answer before they publish again, so what it holds is bounded by one round (N updates).
+BROKER_CONF = "sys_interval 1\nmax_queued_messages 0\n"
 #: The flat chief's round at 64 workers over Mosquitto (bench/results/cost.json, round_s median): the target.
 FLAT_64_MS = 82.0
 
@@ -89,7 +103,7 @@ class BrokerCounters:
     def __init__(self, broker: str) -> None:
         self.values: dict[str, int] = {}
         self.updates: queue.Queue[str] = queue.Queue()
-        self.conn = MqttConnection(BrokerAddress.parse(broker), client_id=f"{RUN}-sys")
+        self.conn = connector(BrokerAddress.parse(broker))(f"{RUN}-sys")
         for leaf in ("received", "sent"):
             self.conn.subscribe(f"$SYS/broker/messages/{leaf}", self._note, qos=0)
         self.conn.start()
@@ -144,6 +158,24 @@ class EdgeHosts:
             subprocess.run(["ip", "netns", "del", ns], capture_output=True)  # its end of the veth pair goes with it
 
 
+def gone(procs: list[tuple[str, subprocess.Popen[bytes]]]) -> str | None:
+    """Why the federation cannot answer any more: the first of its processes that failed (None while none has; one
+    that exited 0 has ended its run, and its last answers may still be on their way)."""
+    for name, proc in procs:
+        if proc.poll() not in (None, 0):
+            return f"{name} exited with code {proc.returncode}"
+    return None
+
+
+def check_counted(run_dir: Path, devices: int) -> None:
+    """Every round of the root counted every device (RuntimeError naming the first that did not: the root gave up
+    on some, and the point did not measure what it says)."""
+    for rec in read_metrics(run_dir):
+        if isinstance(rec, RoundRecord) and len(rec.contributors) != devices:
+            raise RuntimeError(f"round {rec.round} counted {len(rec.contributors)} of {devices} devices (timed out: "
+                               f"{len(rec.timed_out)})")
+
+
 def root_times(run_dir: Path) -> list[float]:
     """Per round, from the root's records: its first counted submission to the round's record (s)."""
     first: dict[int, float] = {}
@@ -164,7 +196,7 @@ def measured_rounds(fleet: SpreadFleet, root: subprocess.Popen[bytes], port: int
     stats = proc_stats(root.pid, port)
     msgs, began = counters.total(), time.monotonic()
     for episode in range(1, rounds + 1):
-        times.append(fleet.round(episode, timeout=600))
+        times.append(fleet.round(episode, timeout=ANSWER_WAIT_S))
         now = proc_stats(root.pid, port) if root.poll() is None else stats
         cpu.append(now[0] - stats[0])
         read.append(now[1] - stats[1])
@@ -187,12 +219,12 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
     hosts = EdgeHosts.make(edges) if netns and edges else None
     outer = free_port()  # the listener the namespaces reach (every address), beside the loopback one
     broker_proc, port = mosquitto.start(work, max_packet_size=8 * 1024 * 1024,
-                                        extra=f"sys_interval 1\nlistener {outer}\n" if hosts else "sys_interval 1\n")
+                                        extra=BROKER_CONF + (f"listener {outer}\n" if hosts else ""))
     broker = f"mqtt://{HOST}:{port}"
     run_dir = work / "run"
     logs = [(work / f"{n}.log").open("wb") for n in ["root", *(f"e{k}" for k in range(edges))]]
-    common = ["--broker", broker, "--run-id", RUN, "--env", "CartPole-v0", "--round-timeout", "600",
-              "--start-timeout", "600", "--log-level", "WARNING"]
+    common = ["--broker", broker, "--run-id", RUN, "--env", "CartPole-v0", "--round-timeout", str(ROUND_TIMEOUT_S),
+              "--start-timeout", str(ROUND_TIMEOUT_S), "--log-level", "WARNING"]
     root = subprocess.Popen([sys.executable, "-m", "chief", *common, "--workers", str(devices), "--edges", str(edges),
                              "--max-episodes", str(rounds), "--run-dir", str(run_dir)],
                             stdout=logs[0], stderr=subprocess.STDOUT)
@@ -202,23 +234,26 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
         [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}"],
         stdout=logs[k + 1], stderr=subprocess.STDOUT) for k in range(edges)]
     fleet = counters = None
-    answered: list[AnsweredRig] = []
+    answered: list[RigProcess] = []
     rig_stats: list[dict[str, Any]] = []
     try:
         print(f"scale: {name}: connecting {devices} devices", flush=True)
         counters = BrokerCounters(broker)
-        fleet = SpreadFleet(broker, devices, arrays, edges=edges, per_process=per_process)
-        fleet.join(timeout=600)
-        answered = [AnsweredRig(broker, f"scale-rig{k}") for k in range(rigs)]
+        fleet = SpreadFleet(broker, devices, arrays, edges=edges, per_process=per_process,
+                            watch=lambda: gone([("the broker", broker_proc), ("the root chief", root),
+                                                *((f"edge chief e{k}", p) for k, p in enumerate(edge_procs))]))
+        fleet.join(timeout=ANSWER_WAIT_S)
+        answered = [RigProcess(broker, f"scale-rig{k}", timeout=ANSWER_WAIT_S) for k in range(rigs)]
         for r in answered:
             r.answering()  # the rounds start once every rig is balancing: its latencies are those of the rounds
         times, cpu, read, msgs_per_s = measured_rounds(fleet, root, port, counters, rounds)
         rig_stats = [r.finish() for r in answered]
         answered = []
-        root.wait(120)
+        root.wait(ROUND_TIMEOUT_S)  # its RunStop to "run over" took 4-19 s under load: a safety net only
         for p in edge_procs:
-            p.wait(120)
+            p.wait(ROUND_TIMEOUT_S)
         report = audit(run_dir)
+        check_counted(run_dir, devices)
     finally:
         for r in answered:
             r.kill()
@@ -247,10 +282,19 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
             "round_ms": round(1000 * statistics.median(t["last_s"] for t in times[steady]), 1),
             "broker_msgs_per_s": {"core": round(msgs_per_s, 1)},
             "edge_hosts": "network namespaces" if hosts else ("127.0.0.1" if edges else None),
-            **({"rigs": rigs, "rig_state_to_action_p99_ms": max(r["latency_ms"]["p99"] for r in rig_stats),
-                "rig_deadline_misses": sum(r["deadline_misses"] for r in rig_stats),
-                "rig_ticks": sum(r["ticks_answered"] for r in rig_stats)} if rig_stats else {}),
+            **(rig_row(rig_stats) if rig_stats else {}),
             "audit": str(report)}
+
+
+def rig_row(rig_stats: list[dict[str, Any]]) -> dict[str, Any]:
+    """A point's rig columns: what its rigs saw (their telemetry), summed over them; the worst rig's p99."""
+    misses = sum(r["deadline_misses"] for r in rig_stats)
+    ticks = int(sum(r["latency_ms"]["n"] + r["deadline_misses"] for r in rig_stats))
+    return {"rigs": len(rig_stats), "rig_answered_from": "its own process",
+            "rig_state_to_action_p99_ms": max(r["latency_ms"]["p99"] for r in rig_stats),
+            "rig_deadline_misses": misses, "rig_deadline_ticks": ticks,
+            "rig_miss_rate": round(misses / ticks, 4) if ticks else None,
+            "rig_ticks": sum(r["ticks_answered"] for r in rig_stats)}
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,6 +18,9 @@ reset fails five times in a row stops its worker, as a real rig's would (worker/
 unfinished, and the report names it with its end reason. Results:
 ``<out>/sim2real.json``; run folders under ``<runs-dir>``. ``--quick`` is a smoke-sized variant (one seed, small caps)
 that checks the pipeline, not the figures.
+
+``python -m bench.sim2real ood ...``: the out-of-distribution sweep, rigs off ``lab`` one parameter at a time, with
+and without identification (bench/ood.py).
 """
 
 from __future__ import annotations
@@ -82,11 +85,12 @@ def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str,
     if summary_path.exists():
         return {**json.loads(summary_path.read_text()), "run_dir": str(run_dir)}
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    summary = run_federation(TASK, setup.policy, seed, RIGS, max_episodes, run_dir, plot=False,
-                             tensorboard_files=False, tolerate_failures=True, env_options=env_options,
-                             init_model=init_model, algo=setup.algo)
+    summary = run_federation(InprocessSettings.given(env=TASK, policy=setup.policy, seed=seed, workers=RIGS,
+                             max_episodes=max_episodes, run_dir=run_dir, **env_options, init_model=init_model,
+                             algo=setup.algo), plot=False, tensorboard_files=False, tolerate_failures=True)
     return {**summary, "run_dir": str(run_dir)}
 
 
@@ -389,6 +393,11 @@ def write_report(json_path: Path, pages: list[Path]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    given = sys.argv[1:] if argv is None else argv
+    if given[:1] == ["ood"]:  # the out-of-distribution sweep (bench/ood.py)
+        from bench import ood
+
+        return ood.main(given[1:])
     args = parse(argv)
     if args.report:
         write_report(args.out / "sim2real.json", [Path("docs/how-to/warm-start.md")])
@@ -444,7 +453,9 @@ def config(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m bench.sim2real", description=__doc__.splitlines()[0],
+                                     epilog="python -m bench.sim2real ood --help: the out-of-distribution sweep "
+                                     "(bench/ood.py)")
     parser.add_argument("--quick", action="store_true", help="one seed, small caps: checks the pipeline only")
     parser.add_argument("--report", action="store_true", help="write the table of <out>/sim2real.json into "
                         "docs/how-to/warm-start.md (runs nothing)")

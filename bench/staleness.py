@@ -24,6 +24,7 @@ from typing import Any
 
 from chief.audit import audit
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 from protocol.tasks import worker_seed
 from worker.envs import ENVS, register_env
 from worker.qube_env import QubeLocalEnv
@@ -69,8 +70,9 @@ def run_one(staleness: int, args: argparse.Namespace, runs: Path) -> dict[str, A
     run_dir = runs / f"s{staleness}"
     began = time.monotonic()
     with slow_rig(args.seed, args.slow_rig, args.slow_factor):
-        summary = run_federation(ENV, args.policy, args.seed, 3, args.episodes, run_dir, plot=False,
-                                 tensorboard_files=False, models=False, max_staleness=staleness)
+        summary = run_federation(InprocessSettings.given(env=ENV, policy=args.policy, seed=args.seed, workers=3,
+                                 max_episodes=args.episodes, run_dir=run_dir, max_staleness=staleness), plot=False,
+                                 tensorboard_files=False, models=False)
     report = audit(run_dir)
     rigs = {w["id"]: {k: w["rig"][k] for k in ("idle_s", "reset_s", "balance_s", "rig_s")} | {
         "episodes": w["episodes"], "solved": w["solved"]} for w in summary["workers"]}

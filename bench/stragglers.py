@@ -6,6 +6,9 @@ workers at their own pace, every round waiting for all of them; ``quorum``, the 
 ``--no-unbounded``, ``unbounded``, the same N with every round waiting for the straggler. Each run's time per round
 is the median gap between two rounds' close times in its records (metrics.jsonl ``t``, the chief's clock); the
 slowdown is the quorum run's against the baseline's. Every run is audited. Writes bench/results/stragglers.json.
+
+With ``--edges E`` every run is tiered (E edge chiefs, worker i behind edge e<i mod E>, k counted across the edges:
+docs/explanation/tiered.md), the baseline's N - 1 workers too; it writes bench/results/stragglers-edges.json.
 """
 
 from __future__ import annotations
@@ -23,30 +26,39 @@ from typing import Any
 
 from bench.output import command
 from chief.audit import audit
+from chief.records import RoundRecord, read_metrics
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 
 OUT = Path("bench/results/stragglers.json")
+OUT_EDGES = Path("bench/results/stragglers-edges.json")
+
+
+def rounds_of(run_dir: Path) -> list[RoundRecord]:
+    """A run's round records, in order (metrics.jsonl)."""
+    return [r for r in read_metrics(run_dir) if isinstance(r, RoundRecord)]
 
 
 def seconds_per_round(run_dir: Path) -> float:
     """The median gap between two consecutive rounds' close times (s)."""
-    times = [r["t"] for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
+    times = [r.t for r in rounds_of(run_dir)]
     return statistics.median(b - a for a, b in itertools.pairwise(times))
 
 
 def measure(name: str, workers: int, episodes: int, seed: int, env: str, folder: Path, quorum: int = 0,
-            pace: dict[str, float] | None = None) -> dict[str, Any]:
+            pace: dict[str, float] | None = None, edges: int = 0) -> dict[str, Any]:
     """One federation, audited: its median seconds per round and what it did."""
     run_dir = folder / name
     began = time.monotonic()
-    summary = run_federation(env, "weighted", seed, workers, episodes, run_dir, plot=False, tensorboard_files=False,
-                             models=False, quorum=quorum, pace=pace)
+    summary = run_federation(InprocessSettings.given(env=env, policy="weighted", seed=seed, workers=workers,
+                             max_episodes=episodes, run_dir=run_dir, quorum=quorum, edges=edges), plot=False,
+                             tensorboard_files=False, models=False, pace=pace)
     report = audit(run_dir)
-    rounds = [r for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
-    return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {},
+    rounds = rounds_of(run_dir)
+    return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {}, "edges": edges,
             "rounds": summary["rounds"], "s_per_round": round(seconds_per_round(run_dir), 4),
             "wall_s": round(time.monotonic() - began, 1),
-            "rounds_without": sum(1 for r in rounds if r.get("late")),
+            "rounds_without": sum(1 for r in rounds if r.late),
             "late_refused": summary.get("rejected_messages", {}).get("late", 0), "audit": str(report)}
 
 
@@ -58,20 +70,23 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--env", default="CartPole-v0")
     parser.add_argument("--no-unbounded", action="store_true", help="leave out the run that waits for the straggler")
-    parser.add_argument("--out", type=Path, default=OUT)
+    parser.add_argument("--edges", type=int, default=0, help="E edge chiefs in every run (default 0: flat)")
+    parser.add_argument("--out", type=Path, default=None, help=f"default {OUT}, with --edges {OUT_EDGES}")
     args = parser.parse_args(argv)
+    args.out = args.out or (OUT_EDGES if args.edges else OUT)
+    e = args.edges
     n, slow = args.workers, f"w{args.workers - 1}"
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        runs = [measure("baseline", n - 1, args.episodes, args.seed, args.env, folder),
+        runs = [measure("baseline", n - 1, args.episodes, args.seed, args.env, folder, edges=e),
                 measure("quorum", n, args.episodes, args.seed, args.env, folder, quorum=n - 1,
-                        pace={slow: args.slowdown})]
+                        pace={slow: args.slowdown}, edges=e)]
         if not args.no_unbounded:
             runs.append(measure("unbounded", n, args.episodes, args.seed, args.env, folder,
-                                pace={slow: args.slowdown}))
+                                pace={slow: args.slowdown}, edges=e))
     base = runs[0]["s_per_round"]
-    result = {"env": args.env, "seed": args.seed, "episodes": args.episodes, "slowdown": args.slowdown,
+    result = {"env": args.env, "seed": args.seed, "episodes": args.episodes, "slowdown": args.slowdown, "edges": e,
               "straggler": slow, "load_average_at_start": load, "load_average_at_end": os.getloadavg()[0],
               "cores": os.cpu_count(),
               "runs": runs, "quorum_slowdown_pct": round(100 * (runs[1]["s_per_round"] / base - 1), 1),

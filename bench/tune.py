@@ -44,6 +44,7 @@ def run(task: str, strategy: str, algo: str, seed: int, workers: int, max_episod
         overrides: dict[str, Any]) -> dict[str, Any]:
     """One tuning federation; its line of the log."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     if seed not in TUNING_SEEDS:
         raise ValueError(f"seed {seed} is not a tuning seed ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]})")
@@ -51,8 +52,9 @@ def run(task: str, strategy: str, algo: str, seed: int, workers: int, max_episod
     run_dir = Path(tempfile.mkdtemp(prefix="tune-"))
     t0 = time.monotonic()
     try:
-        summary = run_federation(task, strategy, seed, workers, max_episodes, run_dir / "run", plot=False,
-                                 tensorboard_files=False, models=False, algo=algo)
+        summary = run_federation(InprocessSettings.given(env=task, policy=strategy, seed=seed, workers=workers,
+                                 max_episodes=max_episodes, run_dir=run_dir / "run", algo=algo), plot=False,
+                                 tensorboard_files=False, models=False)
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
     return {"task": task, "strategy": strategy, "algo": algo, "set": overrides, "seed": seed, "workers": workers,

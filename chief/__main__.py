@@ -32,7 +32,12 @@ def main(argv: list[str] | None = None) -> int:
     if s.role == "edge":
         from chief.edge import EdgeService
 
-        return run_service(f"edge {s.edge_id}", lambda: EdgeService(s))
+        def edge() -> EdgeService:
+            service = EdgeService(s)
+            stop_on_signals(service.interrupt)  # SIGTERM, SIGINT or SIGHUP: a clean stop, exit 130
+            return service
+
+        return run_service(f"edge {s.edge_id}", edge)
 
     def build() -> ChiefService:
         service = ChiefService(s)

@@ -442,6 +442,9 @@ def tiered_edges(run: Run) -> None:
         listed = sorted(w for ws in r.edges.values() for w in ws)
         _holds(listed == sorted(r.contributors), f"round {r.round}'s edges summed {listed}, its contributors are "
                f"{sorted(r.contributors)}")
+        _holds(r.partials is None or len(r.edges) < r.partials <= len(r.edges) + len(r.contributors),
+               f"round {r.round} summed {r.partials} partials of {len(r.edges)} edges and {len(r.contributors)} "
+               "contributors (an edge's further partial has contributors of its own)")
         for e, ws in r.edges.items():
             for w in ws:
                 _holds(edge_of.setdefault(w, e) == e, f"{w} is behind edge {edge_of[w]} and, in round {r.round}, {e}")
@@ -467,7 +470,7 @@ def tiered_exact(run: Run) -> None:
             _holds(digest(root) == r.digest, f"round {r.round}: the witnessed aggregate is not the recorded one")
         flat = run.strategy.aggregate(grads, {w: run.progress(r.pis[w]) for w in learners})
         assert flat.gradient is not None
-        worst = tiers.excess(grads, r.weights, len(r.edges), flat.gradient, root)
+        worst = tiers.excess(grads, r.weights, r.partials or len(r.edges), flat.gradient, root)
         _holds(worst <= 1.0, f"round {r.round}: the root's aggregate is {worst:.3g} times the derived bound away "
                "from the flat Eq. 9 of the same submissions")
         run.report.tiered += 1

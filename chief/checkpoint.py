@@ -94,7 +94,7 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
         counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
         done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted, tier=k.tier,
         partials=[_partial(r, e, held) for r, by_edge in sorted(k.partials.items())
-                  for e, held in sorted(by_edge.items())])
+                  for (e, _), held in sorted(by_edge.items())])
 
 
 def _partial(r: int, edge: str, held: HeldPartial) -> dict[str, Any]:
@@ -147,7 +147,7 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
     k.answers = {o.round: o for o in map(_unoutcome, state.answers)}
     k.done_reason, k.aborted, k.interrupted = state.done_reason, state.aborted, state.interrupted
     for d in state.partials:
-        k.partials.setdefault(d["round"], {})[d["edge"]] = _unpartial(d)
+        k.partials.setdefault(d["round"], {})[(d["edge"], tuple(d["contributors"]))] = _unpartial(d)
     return k
 
 

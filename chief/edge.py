@@ -7,6 +7,11 @@ tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of 
 transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 
+Under a quorum k of n (RunStart ``quorum``) the edge closes its part of a round with its share of k
+(chief/tiers.py ``edge_quorum``), and forwards a submission that comes after that in a partial of its own: the root
+counts k across all partials, and takes it or refuses it as late (docs/explanation/tiered.md, "k of n across
+edges").
+
 A worker that sends a closed round again missed something: the edge passes on the root's answer and acknowledgement
 it holds for that round, and sends the round's partial again when it holds none (a broker lost the partial or the
 answer; the root counts it once and answers again).
@@ -21,9 +26,11 @@ from __future__ import annotations
 import logging
 import math
 import queue
+import threading
 import time
 from typing import Any
 
+from chief import tiers
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
@@ -42,7 +49,6 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection
 from protocol.rounds import RoundShape
 from protocol.routes import WORKER, route_for
 from protocol.tasks import task
@@ -51,7 +57,7 @@ from protocol.transport import Connect, Transport
 
 log = logging.getLogger("edge")
 
-EXIT_OK, EXIT_NOT_STARTED = 0, 3
+EXIT_OK, EXIT_NOT_STARTED, EXIT_INTERRUPTED = 0, 3, 130
 #: Closed rounds whose root answers an edge keeps, to answer a worker again that missed one.
 ANSWERS_KEPT = 32
 #: Seconds between two further copies of one round's partial: the workers of an edge that send a round again (all at
@@ -80,15 +86,17 @@ class EdgeService:
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
-        self.sent: dict[int, bytes] = {}  # round -> the partial sent for it (the last ANSWERS_KEPT rounds)
+        self.sent: dict[int, list[bytes]] = {}  # round -> the partials sent for it (the last ANSWERS_KEPT rounds)
         self.resent: dict[int, float] = {}  # round -> when its partial last went again
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
-        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
+        self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
+        self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
 
-    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
-        return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
-                              rejects=rejects)
+    def interrupt(self) -> None:
+        """Stop within a tenth of a second (SIGTERM, SIGINT, SIGHUP): the root goes on, and this edge's workers
+        are lagging until an edge speaks for them again. Safe from any thread or a signal handler."""
+        self._interrupt.set()
 
     # -- network thread: decode, enqueue -----------------------------------------------------------------------
 
@@ -121,7 +129,7 @@ class EdgeService:
             self.conn.subscribe(route_for(WORKER, "hello").filter(run=run), self._on_worker, qos=1)
             log.info("edge %s of run %s: waiting for the root's RunStart", self.edge, run)
             deadline = time.monotonic() + self.cfg.start_timeout
-            while True:
+            while not self._interrupt.is_set():
                 try:
                     topic, msg, payload = self.events.get(timeout=0.1)
                 except queue.Empty:
@@ -142,6 +150,9 @@ class EdgeService:
                         self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
                 if self.keeper is not None:
                     self._forward(self.keeper.tick(time.monotonic()))
+            log.warning("edge %s: interrupted after %d partials; the root goes on, and this edge's workers are "
+                        "lagging until an edge speaks for them", self.edge, self.partials)
+            return EXIT_INTERRUPTED
         finally:
             self.conn.stop()
 
@@ -192,12 +203,14 @@ class EdgeService:
         known = [w for w in mine if w in self.specs]
         actor, critic = self.specs[known[0]] if known else (None, None)
         spec = task(start.env_id)
+        share = tiers.edge_quorum(start.quorum, len(start.workers), len(mine))
         self.keeper = RoundKeeper(mine, start.policy, spec, start.max_episodes, self.cfg.round_timeout,
                                   actor_spec=actor, critic_spec=critic or None,
                                   shape=RoundShape(per_episode=start.rounds_per_episode),
-                                  max_staleness=start.max_staleness, tier="edge")
+                                  max_staleness=start.max_staleness, tier="edge", quorum=share)
         self.start = start
-        log.info("edge %s: %d workers (%s), policy %s", self.edge, len(mine), ", ".join(mine), start.policy)
+        log.info("edge %s: %d workers (%s), policy %s%s", self.edge, len(mine), ", ".join(mine), start.policy,
+                 f", its share of the quorum {start.quorum} of {len(start.workers)}: {share}" if share else "")
 
     def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
         """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused
@@ -229,7 +242,8 @@ class EdgeService:
                 log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
                          msg.worker_id, r)
                 self.resent[r] = now
-                self._publish_partial(self.sent[r])
+                for payload in self.sent[r]:
+                    self._publish_partial(payload)
 
     def _forward(self, outcomes: list[RoundOutcome]) -> None:
         """Each of its closed rounds as one EdgePartial to the root."""
@@ -237,6 +251,8 @@ class EdgeService:
             part = outcome.partial
             assert part is not None
             subs = [self.held.pop((w, outcome.round)) for w in outcome.contributors]
+            if outcome.round in self.answers:  # a late worker's, and the root answered: it refuses it as late
+                part = tiers.Partial(None, 0.0, part.count)  # ... so its tensors need not travel
             msg = EdgePartial(
                 edge_id=self.edge, round=outcome.round, episode=outcome.episode, step=outcome.step,
                 updates=tuple(s.model_copy(update={"gradient": {}, "critic_gradient": None}) for s in subs
@@ -256,10 +272,11 @@ class EdgeService:
 
     def _partial(self, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
-        self.sent[msg.round] = encode(msg)
+        payload = encode(msg)
+        self.sent.setdefault(msg.round, []).append(payload)
         self.sent.pop(msg.round - ANSWERS_KEPT, None)
         self.resent.pop(msg.round - ANSWERS_KEPT, None)
-        self._publish_partial(self.sent[msg.round])
+        self._publish_partial(payload)
 
     def _publish_partial(self, payload: bytes) -> None:
         self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), payload, qos=1)

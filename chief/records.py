@@ -145,6 +145,7 @@ class RoundRecord(Record):
     t: float = 0.0
     offline: list[str] | None = None
     edges: dict[str, list[str]] | None = None
+    partials: int | None = None  # a root's round that summed more partials than edges (an edge's late workers')
     late: list[str] | None = None
 
 

@@ -34,7 +34,9 @@ saved with the keeper and written to summary.json, where the audit finds it.
 
 A round collects one submission per waited-on worker. It closes when all of them are in, or ``round_timeout``
 seconds after its first submission arrived (silent workers are then marked lagging and not waited on until they
-submit again). A status message never removes a submission, and a ``finished`` status means nothing until its
+submit again). With a quorum k it closes once k of them are in; an edge's keeper (its share of k) forwards a
+submission for a round it closed without that worker in a partial of its own (``_late``), for the root to count.
+A status message never removes a submission, and a ``finished`` status means nothing until its
 MatureParams is in. A worker's last will (``offline``) does not stop the round from waiting for it: a broker restart
 delivers every client's will, and workers that merely reconnected must not lose their place (the round's timeout
 still ends the wait for one that really died); a worker that says it stopped or failed is not waited for at once.
@@ -172,6 +174,8 @@ class RoundOutcome:
     edges: dict[str, list[str]] = field(default_factory=dict)  # a root's round: edge -> its partial's contributors
     late: list[str] = field(default_factory=list)  # a quorum's round: the waited-on workers it closed without
     partial: tiers.Partial | None = None  # an edge's round: its part of Eq. 9, for the root
+    parts: int = 0  # a root's round: how many partials it summed (more than its edges: an edge's late ones)
+    norms: dict[str, float] = field(default_factory=dict)  # an edge's quorum round: its learners' gradient norms
     taken_up: list[Verdict] = field(default_factory=list)  # held submissions the next round took up (or refused)
 
     @property
@@ -191,13 +195,16 @@ class RoundOutcome:
                 **({"critic_clipped": self.critic_clipped} if self.critic_clipped else {}),
                 **({"offline": self.offline} if self.offline else {}),
                 **({"edges": self.edges} if self.edges else {}),
+                **({"partials": self.parts} if self.parts > len(self.edges) else {}),
                 **({"late": self.late} if self.late else {})}
 
 
 @dataclass(frozen=True)
 class HeldPartial:
     """An edge's part of a round as a root holds it until the round closes: its partial sum, its contributors, and
-    the factors the edge scaled their actors' and (per-step strategies) critics' gradients by."""
+    the factors the edge scaled their actors' and (per-step strategies) critics' gradients by. Under a quorum an edge
+    may send a round more than one partial (its late workers' own), with disjoint contributors: a root holds each
+    under ``PartKey`` (edge, contributors), so a copy of one sent again replaces itself."""
 
     partial: tiers.Partial
     contributors: list[str]
@@ -309,13 +316,13 @@ class RoundKeeper:
         federation.progress(task.tc, task.tc, task.r_floor)  # validates tc > r_floor
         if tier != "flat" and not tiers.decomposable(self.strategy):
             raise ValueError(tiers.why_flat(self.strategy))
-        if quorum and not (self.strategy.allows_staleness and tier == "flat" and 1 <= quorum <= len(workers)):
-            raise ValueError(f"a quorum of {quorum}: 1..{len(workers)} workers, a per-episode strategy (not "
-                             f"{policy!r}: every worker must apply each step's mean with its own), and a flat run")
+        if quorum and not (self.strategy.allows_staleness and 1 <= quorum <= len(workers)):
+            raise ValueError(f"a quorum of {quorum}: 1..{len(workers)} workers and a per-episode strategy (not "
+                             f"{policy!r}: every worker must apply each step's mean with its own)")
         self.quorum = quorum  # k: a round closes when k of its waited-on workers submitted (0: all of them)
         self.tier = tier
         #: A root's partials: round -> edge -> what it sent.
-        self.partials: dict[int, dict[str, HeldPartial]] = {}
+        self.partials: dict[int, dict[PartKey, HeldPartial]] = {}
         self.policy = policy
         self.task = task
         self.max_episodes = max_episodes
@@ -411,6 +418,9 @@ class RoundKeeper:
                 ack = Ack(sub.worker_id, r, sub.episode, same, "" if same else "episode already counted as an update")
             return Verdict("duplicate", "duplicate", f"round {r} of {sub.worker_id} already counted",
                            submission=sub, round=r, ack=ack, replay=self.answers.get(r))
+        late = self.answers.get(r) if self.tier == "edge" and r < self.round and not sub.mature else None
+        if late is not None and sub.worker_id in late.late and not self.aborted:
+            return self._late(sub, r, rec, late)  # the root decides whether it is late (its own partial)
         if self.done:
             return self._reject(sub, r, "run_over", f"the run is over ({self.done_reason})")
         if rec.state == "finished" and (sub.mature or not rec.helping):
@@ -517,9 +527,15 @@ class RoundKeeper:
             self.done_reason, self.interrupted = INTERRUPTED, True
 
     def resume(self) -> None:
-        """Take up an interrupted run again (a run that ended for good stays over)."""
+        """Take up an interrupted run again (a run that ended for good stays over). Every worker the stop left
+        ``offline`` is waited for again: the command that resumes the run starts them all, and what one said about
+        its stop (a storage fault, its ``stopped`` on the RunStop) does not excuse it from a run that goes on. A
+        worker that had timed out (``lagging``) stays excused until it submits, as in a run that never stopped."""
         if self.interrupted:
             self.done_reason, self.interrupted = None, False
+            for rec in self.workers.values():
+                if rec.state == "offline":
+                    rec.state, rec.excused, rec.detail = "active", False, ""
 
     # -- internals -------------------------------------------------------------------------------------------
 
@@ -600,6 +616,18 @@ class RoundKeeper:
 
     def _file(self, sub: Submission, r: int, rec: WorkerRecord, now: float) -> None:
         """Count a checked submission for round ``r``: the worker's record, and the round it waits in."""
+        self._book(sub, r, rec)
+        if r == self.round:
+            self.pending[sub.worker_id] = sub
+        else:
+            # The worker went on without an answer (e.g. the chief missed its submissions while the broker
+            # restarted): keep this for its round, and stop waiting for the worker in the rounds it skipped.
+            self.ahead.setdefault(r, {})[sub.worker_id] = sub
+        if self.round_opened_at is None:
+            self.round_opened_at = now
+
+    def _book(self, sub: Submission, r: int, rec: WorkerRecord) -> None:
+        """Count a submission: its worker's returns, PI, steps and rounds, and its return from lagging."""
         self.counted.add((sub.worker_id, r))
         if sub.step == 0:
             for back, value in enumerate(reversed(sub.recent_returns)):
@@ -612,14 +640,6 @@ class RoundKeeper:
         if rec.state in ("lagging", "offline") or rec.excused:
             log.info("worker %s is back (state was %s)", sub.worker_id, rec.state)
             rec.state, rec.excused = "active" if rec.state != "finished" else "finished", False
-        if r == self.round:
-            self.pending[sub.worker_id] = sub
-        else:
-            # The worker went on without an answer (e.g. the chief missed its submissions while the broker
-            # restarted): keep this for its round, and stop waiting for the worker in the rounds it skipped.
-            self.ahead.setdefault(r, {})[sub.worker_id] = sub
-        if self.round_opened_at is None:
-            self.round_opened_at = now
 
     def _open_next(self, now: float, closed: RoundOutcome) -> None:
         """Open the next round with what was filed ahead for it and the held submissions it takes up (their verdicts
@@ -663,7 +683,10 @@ class RoundKeeper:
             if mature:
                 outcome.offline = self._offline_learners(mature)
         if self.tier == "root":
-            outcome.edges = {e: held.contributors for e, held in sorted(self.partials.get(r, {}).items())}
+            held = self.partials.get(r, {})
+            outcome.edges = {e: sorted(w for (f, _), h in held.items() if f == e for w in h.contributors)
+                             for e in sorted({e for e, _ in held})}
+            outcome.parts = len(held)
         outcome.late = late
         self.answers[r] = outcome
         self.answers.pop(r - ANSWERS_KEPT, None)
@@ -704,30 +727,31 @@ class RoundKeeper:
             self._finish(self.workers[w], subs[w].episode)
         return outcome
 
-    def _bounded(self, gradients: Gradients) -> tuple[Gradients, dict[str, float]]:
+    def _bounded(self, gradients: Gradients, others: list[float] | None = None) -> tuple[Gradients, dict[str, float]]:
         """``bound_norms`` for a strategy that shares; a strategy that shares nothing (``independent``) bounds
         nothing: no gradient of its reaches anyone."""
-        return bound_norms(gradients) if self.strategy.shares else (dict(gradients), {})
+        return bound_norms(gradients, others or []) if self.strategy.shares else (dict(gradients), {})
 
     def _combine(self, outcome: RoundOutcome, r: int, learners: list[str]) -> None:
         """A root's Eq. 9: the edges' partials of round ``r`` combined (chief/tiers.py), in edge order; Eq. 8's
         weights over all of the round's learners."""
         held = self.partials.get(r, {})
-        edges = sorted(held)
-        outcome.gradient, outcome.critic_gradient = tiers.combine([held[e].partial for e in edges])
+        keys = sorted(held)  # canonical order: by edge, then contributors
+        outcome.gradient, outcome.critic_gradient = tiers.combine([held[key].partial for key in keys])
         if outcome.gradient is not None:
             outcome.weights = tiers.weights(tiers.shares(self.strategy, {w: self.progress(self.pending[w].pi)
                                                                           for w in learners}))
-        for e in edges:
-            outcome.clipped.update(held[e].clipped)
-            outcome.critic_clipped.update(held[e].critic_clipped)
+        for key in keys:
+            outcome.clipped.update(held[key].clipped)
+            outcome.critic_clipped.update(held[key].critic_clipped)
 
     def add_partial(self, r: int, edge: str, partial: tiers.Partial, contributors: list[str],
                     clipped: dict[str, float], critic_clipped: dict[str, float] | None = None) -> None:
         """A root keeps an edge's partial of round ``r`` (before its contributors' submissions, whose last closes
         the round), and notes which of the round's contributors it holds and the factors the edge scaled by."""
-        self.partials.setdefault(r, {})[edge] = HeldPartial(partial, sorted(contributors), clipped,
-                                                            dict(critic_clipped or {}))
+        key = (edge, tuple(sorted(contributors)))
+        self.partials.setdefault(r, {})[key] = HeldPartial(partial, sorted(contributors), clipped,
+                                                           dict(critic_clipped or {}))
 
     def _partial(self, r: int, subs: dict[str, Submission], finished: list[str]) -> RoundOutcome:
         """An edge's round: its learners' (bounded) gradients summed into one Partial for the root (chief/tiers.py);
@@ -742,9 +766,26 @@ class RoundKeeper:
                 {w: subs[w].critic_gradient for w in learners})  # type: ignore[misc]
         outcome.partial = tiers.partial(self.strategy, grads, {w: self.progress(subs[w].pi) for w in learners},
                                         critics)
+        if self.quorum:  # the reference a late worker's gradient is bounded against (``_late``)
+            outcome.norms = {w: l2_norm(subs[w].gradient) for w in learners}  # type: ignore[arg-type]
         for w in finished:
             self._finish(self.workers[w], subs[w].episode)
         return outcome
+
+    def _late(self, sub: Submission, r: int, rec: WorkerRecord, answer: RoundOutcome) -> Verdict:
+        """An edge's quorum round closed without this worker, but the root's may still be open (it counts k across
+        all edges): the edge checks and counts the submission and forwards it in a partial of its own, bounded
+        against the round's norms; the root takes it into the round, or refuses it as late."""
+        problem = self._check(sub, rec)
+        if problem is not None:
+            return self._reject(sub, r, *problem)
+        self._book(sub, r, rec)
+        outcome = self._outcome(r, "partial", {sub.worker_id: sub})
+        assert sub.gradient is not None
+        grads, outcome.clipped = self._bounded({sub.worker_id: sub.gradient}, list(answer.norms.values()))
+        answer.norms[sub.worker_id] = l2_norm(sub.gradient)
+        outcome.partial = tiers.partial(self.strategy, grads, {sub.worker_id: self.progress(sub.pi)})
+        return Verdict("accepted", submission=sub, round=r, outcomes=[outcome])
 
     def excuse(self, r: int, workers: list[str], now: float) -> list[RoundOutcome]:
         """A root stops waiting in round ``r`` for workers their edge timed out in it (marked lagging, as ``tick``
@@ -803,6 +844,8 @@ class RoundKeeper:
 
 
 Gradients = dict[str, Arrays]
+#: A held partial's key: (edge, its contributors).
+PartKey = tuple[str, tuple[str, ...]]
 
 
 def reachable(open_round: int, staleness: int, first_of_next_episode: int) -> int:
@@ -828,8 +871,9 @@ def displaces(r: int, previous_counted: bool, already_counted: bool) -> str | No
     return None
 
 
-def bound_norms(gradients: Gradients) -> tuple[Gradients, dict[str, float]]:
-    """Scale every gradient whose norm exceeds NORM_FACTOR times the round's median norm down to that bound.
+def bound_norms(gradients: Gradients, others: list[float] | None = None) -> tuple[Gradients, dict[str, float]]:
+    """Scale every gradient whose norm exceeds NORM_FACTOR times the round's median norm down to that bound
+    (``others``: the norms of the round's gradients already bounded, when these come late).
 
     Returns the (possibly scaled) gradients and, per scaled worker, the factor applied. The median is bounded by
     honest workers' norms as long as fewer than half of them lie (at N = 2 it is the mean of both, so a single liar
@@ -840,7 +884,7 @@ def bound_norms(gradients: Gradients) -> tuple[Gradients, dict[str, float]]:
     norms = {w: l2_norm(g) for w, g in gradients.items()}
     if not norms:  # a round of finishers only (an edge's, say): nothing to bound
         return {}, {}
-    reference = float(np.median(list(norms.values())))
+    reference = float(np.median(list(norms.values()) + list(others or [])))
     bound = NORM_FACTOR * reference
     if not bound > 0:
         return dict(gradients), {}

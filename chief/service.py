@@ -41,7 +41,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection, Stopped
+from protocol.mqtt import Stopped
 from protocol.rigtime import RIG_FIELDS
 from protocol.routes import CHIEF, chief_route, qos_of, received_by
 from protocol.tasks import task
@@ -80,7 +80,7 @@ class Outputs:
 class ChiefService:
     """Runs one federation from the first hello (or from its saved state) to the summary.
 
-    ``connect`` makes its connection (protocol.transport.Connect; default: MQTT to ``cfg.broker``)."""
+    ``connect`` makes its connection (protocol.transport.Connect; default: its settings', ``cfg.connector()``)."""
 
     def __init__(self, cfg: ChiefSettings, connect: Connect | None = None,
                  outputs: Outputs | None = None) -> None:
@@ -106,7 +106,7 @@ class ChiefService:
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
         if self.saved is not None:
             self._check_resumable(*self.saved)
-        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-chief", None, self.rejects)
+        self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-chief", None, self.rejects)
         self.metrics: MetricsLog | None = None
         self.t0 = time.monotonic()
         self._last_progress = 0.0
@@ -124,10 +124,6 @@ class ChiefService:
         self.claim = RunClaim(self.conn, ChiefClaim(run_id=cfg.run_id, session=session, since=since,
                                                     host=socket.gethostname()[:255], pid=os.getpid()),
                               self.key, self.rejects)
-
-    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
-        return MqttConnection(self.broker, client_id=client_id, will=will, max_payload=self.cfg.max_payload,
-                              rejects=rejects)
 
     def _check_resumable(self, keeper: RoundKeeper, service: dict[str, Any]) -> None:
         if service.get("run_id") != self.cfg.run_id:
@@ -320,7 +316,7 @@ class ChiefService:
                        workers=sorted(self.keeper.workers), first_episode=self.keeper.next_episode,
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
                        finishers_help=self.keeper.strategy.finishers_help,
-                       max_staleness=self.keeper.max_staleness,
+                       max_staleness=self.keeper.max_staleness, quorum=self.keeper.quorum,
                        edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers})
         self._send(msg)
 

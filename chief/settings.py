@@ -45,7 +45,8 @@ class FederationSettings(Settings):
 
     quorum: int = setting(0, "k of a k-of-n round: it closes when k of the workers it waits for submitted; a later "
                           "submission for it is dropped (refused as late, its worker applies the round's answer); 0: "
-                          "every worker (docs/explanation/tiered.md). Per-episode strategies, flat runs", ge=0)
+                          "every worker. Per-episode strategies; with edges, k is counted across them "
+                          "(docs/explanation/tiered.md)", ge=0)
 
     @model_validator(mode="after")
     def _learner_fits(self) -> FederationSettings:
@@ -67,11 +68,12 @@ class FederationSettings(Settings):
         return self
 
 
-def tiered_problem(edges: int, quorum: int, policy: str) -> str | None:
-    """Why a run cannot have ``edges`` edge chiefs with these settings (None: it can, or it runs flat anyway)."""
-    if edges and quorum and tiers.decomposable(strategies.get(policy)):
-        return ("--quorum runs flat: an edge waits for all of its workers (a quorum across edges is not built yet); "
-                "use --edges 0 or --quorum 0")
+def quorum_problem(quorum: int, workers: int | None) -> str | None:
+    """Why a k-of-n round cannot be (None: it can, or the workers are not known yet): k > n never closes. With edges
+    k is counted across them (each closes its part with its share, chief/tiers.py ``edge_quorum``)."""
+    if quorum and workers is not None and quorum > workers:
+        return (f"--quorum {quorum}: a round cannot wait for more than its {workers} workers; use 1..{workers}, or 0 "
+                "for all of them")
     return None
 
 
@@ -107,7 +109,7 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
             raise ValueError("--edges is the root chief's setting, not an edge's")
         if self.edges and not tiers.decomposable(strategies.get(self.policy)):
             raise ValueError(f"--edges {self.edges}: {tiers.why_flat(strategies.get(self.policy))}")
-        problem = tiered_problem(self.edges, self.quorum, self.policy)
+        problem = quorum_problem(self.quorum, self.workers if self.role == "chief" else None)
         if problem is not None:
             raise ValueError(problem)
         return self

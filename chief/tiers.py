@@ -15,7 +15,8 @@ T = sum_e T_e, so the weights stay normalised over ALL contributors:
 
 Exactness. The flat chief computes fl32(sum_n fl64(s_n / T) g_n) in float64; an edge sums in float64 too but
 forwards S_e as float32 (one update's bytes on the wire), which rounds it by at most u32 = 2^-24 relative; the root
-adds the partials in float64 and divides. Both are within (n + E + 2) u64 (u64 = 2^-53) of the exact value, the
+adds the E partials in float64 and divides (E: one per edge, more when an edge sent a late worker's own partial
+under a quorum). Both are within (n + E + 2) u64 (u64 = 2^-53) of the exact value, the
 tiered one also within u32 sum_e |S_e| / T <= u32 sum_n w_n |g_n|, and each is rounded to float32 once at the end
 (half a float32 spacing each). So, coordinate by coordinate,
 
@@ -58,6 +59,18 @@ class Partial:
 def decomposable(strategy: Strategy) -> bool:
     """Whether ``strategy``'s aggregate can be closed at the edges (a normalised weighted sum, or nothing shared)."""
     return strategy.share is not None or strategy.aggregate is no_gradient
+
+
+def edge_quorum(quorum: int, workers: int, behind: int) -> int:
+    """k_e, an edge's share of a k-of-n round (docs/explanation/tiered.md): the edge closes its part of a round once
+    it misses at most the n - k workers the whole round may miss, k_e = clamp(n_e - (n - k), 1, n_e); 0 (all of
+    them) without a quorum. Smaller, the root could not close without a further partial of the edge; larger, one
+    straggler behind it would hold back a round the root could close."""
+    if not quorum:
+        return 0
+    if not 1 <= quorum <= workers or not 1 <= behind <= workers:
+        raise ValueError(f"a quorum of {quorum} of {workers} workers, {behind} of them behind the edge")
+    return min(behind, max(1, behind - (workers - quorum)))
 
 
 def why_flat(strategy: Strategy) -> str:

@@ -10,7 +10,6 @@ Needs ``pip install .[deploy]`` and a reachable Docker engine (DOCKER_HOST is ho
 from __future__ import annotations
 
 import io
-import json
 import signal
 import socket
 import sys
@@ -34,6 +33,7 @@ except ModuleNotFoundError:  # one line naming the extra, not a traceback
     require("deploy", "docker", "requests")
     raise
 
+from chief.records import SUMMARY, RunSummary
 from chief.settings import ChiefSettings
 from deploy.settings import DockerSettings
 from protocol.tasks import worker_seed
@@ -56,7 +56,7 @@ class RunResult:
     code: int
     wall_s: float
     run_dir: Path
-    summary: dict[str, Any] | None = None
+    summary: RunSummary | None = None
 
 
 @dataclass
@@ -171,8 +171,7 @@ class Launcher:
         relay.join(timeout=5)
         copy_out(chief, "/runs/run", run_dir)
         save_logs(self.containers, run_dir / "logs")
-        summary_path = run_dir / "summary.json"
-        summary = json.loads(summary_path.read_text()) if summary_path.exists() else None
+        summary = RunSummary.read(run_dir) if (run_dir / SUMMARY).exists() else None
         return RunResult(workers, code, time.monotonic() - t0, run_dir, summary)
 
 
@@ -260,10 +259,10 @@ def interrupts_as_exceptions() -> Iterator[None]:
 def print_table(results: list[RunResult]) -> None:
     print(f"\n{'workers':>7}  {'exit':>4}  {'all solved at':>13}  {'end':<20}  {'wall s':>7}  run folder")
     for r in results:
-        s = r.summary or {}
-        solved = s.get("episodes_to_all_solved")
+        solved = r.summary.episodes_to_all_solved if r.summary else None
+        end = r.summary.end_reason if r.summary else "no summary"
         print(f"{r.workers:>7}  {r.code:>4}  {'-' if solved is None else solved:>13}  "
-              f"{s.get('end_reason', 'no summary'):<20}  {r.wall_s:>7.1f}  {r.run_dir}")
+              f"{end:<20}  {r.wall_s:>7.1f}  {r.run_dir}")
 
 
 @returns_code

@@ -19,7 +19,6 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from pathlib import Path
 from typing import Any
 
 import msgpack
@@ -28,14 +27,14 @@ from chief import strategies, tiers
 from chief.edge import EdgeService
 from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
-from chief.settings import ChiefSettings, tiered_problem
+from chief.settings import ChiefSettings
 from deploy.settings import InprocessSettings
 from deploy.witness import Witness
 from protocol import topics
 from protocol.codec import RejectCounter, encode
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import RunStop
-from protocol.transport import Handler
+from protocol.transport import Connect, Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
 from worker.service import EXIT_ERROR, WorkerService
@@ -50,60 +49,51 @@ START_TIMEOUT = 600.0
 IDLE_TIMEOUT = 2.0
 
 
-def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episodes: int, run_dir: Path,
-                   device_noise: float = 1.0, plot: bool = True, progress: bool = False,
-                   tensorboard_files: bool = True, env_options: dict[str, Any] | None = None,
-                   init_model: Path | None = None, models: bool = True, max_staleness: int = 0,
-                   tolerate_failures: bool = False, algo: str = "ppo", edges: int = 0, quorum: int = 0,
+def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = False, tensorboard_files: bool = True,
+                   models: bool = True, tolerate_failures: bool = False,
                    pace: dict[str, float] | None = None) -> dict[str, Any]:
-    """Run one federation to its end; returns its summary (also written to ``run_dir``). ``tensorboard_files``:
-    write the TensorBoard event files live, as the chief does (the benchmarks leave them out of their timing);
-    ``progress``: the chief's progress lines every 2 s (else only its last one); ``env_options``: the workers'
-    task options (qube-local: ``rig_profile``, ``randomize``); ``algo``: the workers' learner (protocol/learners.py);
-    ``init_model``: a warm start, every worker from this
-    model (a file or a run folder; a ValueError, before anything runs, when it does not fit the task); ``models``:
-    save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does; ``max_staleness``: the run's
-    bounded staleness S (ChiefSettings.max_staleness). A worker that fails (its rig could not reset, say) leaves the
-    federation, and the run ends as aborted once no learner is left (IDLE_TIMEOUT); ``tolerate_failures``: return
-    that run's summary, which says which workers did not solve (else a RuntimeError after the run, as for a bug).
-    ``edges``: a tiered run (docs/explanation/tiered.md), worker i behind edge chief ``e{i mod edges}``, each an
-    EdgeService in its own thread, and the wire observed into GRADIENTS for the audit's exactness check; a strategy
-    that cannot be split runs flat (a note on stderr). ``quorum``: k of a k-of-n round (ChiefSettings.quorum);
-    ``pace``: worker -> how many times slower than its own pace it plays (a straggler, WorkerSettings.slowdown)."""
+    """Run the federation ``s`` describes to its end; returns its summary (also written to ``s.run_dir``). The
+    chief's, the edges' and the workers' settings are its children (Settings.child, as deploy.run_local builds
+    them), made from ``s`` alone (nothing of this process's environment, as a container's): a warm start that does
+    not fit the task is a ValueError before anything runs; a strategy that cannot be split runs flat (a note on
+    stderr), worker i behind edge chief ``e{i mod edges}`` otherwise, each an EdgeService in its own thread, and the
+    wire observed into GRADIENTS for the audit's exactness check. What is not the federation's: ``plot``,
+    ``tensorboard_files`` (the TensorBoard event files, live as the chief writes them; the benchmarks leave them out
+    of their timing) and ``progress`` (the chief's progress lines every 2 s, else only its last one) are the chief's
+    outputs; ``models``: save each worker's mature model in ``run_dir/models/<id>.pt``, as make run does; ``pace``:
+    worker -> how many times slower than its own pace it plays (a straggler, WorkerSettings.slowdown). A worker that
+    fails (its rig could not reset, say) leaves the federation, and the run ends as aborted once no learner is left
+    (IDLE_TIMEOUT); ``tolerate_failures``: return that run's summary, which says which workers did not solve (else a
+    RuntimeError after the run, as for a bug)."""
     import torch  # after worker/'s check of the learn extra (one line where it is missing)
 
     torch.set_num_threads(1)
-    if edges and not tiers.decomposable(strategies.get(policy)):
-        print(f"note: {tiers.why_flat(strategies.get(policy))}", file=sys.stderr)
+    edges = s.edges
+    if edges and not tiers.decomposable(strategies.get(s.policy)):
+        print(f"note: {tiers.why_flat(strategies.get(s.policy))}", file=sys.stderr)
         edges = 0
-    problem = tiered_problem(edges, quorum, policy)
-    if problem is not None:  # before anything starts
-        raise ValueError(problem)
     hub = Hub()
     key = secrets.token_hex(32)  # the run's key, as deploy/run_local.py makes one (protocol/auth.py)
+    common: dict[str, Any] = {"run_id": RUN_ID, "run_key": key, "start_timeout": START_TIMEOUT}
+    chiefs: dict[str, Any] = {**common, "round_timeout": math.inf}  # nothing times out: a sweep is reproducible
     chief_conn: list[_Timed] = []
     chief = ChiefService(
-        ChiefSettings.given(run_id=RUN_ID, workers=workers, env=env_id, algo=algo, policy=policy, seed=seed,
-                            max_episodes=max_episodes, round_timeout=math.inf, start_timeout=START_TIMEOUT,
-                            idle_timeout=IDLE_TIMEOUT, run_dir=run_dir, init_model=init_model, run_key=key,
-                            max_staleness=max_staleness, edges=edges, quorum=quorum),
+        s.child(ChiefSettings, inherit=False, **chiefs, idle_timeout=IDLE_TIMEOUT, edges=edges),
         connect=_timed(hub, topics.START, _answers, chief_conn),
         outputs=Outputs(state=False, tensorboard=tensorboard_files, plot=plot, progress=progress))
-    worker_conns: dict[str, list[_Timed]] = {}
     services: dict[str, Callable[[], int]] = {"chief": chief.run}
     for e in range(edges):
-        services[f"e{e}"] = EdgeService(ChiefSettings.given(
-            run_id=RUN_ID, role="edge", edge_id=f"e{e}", round_timeout=math.inf, start_timeout=START_TIMEOUT,
-            run_key=key), connect=hub.connect).run
-    witness = Witness(hub.connect, RUN_ID, run_dir) if edges else None
-    for i in range(workers):
+        services[f"e{e}"] = EdgeService(s.child(ChiefSettings, inherit=False, **chiefs, role="edge",
+                                                edge_id=f"e{e}", edges=0), connect=hub.connect).run
+    witness = Witness(hub.connect, RUN_ID, s.run_dir) if edges else None
+    worker_conns: dict[str, list[_Timed]] = {}
+    for i in range(s.workers):
         wid = f"w{i}"
         worker_conns[wid] = []
-        cfg = WorkerSettings.given(run_id=RUN_ID, worker_id=wid, env=env_id, algo=algo, device_noise=device_noise,
-                                   edge=f"e{i % edges}" if edges else None, slowdown=(pace or {}).get(wid, 1.0),
-                                   reply_timeout=math.inf, start_timeout=START_TIMEOUT, ack_timeout=math.inf,
-                                   resend_interval=math.inf, init_model=init_model, **handed_keys(key, wid),
-                                   model_dir=run_dir / "models" if models else None, **(env_options or {}))
+        cfg = worker_settings(s, **{**common, **handed_keys(key, wid)}, worker_id=wid,
+                              edge=f"e{i % edges}" if edges else None, slowdown=(pace or {}).get(wid, 1.0),
+                              reply_timeout=math.inf, ack_timeout=math.inf, resend_interval=math.inf,
+                              model_dir=s.run_dir / "models" if models else None)
         services[wid] = WorkerService(cfg, _timed(hub, topics.STATUS, _NewEpisode(), worker_conns[wid])).run
     codes = _run_threads(services)
     if codes["chief"] not in (EXIT_OK, EXIT_ABORTED):  # the workers (daemon threads) are told to stop, not awaited
@@ -118,11 +108,12 @@ def run_federation(env_id: str, policy: str, seed: int, workers: int, max_episod
     failed = {w: c for w, c in codes.items() if c not in (EXIT_OK, EXIT_ABORTED)}
     if failed and not (tolerate_failures and all(c == EXIT_ERROR for c in failed.values())):
         raise RuntimeError(f"in-process workers failed: {failed}")
-    summary = {**json.loads((run_dir / "summary.json").read_text()), "run_id": run_dir.name, "mode": "in-process",
-               **({"env_options": env_options} if env_options else {})}
+    options = env_options(s)
+    summary = {**json.loads((s.run_dir / "summary.json").read_text()), "run_id": s.run_dir.name,
+               "mode": "in-process", **({"env_options": options} if options else {})}
     summary.pop("broker", None)
-    write_summary(run_dir, summary)
-    (run_dir / "timing.json").write_text(json.dumps(
+    write_summary(s.run_dir, summary)
+    (s.run_dir / "timing.json").write_text(json.dumps(
         {"worker_s": {w: [round(x, 5) for x in c[0].seconds] for w, c in worker_conns.items() if c},
          "chief_s": [round(x, 5) for x in chief_conn[0].seconds]}) + "\n")
     return summary
@@ -155,7 +146,7 @@ class _Timed(MemoryConnection):
     publishes from it) plus its handlers' (decoding, on the delivery thread). A unit ends at a publication that
     ``ends`` accepts; the first ends at the first one on the topic ending with ``start``."""
 
-    def __init__(self, hub: Hub, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter,
+    def __init__(self, hub: Hub, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter | None,
                  start: str, ends: Callable[[str, bytes], bool]) -> None:
         super().__init__(hub, client_id, will, rejects)
         self.seconds: list[float] = []
@@ -184,10 +175,9 @@ class _Timed(MemoryConnection):
         return super().publish(topic, payload, qos, retain)
 
 
-def _timed(hub: Hub, start: str, ends: Callable[[str, bytes], bool], into: list[_Timed]
-           ) -> Callable[[str, tuple[str, bytes] | None, RejectCounter], _Timed]:
+def _timed(hub: Hub, start: str, ends: Callable[[str, bytes], bool], into: list[_Timed]) -> Connect:
     """A protocol.transport.Connect that makes a _Timed connection and keeps it in ``into``."""
-    def connect(client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> _Timed:
+    def connect(client_id: str, will: tuple[str, bytes] | None = None, rejects: RejectCounter | None = None) -> _Timed:
         conn = _Timed(hub, client_id, will, rejects, start, ends)
         into.append(conn)
         return conn
@@ -215,12 +205,15 @@ class _NewEpisode:
         return new
 
 
+def worker_settings(s: InprocessSettings, **values: Any) -> WorkerSettings:
+    """A worker's settings in the run ``s`` describes: its child, built from ``s`` and ``values`` alone."""
+    return s.child(WorkerSettings, inherit=False, **values)
+
+
 def env_options(s: InprocessSettings) -> dict[str, Any]:
     """The workers' task options of these settings (qube-local: the rig profile, randomisation and clock), as a
-    worker over MQTT derives them (WorkerSettings.env_options)."""
-    return WorkerSettings.given(env=s.env, algo=s.algo, rig_profile=s.rig_profile, randomize=s.randomize,
-                                qube_clock=s.qube_clock, qube_actions=s.qube_actions,
-                                rig_model=s.rig_model).env_options()
+    worker derives them (WorkerSettings.env_options)."""
+    return worker_settings(s).env_options()
 
 
 @returns_code
@@ -230,10 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     if options:
         print(f"rigs: {', '.join(f'{k} {v}' for k, v in options.items())}")
     try:
-        summary = run_federation(s.env, s.policy, s.seed, s.workers, s.max_episodes, s.run_dir,
-                                 device_noise=s.device_noise, progress=True, init_model=s.init_model,
-                                 max_staleness=s.max_staleness, algo=s.algo, edges=s.edges, quorum=s.quorum,
-                                 env_options=options, tolerate_failures=True)
+        summary = run_federation(s, progress=True, tolerate_failures=True)
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2

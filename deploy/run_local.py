@@ -35,11 +35,10 @@ from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
 from deploy import sites
 from deploy.forked import ForkedProcess
-from deploy.settings import RIG_TASKS, LocalRunSettings
+from deploy.settings import RIG_TASKS, LocalRunSettings, default_workers
 from deploy.witness import Witness
-from protocol.codec import RejectCounter
 from protocol.messages import INTERRUPTED
-from protocol.mqtt import DEFAULT_BROKER, PROBE_TIMEOUT, BrokerAddress, MqttConnection, connect_problem
+from protocol.mqtt import DEFAULT_BROKER, PROBE_TIMEOUT, BrokerAddress, connect_problem
 from protocol.tasks import worker_seed
 from protocol.transport import Connect
 from runtime.cli import exits_on_storage_faults
@@ -60,11 +59,6 @@ def load(argv: list[str] | None = None) -> LocalRunSettings:
         "workers": s.workers or default_workers(s.env),
         "run_id": s.run_id or f"r{stamp}",
         "run_dir": s.run_dir or Path("runs") / f"{stamp}-{s.env}-{s.policy}-s{s.seed}"})
-
-
-def default_workers(env: str) -> int:
-    """The worker count of a run that does not say: 3 rigs for qube, as in the paper, else 4."""
-    return 3 if env == "qube" else 4
 
 
 class Fleet:
@@ -260,12 +254,7 @@ def edge_of(s: LocalRunSettings, worker_ids: list[str]) -> dict[str, str]:
 
 def _observer(broker: str, run_id: str, login: Login) -> Connect:
     """A Connect for a read-only MQTT client of the run (the dashboard's login)."""
-    address = RunMqttSettings.given(broker=broker, run_id=run_id, **login("observer")).address()
-
-    def connect(client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
-        return MqttConnection(address, client_id=client_id, will=will, rejects=rejects)
-
-    return connect
+    return RunMqttSettings.given(broker=broker, run_id=run_id, **login("observer")).connector()
 
 
 def start_broker(s: LocalRunSettings, fleet: Fleet, worker_ids: list[str], rigs: dict[int, str],

@@ -15,7 +15,7 @@ from pydantic import (
     model_validator,
 )
 
-from chief.settings import FederationSettings, tiered_problem
+from chief.settings import FederationSettings, quorum_problem
 from deploy import sites
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
@@ -80,6 +80,11 @@ class SimulatedRigSettings(FederationSettings):
         return self
 
 
+def default_workers(env: str) -> int:
+    """The worker count of a run that does not say: 3 rigs for qube, as in the paper, else 4."""
+    return 3 if env == "qube" else 4
+
+
 class TieredSettings(FederationSettings):
     """A federation that may run tiered: ``edges`` edge chiefs between the workers and the root (launchers redefine
     the field for their help text; the check is this one)."""
@@ -87,8 +92,9 @@ class TieredSettings(FederationSettings):
     edges: NonNegativeInt = setting(0, "edge chiefs of a tiered run (docs/explanation/tiered.md); 0: flat")
 
     @model_validator(mode="after")
-    def _tiered_fits(self) -> TieredSettings:
-        problem = tiered_problem(self.edges, self.quorum, self.policy)  # before a launcher starts anything
+    def _quorum_possible(self) -> TieredSettings:
+        workers = getattr(self, "workers", None) or default_workers(self.env)  # a launcher's count, or its default
+        problem = quorum_problem(self.quorum, workers)  # before a launcher starts anything
         if problem is not None:
             raise ValueError(problem)
         return self

@@ -276,6 +276,8 @@ class RunStart(Message):
     ``finishers_help``: a worker whose mature actor was acknowledged goes on playing and sharing until the RunStop.
     ``max_staleness`` (S, per-episode strategies only): a worker may play its next episode while up to S of its own
     rounds are still unanswered; it applies their answers in round order as they arrive (0: it waits for each).
+    ``quorum`` (k of a k-of-n round, 0: every worker): an edge chief of a tiered run closes its part of a round with
+    its share of k (docs/explanation/tiered.md).
     """
 
     kind: Literal["run_start"] = "run_start"
@@ -294,6 +296,7 @@ class RunStart(Message):
     rounds_per_episode: int = Field(default=1, ge=1, le=MAX_PER_EPISODE)
     finishers_help: bool = False
     max_staleness: int = Field(default=0, ge=0, le=STALENESS_LIMIT)
+    quorum: int = Field(default=0, ge=0)
     #: Worker -> the edge its rounds go through (a tiered run, docs/explanation/tiered.md); empty: a flat run.
     edges: dict[Ident, Ident] = Field(default_factory=dict)
     tag: Tag = ""

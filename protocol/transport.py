@@ -1,5 +1,10 @@
 """What a service needs of its connection to the others: the interface that protocol/mqtt.py's MqttConnection and
-protocol/memory.py's in-memory connection both satisfy, so the chief and the workers run unchanged over either.
+protocol/memory.py's in-memory connection both satisfy, so the chief and the workers run unchanged over either, and
+the one factory of connections, :func:`connector`.
+
+A service takes a :data:`Connect` by value (the chief, an edge, a worker, the bridge, the dashboard): by default
+``connector`` of its settings' broker (MqttSettings.connector), in process ``Hub.connect`` of protocol/memory.py.
+Adding a transport is one module whose connection satisfies :class:`Transport`, and its branch in ``connector``.
 
 Handlers are called with the topic and the raw payload, on the connection's own delivery thread (paho's network
 thread over MQTT); a handler that raises is logged and counted and never stops the delivery.
@@ -12,6 +17,7 @@ from collections.abc import Callable
 from typing import Protocol
 
 from protocol.codec import RejectCounter
+from protocol.mqtt import BrokerAddress, MqttConnection
 
 #: ``handler(topic, payload)``, called for every message matching a subscription.
 Handler = Callable[[str, bytes], None]
@@ -45,6 +51,20 @@ class Transport(Protocol):
     def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> Published: ...
 
 
-#: How a service gets its connection: ``connect(client_id, will, rejects)``, where ``will`` is the (topic, payload)
-#: published for it when it is lost without a clean stop, and ``rejects`` the service's reject counter.
-Connect = Callable[[str, "tuple[str, bytes] | None", RejectCounter], Transport]
+class Connect(Protocol):
+    """How a service gets its connection (not yet started): ``connect(client_id, will, rejects)``, where ``will`` is
+    the (topic, payload) published for it when it is lost without a clean stop, and ``rejects`` the service's reject
+    counter (None: the connection's own)."""
+
+    def __call__(self, client_id: str, will: tuple[str, bytes] | None = None,
+                 rejects: RejectCounter | None = None) -> Transport: ...
+
+
+def connector(address: BrokerAddress, max_payload: int | None = None) -> Connect:
+    """The Connect of the broker at ``address``: MQTT, over TLS for ``mqtts://`` (``max_payload``: larger payloads
+    travel in chunks, protocol/mqtt.py). The one place a service's connection is made."""
+    def connect(client_id: str, will: tuple[str, bytes] | None = None,
+                rejects: RejectCounter | None = None) -> Transport:
+        return MqttConnection(address, client_id=client_id, will=will, max_payload=max_payload, rejects=rejects)
+
+    return connect

@@ -37,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             device.close()
     try:
-        service = BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
+        service = BridgeService(device, s.rig_id, s.connector(), s.control(), deadline_s=s.deadline_ms / 1e3,
                                 store=CalibrationStore.for_rig(s.state_dir, s.rig_id), recalibrate=s.recalibrate)
     except ValueError as err:  # a setting its parts refuse, e.g. a CA file it cannot read
         device.close()

@@ -17,8 +17,9 @@ from typing import TypeVar
 from protocol import qube, topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import Message, QubeAction, QubeIdentify, QubeReset, QubeStatus
-from protocol.mqtt import BrokerAddress, MqttConnection, Stopped
+from protocol.mqtt import Stopped
 from protocol.routes import qos_of
+from protocol.transport import Connect
 from rpi_bridge.calibration import CalibrationStore
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.device import QubeDevice
@@ -37,7 +38,7 @@ class BridgeService:
         self,
         device: QubeDevice,
         rig_id: str,
-        broker: BrokerAddress,
+        connect: Connect,
         control: ControlConfig | None = None,
         deadline_s: float = qube.PERIOD_S,
         lockstep: bool = False,
@@ -48,13 +49,13 @@ class BridgeService:
         recalibrate: bool = False,
         timing: InjectedTiming | None = None,
     ) -> None:
-        """``clock`` is the core's clock (the device's time base: perf_counter on a rig, a virtual clock for a
+        """``connect`` makes its connection (protocol.transport.Connect: its settings' ``connector()``, or a test's
+        transport); ``clock`` is the core's clock (the device's time base: perf_counter on a rig, a virtual clock for a
         lockstep simulator); ``store`` keeps the calibration across restarts."""
         self.rig_id = topics.check_id(rig_id, "rig id")
         self.rejects = RejectCounter(log)
         will = encode(QubeStatus(rig_id=rig_id, state="offline", detail="connection lost"))
-        self.conn = MqttConnection(broker, client_id=f"{client_prefix}-{rig_id}",
-                                   will=(topics.rig(rig_id, topics.STATUS), will), rejects=self.rejects)
+        self.conn = connect(f"{client_prefix}-{rig_id}", (topics.rig(rig_id, topics.STATUS), will), self.rejects)
         self.core = ControlCore(device, control, clock=clock, store=store, recalibrate=recalibrate)
         self.runner = BridgeRunner(self.core, rig_id, self._publish, deadline_s=deadline_s, lockstep=lockstep,
                                    advance=advance, timing=timing)

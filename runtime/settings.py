@@ -62,6 +62,7 @@ from protocol.auth import key_bytes
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 from protocol.tasks import TASKS
 from protocol.topics import check_id
+from protocol.transport import Connect, connector
 
 ENV_PREFIX = "FEDRL_"
 ENV_FILE_VAR = "FEDRL_ENV_FILE"
@@ -486,6 +487,10 @@ class MqttSettings(Settings):
         """The broker with these credentials (explicit ones win over those in the URL)."""
         return BrokerAddress.parse(self.broker, username=self.mqtt_username, password=self.mqtt_password,
                                    ca_file=str(self.mqtt_ca_file) if self.mqtt_ca_file else None)
+
+    def connector(self) -> Connect:
+        """How this process connects: protocol.transport.connector of its broker, login and max_payload."""
+        return connector(self.address(), self.max_payload)
 
 
 class RunMqttSettings(MqttSettings):

@@ -38,7 +38,6 @@ import gymnasium as gym
 import numpy as np
 
 from protocol import qube
-from protocol.mqtt import MqttConnection
 from runtime.cli import setup_logging
 from runtime.model_file import ModelFileError, provenance
 from runtime.settings import returns_code
@@ -299,8 +298,7 @@ def main(argv: list[str] | None = None) -> int:
         if not s.model.is_file():
             raise EvalError(f"no model file at {s.model}")
         if env == "qube":
-            conn = MqttConnection(s.address(), client_id=f"fedrl-eval-{s.rig_id}-{uuid.uuid4().hex[:6]}",
-                                  max_payload=s.max_payload).start()
+            conn = s.connector()(f"fedrl-eval-{s.rig_id}-{uuid.uuid4().hex[:6]}").start()
         if s.rigs:
             from worker.robustness import Disturbances
 

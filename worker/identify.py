@@ -23,8 +23,8 @@ from pydantic import ValidationError, field_validator
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import MAX_RECORDING_BYTES, QubeIdentify, QubeRecording, QubeStatus
-from protocol.mqtt import MqttConnection
 from protocol.routes import qos_of
+from protocol.transport import Transport
 from rpi_bridge.identify import IdentifyFailed, Recording
 from runtime.cli import setup_logging
 from runtime.settings import LogLevel, MqttSettings, returns_code, setting
@@ -72,7 +72,7 @@ def unpack(msg: QubeRecording) -> Recording:
         raise IdentifyFailed(f"rig {msg.rig_id}: its recording could not be read ({first})") from None
 
 
-def request_recording(conn: MqttConnection, rig_id: str, timeout_s: float,
+def request_recording(conn: Transport, rig_id: str, timeout_s: float,
                       progress: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic,
                       request_id: int | None = None) -> Recording:
     """Ask rig ``rig_id`` to identify itself (repeated every second until it acknowledges) and return its complete
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     from services.qube_sim.identify import fit_to_file
     from services.qube_sim.profile import load_profile
 
-    conn = MqttConnection(s.address(), client_id=f"identify-{s.rig_id}")
+    conn = s.connector()(f"identify-{s.rig_id}")
     try:
         conn.start(timeout=30.0)
         print(f"rig {s.rig_id}: identification requested over {s.address()}", flush=True)

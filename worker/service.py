@@ -37,7 +37,7 @@ from protocol.messages import (
     WorkerStatus,
     WorkerUpdate,
 )
-from protocol.mqtt import MqttConnection, Stopped
+from protocol.mqtt import Stopped
 from protocol.rigtime import SECONDS_LIMIT
 from protocol.rounds import PER_EPISODE, RoundShape
 from protocol.routes import qos_of
@@ -104,7 +104,7 @@ class WorkerService:
         self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
         self.outbox: dict[int, tuple[bytes, float]] = {}  # staleness: owed rounds' payloads and when first sent
         will = self._signed(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
-        self.conn: Transport = (connect or self._mqtt)(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
+        self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
 
     def interrupt(self) -> None:
@@ -116,10 +116,6 @@ class WorkerService:
     def halted(self) -> bool:
         """Whether to stop: the chief's RunStop came, or the worker was interrupted."""
         return self.stop is not None or self._interrupt.is_set()
-
-    def _mqtt(self, client_id: str, will: tuple[str, bytes] | None, rejects: RejectCounter) -> MqttConnection:
-        return MqttConnection(self.cfg.address(), client_id=client_id, will=will, max_payload=self.cfg.max_payload,
-                              rejects=rejects)
 
     def _signed(self, msg: Message) -> bytes:
         """A message of this worker as it goes out: tagged with its own key (protocol/auth.py), encoded."""

@@ -110,10 +110,13 @@ write_acl() {
     fi
     if [ "$DASHBOARD" = 1 ]; then
         echo
-        echo "# The dashboard only listens: the whole run and every rig's status and telemetry."
+        echo "# The dashboard only listens (services/dashboard/feed.py subscriptions): the whole run, in a tiered run"
+        echo "# its edges' partials too (each worker's progress, as the root counts it), and every rig's status and"
+        echo "# telemetry (never a rig's state or commands)."
         echo "user dashboard"
         echo "topic read fedrl/$RUN/#"
-        echo "topic read qube/#"
+        echo "topic read qube/+/status"
+        echo "topic read qube/+/telemetry"
     fi
     for ((i = 0; i < WORKERS; i++)); do
         wid="$WPREFIX$i"

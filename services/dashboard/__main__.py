@@ -25,7 +25,7 @@ def main(argv: list[str] | None = None) -> int:
         service = DashboardService(DashboardConfig(
             broker=s.address(), run_id=s.run_id, host=s.dashboard_host, port=s.dashboard_port,
             rigs=s.dashboard_rigs or None, max_points=s.dashboard_max_points, url_file=s.dashboard_url_file,
-            key=s.key()))
+            key=s.key()), connect=s.connector())
         service.install_signal_handlers()
         return service
 

@@ -3,6 +3,9 @@
 paho's network thread only decodes and enqueues (a bounded queue: when it is full the message is counted as dropped,
 never waited for); the pump thread applies batches to the Hub. Bad payloads are logged and counted, messages of
 kinds this build does not know are counted and ignored, and the rigs' 143 Hz ``state`` topic is never subscribed.
+In a tiered run (its RunStart names edges) the workers' updates are not read: each worker's progress comes from its
+edge's partials, the submissions the root counts without their tensors (services/dashboard/view.py), so the
+dashboard does not decode a gradient per worker and round; a flat run under the same id reads them again.
 """
 
 from __future__ import annotations
@@ -17,27 +20,35 @@ from typing import Any
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode
 from protocol.messages import Message
-from protocol.mqtt import BrokerAddress, MqttConnection
-from protocol.routes import qos_of
+from protocol.routes import DASHBOARD, qos_of, received_by
+from protocol.transport import Connect
 from services.dashboard.hub import Hub
 
 log = logging.getLogger("dashboard")
 
 
 def subscriptions(run_id: str, rigs: list[str] | None) -> list[tuple[str, int]]:
-    """Topic filters and QoS: everything of the run, and status + telemetry of the given rigs (None = all)."""
-    filters = [f"{topics.FEDRL}/{topics.check_id(run_id, 'run id')}/#"]
+    """Topic filters and QoS: the run's topics the contract names the dashboard a reader of (protocol/routes.py),
+    and status + telemetry of the given rigs (None = all)."""
+    run = topics.check_id(run_id, "run id")
+    filters = [r.filter(run=run) for r in received_by(DASHBOARD) if "run" in r.parameters]
     for rig in rigs if rigs else ["+"]:
         name = rig if rig == "+" else topics.check_id(rig, "rig id")
         filters += [f"{topics.QUBE}/{name}/{topics.STATUS}", f"{topics.QUBE}/{name}/{topics.TELEMETRY}"]
     return [(f, qos_of(f)) for f in filters]
 
 
+def updates_filter(run_id: str) -> str:
+    """The topic filter of every worker's updates (and mature actors) in run ``run_id``."""
+    return f"{topics.FEDRL}/{topics.check_id(run_id, 'run id')}/worker/+/{topics.UPDATE}"
+
+
 class MqttFeed:
     """Decoded messages of one run into a Hub."""
 
-    def __init__(self, broker: BrokerAddress, run_id: str, hub: Hub, rigs: list[str] | None = None,
-                 max_queue: int = 50_000) -> None:
+    def __init__(self, connect: Connect, run_id: str, hub: Hub, rigs: list[str] | None = None,
+                 max_queue: int = 50_000, where: str = "the broker") -> None:
+        """``connect`` makes its connection (protocol.transport.Connect); ``where`` names it in the log."""
         self.run_id = topics.check_id(run_id, "run id")
         self.hub = hub
         self.subs = subscriptions(run_id, rigs)
@@ -46,7 +57,10 @@ class MqttFeed:
         self.received = 0
         self.dropped = 0
         self.inbox: queue.Queue[tuple[str, Message, float]] = queue.Queue(maxsize=max_queue)
-        self.conn = MqttConnection(broker, client_id=f"fedrl-{run_id}-dashboard", rejects=self.rejects)
+        self.conn = connect(f"fedrl-{run_id}-dashboard", None, self.rejects)
+        self.where = where
+        self.updates = updates_filter(self.run_id)  # the workers' updates: not read in a tiered run
+        self.reading_updates = True
         self._stop = threading.Event()
         self._pump = threading.Thread(target=self._run_pump, name="dashboard-pump", daemon=True)
 
@@ -85,8 +99,22 @@ class MqttFeed:
                 pass
             try:
                 self.hub.apply(batch)
+                self.follow_tier(self.hub.view.tiered)
             except Exception:  # a bug in the view must not stop the dashboard
                 log.exception("could not apply %d messages", len(batch))
+
+    def follow_tier(self, tiered: bool) -> None:
+        """Stop reading the workers' updates once the run is tiered (its edges' partials carry them); read them
+        again when a flat run follows under the same id."""
+        if tiered != self.reading_updates:
+            return
+        if tiered:
+            self.conn.unsubscribe(self.updates)
+        else:
+            self.conn.subscribe(self.updates, self.on_message, qos=qos_of(self.updates))
+        self.reading_updates = not tiered
+        log.info("a tiered run: each worker's progress from its edge's partials, not from its updates" if tiered
+                 else "a flat run: reading the workers' updates")
 
     # -- lifecycle ---------------------------------------------------------------------------------------------
 
@@ -95,7 +123,7 @@ class MqttFeed:
         self.conn.start(timeout, stop)
         for topic_filter, qos in self.subs:
             self.conn.subscribe(topic_filter, self.on_message, qos=qos)
-        log.info("dashboard following run %s on %s (%s)", self.run_id, self.conn.address,
+        log.info("dashboard following run %s on %s (%s)", self.run_id, self.where,
                  ", ".join(t for t, _ in self.subs))
         return self
 

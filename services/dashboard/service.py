@@ -11,6 +11,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from protocol.mqtt import BrokerAddress, Stopped
+from protocol.transport import Connect, connector
 from runtime.cli import STOP_SIGNALS
 from services.dashboard.feed import MqttFeed
 from services.dashboard.hub import Hub
@@ -35,10 +36,11 @@ class DashboardConfig:
 class DashboardService:
     """A live web view of one run; ``start()``/``stop()`` for tests, ``run()`` for the command line."""
 
-    def __init__(self, cfg: DashboardConfig) -> None:
+    def __init__(self, cfg: DashboardConfig, connect: Connect | None = None) -> None:
+        """``connect`` makes its connection (protocol.transport.Connect; default: to ``cfg.broker``)."""
         self.cfg = cfg
         self.hub = Hub(RunView(cfg.run_id, max_points=cfg.max_points, key=cfg.key))
-        self.feed = MqttFeed(cfg.broker, cfg.run_id, self.hub, cfg.rigs)
+        self.feed = MqttFeed(connect or connector(cfg.broker), cfg.run_id, self.hub, cfg.rigs, where=str(cfg.broker))
         try:
             self.server = DashboardServer((cfg.host, cfg.port), self.hub, self.feed.stats)
         except OSError as err:

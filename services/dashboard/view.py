@@ -19,9 +19,13 @@ Events (``type`` plus fields):
 - ``rig``: one QUBE-Servo 2 rig's phase and loop timing, or ``note`` saying why there is none;
 - ``reset``: a new run under the same id started; the page clears what it has.
 
-With the run's key, every chief message is checked as the workers check it, and every worker message as the chief
-does (protocol/auth.py): one without its sender's valid tag changes nothing shown; it is counted in ``refused`` (by
-reason and kind), which the page's footer shows.
+In a tiered run (docs/explanation/tiered.md) each worker's progress also comes from its edge's partials, the
+submissions the root counted (without tensors): a dashboard that does not see the workers' own topics (a site
+broker that keeps them) still shows every worker's episodes, and one that sees both shows one point per episode.
+
+With the run's key, every chief (and edge) message is checked as the workers (and the root) check it, and every
+worker message as the chief does (protocol/auth.py): one without its sender's valid tag changes nothing shown; it is
+counted in ``refused`` (by reason and kind), which the page's footer shows.
 """
 
 from __future__ import annotations
@@ -35,6 +39,7 @@ from protocol.auth import TAG_FIELD, WorkerKeys, chief_key_of, refusal
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
+    EdgePartial,
     MatureParams,
     Message,
     QubeStatus,
@@ -136,6 +141,18 @@ def no_transfer_text(stopped: bool, solved: int) -> str:
     return NO_TRANSFER if stopped else NO_TRANSFER_YET
 
 
+def place(points: list[list[float | None]], point: list[float | None]) -> None:
+    """Put ``point`` ([episode, PI, return]) on a curve kept in episode order: it replaces the point of its episode
+    (a resent submission, or the same one seen again in its edge's partial), else goes where its episode belongs."""
+    i = len(points)
+    while i > 0 and (points[i - 1][0] or 0) > (point[0] or 0):  # older than the newest: a partial seen late
+        i -= 1
+    if i > 0 and points[i - 1][0] == point[0]:
+        points[i - 1] = point
+    else:
+        points.insert(i, point)
+
+
 class RunView:
     """The state of one run (``run_id``) as the page shows it; fed decoded messages, one at a time."""
 
@@ -157,6 +174,7 @@ class RunView:
             "hello": self._on_hello, "status": self._on_status, "update": self._on_update,
             "mature": self._on_mature, "ack": self._on_ack, "run_start": self._on_run_start,
             "run_stop": self._on_run_stop, "aggregate": self._on_aggregate, "transfer": self._on_transfer,
+            "partial": self._on_partial,
             "qube_status": self._on_qube_status, "qube_telemetry": self._on_qube_telemetry,
         }
         self._clear()
@@ -186,19 +204,27 @@ class RunView:
         kind = str(getattr(msg, "kind", type(msg).__name__))
         handler = self._handlers.get(kind)
         route = route_of(topic)
-        if route is not None and route.publisher == EDGE:
-            handler = None  # an edge's partial, or its copy of the chief's answer: the chief's own is shown
+        if route is not None and route.publisher == EDGE and kind != "partial":
+            handler = None  # an edge's copy of the chief's answer: the chief's own is shown
         if handler is None:
             self.ignored[kind] += 1
             return []
-        if route is not None and route.publisher in (CHIEF, WORKER) and TAG_FIELD in type(msg).model_fields:
-            refused = (refusal(msg, self.chief_key, "the chief key") if route.publisher == CHIEF
-                       else self.worker_keys.refusal(msg))
+        if route is not None and route.publisher in (CHIEF, EDGE, WORKER) and TAG_FIELD in type(msg).model_fields:
+            refused = self._refusal(msg, route.publisher)
             if refused is not None:  # not its sender's: shown as refused, never as the run's state
                 self.refused[f"{refused[0]} {kind}"] += 1
                 return []
         self.kinds[kind] += 1
         return handler(msg, now)
+
+    def _refusal(self, msg: Message, publisher: str) -> tuple[str, str] | None:
+        """Why a message is not its sender's (protocol/auth.py): a worker's is under its own key, an edge's partial
+        under the run's key, any other chief or edge message under the chief key."""
+        if publisher == WORKER:
+            return self.worker_keys.refusal(msg)
+        if getattr(msg, "kind", "") == "partial":
+            return refusal(msg, self.key, "the run's key")
+        return refusal(msg, self.chief_key, "the chief key")
 
     def _worker(self, worker_id: str) -> WorkerView:
         if worker_id not in self.workers:
@@ -264,17 +290,19 @@ class RunView:
         return [self._worker_event(w)]
 
     def _point(self, w: WorkerView, episode: int, pi: float, ret: float, now: float) -> list[Event]:
-        w.episode, w.pi, w.ret, w.last_seen = max(w.episode, episode), pi, ret, now
+        """One submission on the worker's curve; a point event when it is (or replaces) the newest point (the
+        page's curve takes no older point: a partial behind the worker's own newer update is in the snapshot)."""
+        newest = not w.points or episode >= (w.points[-1][0] or 0)
+        if newest:
+            w.pi, w.ret = pi, ret
+        w.episode, w.last_seen = max(w.episode, episode), now
         if self.first_point_at is None:
             self.first_point_at = now
         point = [episode, _round(pi), _round(ret)]
-        if w.points and w.points[-1][0] == episode:  # a resent submission: replace, do not add
-            w.points[-1] = point
-        else:
-            w.points.append(point)
+        place(w.points, point)
         if len(w.points) > self.max_points:  # thin: keep every other point (always the newest)
             w.points = w.points[-1::-2][::-1]
-        return [{"type": "point", "worker": w.id, "point": point}]
+        return [{"type": "point", "worker": w.id, "point": point}] if newest else []
 
     def _on_update(self, msg: WorkerUpdate, now: float) -> list[Event]:
         w = self._worker(msg.worker_id)
@@ -294,6 +322,15 @@ class RunView:
         self._timed(w, msg)
         return [*self._point(w, msg.episode, msg.pi, msg.episode_return, now), self._worker_event(w),
                 self.run_summary()]
+
+    def _on_partial(self, msg: EdgePartial, now: float) -> list[Event]:
+        """An edge's part of a round (a tiered run): its workers' submissions as the root counts them."""
+        out: list[Event] = []
+        for update in msg.updates:
+            out += self._on_update(update, now)
+        for mature in msg.matures:
+            out += self._on_mature(mature, now)
+        return out
 
     def _on_ack(self, msg: Any, now: float) -> list[Event]:
         """The chief's answer to a mature actor (a newer message kind): a refusal means the worker goes on."""
@@ -390,6 +427,11 @@ class RunView:
         return [rig.summary()]
 
     # -- reading ---------------------------------------------------------------------------------------------
+
+    @property
+    def tiered(self) -> bool:
+        """Whether the run goes through edge chiefs (its RunStart names each worker's edge)."""
+        return self.start is not None and bool(self.start.edges)
 
     def run_summary(self) -> Event:
         start, stop = self.start, self.stop

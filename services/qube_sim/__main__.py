@@ -53,7 +53,7 @@ def build_sim_service(s: SimRigSettings) -> BridgeService:
         device = SimulatedQube(params, seed=s.seed, period_s=0, clock=time.perf_counter, **options)
         advance, core_clock = None, time.perf_counter
     store = CalibrationStore.for_rig(s.state_dir, s.rig_id) if s.state_dir is not None else None
-    service = BridgeService(device, s.rig_id, s.address(), s.control(), deadline_s=s.deadline_ms / 1e3,
+    service = BridgeService(device, s.rig_id, s.connector(), s.control(), deadline_s=s.deadline_ms / 1e3,
                             lockstep=s.qube_clock != "realtime", advance=advance, client_prefix="qube-sim",
                             clock=core_clock, store=store, timing=timing)
     randomize_episodes(service, device, profile, s.seed, s.randomize)

@@ -67,14 +67,10 @@ class TrialResult:
     attempts: int = 1  # reset requests made
 
 
-def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = None,
-              max_seconds: float = 16.0, device_options: dict[str, Any] | None = None, attempts: int = 1,
-              settle_s: float = 3.0) -> TrialResult:
-    """One reset from ``start`` on a rig with ``params`` (see the module docstring); ``device_options``: a rig
-    profile's sensing and actuation (RigProfile.device_options). With ``attempts`` > 1, as the worker does
-    (worker/qube_env.py RESET_ATTEMPTS): a failed attempt is followed by ``settle_s`` idle and a new request (the
-    core picks the next strategy), up to ``attempts`` requests; ``max_seconds`` is per attempt, ``seconds`` counts
-    every attempt and settle."""
+def start_up(params: QubeParams, config: ControlConfig | None = None, device_options: dict[str, Any] | None = None
+             ) -> tuple[VirtualClock, SimulatedQube, ControlCore, str | None]:
+    """A fresh core over a rig of ``params`` hanging at rest, through its start-up (calibration and self-test):
+    (clock, device, core, None) when it ended idle, else the last item says how it ended ("start-up ended in ...")."""
     clock = VirtualClock()
     device = SimulatedQube(params, seed=0, period_s=0, clock=clock, arm_limit=END_STOP, **(device_options or {}))
     # the simulated rig is exactly at rest: a short stillness window is enough (the bridge uses 1 s)
@@ -86,8 +82,21 @@ def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = N
         clock.advance(PERIOD_S)
         if core.phase != "calibrating" and core.phase != "self_test":
             break
-    if core.phase != "idle":
-        return TrialResult(False, 0.0, 0.0, False, f"start-up ended in {core.phase}: {core.fault_reason}")
+    refused = None if core.phase == "idle" else f"start-up ended in {core.phase}: {core.fault_reason}"
+    return clock, device, core, refused
+
+
+def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = None,
+              max_seconds: float = 16.0, device_options: dict[str, Any] | None = None, attempts: int = 1,
+              settle_s: float = 3.0) -> TrialResult:
+    """One reset from ``start`` on a rig with ``params`` (see the module docstring); ``device_options``: a rig
+    profile's sensing and actuation (RigProfile.device_options). With ``attempts`` > 1, as the worker does
+    (worker/qube_env.py RESET_ATTEMPTS): a failed attempt is followed by ``settle_s`` idle and a new request (the
+    core picks the next strategy), up to ``attempts`` requests; ``max_seconds`` is per attempt, ``seconds`` counts
+    every attempt and settle."""
+    clock, device, core, refused = start_up(params, config, device_options)
+    if refused is not None:
+        return TrialResult(False, 0.0, 0.0, False, refused)
     device.reset_state(theta=start.theta, alpha=start.alpha, theta_dot=start.theta_dot, alpha_dot=start.alpha_dot)
     for _ in range(10):  # idle while the velocity filters catch up with the new state
         core.sense()

@@ -10,6 +10,7 @@ import pytest
 
 from bench import matrix
 from bench.matrix import Cell
+from chief.records import RunSummary
 
 
 def test_the_matrix_has_every_strategy_of_every_fitting_pair_and_each_misfit_once_per_mode() -> None:
@@ -20,11 +21,17 @@ def test_the_matrix_has_every_strategy_of_every_fitting_pair_and_each_misfit_onc
     assert Cell("qube-local", "sac", "sync", "inprocess").env == "qube-local"
 
 
-def summary(**changes: Any) -> dict[str, Any]:
+def worker(worker_id: str, episodes: int) -> dict[str, Any]:
+    return {"id": worker_id, "index": int(worker_id[1:]), "episodes": episodes, "solved": False,
+            "steps": 100 * episodes, "state": "stopped"}
+
+
+def summary(**changes: Any) -> RunSummary:
     base = {"env": "Acrobot-v1", "algo": "sac", "policy": "sync", "rounds": 6, "rounds_per_episode": 3,
-            "rejected_messages": {"malformed": 0},
-            "workers": [{"id": "w0", "episodes": 2, "solved": False}, {"id": "w1", "episodes": 2, "solved": False}]}
-    return {**base, **changes}
+            "rejected_messages": {"malformed": 0}, "tc": -100.0, "r_floor": -500.0, "max_episodes": 2,
+            "total_steps": 400, "end_reason": "reached the maximum of 2 episodes",
+            "workers": [worker("w0", 2), worker("w1", 2)]}
+    return RunSummary.model_validate({**base, **changes})
 
 
 def test_a_run_that_did_what_its_cell_says_has_no_problems() -> None:
@@ -33,8 +40,7 @@ def test_a_run_that_did_what_its_cell_says_has_no_problems() -> None:
 
 @pytest.mark.parametrize(("changes", "audit", "found"), [
     ({"algo": "ppo"}, True, "the run says env, learner, strategy = ('Acrobot-v1', 'ppo', 'sync')"),
-    ({"workers": [{"id": "w0", "episodes": 2, "solved": False}, {"id": "w1", "episodes": 1, "solved": False}]},
-     True, "workers that played fewer than M = 2 episodes: {'w1': 1}"),
+    ({"workers": [worker("w0", 2), worker("w1", 1)]}, True, "workers that played fewer than M = 2 episodes: {'w1': 1}"),
     ({"rounds": 5}, True, "5 rounds for 2 episodes of 3 rounds"),
     ({"rejected_messages": {"late": 1}}, True, "refused messages: {'late': 1}"),
     ({}, False, "audit failed: broken"),

@@ -3,12 +3,17 @@ chief processes over Mosquitto, every round closes, and the audit passes on the 
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from bench.cost import actor_arrays
-from bench.scale import point
+from bench.fleets import SpreadFleet
+from bench.rigs import RigProcess
+from bench.scale import check_counted, gone, point, rig_row
+from chief.records import RoundRecord
 
 
 @pytest.mark.slow
@@ -19,3 +24,77 @@ def test_devices_in_several_processes_federate_through_edges(tmp_path: Path) -> 
     # The root reads two partials per round, not six updates: about two updates' worth.
     assert row["root_bytes_per_round"] < 3 * row["update_bytes"]
     assert row["round_ms"] > 0 and row["root_ms_per_round"] >= 0
+
+
+def test_devices_waiting_for_a_dead_federation_fail_at_once(mosquitto_broker: str) -> None:
+    """A device process waits for its answer as long as the federation can give one: when a process of it has
+    failed (the watch names it), the command fails at once with that reason, whatever the timeout."""
+    failed: list[str] = []
+    fleet = SpreadFleet(mosquitto_broker, 2, {"w": np.zeros((2, 2), np.float32)}, per_process=1,
+                        watch=lambda: failed[0] if failed else None)
+    failed.append("the root chief exited with code 1")
+    try:
+        began = time.monotonic()
+        with pytest.raises(RuntimeError, match="waits in vain: the root chief exited with code 1"):
+            fleet.join(timeout=600)  # no chief: nobody will ever start the run
+        assert time.monotonic() - began < 60
+    finally:
+        fleet.stop()
+
+
+class Exited:
+    """A process that has ended with ``code`` (None: still running)."""
+
+    def __init__(self, code: int | None) -> None:
+        self.returncode = code
+
+    def poll(self) -> int | None:
+        return self.returncode
+
+
+def test_a_federation_is_gone_when_a_process_of_it_failed() -> None:
+    assert gone([("the root chief", Exited(None)), ("edge chief e0", Exited(None))]) is None  # type: ignore[list-item]
+    assert gone([("the root chief", Exited(0))]) is None  # type: ignore[list-item]  # its run ended
+    assert gone([("the root chief", Exited(None)), ("edge chief e1", Exited(-9))]  # type: ignore[list-item]
+                ) == "edge chief e1 exited with code -9"
+
+
+def test_a_point_whose_root_gave_up_on_devices_is_an_error(tmp_path: Path) -> None:
+    rounds = [RoundRecord(round=1, episode=1, kind="aggregate", strategy="weighted", contributors=["w0", "w1"]),
+              RoundRecord(round=2, episode=2, kind="aggregate", strategy="weighted", contributors=["w0"],
+                          timed_out=["w1"])]
+    (tmp_path / "metrics.jsonl").write_text("".join(r.model_dump_json() + "\n" for r in rounds))
+    with pytest.raises(RuntimeError, match=r"round 2 counted 1 of 2 devices \(timed out: 1\)"):
+        check_counted(tmp_path, 2)
+
+
+@pytest.mark.slow
+def test_a_rig_answered_from_its_own_process_reports_what_it_saw(mosquitto_broker: str) -> None:
+    """bench.rigs: a real-time simulated rig answered from a process of its own; its measurement is the rig's own
+    telemetry (ticks in time or missed), and its worker answered states."""
+    rig = RigProcess(mosquitto_broker, "test-rig", timeout=120)
+    try:
+        rig.answering()
+        time.sleep(1.0)
+        stats = rig.finish()
+    except BaseException:
+        rig.kill()
+        raise
+    assert stats["ticks_answered"] > 0 and stats["latency_ms"]["n"] + stats["deadline_misses"] > 0
+    row = rig_row([stats])
+    assert row["rig_answered_from"] == "its own process" and 0 <= row["rig_miss_rate"] <= 1
+    assert rig.proc.returncode == 0
+
+
+def test_the_scale_table_says_what_the_rigs_saw() -> None:
+    """bench.report's rig column: misses of the rig's own ticks for rows measured with bench.rigs; rows from before
+    (their rig answered from the benchmark's process) keep their old column."""
+    from bench.report import _rig_cell, _rig_header
+
+    new = {"rigs": 1, "rig_state_to_action_p99_ms": 6.25, "rig_deadline_misses": 61, "rig_deadline_ticks": 524,
+           "rig_miss_rate": 0.1164, "rig_ticks": 500}
+    old = {"rigs": 1, "rig_state_to_action_p99_ms": 6.3, "rig_deadline_misses": 51, "rig_ticks": 324}
+    assert _rig_cell(new) == "6.2 (61 of 524, 11.6 %)" and _rig_cell(old) == "6.3 (51, 324)"
+    assert "own process" in _rig_header([old, new])
+    assert _rig_header([old]).endswith("(deadline misses, states answered)")
+    assert _rig_cell({"n": 4}) == "-"

@@ -101,12 +101,14 @@ def test_a_killed_root_of_edges_resumes_with_the_same_result(tmp_path: Path) -> 
     no answer sends its partial again), the resumed root counts them once, and the run ends as the same tiered
     federation in one process does; the audit's tiered checks pass on every round."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_id, edges = "resume-tiered", 2
     episodes = 36  # past the first finishers (about 22 and 32 for this seed): kills before and after a transfer
     reference = tmp_path / "reference"
-    run_federation(fed.ENV, "weighted", fed.SEED, fed.WORKERS, episodes, reference, plot=False,
-                   tensorboard_files=False, models=False, edges=edges)
+    run_federation(InprocessSettings.given(env=fed.ENV, policy="weighted", seed=fed.SEED, workers=fed.WORKERS,
+                   max_episodes=episodes, run_dir=reference, edges=edges), plot=False, tensorboard_files=False,
+                   models=False)
     run_dir = tmp_path / "run"
     launcher = subprocess.Popen(
         [sys.executable, "-m", "deploy.run_local", "--workers", str(fed.WORKERS), "--edges", str(edges), "--witness",

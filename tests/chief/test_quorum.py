@@ -36,8 +36,8 @@ def test_fewer_workers_left_than_the_quorum_means_all_of_them() -> None:
 
 
 @pytest.mark.parametrize(("policy", "quorum", "tier"), [("sync", 2, "flat"), ("weighted", 5, "flat"),
-                                                        ("weighted", 2, "root")])
-def test_a_quorum_needs_a_per_episode_strategy_a_flat_run_and_enough_workers(policy: str, quorum: int,
+                                                        ("weighted", 4, "root"), ("sync", 2, "edge")])
+def test_a_quorum_needs_a_per_episode_strategy_and_enough_workers(policy: str, quorum: int,
                                                                              tier: str) -> None:
     with pytest.raises(ValueError, match="quorum"):
         RoundKeeper(["w0", "w1", "w2"], policy, CARTPOLE, 100, 10.0, quorum=quorum, tier=tier,  # type: ignore[arg-type]

@@ -60,9 +60,11 @@ def test_rig_times_sum_the_records_and_model_idle_only_when_not_measured() -> No
 @pytest.fixture(scope="module")
 def rig_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_dir = tmp_path_factory.mktemp("rigtime") / "run"
-    run_federation("qube-local", "plain", 3, 2, 4, run_dir, plot=False, tensorboard_files=False)
+    run_federation(InprocessSettings.given(env="qube-local", policy="plain", seed=3, workers=2, max_episodes=4,
+                   run_dir=run_dir), plot=False, tensorboard_files=False)
     return run_dir
 
 

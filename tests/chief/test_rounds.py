@@ -510,6 +510,26 @@ def test_an_interrupted_run_keeps_its_open_round_and_resumes_through_the_saved_s
     assert (over.done, over.resumable) == (True, False)
 
 
+def test_a_resumed_run_waits_again_for_the_workers_its_stop_left_offline() -> None:
+    """A worker's storage fault stops the run resumably; the resumed run waits for that worker again, as the run
+    that never stopped would have (it did not: its first round closed with the other worker alone, so that the
+    resumed run's per-worker episodes differed from the clean run's). A worker that timed out stays excused."""
+    k, w = keeper(["w0", "w1", "w2"], timeout=10.0), fakes("w0", "w1", "w2")
+    for i in ("w0", "w1"):
+        k.submit(w[i].sub(1, 20.0), 0.0)
+    k.tick(11.0)  # w2 timed out: lagging
+    assert k.workers["w2"].state == "lagging"
+    k.note_status("w1", "storage", 11.5, "No space left on device (ENOSPC)")
+    k.interrupt()
+    assert (k.workers["w1"].state, k.workers["w1"].excused) == ("offline", True)
+    k.resume()
+    assert (k.workers["w1"].state, k.workers["w1"].excused) == ("active", False)
+    assert k.workers["w2"].excused and k.waiting_for() == ["w0", "w1"]
+    assert outcomes(k.submit(w["w0"].sub(2, 21.0), 12.0)) == []  # the round waits for w1
+    [out] = outcomes(k.submit(w["w1"].sub(2, 22.0), 12.1))
+    assert out.contributors == ["w0", "w1"]
+
+
 def test_a_worker_that_stopped_learning_is_reported_in_its_own_words() -> None:
     from chief.report import summarize
 

@@ -277,11 +277,13 @@ def test_in_process_and_over_mqtt_keep_the_same_invariants_under_staleness(
     two transports need not give the same gradients; what must agree is the federation's shape: the same rounds,
     the same episodes per worker, every answer applied in order within S rounds (both audits pass)."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     slow_worker_1(monkeypatch)
     over_mqtt(amqtt_broker, tmp_path / "mqtt", staleness=1)
-    summary = run_federation(ENV, "plain", SEED, 2, MQTT_EPISODES, tmp_path / "inprocess", plot=False,
-                             tensorboard_files=False, models=False, max_staleness=1)
+    summary = run_federation(InprocessSettings.given(env=ENV, policy="plain", seed=SEED, workers=2,
+                             max_episodes=MQTT_EPISODES, run_dir=tmp_path / "inprocess", max_staleness=1), plot=False,
+                             tensorboard_files=False, models=False)
     mqtt = json.loads((tmp_path / "mqtt" / "summary.json").read_text())
     assert [(w["id"], w["episodes"]) for w in summary["workers"]] == [(w["id"], w["episodes"]) for w in mqtt["workers"]]
     assert summary["max_staleness"] == mqtt["max_staleness"] == 1

@@ -24,6 +24,7 @@ from chief.audit import audit
 from chief.rounds import RoundKeeper
 from chief.service import submission_of
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 from protocol.codec import decode, encode
 from protocol.messages import STAT_BOUNDS, WorkerUpdate
 from protocol.tasks import task
@@ -82,7 +83,8 @@ def weighted_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     process: the chief's own round logic and records, the workers' own Algorithm 2 and PPO, messages through the
     wire codec."""
     run_dir = tmp_path_factory.mktemp("tb") / "weighted"
-    summary = run_federation("CartPole-v0", "weighted", 3, 4, 600, run_dir, plot=False)
+    summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=3, workers=4,
+                             max_episodes=600, run_dir=run_dir), plot=False)
     assert summary["episodes_to_all_solved"] is not None
     return run_dir
 
@@ -176,7 +178,8 @@ def test_a_large_run_is_drawn_once_at_its_end_and_the_same(tmp_path: Path, monke
     thread, and costs it time every round): it draws the board once, at the end, a group of workers at a time, and
     that board is the live one of the same run."""
     live_dir, late_dir = tmp_path / "live", tmp_path / "late"
-    run_federation("CartPole-v0", "weighted", 3, 3, 4, live_dir, plot=False)
+    run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=3, workers=3, max_episodes=4,
+                   run_dir=live_dir), plot=False)
     monkeypatch.setattr(tensorboard, "LIVE_WORKERS", 2)  # 3 workers: drawn at the end, two writers open at most
     opened: list[int] = []
     board_class = tensorboard.Board
@@ -188,7 +191,8 @@ def test_a_large_run_is_drawn_once_at_its_end_and_the_same(tmp_path: Path, monke
 
     monkeypatch.setattr(tensorboard, "Board", Counting)
     with caplog.at_level(logging.INFO):
-        run_federation("CartPole-v0", "weighted", 3, 3, 4, late_dir, plot=False)
+        run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=3, workers=3, max_episodes=4,
+                       run_dir=late_dir), plot=False)
     assert "drawn at the end of the run" in caplog.text
     assert opened and max(opened) <= 2
     assert read_board(late_dir) == read_board(live_dir)
@@ -199,7 +203,8 @@ def test_a_per_step_strategy_draws_each_episode_once(tmp_path: Path) -> None:
     """Under `sync` every mini-batch step is a round and sends its own statistics: an episode's losses and
     contribution weights are drawn once, as the means over its steps, at the episode's env steps."""
     run_dir = tmp_path / "sync"
-    run_federation("CartPole-v0", "sync", 1, 2, 4, run_dir, plot=False)
+    run_federation(InprocessSettings.given(env="CartPole-v0", policy="sync", seed=1, workers=2, max_episodes=4,
+                   run_dir=run_dir), plot=False)
     lines = records(run_dir)
     board = read_board(run_dir)
     for w, scalars in board.items():
@@ -222,7 +227,8 @@ def test_without_tensorboardx_the_run_goes_on_and_says_so_once(tmp_path: Path, m
                                                                 caplog: pytest.LogCaptureFixture) -> None:
     monkeypatch.setitem(sys.modules, "tensorboardX", None)  # `import tensorboardX` now raises ImportError
     with caplog.at_level(logging.WARNING):
-        summary = run_federation("CartPole-v0", "weighted", 1, 2, 3, tmp_path / "run", plot=False)
+        summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=1, workers=2,
+                                 max_episodes=3, run_dir=tmp_path / "run"), plot=False)
     assert summary["rounds"] == 3 and len(records(tmp_path / "run")) == 2 * 3 + 3
     said = [r.getMessage() for r in caplog.records if "tensorboardX" in r.getMessage()]
     assert len(said) == 1 and "not installed" in said[0] and "pip install .[tb]" in said[0]
@@ -236,7 +242,8 @@ def test_a_board_that_cannot_write_never_stops_the_run(tmp_path: Path, caplog: p
     run_dir.mkdir()
     (run_dir / "tensorboard").write_text("a file where the folder should be")
     with caplog.at_level(logging.ERROR):
-        summary = run_federation("CartPole-v0", "weighted", 1, 2, 3, run_dir, plot=False)
+        summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=1, workers=2,
+                                 max_episodes=3, run_dir=run_dir), plot=False)
     assert summary["rounds"] == 3
     assert len([r for r in caplog.records if "TensorBoard" in r.getMessage()]) == 1
 

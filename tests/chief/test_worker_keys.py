@@ -160,8 +160,10 @@ class Forger:
 def clean(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """The same federation without a forger, in process: what the attacked runs must equal."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
-    return run_federation(ENV, "weighted", SEED, WORKERS, EPISODES, tmp_path_factory.mktemp("clean"), plot=False,
+    return run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
+                          max_episodes=EPISODES, run_dir=tmp_path_factory.mktemp("clean")), plot=False,
                           tensorboard_files=False)
 
 

@@ -426,3 +426,21 @@ def test_docker_launcher_help() -> None:
                          text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert "--workers" in out.stdout
+
+
+def test_the_dashboards_acl_is_what_it_reads(tmp_path: Path) -> None:
+    """make-users.sh --dashboard: the dashboard may read every topic it subscribes to (services/dashboard/feed.py),
+    among them a tiered run's edge partials it shows the workers' progress from, and nothing it does not read (a
+    rig's 143 Hz state, its commands); it may write nothing."""
+    from services.dashboard.feed import subscriptions
+
+    acl = Acl((make_users(tmp_path, "--acl-only", "--dashboard", "--edge", "e0", "--run", "r1") / "acl").read_text())
+    for topic_filter, _ in subscriptions("r1", None):
+        example = topic_filter.replace("#", "worker/w0/update").replace("+", "rig0")
+        assert acl.allows("dashboard", "read", example), topic_filter
+    for topic in ("fedrl/r1/edge/e0/partial", "fedrl/r1/chief/aggregate", "fedrl/r1/worker/w1/status",
+                  "qube/rig1/telemetry", "qube/rig1/status"):
+        assert acl.allows("dashboard", "read", topic), topic
+    for topic in ("qube/rig0/state", "qube/rig0/action", "fedrl/r2/worker/w0/update"):
+        assert not acl.allows("dashboard", "read", topic), topic
+    assert not any(acl.allows("dashboard", "write", t) for t in ("fedrl/r1/chief/stop", "qube/rig0/action"))

@@ -13,6 +13,7 @@ import pytest
 import worker.episode
 from chief.audit import audit
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 from protocol.tasks import worker_seed
 
 ENV, POLICY, SEED, WORKERS, EPISODES = "CartPole-v0", "plain", 5, 3, 300
@@ -49,7 +50,8 @@ def broken_worker(monkeypatch: pytest.MonkeyPatch) -> None:
 def test_a_failed_worker_ends_the_run_as_aborted_once_the_others_are_done(broken_worker: None, tmp_path: Path
                                                                           ) -> None:
     run_dir = tmp_path / "run"
-    summary = run_federation(ENV, POLICY, SEED, WORKERS, EPISODES, run_dir, plot=False, tensorboard_files=False,
+    summary = run_federation(InprocessSettings.given(env=ENV, policy=POLICY, seed=SEED, workers=WORKERS,
+                             max_episodes=EPISODES, run_dir=run_dir), plot=False, tensorboard_files=False,
                              tolerate_failures=True)
     by_id = {w["id"]: w for w in summary["workers"]}
     assert not by_id["w1"]["solved"] and by_id["w1"]["episodes"] == FAIL_AT - 1 and by_id["w1"]["state"] == "offline"

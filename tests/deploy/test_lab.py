@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 
+from bench.lab import measure
 from chief.audit import audit
 from deploy.lab import LabSettings
 from services.qube_sim import families
@@ -82,6 +83,8 @@ def test_the_pipeline_identifies_every_rig_and_fine_tunes_them(env: str, tmp_pat
     for w, row in zip(summary["workers"], progress["rigs"], strict=True):
         assert w["rig"]["identify_s"] == pytest.approx(row["identify_s"], abs=0.1) and row["identify_s"] > 60
     assert audit(folder / "finetune").rounds >= 1  # the fine-tune is a federation the audit re-checks
+    measured = measure(folder)  # bench.lab's reading of the same folder
+    assert [r["episodes"] for r in measured["rigs"]] == [1, 1] and measured["stopped"] == 0
     if env == "qube":  # the recordings came over MQTT and are kept beside the profiles
         assert (folder / "identified" / "rig0.recording.json.gz").stat().st_size > 10_000
 

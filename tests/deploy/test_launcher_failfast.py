@@ -1,5 +1,5 @@
-"""``make run`` against a broker nobody can reach ends at once: one line and exit code 1, no processes started. A
-quorum with edge chiefs, which no launcher runs, ends the same way before anything starts (exit code 2), and so does
+"""``make run`` against a broker nobody can reach ends at once: one line and exit code 1, no processes started. An
+impossible quorum (k > n) ends the same way before anything starts (exit code 2), and so does
 a learner that cannot act in the task (DQN on continuous actions), which once left the chief waiting for workers
 that had died at their first step."""
 
@@ -34,15 +34,15 @@ def test_an_unreachable_broker_is_one_line_and_exit_1(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("launcher", ["deploy.run_local", "deploy.inprocess"])
-def test_a_quorum_with_edges_is_one_line_and_exit_2_before_anything_starts(tmp_path: Path, launcher: str) -> None:
-    """Edges wait for all of their workers: --quorum with --edges is refused by the launcher itself, before a broker,
-    a run folder or a thread exists (not by the chief's settings after the embedded broker started)."""
+def test_an_impossible_quorum_is_one_line_and_exit_2_before_anything_starts(tmp_path: Path, launcher: str) -> None:
+    """k of n with k > n never closes a round, with edges or without: the launcher itself refuses it, before a
+    broker, a run folder or a thread exists (not the chief's settings after the embedded broker started)."""
     run_dir = tmp_path / "run"
-    done = subprocess.run([sys.executable, "-m", launcher, "--workers", "4", "--edges", "2", "--quorum", "3",
+    done = subprocess.run([sys.executable, "-m", launcher, "--workers", "4", "--edges", "2", "--quorum", "5",
                            "--run-dir", str(run_dir)], capture_output=True, text=True, timeout=60)
     assert done.returncode == 2
     lines = done.stderr.strip().splitlines()
-    assert len(lines) == 1 and "--quorum runs flat" in lines[0] and "--edges 0 or --quorum 0" in lines[0], done.stderr
+    assert len(lines) == 1 and "--quorum 5: a round cannot wait for more than its 4 workers" in lines[0], done.stderr
     assert not run_dir.exists()
 
 

@@ -36,9 +36,11 @@ def broker(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
 @pytest.mark.parametrize("policy", strategies.names())
 def test_in_process_and_over_mqtt_give_the_same_federation(broker: str, tmp_path: Path, policy: str) -> None:
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     over_mqtt(broker, f"eq-{policy}", tmp_path / "mqtt", ENV, policy, SEED, WORKERS, EPISODES)
-    summary = run_federation(ENV, policy, SEED, WORKERS, EPISODES, tmp_path / "inprocess", plot=False,
+    summary = run_federation(InprocessSettings.given(env=ENV, policy=policy, seed=SEED, workers=WORKERS,
+                             max_episodes=EPISODES, run_dir=tmp_path / "inprocess"), plot=False,
                              tensorboard_files=False)
     assert summary["mode"] == "in-process"
     assert per_worker_final(tmp_path / "inprocess") == per_worker_final(tmp_path / "mqtt")
@@ -61,11 +63,13 @@ def test_off_policy_learners_in_process_and_over_mqtt_give_the_same_federation(
     """The learner travels with the run (ChiefSettings.algo, WorkerSettings.algo): over MQTT the same records as
     in process, the per-step rounds of sync, and a soft transfer of a SAC actor that the audit checks."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
     from worker.envs import env_spec
 
     over_mqtt(broker, f"eq-{algo}-{policy}", tmp_path / "mqtt", env, policy, seed, WORKERS, episodes, algo=algo)
-    summary = run_federation(env, policy, seed, WORKERS, episodes, tmp_path / "inprocess", plot=False,
-                             tensorboard_files=False, algo=algo)
+    summary = run_federation(InprocessSettings.given(env=env, policy=policy, seed=seed, workers=WORKERS,
+                             max_episodes=episodes, run_dir=tmp_path / "inprocess", algo=algo), plot=False,
+                             tensorboard_files=False)
     assert summary["algo"] == algo
     assert per_worker_final(tmp_path / "inprocess") == per_worker_final(tmp_path / "mqtt")
     subs, rounds = all_records(tmp_path / "inprocess")

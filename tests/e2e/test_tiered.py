@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
+import time
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -18,6 +21,7 @@ import pytest
 from chief.audit import AuditFailure, audit
 from chief.records import GRADIENTS, ROOT, gradient_key
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 from tests.federations import federate_through
 
 pytestmark = pytest.mark.slow
@@ -26,8 +30,9 @@ ENV, SEED, WORKERS, EDGES, EPISODES = "CartPole-v0", 3, 4, 2, 25  # w0 (edge e0)
 
 
 def test_a_tiered_federation_is_the_flat_one_across_levels(tmp_path: Path) -> None:
-    summary = run_federation(ENV, "weighted", SEED, WORKERS, EPISODES, tmp_path, plot=False, tensorboard_files=False,
-                             models=False, edges=EDGES)
+    summary = run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
+                             max_episodes=EPISODES, run_dir=tmp_path, edges=EDGES), plot=False, tensorboard_files=False,
+                             models=False)
     assert (tmp_path / GRADIENTS).exists()
     report = audit(tmp_path)
     rounds = [r for r in map(json.loads, (tmp_path / "metrics.jsonl").open()) if r["type"] == "round"]
@@ -54,22 +59,49 @@ def test_a_tiered_federation_is_the_flat_one_across_levels(tmp_path: Path) -> No
     assert failure.value.invariant == "tiered-exact"
 
 
+def run_with_dashboard(tmp_path: Path, args: list[str]) -> tuple[int, dict, str]:
+    """deploy.run_local with ``args``, its dashboard kept up after the end: the launcher's exit code, the dashboard's
+    /api/snapshot at the end, and the launcher's output."""
+    log = tmp_path / "launcher.log"
+    with log.open("w") as out:
+        proc = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *args, "--dashboard-linger", "300"],
+                                stdout=out, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 300
+        while "the dashboard stays up" not in log.read_text():
+            assert proc.poll() is None and time.monotonic() < deadline, log.read_text()[-3000:]
+            time.sleep(0.5)
+        url = re.search(r"dashboard: (http://\S+)", log.read_text())
+        assert url is not None, log.read_text()[-3000:]
+        with urllib.request.urlopen(url.group(1).rstrip("/") + "/api/snapshot", timeout=30) as answer:
+            snapshot = json.loads(answer.read())
+    finally:
+        proc.terminate()  # ends the dashboard's linger (the run's exit code is kept)
+        proc.wait(60)
+    return proc.returncode, snapshot, log.read_text()
+
+
 def test_a_tiered_federation_over_a_real_broker(tmp_path: Path) -> None:
     """The same over MQTT (deploy.run_local --edges 2: the embedded broker with the run's users and ACL, each edge
-    chief its own process), the wire witnessed: every root aggregate is the flat one within the bound."""
+    chief its own process), the wire witnessed: every root aggregate is the flat one within the bound. Its dashboard
+    lists every worker with each of its episodes from the edges' partials (2 edges x 3 rounds)."""
     run_dir = tmp_path / "run"
-    proc = subprocess.run([sys.executable, "-m", "deploy.run_local", "--workers", "4", "--edges", "2", "--witness",
-                           "--env", ENV, "--seed", str(SEED), "--max-episodes", "3", "--run-dir", str(run_dir),
-                           "--run-id", "tiered", "--dashboard-port", "off"], capture_output=True, text=True,
-                          timeout=300)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    code, snapshot, out = run_with_dashboard(tmp_path, [
+        "--workers", "4", "--edges", "2", "--witness", "--env", ENV, "--seed", str(SEED), "--max-episodes", "3",
+        "--run-dir", str(run_dir), "--run-id", "tiered"])
+    assert code == 0, out[-3000:]
     report = audit(run_dir)
     rounds = [r for r in map(json.loads, (run_dir / "metrics.jsonl").open()) if r["type"] == "round"]
     assert len(rounds) == 3 and all(set(r["edges"]) == {"e0", "e1"} for r in rounds)
     assert report.tiered == 3
     for e in ("e0", "e1"):
         assert "3 partials sent" in (run_dir / "logs" / f"edge-{e}.log").read_text()
-
+    workers = {w["id"]: w for w in snapshot["workers"]}
+    assert sorted(workers) == ["w0", "w1", "w2", "w3"]
+    assert all(w["episode"] == 3 and [p[0] for p in w["curve"]] == [1, 2, 3] for w in workers.values()), workers
+    assert snapshot["kinds"]["partial"] == 6 and snapshot["run"]["phase"] == "stopped"
+    # It stopped reading the workers' updates once the RunStart named the edges (at most those already on their way).
+    assert snapshot["kinds"].get("update", 0) < 4 * 3
 
 def _pid_of_edge(run_id: str, edge: str) -> int:
     """The process id of a run's edge chief (deploy.run_local gives each child its settings as FEDRL_* variables)."""
@@ -99,3 +131,4 @@ def test_an_edge_chief_that_dies_leaves_its_workers_lagging_and_says_so(tmp_path
     assert workers["w0"]["state"] == "lagging" and 5 <= workers["w0"]["episodes"] < 20
     assert workers["w1"]["episodes"] == 20
     audit(run_dir)
+

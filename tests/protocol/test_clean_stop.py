@@ -166,6 +166,29 @@ def test_sigterm_stops_a_worker_and_the_chief_without_a_will(any_broker: str, tm
 
 
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_stops_an_edge_chief_cleanly(amqtt_broker: str, tmp_path: Path, sig: signal.Signals) -> None:
+    """An edge chief had no handler: SIGTERM or SIGHUP killed it with the signal's code. Now it says so in one line
+    and exits 130, as the root chief does."""
+    log = tmp_path / "edge.log"
+    with log.open("wb") as out:
+        edge = subprocess.Popen([sys.executable, "-m", "chief", "--role", "edge", "--edge-id", "e0", "--broker",
+                                 amqtt_broker, "--run-id", "edgestop"], cwd=ROOT, stdout=out, stderr=subprocess.STDOUT)
+        try:
+            deadline = time.monotonic() + 60
+            while "waiting for the root's RunStart" not in log.read_text():
+                assert time.monotonic() < deadline and edge.poll() is None, log.read_text()
+                time.sleep(0.1)
+            edge.send_signal(sig)
+            assert edge.wait(15) == 130, log.read_text()
+        finally:
+            if edge.poll() is None:
+                edge.kill()
+                edge.wait()
+    said = log.read_text()
+    assert "edge e0: interrupted" in said and "Traceback" not in said, said
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGHUP])
 def test_a_qube_worker_waiting_on_a_rig_reset_stops_at_once(amqtt_broker: str, tmp_path: Path,
                                                            sig: signal.Signals) -> None:
     """A worker of env qube whose rig never answers its reset (none is running) waits in the reset up to 60 s: a

@@ -159,6 +159,7 @@ def test_the_chief_resumes_once_the_folder_is_writable_again(amqtt_broker: str, 
     from chief import checkpoint
     from chief.audit import audit
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
     from protocol.tasks import task
     from tests.chief.test_chief_resume import per_worker, rounds_closed
 
@@ -204,5 +205,6 @@ def test_the_chief_resumes_once_the_folder_is_writable_again(amqtt_broker: str, 
     summary = json.loads((run_dir / "summary.json").read_text())
     assert summary["restarts"] == 1 and list(run_dir.glob("*.tmp")) == []
     audit(run_dir)
-    run_federation("CartPole-v0", "weighted", 1, 2, episodes, tmp_path / "uninterrupted", plot=False)
+    run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=1, workers=2,
+                   max_episodes=episodes, run_dir=tmp_path / "uninterrupted"), plot=False)
     assert per_worker(run_dir) == per_worker(tmp_path / "uninterrupted")

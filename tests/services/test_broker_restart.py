@@ -26,9 +26,11 @@ SEED, WORKERS = 2, 2
 def reference(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, int, int]]:
     """The same federation without any restart (in one process: the same logic, the same result)."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_dir = tmp_path_factory.mktemp("reference") / "run"
-    run_federation("CartPole-v0", "weighted", SEED, WORKERS, 600, run_dir, plot=False)
+    run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=SEED, workers=WORKERS,
+                   max_episodes=600, run_dir=run_dir), plot=False)
     return per_worker(run_dir)
 
 

@@ -24,6 +24,7 @@ from protocol.codec import encode
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
+    EdgePartial,
     MatureParams,
     QubeAction,
     QubeState,
@@ -38,6 +39,7 @@ from protocol.messages import (
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.rounds import RoundShape
 from protocol.tensors import pack_arrays
+from protocol.transport import connector
 from services.dashboard.feed import MqttFeed, subscriptions
 from services.dashboard.hub import Hub
 from services.dashboard.service import DashboardConfig, DashboardService
@@ -197,6 +199,55 @@ def test_view_resent_points_replace_and_long_curves_are_thinned() -> None:
     assert curve[0] <= 2, "thinning keeps the start of the curve"
 
 
+def partial(edge: str, episode: int, *submissions: WorkerUpdate | MatureParams) -> EdgePartial:
+    """Edge ``edge``'s part of round ``episode``: its workers' submissions as the root gets them, without tensors."""
+    return EdgePartial(edge_id=edge, round=episode, episode=episode,
+                       updates=[u.model_copy(update={"gradient": {}}) for u in submissions
+                                if isinstance(u, WorkerUpdate)],
+                       matures=[m for m in submissions if isinstance(m, MatureParams)], count=len(submissions))
+
+
+def test_view_shows_the_workers_of_a_tiered_run_from_their_edges_partials() -> None:
+    """A dashboard that sees only the root's side of a tiered run (the edges' partials and the chief's answers)
+    shows every worker's episodes, PI and finish; one that sees the workers' own updates as well shows one point
+    per episode, and a partial seen after the worker's newer update neither regresses its PI nor its curve's order."""
+    edge = lambda e: topics.edge(RUN, e, topics.PARTIAL)  # noqa: E731
+    view = RunView(RUN)
+    feed(view, start(["w0", "w1", "w2"]))
+    for episode in (1, 2):
+        events = view.apply(edge("e0"), partial("e0", episode, update("w0", episode, 10.0 * episode),
+                                                update("w2", episode, 5.0 * episode)), 10.0 + episode)
+        assert {"type": "point", "worker": "w2", "point": [episode, 5.0 * episode, 5.0 * episode]} in events
+        view.apply(edge("e1"), partial("e1", episode, update("w1", episode, 1.0)), 10.5 + episode)
+        feed(view, aggregate(episode, {"w0": 0.5, "w1": 0.25, "w2": 0.25}))
+    view.apply(edge("e1"), partial("e1", 3, mature("w1", 3, 196.0)), 14.0)
+    workers = workers_of(view)
+    assert {w: (v["episode"], v["pi"], [p[0] for p in v["curve"]]) for w, v in workers.items()} == {
+        "w0": (2, 20.0, [1, 2]), "w2": (2, 10.0, [1, 2]), "w1": (3, 196.0, [1, 2, 3])}
+    assert workers["w1"]["state"] == "finished" and workers["w1"]["solved_episode"] == 3
+    assert view.snapshot()["kinds"]["partial"] == 5
+    # An edge's copy of the chief's answer is not shown again: the chief's own is.
+    assert view.apply(topics.relayed(RUN, "e0", topics.AGGREGATE), aggregate(2, {"w0": 1.0}), 15.0) == []
+    assert view.snapshot()["run"]["rounds"] == 2 and view.snapshot()["ignored"] == {"aggregate": 1}
+
+    both = RunView(RUN)  # the workers' own updates and the partials
+    feed(both, start(["w0"]), update("w0", 1, 10.0), update("w0", 2, 20.0))  # w0 ahead of its edge's round 1
+    events = both.apply(edge("e0"), partial("e0", 1, update("w0", 1, 10.0)), 5.0)
+    assert events and all(e["type"] != "point" for e in events)  # the page's curve takes no older point
+    w0 = workers_of(both)["w0"]
+    assert ([p[0] for p in w0["curve"]], w0["episode"], w0["pi"]) == ([1, 2], 2, 20.0)
+
+
+def test_view_refuses_an_edge_partial_without_the_run_key() -> None:
+    view = RunView(RUN, key=KEY)
+    view.apply(topics.chief(RUN, topics.START), signed(start(["w0"]), chief_key_of(KEY)), 1.0)
+    topic = topics.edge(RUN, "e0", topics.PARTIAL)
+    assert view.apply(topic, partial("e0", 1, update("w0", 1, 10.0)), 2.0) == []
+    assert view.snapshot()["refused"] == {"unsigned partial": 1} and workers_of(view)["w0"]["episode"] == 0
+    assert view.apply(topic, signed(partial("e0", 1, update("w0", 1, 10.0)), KEY), 3.0) != []
+    assert workers_of(view)["w0"]["episode"] == 1
+
+
 def test_view_end_state_says_the_run_is_over() -> None:
     """After the run: the number of rounds (no open round), and nobody "has finished yet" but nobody finished."""
     view = RunView(RUN)
@@ -260,15 +311,51 @@ def test_view_same_run_id_again_starts_afresh() -> None:
 
 def test_subscriptions_leave_out_the_143_hz_state_topic() -> None:
     subs = dict(subscriptions(RUN, None))
-    assert subs == {f"fedrl/{RUN}/#": 1, "qube/+/status": 1, "qube/+/telemetry": 0}
-    assert dict(subscriptions(RUN, ["rigA"])) == {f"fedrl/{RUN}/#": 1, "qube/rigA/status": 1, "qube/rigA/telemetry": 0}
+    run = {f: q for f, q in subs.items() if f.startswith(f"fedrl/{RUN}/")}
+    assert {f: q for f, q in subs.items() if f not in run} == {"qube/+/status": 1, "qube/+/telemetry": 0}
+    assert {f"fedrl/{RUN}/worker/+/update", f"fedrl/{RUN}/edge/+/partial", f"fedrl/{RUN}/chief/aggregate"} <= set(run)
+    assert dict(subscriptions(RUN, ["rigA"])) == {**run, "qube/rigA/status": 1, "qube/rigA/telemetry": 0}
     with pytest.raises(ValueError):
         subscriptions(RUN, ["bad/rig"])
 
 
+class Subscriber:
+    """What a feed asked its connection to subscribe to and unsubscribe from."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[str, str]] = []
+
+    def subscribe(self, topic_filter: str, handler: Any, qos: int = 1) -> None:
+        self.calls.append(("subscribe", topic_filter))
+
+    def unsubscribe(self, topic_filter: str) -> None:
+        self.calls.append(("unsubscribe", topic_filter))
+
+
+def test_feed_reads_no_worker_updates_in_a_tiered_run() -> None:
+    """Once the run's RunStart names edges, the feed stops reading the workers' updates (their edges' partials carry
+    them, without gradients); a flat run under the same id reads them again."""
+    hub = Hub(RunView(RUN))
+    fd = MqttFeed(connector(BrokerAddress.parse("mqtt://127.0.0.1:9")), RUN, hub)  # never started
+    fd.conn = Subscriber()  # type: ignore[assignment]
+    fd.follow_tier(hub.view.tiered)
+    hub.apply([("t", start(["w0"]), 1.0)])
+    fd.follow_tier(hub.view.tiered)
+    assert fd.conn.calls == []  # type: ignore[attr-defined]  # a flat run: its updates are read
+    hub.apply([("t", RunStop(run_id=RUN, reason="done", episodes=1, all_solved=False), 2.0),
+               ("t", start(["w0", "w1"]).model_copy(update={"edges": {"w0": "e0", "w1": "e1"}}), 3.0)])
+    fd.follow_tier(hub.view.tiered)
+    fd.follow_tier(hub.view.tiered)
+    assert fd.conn.calls == [("unsubscribe", f"fedrl/{RUN}/worker/+/update")]  # type: ignore[attr-defined]
+    hub.apply([("t", RunStop(run_id=RUN, reason="done", episodes=1, all_solved=False), 4.0), ("t", start(["w0"]), 5.0)])
+    fd.follow_tier(hub.view.tiered)
+    assert fd.conn.calls[-1] == ("subscribe", f"fedrl/{RUN}/worker/+/update")  # type: ignore[attr-defined]
+
+
 def test_feed_rejects_counts_and_survives_bad_payloads() -> None:
     hub = Hub(RunView(RUN))
-    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, hub)  # never started: on_message is called directly
+    # never started: on_message is called directly
+    fd = MqttFeed(connector(BrokerAddress.parse("mqtt://127.0.0.1:9")), RUN, hub)
     topic = topics.worker(RUN, "w0", topics.UPDATE)
     fd.on_message(topic, b"\x00junk")
     fd.on_message(topic, msgpack.packb({"schema_version": 1, "kind": "future_thing", "x": 1}))
@@ -286,7 +373,7 @@ def test_feed_rejects_counts_and_survives_bad_payloads() -> None:
 
 
 def test_feed_never_blocks_the_network_thread() -> None:
-    fd = MqttFeed(BrokerAddress.parse("mqtt://127.0.0.1:9"), RUN, Hub(RunView(RUN)), max_queue=2)
+    fd = MqttFeed(connector(BrokerAddress.parse("mqtt://127.0.0.1:9")), RUN, Hub(RunView(RUN)), max_queue=2)
     for e in range(1, 5):
         fd.on_message(topics.worker(RUN, "w0", topics.UPDATE), encode(update("w0", e, 1.0)))
     assert fd.inbox.qsize() == 2 and fd.stats()["dropped"] == 2
@@ -400,7 +487,7 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
         # wrong_topic) until both have been seen.
         send_until(send, sse, "qube/rigS/status", QubeStatus(rig_id="rigS", state="idle"),
                    lambda n, d: n == "delta" and any(e["type"] == "rig" for e in d), tries=100, timeout=0.3)
-        send_until(send, sse, f"fedrl/{RUN}/probe", QubeAction(rig_id="rigS", seq=0, command=0),
+        send_until(send, sse, topics.worker(RUN, "w9", topics.STATUS), QubeAction(rig_id="rigS", seq=0, command=0),
                    lambda n, d: n == "stats" and d["rejected"].get("wrong_topic"), tries=30, timeout=1.5)
         send(topics.chief(RUN, topics.START), start(["w0", "w1"]))
         send(topics.worker(RUN, "w0", topics.UPDATE), b"\x00garbage")  # must not stop anything

@@ -15,6 +15,7 @@ from protocol.codec import encode
 from protocol.messages import QubeState, QubeStatus
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.qube import MAX_RETURN, PERIOD_S
+from protocol.transport import connector
 from worker.qube_env import ACTIONS, QubeLocalEnv, QubeMqttEnv
 
 
@@ -152,8 +153,8 @@ def test_the_first_action_of_every_episode_over_mqtt_is_applied(amqtt_broker: st
 
     clock = VirtualClock()
     device = SimulatedQube(seed=4, period_s=0, clock=clock)
-    service = BridgeService(device, "rigF", BrokerAddress.parse(amqtt_broker), lockstep=True, advance=clock.advance,
-                            clock=clock, client_prefix="qube-first")
+    service = BridgeService(device, "rigF", connector(BrokerAddress.parse(amqtt_broker)), lockstep=True,
+                            advance=clock.advance, clock=clock, client_prefix="qube-first")
     loop = threading.Thread(target=service.run, daemon=True)
     loop.start()
     conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="qube-first-env").start()

@@ -67,9 +67,11 @@ def test_the_bridge_keeps_what_crosses_while_the_other_side_is_down(tmp_path: Pa
 def uninterrupted(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, int, int]]:
     """The same federation without a fault (in one process: the same logic, the same result)."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_dir = tmp_path_factory.mktemp("uninterrupted") / "run"
-    run_federation("CartPole-v0", "weighted", SEED, WORKERS, EPISODES, run_dir, plot=False)
+    run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=SEED, workers=WORKERS,
+                   max_episodes=EPISODES, run_dir=run_dir), plot=False)
     return per_worker(run_dir)
 
 
@@ -110,10 +112,12 @@ def uninterrupted_tiered(tmp_path_factory: pytest.TempPathFactory) -> list[tuple
     """The same tiered federation (w0 behind edge e0, w1 behind e1) without a fault, in one process: the same
     per-worker episodes as over MQTT (the tiered partial sums are float32, so the reference is tiered too)."""
     from deploy.inprocess import run_federation
+    from deploy.settings import InprocessSettings
 
     run_dir = tmp_path_factory.mktemp("uninterrupted-tiered") / "run"
-    run_federation("CartPole-v0", "weighted", SEED, WORKERS, EPISODES, run_dir, plot=False, tensorboard_files=False,
-                   models=False, edges=EDGES)
+    run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=SEED, workers=WORKERS,
+                   max_episodes=EPISODES, run_dir=run_dir, edges=EDGES), plot=False, tensorboard_files=False,
+                   models=False)
     return per_worker(run_dir)
 
 

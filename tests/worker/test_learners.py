@@ -142,8 +142,9 @@ def test_an_off_policy_federation_shares_and_audits(algo: str, policy: str, tmp_
     from deploy.inprocess import run_federation
     from worker.envs import env_spec
 
-    summary = run_federation("CartPole-v0", policy, 1, 2, 2, tmp_path, plot=False, tensorboard_files=False,
-                             algo=algo, models=False)
+    summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy=policy, seed=1, workers=2,
+                             max_episodes=2, run_dir=tmp_path, algo=algo), plot=False, tensorboard_files=False,
+                             models=False)
     assert summary["algo"] == algo
     per_episode = env_spec("CartPole-v0").learner_config(algo).update_epochs if policy == "sync" else 1
     assert summary["rounds"] == 2 * per_episode

@@ -15,6 +15,7 @@ from chief.roster import Roster
 from chief.service import ChiefService, Outputs
 from chief.settings import ChiefSettings
 from deploy.inprocess import run_federation
+from deploy.settings import InprocessSettings
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import WorkerHello
 from runtime.model_file import InitModel, ModelFileError, network_digest, provenance, resolve
@@ -31,15 +32,17 @@ GOOD_RETURN = 150.0
 def pretrained(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A run folder of one in-process worker that solved CartPole-v0 (seed 101: 55 episodes), with its model."""
     run_dir = tmp_path_factory.mktemp("pretrain")
-    summary = run_federation("CartPole-v0", "weighted", 101, 1, 120, run_dir, plot=False, tensorboard_files=False)
+    summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=101, workers=1,
+                             max_episodes=120, run_dir=run_dir), plot=False, tensorboard_files=False)
     assert summary["episodes_to_all_solved"] is not None, "the pretraining did not solve CartPole-v0"
     return run_dir
 
 
 def test_warm_started_federation_plays_well_from_its_first_episode(pretrained: Path, tmp_path: Path) -> None:
     model = pretrained / "models" / "w0.pt"
-    summary = run_federation("CartPole-v0", "weighted", 7, 2, 12, tmp_path, plot=False, tensorboard_files=False,
-                             init_model=pretrained)  # the run-folder form
+    summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=7, workers=2,
+                             max_episodes=12, run_dir=tmp_path, init_model=pretrained), plot=False,
+                             tensorboard_files=False)  # the run-folder form
     firsts = {r["worker"]: r["return"] for r in map(json.loads, (tmp_path / "metrics.jsonl").open())
               if r["type"] == "episode" and r["episode"] == 1}
     assert set(firsts) == {"w0", "w1"} and min(firsts.values()) >= GOOD_RETURN, firsts

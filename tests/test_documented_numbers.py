@@ -1,0 +1,65 @@
+"""Every generated table in the README and the docs is the table of the results file it names: re-rendered from
+that file here, it must be what the page shows (a number edited by hand, or a results file replaced without
+``--report``, fails)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def block(page: Path, begin: str, end: str) -> str:
+    """The text between a page's markers (the begin marker's line excluded)."""
+    text = page.read_text()
+    start, stop = text.find(begin), text.find(end)
+    assert 0 <= start < stop, f"{page} has no {begin!r} ... {end!r} block"
+    return text[text.index("\n", start) + 1:stop]
+
+
+def test_the_readme_results_table_is_paper_json(monkeypatch: pytest.MonkeyPatch) -> None:
+    from bench import report
+
+    monkeypatch.chdir(ROOT)
+    assert block(ROOT / "README.md", report.BEGIN, report.END) == report.headline(report.default_folders()[0], ROOT)
+
+
+def test_the_results_page_is_every_results_file(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    from bench import report
+
+    monkeypatch.chdir(ROOT)
+    page = tmp_path / "results.md"
+    report.write_docs(report.default_folders(), page)
+    assert (ROOT / "docs" / "results.md").read_text() == page.read_text()
+
+
+@pytest.mark.parametrize("page", ["README.md", "docs/how-to/lab.md"])
+def test_the_lab_table_is_lab_json(page: str) -> None:
+    from bench import lab
+
+    source = Path("bench/results/lab.json")
+    expected = lab.render(json.loads((ROOT / source).read_text()), str(source))
+    assert block(ROOT / page, lab.BEGIN, lab.END) == expected
+
+
+def test_the_sim_to_real_tables_are_sim2real_json() -> None:
+    from bench import sim2real
+
+    source = Path("bench/results/sim2real.json")
+    expected = sim2real.report(json.loads((ROOT / source).read_text()), str(source))
+    assert block(ROOT / "docs/how-to/warm-start.md", sim2real.BEGIN, sim2real.END) == expected + "\n"
+
+
+def test_the_out_of_distribution_tables_are_ood_json() -> None:
+    from bench import ood
+
+    source = Path("bench/results/ood.json")
+    if not (ROOT / source).exists():
+        assert block(ROOT / "README.md", ood.BEGIN, ood.END).strip() == "Not measured yet."
+        return
+    data = json.loads((ROOT / source).read_text())
+    assert block(ROOT / "README.md", ood.BEGIN, ood.END) == ood.render_readme(data, str(source))
+    assert block(ROOT / ood.DOCS, ood.BEGIN, ood.END) == ood.render_docs(data, str(source))

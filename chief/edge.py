@@ -85,6 +85,7 @@ class EdgeService:
         self.keeper: RoundKeeper | None = None
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
+        self.unreached: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # held by the keeper (beyond reach)
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
         self.sent: dict[int, list[bytes]] = {}  # round -> the partials sent for it (the last ANSWERS_KEPT rounds)
         self.resent: dict[int, float] = {}  # round -> when its partial last went again
@@ -215,8 +216,11 @@ class EdgeService:
     def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
         """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused
         mature actor with the root's session, as the root would)."""
-        if verdict.status in ("accepted", "held"):  # a held one counts, or is refused, when its round opens
+        if verdict.status == "accepted":
             self.held[(msg.worker_id, verdict.round)] = msg
+            return
+        if verdict.status == "held":  # beyond reach: it counts, or is refused, when its round opens (_forward)
+            self.unreached[(msg.worker_id, verdict.round)] = msg
             return
         if verdict.status == "rejected":
             topic = topics.worker(self.cfg.run_id, msg.worker_id, topics.UPDATE)
@@ -264,10 +268,10 @@ class EdgeService:
                 critic_clipped=outcome.critic_clipped, timed_out=tuple(outcome.timed_out))
             self._partial(signed(msg, self.key))
             self.partials += 1
-            for verdict in outcome.taken_up:  # what the next round made of the submissions it held
-                held = self.held.get((verdict.submission.worker_id, verdict.round)) if verdict.submission else None
-                if verdict.status == "rejected" and held is not None:
-                    del self.held[(held.worker_id, verdict.round)]
+            for verdict in outcome.taken_up:  # what the next round made of the submissions its keeper held
+                sub = verdict.submission
+                held = self.unreached.pop((sub.worker_id, verdict.round), None) if sub is not None else None
+                if held is not None:
                     self._count(verdict, held)
 
     def _partial(self, msg: EdgePartial) -> None:

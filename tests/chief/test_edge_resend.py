@@ -167,3 +167,21 @@ def test_an_edge_refuses_and_counts_what_is_not_its_workers_own(scene: Scene) ->
     assert scene.rejects.as_dict() == {"unsigned": 1, "forged": 1}
     scene.worker(topics.UPDATE, update)
     assert decode(scene.partials.get(timeout=10), EdgePartial).round == 1
+
+
+def test_an_edge_holds_an_update_beyond_reach_and_refuses_it_once_its_workers_real_rounds_came(scene: Scene
+                                                                                                ) -> None:
+    """chief/rounds.py's rule at an edge: an update for round 3 while round 1 is open (tagged: a worker's key
+    stolen, or a run without keys) makes no partial; w0's real rounds 1-3 make theirs, and the early one is refused
+    as unreachable when round 3 opens."""
+    def update(episode: int, ret: float, recent: list[float]) -> WorkerUpdate:
+        return WorkerUpdate(worker_id=WORKER, episode=episode, episode_return=ret, pi=sum(recent) / len(recent),
+                            recent_returns=recent, steps=20, gradient=pack_arrays({"w": np.ones(2, np.float32)}))
+
+    scene.worker(topics.UPDATE, update(3, 50.0, [50.0]))
+    assert quiet(scene.partials)
+    for episode in (1, 2, 3):
+        scene.worker(topics.UPDATE, update(episode, 20.0, [20.0] * episode))
+        partial = decode(scene.partials.get(timeout=10), EdgePartial)
+        assert partial.round == episode and partial.updates[0].episode_return == 20.0
+    assert scene.rejects.as_dict() == {"unreachable": 1}

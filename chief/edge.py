@@ -35,7 +35,7 @@ from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
 from protocol import topics
-from protocol.auth import admitted, signed
+from protocol.auth import WorkerKeys, admitted, chief_key_of, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     ChiefAck,
@@ -74,13 +74,18 @@ class EdgeService:
         assert cfg.edge_id is not None
         self.cfg = cfg
         self.edge = cfg.edge_id
+        # protocol/auth.py: the run's key tags its partials, the chief key the root's answers it passes on (and its
+        # own refusals in the root's name), each worker's own key what that worker sends.
         self.key = cfg.key()
+        self.chief_key = chief_key_of(self.key)
+        self.worker_keys = WorkerKeys(self.key)
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any, bytes]] = queue.Queue()
         self.specs: dict[str, tuple[dict[str, tuple[int, ...]], dict[str, tuple[int, ...]]]] = {}
         self.keeper: RoundKeeper | None = None
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
+        self.unreached: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # held by the keeper (beyond reach)
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
         self.sent: dict[int, list[bytes]] = {}  # round -> the partials sent for it (the last ANSWERS_KEPT rounds)
         self.resent: dict[int, float] = {}  # round -> when its partial last went again
@@ -97,8 +102,8 @@ class EdgeService:
     # -- network thread: decode, enqueue -----------------------------------------------------------------------
 
     def _on_root(self, topic: str, payload: bytes) -> None:
-        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic, key=self.key,
-                       rejects=self.rejects)
+        msg = admitted(payload, RunStart, RunStop, ChiefAggregate, ChiefTransfer, ChiefAck, topic=topic,
+                       key=self.chief_key, rejects=self.rejects)
         if msg is None:
             return
         self.events.put((topic, msg, payload))
@@ -108,6 +113,10 @@ class EdgeService:
             msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
+            return
+        refused = self.worker_keys.refusal(msg)
+        if refused is not None:  # not its worker's
+            self.rejects.reject(topic, *refused)
             return
         self.events.put((topic, msg, payload))
 
@@ -210,6 +219,9 @@ class EdgeService:
         if verdict.status == "accepted":
             self.held[(msg.worker_id, verdict.round)] = msg
             return
+        if verdict.status == "held":  # beyond reach: it counts, or is refused, when its round opens (_forward)
+            self.unreached[(msg.worker_id, verdict.round)] = msg
+            return
         if verdict.status == "rejected":
             topic = topics.worker(self.cfg.run_id, msg.worker_id, topics.UPDATE)
             self.rejects.reject(topic, verdict.reason, f"{msg.kind} for episode {msg.episode}: {verdict.detail}")
@@ -217,7 +229,7 @@ class EdgeService:
                 ack = verdict.ack
                 self._relay(topics.ACK, encode(signed(ChiefAck(
                     worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=False,
-                    reason=ack.reason[:2000], session=self.start.session), self.key)))
+                    reason=ack.reason[:2000], session=self.start.session), self.chief_key)))
         if verdict.reason not in ("duplicate", "stale"):
             return
         answer = self.answers.get(verdict.round)
@@ -256,6 +268,11 @@ class EdgeService:
                 critic_clipped=outcome.critic_clipped, timed_out=tuple(outcome.timed_out))
             self._partial(signed(msg, self.key))
             self.partials += 1
+            for verdict in outcome.taken_up:  # what the next round made of the submissions its keeper held
+                sub = verdict.submission
+                held = self.unreached.pop((sub.worker_id, verdict.round), None) if sub is not None else None
+                if held is not None:
+                    self._count(verdict, held)
 
     def _partial(self, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""

@@ -19,6 +19,10 @@ saved with the keeper and written to summary.json, where the audit finds it.
 
 - it must come from a worker of the run, for a round in the open round's window (the open round up to
   ``AHEAD_WINDOW`` episodes ahead, never past ``max_episodes``), with the run's tensor shapes;
+- one for a round beyond its worker's reach (more than S rounds past the open round, ``reachable``) is held,
+  counting nothing, until its round opens; it counts then only if it displaces nothing of the worker's own
+  (``displaces``: the chief heard nothing of the worker in the round before, and has not counted that round from it
+  since), so a forged update for a round ahead never makes the worker's real ones duplicates or ``inconsistent``;
 - its returns must lie within the task's bounds, agree with the returns the worker reported before, and its PI must be
   their mean (the chief uses its own mean from then on); a later step of an episode must repeat that episode's
   counted return and PI;
@@ -172,6 +176,7 @@ class RoundOutcome:
     partial: tiers.Partial | None = None  # an edge's round: its part of Eq. 9, for the root
     parts: int = 0  # a root's round: how many partials it summed (more than its edges: an edge's late ones)
     norms: dict[str, float] = field(default_factory=dict)  # an edge's quorum round: its learners' gradient norms
+    taken_up: list[Verdict] = field(default_factory=list)  # held submissions the next round took up (or refused)
 
     @property
     def digest(self) -> str:
@@ -212,7 +217,7 @@ class Verdict:
     """What ``submit`` decided: ``accepted`` (counted), ``duplicate`` (already counted) or ``rejected``.
     ``replay`` is a closed round's answer to send again to a worker that evidently missed it."""
 
-    status: Literal["accepted", "duplicate", "rejected"]
+    status: Literal["accepted", "duplicate", "rejected", "held"]
     reason: str = ""
     detail: str = ""
     submission: Submission | None = None
@@ -330,6 +335,7 @@ class RoundKeeper:
         self.round = 1
         self.pending: dict[str, Submission] = {}
         self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
+        self.held: dict[int, dict[str, Submission]] = {}  # submissions beyond reach, not counted (``_hold``)
         self.counted: set[tuple[str, int]] = set()  # (worker, round) of every accepted submission
         self.answers: dict[int, RoundOutcome] = {}  # the last ANSWERS_KEPT closed rounds' answers
         self.round_opened_at: float | None = None  # time of the round's first submission
@@ -433,10 +439,50 @@ class RoundKeeper:
             return self._reject(sub, r, "out_of_window",
                                 f"round {r} (episode {sub.episode}) is outside the open round's window "
                                 f"{self.round}..{last}")
+        if self.tier != "root" and r > self.reach:
+            return self._hold(sub, r, now)
         problem = self._check(sub, rec)
         if problem is not None:
             return self._reject(sub, r, *problem)
         return self._accept(sub, r, rec, now)
+
+    @property
+    def reach(self) -> int:
+        """The last round a worker can have reached while the chief heard it: S rounds past the open one (it plays
+        on with up to S rounds unanswered), or the first round of ``next_episode`` (a worker that starts now)."""
+        return reachable(self.round, self.max_staleness, self.shape.number(self.next_episode))
+
+    def _hold(self, sub: Submission, r: int, now: float) -> Verdict:
+        """Hold a submission beyond ``reach`` until its round opens, counting nothing yet (``_take_up``): only a
+        worker that went on without an answer sends one, or a forger in its name. The first one held for a worker
+        and round stays; another is a duplicate. It starts the open round's timeout, so a round whose submissions
+        were all lost still closes."""
+        held = self.held.setdefault(r, {})
+        if sub.worker_id in held:
+            return Verdict("duplicate", "duplicate", f"round {r} of {sub.worker_id} already held", submission=sub,
+                           round=r)
+        held[sub.worker_id] = sub
+        if self.round_opened_at is None:
+            self.round_opened_at = now
+        return Verdict("held", submission=sub, round=r)
+
+    def _take_up(self) -> list[Verdict]:
+        """The open round's held submissions (``_hold``), each counted as if it came now, unless ``displaces``
+        says it is not its worker's: what each became."""
+        verdicts = []
+        for w, sub in sorted(self.held.pop(self.round, {}).items()):
+            r, rec = self.round, self.workers[w]
+            why = displaces(r, (w, r - 1) in self.counted, (w, r) in self.counted)
+            problem = (("unreachable", why) if why is not None else
+                       ("finished", f"{w} finished at episode {rec.solved_episode}")
+                       if rec.state == "finished" and (sub.mature or not rec.helping) else self._check(sub, rec))
+            if problem is not None:
+                verdicts.append(self._reject(sub, r, *problem))
+            else:
+                self._file(sub, r, rec, self.round_opened_at or 0.0)
+                verdicts.append(Verdict("accepted", submission=sub, round=r,
+                                        ack=Ack(w, r, sub.episode, True) if sub.mature else None))
+        return verdicts
 
     def note_status(self, worker_id: str, state: str, now: float, detail: str = "") -> list[RoundOutcome]:
         """A worker's status message. Its last will (``offline``) marks it offline, still waited for until the
@@ -466,7 +512,7 @@ class RoundKeeper:
         log.warning("round %d timed out after %.1f s waiting for %s", self.round, self.round_timeout, silent)
         first = self._close()
         first[0].timed_out = silent
-        self._open_next(now)
+        self._open_next(now, first[0])
         return first + self._maybe_close(now)
 
     def abort(self, reason: str) -> None:
@@ -564,6 +610,12 @@ class RoundKeeper:
         return None
 
     def _accept(self, sub: Submission, r: int, rec: WorkerRecord, now: float) -> Verdict:
+        self._file(sub, r, rec, now)
+        ack = Ack(sub.worker_id, r, sub.episode, True) if sub.mature else None
+        return Verdict("accepted", submission=sub, round=r, ack=ack, outcomes=self._maybe_close(now))
+
+    def _file(self, sub: Submission, r: int, rec: WorkerRecord, now: float) -> None:
+        """Count a checked submission for round ``r``: the worker's record, and the round it waits in."""
         self._book(sub, r, rec)
         if r == self.round:
             self.pending[sub.worker_id] = sub
@@ -573,8 +625,6 @@ class RoundKeeper:
             self.ahead.setdefault(r, {})[sub.worker_id] = sub
         if self.round_opened_at is None:
             self.round_opened_at = now
-        ack = Ack(sub.worker_id, r, sub.episode, True) if sub.mature else None
-        return Verdict("accepted", submission=sub, round=r, ack=ack, outcomes=self._maybe_close(now))
 
     def _book(self, sub: Submission, r: int, rec: WorkerRecord) -> None:
         """Count a submission: its worker's returns, PI, steps and rounds, and its return from lagging."""
@@ -591,15 +641,19 @@ class RoundKeeper:
             log.info("worker %s is back (state was %s)", sub.worker_id, rec.state)
             rec.state, rec.excused = "active" if rec.state != "finished" else "finished", False
 
-    def _open_next(self, now: float) -> None:
+    def _open_next(self, now: float, closed: RoundOutcome) -> None:
+        """Open the next round with what was filed ahead for it and the held submissions it takes up (their verdicts
+        travel with the round just ``closed``, for the service to record)."""
         self.pending = self.ahead.pop(self.round, {})
-        self.round_opened_at = now if (self.pending or self.ahead) else None
+        self.round_opened_at = now if (self.pending or self.ahead or self.held) else None
+        if not self.done:
+            closed.taken_up = self._take_up()
 
     def _maybe_close(self, now: float) -> list[RoundOutcome]:
         outcomes: list[RoundOutcome] = []
-        while not self.done and (self.pending or self.ahead) and self._complete():
+        while not self.done and (self.pending or self.ahead or self.held) and self._complete():
             outcomes += self._close()
-            self._open_next(now)
+            self._open_next(now, outcomes[-1])
         return outcomes
 
     def _complete(self) -> bool:
@@ -792,6 +846,29 @@ class RoundKeeper:
 Gradients = dict[str, Arrays]
 #: A held partial's key: (edge, its contributors).
 PartKey = tuple[str, tuple[str, ...]]
+
+
+def reachable(open_round: int, staleness: int, first_of_next_episode: int) -> int:
+    """The last round a worker the chief hears can have reached: the open round plus the S rounds it may play
+    unanswered, or a joining worker's first round (the next episode's, when the open round is a later step)."""
+    return max(open_round + staleness, first_of_next_episode)
+
+
+def displaces(r: int, previous_counted: bool, already_counted: bool) -> str | None:
+    """Why a submission held for round ``r`` (it came while ``r`` was beyond reach) is not its worker's, when
+    ``r`` opens; None when it counts. A worker sends its rounds in order: if the chief counted the worker's round
+    ``r - 1``, or its round ``r`` itself came in reach since, the worker was in step with the chief, and this one
+    came before the answer to round ``r - 1 - S`` that the worker needed to play round ``r``: counting it would
+    displace the worker's real one (counted twice, or its returns made ``inconsistent``). Only a worker the chief did
+    not hear in round ``r - 1`` (its submission lost, it went on without an answer) has its held submission
+    counted. The price: a worker that went on without an answer although its round ``r - 1`` was counted (its
+    answer was late, not lost) loses round ``r``, and is counted again from its next round in reach."""
+    if already_counted:
+        return f"round {r} was counted from its worker since this one was held"
+    if previous_counted:
+        return (f"came before its worker could have played round {r} (the chief heard it in round {r - 1} and had "
+                "not answered the round it needed)")
+    return None
 
 
 def bound_norms(gradients: Gradients, others: list[float] | None = None) -> tuple[Gradients, dict[str, float]]:

@@ -25,7 +25,7 @@ from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
 from chief.settings import ChiefSettings
 from chief.tiers import Partial
 from protocol import topics
-from protocol.auth import refusal, signed
+from protocol.auth import WorkerKeys, chief_key_of, refusal, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
     STAT_BOUNDS,
@@ -98,7 +98,11 @@ class ChiefService:
                              init_model_known=model is not None, init_model_path=model.given if model else "")
         self.keeper: RoundKeeper | None = None
         self.session = secrets.token_hex(8)
-        self.key = cfg.key()  # every message this chief sends carries its HMAC under the run's key (protocol/auth.py)
+        # protocol/auth.py: the run's key tags this chief's claim and checks the edges' partials; the chief key tags
+        # what it says to the workers; each worker's key, derived from the run's, checks what that worker sends.
+        self.key = cfg.key()
+        self.chief_key = chief_key_of(self.key)
+        self.worker_keys = WorkerKeys(self.key)
         self.saved = checkpoint.load(cfg.run_dir, self.spec)  # ValueError (exit 2) for an unreadable state file
         if self.saved is not None:
             self._check_resumable(*self.saved)
@@ -148,8 +152,10 @@ class ChiefService:
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
             return
-        refused = refusal(msg, self.key) if isinstance(msg, EdgePartial) else None
-        if refused is not None:  # an edge holds the run's key: a partial without its tag is no edge's
+        # An edge holds the run's key, a worker only its own (protocol/auth.py): a message without its sender's tag is
+        # not its sender's.
+        refused = refusal(msg, self.key) if isinstance(msg, EdgePartial) else self.worker_keys.refusal(msg)
+        if refused is not None:
             self.rejects.reject(topic, *refused)
             return
         self.events.put((topic, msg))
@@ -315,13 +321,13 @@ class ChiefService:
         self._send(msg)
 
     def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
-        """Tag a message with the run's key and publish it on its topic, with its route's QoS."""
+        """Tag a message with the chief key and publish it on its topic, with its route's QoS."""
         topic, payload = self._outgoing(msg)
         return self.conn.publish(topic, payload, qos=qos_of(topic))
 
     def _outgoing(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> tuple[str, bytes]:
         """A message as it goes out (or is held back for ``_flush``): its topic and its tagged payload."""
-        return chief_route(msg.kind).filter(run=self.cfg.run_id), encode(signed(msg, self.key))
+        return chief_route(msg.kind).filter(run=self.cfg.run_id), encode(signed(msg, self.chief_key))
 
     def _federate(self) -> bool:
         """Run rounds until the run is over (True), or another chief's claim beats this one's (False)."""
@@ -421,6 +427,9 @@ class ChiefService:
         topic = topics.worker(self.cfg.run_id, sub.worker_id, topics.UPDATE)
         if verdict.status == "accepted":
             self.metrics.episode(verdict.record(now - self.t0))
+        elif verdict.status == "held":  # beyond reach: counted, or refused, when its round opens (chief/rounds.py)
+            log.info("%s sent round %d while round %d is open: held until it opens", sub.worker_id, verdict.round,
+                     self.keeper.round if self.keeper is not None else 0)
         elif verdict.status == "duplicate":
             self.duplicates += 1  # sent again (a worker's resend, a broker's redelivery): counted once
         else:
@@ -446,8 +455,11 @@ class ChiefService:
         """Record the closed rounds, save the state, then answer the workers (in that order, so a chief that dies
         in between answers them again from its state)."""
         assert self.metrics is not None
+        now = time.monotonic()
         for outcome in outcomes:
-            self.metrics.round({**outcome.record(), "t": round(time.monotonic() - self.t0, 3)})
+            self.metrics.round({**outcome.record(), "t": round(now - self.t0, 3)})
+            for verdict in outcome.taken_up:  # held submissions the next round counted or refused
+                self._answer(verdict, now)
         self._save()
         for outcome in outcomes:
             self._log_outcome(outcome)

@@ -37,7 +37,7 @@ from protocol.transport import Connect, Handler
 from runtime.model_file import ModelFileError
 from runtime.settings import returns_code
 from worker.service import EXIT_ERROR, WorkerService
-from worker.settings import WorkerSettings
+from worker.settings import WorkerSettings, handed_keys
 
 RUN_ID = "inprocess"
 #: Seconds the chief waits for every worker's hello (building N learners at once can take a while on a busy machine).
@@ -88,9 +88,10 @@ def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = 
     for i in range(s.workers):
         wid = f"w{i}"
         worker_conns[wid] = []
-        cfg = worker_settings(s, **common, worker_id=wid, edge=f"e{i % edges}" if edges else None,
-                              slowdown=(pace or {}).get(wid, 1.0), reply_timeout=math.inf, ack_timeout=math.inf,
-                              resend_interval=math.inf, model_dir=s.run_dir / "models" if models else None)
+        cfg = worker_settings(s, **{**common, **handed_keys(key, wid)}, worker_id=wid,
+                              edge=f"e{i % edges}" if edges else None, slowdown=(pace or {}).get(wid, 1.0),
+                              reply_timeout=math.inf, ack_timeout=math.inf, resend_interval=math.inf,
+                              model_dir=s.run_dir / "models" if models else None)
         services[wid] = WorkerService(cfg, _timed(hub, topics.STATUS, _NewEpisode(), worker_conns[wid])).run
     codes = _run_threads(services)
     if codes["chief"] not in (EXIT_OK, EXIT_ABORTED):  # the workers (daemon threads) are told to stop, not awaited

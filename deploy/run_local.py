@@ -47,7 +47,7 @@ from services.broker.embedded import make_credentials, start_broker_process
 from services.dashboard.service import wait_for_url
 from services.dashboard.settings import DashboardSettings
 from services.qube_sim.settings import SimRigSettings
-from worker.settings import WorkerSettings
+from worker.settings import WorkerSettings, handed_keys
 
 
 def load(argv: list[str] | None = None) -> LocalRunSettings:
@@ -147,8 +147,9 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         broker, login = reached
         common: dict[str, Any] = {"broker": broker, "run_id": s.run_id}
-        # The run's key (protocol/auth.py): FEDRL_RUN_KEY if set, else a new one; children get it in their
-        # environment (to_env), never on a command line.
+        # The run's key (protocol/auth.py): FEDRL_RUN_KEY if set, else a new one; the chief, the edges and the
+        # dashboard get it in their environment (to_env), never on a command line; each worker only its own key and
+        # the chief key (start_devices).
         key = s.child(ChiefSettings, **common, run_dir=run_dir).run_key or secrets.token_hex(32)
         url_file = log_dir / "dashboard.url"
         if s.dashboard_port is not None:  # first, so that it sees the run start
@@ -300,7 +301,8 @@ def start_devices(s: LocalRunSettings, fleet: Fleet, common: dict[str, Any], log
     for i, wid in enumerate(worker_ids):
         worker = s.child(WorkerSettings, **at_site[i], **login(wid), worker_id=wid, model_dir=s.run_dir / "models",
                          state_dir=s.run_dir / "workers", rig_id=rigs.get(i),
-                         reply_timeout=max(120.0, 4 * s.round_timeout), run_key=key, edge=(edges or {}).get(wid))
+                         reply_timeout=max(120.0, 4 * s.round_timeout), edge=(edges or {}).get(wid),
+                         **handed_keys(key, wid))
         if s.site_brokers and "resend_interval" not in worker.model_fields_set:  # unless FEDRL_RESEND_INTERVAL says
             worker = worker.model_copy(update={"resend_interval": sites.RESEND_INTERVAL})
         fleet.start(f"worker-{wid}", "worker", worker)

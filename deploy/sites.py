@@ -34,6 +34,7 @@ from protocol.routes import BRIDGE, CHIEF, DASHBOARD, EDGE, ROUTES, WORKER, Rout
 from protocol.topics import check_id
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
+from worker.settings import handed_keys
 
 HOST = "127.0.0.1"
 
@@ -278,8 +279,8 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
     ``base`` plus its bridge to ``core`` (host:port), over TLS when ``core_ca`` names the core's CA as the site
     broker sees it).
     Each folder also holds the run's key (``run_key``, the same everywhere: an orchestrator takes a folder per
-    place), and so does each process's credentials/<user>.env. Passwords and the key are random; files with
-    secrets are private. Returns the folders."""
+    place), and so does each process's credentials/<user>.env, but a worker's, which holds its own key and the chief
+    key (``with_key``). Passwords and the key are random; files with secrets are private. Returns the folders."""
     base_conf = render(base.read_text(encoding="utf-8"), os.environ)  # its ${VAR:-default}s filled in
     run_args = ["--run", run] if run else []
     key = secrets.token_hex(32)
@@ -305,10 +306,16 @@ def write_deployment(out: Path, sites: Sequence[Site], core: str, base: Path, ru
 
 
 def with_key(folder: Path, key: str) -> None:
-    """Add the run's key to each process's credentials/<user>.env: its whole environment file (FEDRL_ENV_FILE)."""
+    """Add the run's key to each process's credentials/<user>.env (its whole environment file, FEDRL_ENV_FILE); a
+    worker's (the file names its FEDRL_WORKER_ID) gets its own key and the chief key instead (protocol/auth.py)."""
     for path in (folder / "credentials").glob("*.env"):
         text = path.read_text(encoding="utf-8")
-        path.write_text(text + ("" if text.endswith("\n") else "\n") + f"FEDRL_RUN_KEY={key}\n", encoding="utf-8")
+        wid = next((line.split("=", 1)[1].strip() for line in text.splitlines()
+                    if line.startswith("FEDRL_WORKER_ID=")), None)
+        lines = ([f"FEDRL_RUN_KEY={key}"] if wid is None else
+                 [f"FEDRL_{name.upper()}={value}" for name, value in handed_keys(key, wid).items() if value])
+        path.write_text(text + ("" if text.endswith("\n") else "\n") + "".join(f"{line}\n" for line in lines),
+                        encoding="utf-8")
 
 
 def private(path: Path, text: str) -> None:
@@ -354,7 +361,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"python -m deploy.sites: {err}", file=sys.stderr)
         return 2
     for folder in folders:
-        print(f"wrote {folder}/ (users, ACL, mosquitto.conf, run_key: FEDRL_RUN_KEY of the chief and the workers)")
+        print(f"wrote {folder}/ (users, ACL, mosquitto.conf, run_key: FEDRL_RUN_KEY of the chiefs and the "
+              "dashboard, from which each worker's credentials hold its own key and the chief key)")
     return 0
 
 

@@ -1,12 +1,23 @@
-"""Chief messages workers can verify on any broker: an HMAC-SHA256 under the run's key (``FEDRL_RUN_KEY``).
+"""Messages their receivers can verify on any broker: an HMAC-SHA256 under a key derived from the run's key.
 
 The tag of a message is HMAC-SHA256(key, canonical(message)), hex, where ``canonical`` is the msgpack encoding of the
-message's fields without ``tag``, every map's keys sorted. The launcher (deploy/run_local.py) makes one key per run
-and hands it to the chief and the workers; whoever knows it can speak for the chief, so it is a secret like the MQTT
-password. Without a key the chief sends empty tags and workers check nothing: on an anonymous broker any publisher is
-then trusted. A worker with a key refuses (and counts) an untagged message (``unsigned``) and one whose tag is not
-the message's (``forged``): a forger without the key cannot make one, and a changed field breaks the tag. A tag does
-not make a message fresh: a replayed message keeps its valid tag, and the workers' round and session checks refuse it.
+message's fields without ``tag``, every map's keys sorted. The launcher (deploy/run_local.py) makes one run key
+(``FEDRL_RUN_KEY``) per run and hands it to the chief, its edges and the dashboard; the other keys are derived from it
+(each the hex HMAC-SHA256 of a purpose under the run key, so none reveals the run key or another):
+
+- the **chief key** ``chief_key(K)`` tags what the chief (or an edge) says to the workers: RunStart, RunStop,
+  aggregates, transfers, acknowledgements. Every worker holds it to check them (``FEDRL_CHIEF_KEY``);
+- a **worker key** ``worker_key(K, id)`` tags everything worker ``id`` sends: hello, status (its last will too),
+  update, mature actor. Only that worker holds it (``FEDRL_WORKER_KEY``); the chief and the edges derive it from K;
+- the run key itself tags what only chiefs read: an edge's partial, a chief's claim of the run.
+
+So a worker cannot speak for another worker, an edge or a claiming chief. HMAC keys are symmetric: whoever checks a
+tag can make one, so a worker (it holds the chief key) can speak for the chief to the other workers; signatures
+(a public key) would close that, at the price of a dependency. Whoever holds the run key can speak for everyone.
+Without a key senders send empty tags and receivers check nothing: on an anonymous broker any publisher is then
+trusted. A receiver with a key refuses (and counts) an untagged message (``unsigned``) and one whose tag is not the
+message's (``forged``): a forger without the key cannot make one, and a changed field breaks the tag. A tag does not
+make a message fresh: a replayed message keeps its valid tag, and the round and session checks refuse it.
 """
 
 from __future__ import annotations
@@ -24,6 +35,9 @@ from protocol.messages import Message
 TAG_FIELD: Final = "tag"
 #: The shortest key accepted (characters): a guessable key is no key.
 MIN_KEY_LENGTH: Final = 16
+#: What the derived keys are derived for (the message HMAC'd under the run key; a worker's id follows its prefix).
+CHIEF_PURPOSE: Final = "chief"
+WORKER_PURPOSE: Final = "worker:"
 
 M = TypeVar("M", bound=Message)
 
@@ -49,6 +63,47 @@ def key_bytes(key: str) -> bytes:
     return key.encode()
 
 
+def derived_key(run_key: bytes, purpose: str) -> str:
+    """The key for ``purpose`` derived from the run key: HMAC-SHA256(run key, purpose), hex (64 characters)."""
+    return hmac.new(run_key, purpose.encode(), hashlib.sha256).hexdigest()
+
+
+def chief_key(run_key: bytes) -> str:
+    """The key of what the chief (or an edge) says to the workers, which every worker holds to check it."""
+    return derived_key(run_key, CHIEF_PURPOSE)
+
+
+def chief_key_of(run_key: bytes | None) -> bytes | None:
+    """The chief key as the HMAC takes it, for whoever holds the run key (None: the run has no key)."""
+    return None if run_key is None else chief_key(run_key).encode()
+
+
+def worker_key(run_key: bytes, worker_id: str) -> str:
+    """Worker ``worker_id``'s own key: it tags what that worker sends, and only that worker holds it."""
+    return derived_key(run_key, WORKER_PURPOSE + worker_id)
+
+
+class WorkerKeys:
+    """A chief's (or an edge's) keys of the workers, derived from the run key once per worker id."""
+
+    def __init__(self, run_key: bytes | None) -> None:
+        self.run_key = run_key
+        self._keys: dict[str, bytes] = {}
+
+    def of(self, worker_id: str) -> bytes | None:
+        """The key worker ``worker_id``'s messages must be tagged with (None: the run has no key)."""
+        if self.run_key is None:
+            return None
+        key = self._keys.get(worker_id)
+        if key is None:
+            key = self._keys[worker_id] = worker_key(self.run_key, worker_id).encode()
+        return key
+
+    def refusal(self, message: Message) -> tuple[str, str] | None:
+        """Why a worker's message (any with a ``worker_id``) is not its worker's, as :func:`refusal`."""
+        return refusal(message, self.of(str(getattr(message, "worker_id", ""))), whose="its worker's key")
+
+
 def tag_of(message: Message, key: bytes) -> str:
     """HMAC-SHA256 of the message's canonical encoding under ``key``, hex."""
     return hmac.new(key, canonical(message), hashlib.sha256).hexdigest()
@@ -63,7 +118,7 @@ def signed(message: M, key: bytes | None) -> M:
 
 def admitted(payload: bytes, *types: type[Message], topic: str, key: bytes | None,
              rejects: RejectCounter) -> Message | None:
-    """``payload`` decoded as one of ``types`` (protocol/codec.py) and checked against the run's key: the message, or
+    """``payload`` decoded as one of ``types`` (protocol/codec.py) and checked against ``key``: the message, or
     None when it is malformed, forged or unsigned, which ``rejects`` counts and logs."""
     try:
         msg = decode(payload, *types, topic=topic)
@@ -77,14 +132,14 @@ def admitted(payload: bytes, *types: type[Message], topic: str, key: bytes | Non
     return msg
 
 
-def refusal(message: Message, key: bytes | None) -> tuple[str, str] | None:
+def refusal(message: Message, key: bytes | None, whose: str = "the sender's key") -> tuple[str, str] | None:
     """Why a message is not the keyholder's: (reason, detail), or None when it is, or when there is no key to check
-    it with (without a key every message is trusted)."""
+    it with (without a key every message is trusted). ``whose`` names the key in the detail."""
     if key is None:
         return None
     tag, kind = getattr(message, TAG_FIELD, ""), type(message).model_fields["kind"].default
     if not tag:
         return "unsigned", f"a {kind} without a tag, and this run has a key"
     if not hmac.compare_digest(tag, tag_of(message, key)):
-        return "forged", f"a {kind} whose tag is not its HMAC under the run's key"
+        return "forged", f"a {kind} whose tag is not its HMAC under {whose}"
     return None

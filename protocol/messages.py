@@ -5,8 +5,9 @@ MatureParams (a finished worker's actor), ChiefAggregate (Eq. 9 mean gradient), 
 ChiefAck (the chief holds a worker's mature actor, or refuses it), RunStart, RunStop. The chief's answers carry the
 number of the round they answer (protocol/rounds.py) next to its episode and step, and the chief's ``session``;
 ChiefClaim is a chief's exclusive, retained claim of a run. EdgePartial is an edge chief's part of a round, for the root
-chief (a tiered run). Every chief message carries ``tag``: its HMAC-SHA256
-under the run's key (protocol/auth.py), empty when the run has no key.
+chief (a tiered run). Every message of the federation carries ``tag``: its HMAC-SHA256 under its sender's key
+(protocol/auth.py: a worker's own key, the chief key, or the run key for a partial or a claim), empty when the run
+has no key.
 Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeIdentify, QubeRecording, QubeStatus, QubeTelemetry.
 """
 
@@ -54,7 +55,7 @@ RigSeconds = Annotated[float, Field(ge=0.0, le=SECONDS_LIMIT)]
 BalanceSteps = Annotated[int, Field(ge=0, le=10**9)]
 #: The most episodes, and env steps, a worker's ``played`` counts may carry.
 PLAYED_EPISODES_LIMIT, PLAYED_STEPS_LIMIT = 10**9, 10**12
-#: A chief message's authenticator: HMAC-SHA256 (hex) under the run's key (protocol/auth.py); empty without a key.
+#: A message's authenticator: HMAC-SHA256 (hex) under its sender's key (protocol/auth.py); empty without a key.
 Tag = Annotated[str, StringConstraints(max_length=64, pattern=r"^([0-9a-f]{64})?$")]
 
 
@@ -90,6 +91,7 @@ class WorkerHello(Message):
     init_model_path: str = Field(default="", max_length=1000)  # that model's path as the worker was given it
     #: The edge chief this worker's rounds go through (docs/explanation/tiered.md); None: straight to the chief.
     edge: Ident | None = None
+    tag: Tag = ""
 
 
 class WorkerStatus(Message):
@@ -102,6 +104,7 @@ class WorkerStatus(Message):
     episode: int = Field(default=0, ge=0)
     pi: float | None = None
     detail: str = Field(default="", max_length=2000)
+    tag: Tag = ""
 
 
 class Receipt(Strict):
@@ -184,6 +187,7 @@ class WorkerUpdate(WorkerSubmission):
     balance_s: RigSeconds | None = None
     reset_s: RigSeconds | None = None
     idle_s: RigSeconds | None = None
+    tag: Tag = ""
 
 
 class MatureParams(WorkerSubmission):
@@ -208,6 +212,7 @@ class MatureParams(WorkerSubmission):
     balance_s: RigSeconds | None = None
     reset_s: RigSeconds | None = None
     idle_s: RigSeconds | None = None
+    tag: Tag = ""
 
 
 class ChiefAggregate(Message):

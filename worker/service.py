@@ -22,7 +22,7 @@ from typing import Any
 import torch
 
 from protocol import topics
-from protocol.auth import admitted
+from protocol.auth import admitted, signed
 from protocol.codec import RejectCounter, encode
 from protocol.messages import (
     INTERRUPTED,
@@ -30,6 +30,7 @@ from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
     MatureParams,
+    Message,
     RunStart,
     RunStop,
     WorkerHello,
@@ -96,10 +97,13 @@ class WorkerService:
         if cfg.init_model is not None:
             self.init_model, self.init_state = model.open_init_model(cfg.init_model, cfg.env, cfg.rig_id, cfg.algo,
                                                                           cfg.qube_actions)
-        self.key = cfg.key()  # the run's key: every chief message must carry its HMAC (protocol/auth.py)
+        # Every chief message must carry its HMAC under the chief key; everything this worker sends carries its HMAC
+        # under the worker's own key (protocol/auth.py).
+        self.key = cfg.chief_check_key()
+        self.own_key = cfg.own_key(cfg.worker_id)
         self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
         self.outbox: dict[int, tuple[bytes, float]] = {}  # staleness: owed rounds' payloads and when first sent
-        will = encode(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
+        will = self._signed(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
                                                        (self._topic(topics.STATUS), will), self.rejects)
 
@@ -112,6 +116,10 @@ class WorkerService:
     def halted(self) -> bool:
         """Whether to stop: the chief's RunStop came, or the worker was interrupted."""
         return self.stop is not None or self._interrupt.is_set()
+
+    def _signed(self, msg: Message) -> bytes:
+        """A message of this worker as it goes out: tagged with its own key (protocol/auth.py), encoded."""
+        return encode(signed(msg, self.own_key))
 
     def _topic(self, leaf: str) -> str:
         return topics.worker(self.cfg.run_id, self.cfg.worker_id, leaf)
@@ -139,7 +147,7 @@ class WorkerService:
 
     def _status(self, state: str, episode: int = 0, pi: float | None = None, detail: str = "") -> None:
         msg = WorkerStatus(worker_id=self.cfg.worker_id, state=state, episode=episode, pi=pi, detail=detail)
-        self._send(topics.STATUS, encode(msg))
+        self._send(topics.STATUS, self._signed(msg))
 
     # -- main ------------------------------------------------------------------------------------------------
 
@@ -205,7 +213,7 @@ class WorkerService:
         next_hello = 0.0
         while time.monotonic() < deadline and not self._interrupt.is_set():
             if time.monotonic() >= next_hello:
-                self._send(topics.HELLO, encode(hello))
+                self._send(topics.HELLO, self._signed(hello))
                 next_hello = time.monotonic() + 1.0
             try:
                 topic, msg = self.inbox.get(timeout=0.2)
@@ -373,7 +381,7 @@ class WorkerService:
         """Send the mature actor until the chief acknowledges it (accepted or refused); None on RunStop or when no
         answer came within ``ack_timeout``. Resending is safe: the chief counts a worker's episode once."""
         began = time.monotonic()
-        payload = encode(self._stamp(mature))
+        payload = self._signed(self._stamp(mature))
         round_ = self.shape.number(mature.episode)
         # A finisher that goes on helping takes the answers to the other rounds of its finishing episode (_catch_up).
         self.submitted = max(self.submitted, self.shape.rounds_of(mature.episode)[-1])
@@ -482,7 +490,7 @@ class WorkerService:
         have restarted) and every ``resend_interval`` seconds: the chief counts it once, and answers a round it
         already closed again, so a lost message costs seconds, not ``reply_timeout``.
         """
-        payload = encode(self._stamp(submission))
+        payload = self._signed(self._stamp(submission))
         began = time.monotonic()
         deadline = began + self.cfg.reply_timeout
         self.submitted = max(self.submitted, round_)
@@ -515,7 +523,7 @@ class WorkerService:
 
     def _post(self, submission: WorkerUpdate, round_: int) -> None:
         """Bounded staleness: send one round's submission and keep it for resending until its answer is applied."""
-        payload = encode(self._stamp(submission))
+        payload = self._signed(self._stamp(submission))
         self.submitted = max(self.submitted, round_)
         self.outbox[round_] = (payload, time.monotonic())
         self._send(topics.UPDATE, payload)

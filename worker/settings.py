@@ -10,6 +10,7 @@ from pydantic import ValidationInfo, field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
 
 from protocol import learners, qube
+from protocol.auth import chief_key, key_bytes, worker_key
 from protocol.rigtime import Clock
 from protocol.topics import check_id
 from runtime.model_file import ModelPath
@@ -79,11 +80,49 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     init_model: ModelPath | None = setting(
         None, "warm start: begin from this model (a models/<id>.pt, or a run folder: its first worker to solve); "
         "unset: from scratch", metavar="PATH")
+    worker_key: CliSuppress[str | None] = setting(None, "this worker's own key (a variable only; give "
+                                                  "FEDRL_CHIEF_KEY with it): it tags everything the worker sends, "
+                                                  "and no other worker holds it. The launcher derives it from the run "
+                                                  "key and the worker id (protocol/auth.py worker_key); unset: "
+                                                  "derived from FEDRL_RUN_KEY, if that is set")
+    chief_key: CliSuppress[str | None] = setting(None, "the key the chief tags its messages with, which this worker "
+                                                 "checks them with (a variable only; protocol/auth.py chief_key); "
+                                                 "unset: derived from FEDRL_RUN_KEY, if that is set")
 
     @model_validator(mode="after")
     def _learner_fits(self) -> WorkerSettings:
         fits_task(self.algo, self.env, self.qube_actions)
         return self
+
+    @field_validator("worker_key", "chief_key")
+    @classmethod
+    def _derived_key(cls, value: str | None) -> str | None:
+        if value:
+            key_bytes(value)
+        return value or None
+
+    @model_validator(mode="after")
+    def _keys_together(self) -> WorkerSettings:
+        if (self.worker_key is None) != (self.chief_key is None):
+            raise ValueError("FEDRL_WORKER_KEY and FEDRL_CHIEF_KEY go together: a worker signs with its own key "
+                             "and checks the chief with the chief key")
+        if self.worker_key is not None and self.worker_id == "auto":
+            raise ValueError("FEDRL_WORKER_KEY is the key of one worker id: give that id (--id, FEDRL_WORKER_ID)")
+        return self
+
+    def own_key(self, worker_id: str) -> bytes | None:
+        """The key this worker (``worker_id``, resolved) tags its messages with; None: the run has no key."""
+        if self.worker_key is not None:
+            return key_bytes(self.worker_key)
+        run_key = self.key()
+        return None if run_key is None else worker_key(run_key, worker_id).encode()
+
+    def chief_check_key(self) -> bytes | None:
+        """The key this worker checks the chief's messages with; None: it checks nothing."""
+        if self.chief_key is not None:
+            return key_bytes(self.chief_key)
+        run_key = self.key()
+        return None if run_key is None else chief_key(run_key).encode()
 
     @field_validator("worker_id")
     @classmethod
@@ -215,3 +254,10 @@ def parse_override(text: str, algo: str = learners.DEFAULT) -> tuple[str, Any]:
     except (ValueError, SyntaxError):
         return key, raw
 
+
+
+def handed_keys(run_key: str, worker_id: str) -> dict[str, Any]:
+    """The key settings a launcher hands worker ``worker_id`` of a run with ``run_key`` (protocol/auth.py): its own
+    key and the chief key, never the run key (with it, a worker could derive every other worker's key)."""
+    raw = key_bytes(run_key)
+    return {"worker_key": worker_key(raw, worker_id), "chief_key": chief_key(raw), "run_key": None}

@@ -30,7 +30,7 @@ class DashboardConfig:
     rigs: list[str] | None = None  # None = every rig's status and telemetry
     max_points: int = 4000  # per worker curve kept for new pages (older points are thinned)
     url_file: Path | None = None  # written with the page's URL once it is served
-    key: bytes | None = None  # the run's key: chief messages without its tag are refused (None: all trusted)
+    key: bytes | None = None  # the run's key: messages without their sender's tag are refused (None: all trusted)
 
 
 class DashboardService:

@@ -11,7 +11,7 @@ DEFAULT_PORT = 8050
 
 class DashboardSettings(RunMqttSettings, RunKeySettings):
     """The live web page of one run, served on 127.0.0.1 and fed by MQTT; with the run's key (``FEDRL_RUN_KEY``) it
-    shows only the chief messages tagged with it and counts the others as refused."""
+    shows only the chief and worker messages tagged with the keys derived from it and counts the others as refused."""
 
     dashboard_host: str = setting("127.0.0.1", "interface to serve on (0.0.0.0 exposes the page to the network, as "
                                   "inside a container)", aliases=["--host"])

@@ -23,8 +23,9 @@ In a tiered run (docs/explanation/tiered.md) each worker's progress also comes f
 submissions the root counted (without tensors): a dashboard that does not see the workers' own topics (a site
 broker that keeps them) still shows every worker's episodes, and one that sees both shows one point per episode.
 
-With the run's key, every chief message is checked as the workers check it (protocol/auth.py): one without a valid
-tag changes nothing shown; it is counted in ``refused`` (by reason and kind), which the page's footer shows.
+With the run's key, every chief (and edge) message is checked as the workers (and the root) check it, and every
+worker message as the chief does (protocol/auth.py): one without its sender's valid tag changes nothing shown; it is
+counted in ``refused`` (by reason and kind), which the page's footer shows.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
-from protocol.auth import TAG_FIELD, refusal
+from protocol.auth import TAG_FIELD, WorkerKeys, chief_key_of, refusal
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
@@ -50,7 +51,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
-from protocol.routes import CHIEF, EDGE, route_of
+from protocol.routes import CHIEF, EDGE, WORKER, route_of
 
 Event = dict[str, Any]
 
@@ -156,12 +157,15 @@ class RunView:
     """The state of one run (``run_id``) as the page shows it; fed decoded messages, one at a time."""
 
     def __init__(self, run_id: str, max_points: int = 4000, max_rounds: int = 300, key: bytes | None = None) -> None:
-        """``key``: the run's key, which every chief message shown must be tagged with (None: all are trusted)."""
+        """``key``: the run's key (None: every message is trusted). Every chief message shown must be tagged with the
+        chief key derived from it, every worker message with its worker's key (protocol/auth.py)."""
         if max_points < 2:
             raise ValueError("max_points must be at least 2")
         self.run_id = run_id
         self.key = key
-        self.refused: Counter[str] = Counter()  # chief messages without a valid tag: "<reason> <kind>" -> count
+        self.chief_key = chief_key_of(key)
+        self.worker_keys = WorkerKeys(key)
+        self.refused: Counter[str] = Counter()  # messages without their sender's valid tag: "<reason> <kind>" -> count
         self.max_points = max_points
         self.max_rounds = max_rounds
         self.kinds: Counter[str] = Counter()  # messages applied, by kind
@@ -205,13 +209,22 @@ class RunView:
         if handler is None:
             self.ignored[kind] += 1
             return []
-        if route is not None and route.publisher in (CHIEF, EDGE) and TAG_FIELD in type(msg).model_fields:
-            refused = refusal(msg, self.key)
-            if refused is not None:  # not the chief's (or an edge's): shown as refused, never as the run's state
+        if route is not None and route.publisher in (CHIEF, EDGE, WORKER) and TAG_FIELD in type(msg).model_fields:
+            refused = self._refusal(msg, route.publisher)
+            if refused is not None:  # not its sender's: shown as refused, never as the run's state
                 self.refused[f"{refused[0]} {kind}"] += 1
                 return []
         self.kinds[kind] += 1
         return handler(msg, now)
+
+    def _refusal(self, msg: Message, publisher: str) -> tuple[str, str] | None:
+        """Why a message is not its sender's (protocol/auth.py): a worker's is under its own key, an edge's partial
+        under the run's key, any other chief or edge message under the chief key."""
+        if publisher == WORKER:
+            return self.worker_keys.refusal(msg)
+        if getattr(msg, "kind", "") == "partial":
+            return refusal(msg, self.key, "the run's key")
+        return refusal(msg, self.chief_key, "the chief key")
 
     def _worker(self, worker_id: str) -> WorkerView:
         if worker_id not in self.workers:

@@ -18,7 +18,7 @@ import pytest
 from chief.edge import EXIT_OK, EdgeService
 from chief.settings import ChiefSettings
 from protocol import topics
-from protocol.auth import signed
+from protocol.auth import chief_key_of, signed, worker_key
 from protocol.codec import RejectCounter, decode, encode
 from protocol.memory import Hub
 from protocol.messages import (
@@ -43,16 +43,20 @@ QUIET = 0.5  # seconds in which nothing more may come
 class Scene:
     """The edge's run: the root's and the worker's ends of the hub."""
 
-    key: bytes  # the run's key, as the edge holds it
+    key: bytes | None  # the run's key, as the edge holds it
     partials: queue.Queue[bytes]  # what the edge sent the root
     relayed: queue.Queue[tuple[str, bytes]]  # what the edge passed on to its worker (leaf, payload)
     hub: Hub
+    rejects: RejectCounter  # the edge's
 
     def root(self, leaf: str, msg: RunStart | RunStop | ChiefAggregate | ChiefAck) -> None:
-        self.hub.route(topics.chief(RUN, leaf), encode(signed(msg, self.key)))
+        self.hub.route(topics.chief(RUN, leaf), encode(signed(msg, chief_key_of(self.key))))
 
-    def worker(self, leaf: str, msg: WorkerHello | WorkerUpdate | MatureParams) -> None:
-        self.hub.route(topics.worker(RUN, WORKER, leaf), encode(msg))
+    def worker(self, leaf: str, msg: WorkerHello | WorkerUpdate | MatureParams, key: bytes | None = b"") -> None:
+        """The worker's message, tagged with its own key (or with ``key``: None leaves it untagged)."""
+        assert self.key is not None
+        own = worker_key(self.key, WORKER).encode() if key == b"" else key
+        self.hub.route(topics.worker(RUN, WORKER, leaf), encode(signed(msg, own)))
 
     def relayed_next(self, leaf: str, timeout: float = 10.0) -> bytes:
         while True:
@@ -69,7 +73,7 @@ def scene() -> Iterator[Scene]:
     codes: list[int] = []
     thread = threading.Thread(target=lambda: codes.append(edge.run()), daemon=True)
     thread.start()
-    s = Scene(edge.key, queue.Queue(), queue.Queue(), hub)
+    s = Scene(edge.key, queue.Queue(), queue.Queue(), hub, edge.rejects)
     spy = hub.connect("spy", None, RejectCounter(logging.getLogger("spy")))
     spy.start()
     spy.subscribe(topics.edge(RUN, EDGE, topics.PARTIAL), lambda t, p: s.partials.put(p))
@@ -149,3 +153,35 @@ def test_a_finisher_whose_acknowledgement_was_lost_gets_it_through_the_partial_s
     scene.worker(topics.UPDATE, finish)  # the acknowledgement came and the worker missed it: passed on again
     assert decode(scene.relayed_next(topics.ACK), ChiefAck).accepted
     assert quiet(scene.partials)
+
+
+def test_an_edge_refuses_and_counts_what_is_not_its_workers_own(scene: Scene) -> None:
+    """Issue 32: an edge checks each worker's tag as the root would: an update untagged, or under another worker's
+    key, makes no partial and is counted; the worker's own makes one."""
+    assert scene.key is not None
+    update = WorkerUpdate(worker_id=WORKER, episode=1, episode_return=20.0, pi=20.0, recent_returns=[20.0], steps=20,
+                          gradient=pack_arrays({"w": np.array([0.5, -0.5], np.float32)}))
+    scene.worker(topics.UPDATE, update, key=None)
+    scene.worker(topics.UPDATE, update, key=worker_key(scene.key, "w9").encode())
+    assert quiet(scene.partials)
+    assert scene.rejects.as_dict() == {"unsigned": 1, "forged": 1}
+    scene.worker(topics.UPDATE, update)
+    assert decode(scene.partials.get(timeout=10), EdgePartial).round == 1
+
+
+def test_an_edge_holds_an_update_beyond_reach_and_refuses_it_once_its_workers_real_rounds_came(scene: Scene
+                                                                                                ) -> None:
+    """chief/rounds.py's rule at an edge: an update for round 3 while round 1 is open (tagged: a worker's key
+    stolen, or a run without keys) makes no partial; w0's real rounds 1-3 make theirs, and the early one is refused
+    as unreachable when round 3 opens."""
+    def update(episode: int, ret: float, recent: list[float]) -> WorkerUpdate:
+        return WorkerUpdate(worker_id=WORKER, episode=episode, episode_return=ret, pi=sum(recent) / len(recent),
+                            recent_returns=recent, steps=20, gradient=pack_arrays({"w": np.ones(2, np.float32)}))
+
+    scene.worker(topics.UPDATE, update(3, 50.0, [50.0]))
+    assert quiet(scene.partials)
+    for episode in (1, 2, 3):
+        scene.worker(topics.UPDATE, update(episode, 20.0, [20.0] * episode))
+        partial = decode(scene.partials.get(timeout=10), EdgePartial)
+        assert partial.round == episode and partial.updates[0].episode_return == 20.0
+    assert scene.rejects.as_dict() == {"unreachable": 1}

@@ -45,11 +45,15 @@ def outcomes(v: Verdict) -> list:
     return v.outcomes
 
 
-def mature_after(f: Fake, first: int, k: RoundKeeper, now: float = 0.0, ret: float = 200.0) -> Submission:
-    """Feed ``f`` honest updates of ``ret`` until it can hand over a mature actor (the caller submits that)."""
+def mature_after(f: Fake, first: int, k: RoundKeeper, now: float = 0.0, ret: float = 200.0,
+                 others: tuple[tuple[Fake, float], ...] = ()) -> Submission:
+    """Feed ``f`` honest updates of ``ret`` until it can hand over a mature actor (the caller submits that), each
+    round with the ``others``' updates of their returns (a worker plays round r + 1 only after round r's answer)."""
     episode = first
     while len(f.returns) < PI_WINDOW - 1:
         k.submit(f.sub(episode, ret), now)
+        for other, other_ret in others:
+            k.submit(other.sub(episode, other_ret), now)
         episode += 1
     return f.sub(episode, ret, mature=True)
 
@@ -123,9 +127,7 @@ def test_a_finish_with_every_learner_offline_transfers_nothing() -> None:
 
 def test_a_repeated_mature_actor_is_acknowledged_again_and_counted_once() -> None:
     k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
-    m = mature_after(w["w0"], 1, k)
-    for e in range(1, PI_WINDOW):
-        k.submit(w["w1"].sub(e, 20.0), now=0.0)
+    m = mature_after(w["w0"], 1, k, others=((w["w1"], 20.0),))
     assert k.submit(m, now=1.0).status == "accepted"
     again = k.submit(m, now=2.0)  # the worker missed the first ack and sent it again
     assert again.status == "duplicate" and again.ack is not None and again.ack.accepted and again.outcomes == []
@@ -199,7 +201,7 @@ def test_episode_one_billion_does_not_end_the_run() -> None:
     assert k.submit(w["w0"].sub(1 + AHEAD_WINDOW + 1, 20.0), now=0.0).reason == "out_of_window"
     assert not k.done and k.episode == 1
     # The window is the open round up to AHEAD_WINDOW rounds ahead, and never past M.
-    assert k.submit(w["w1"].sub(1 + AHEAD_WINDOW, 20.0), now=0.0).status == "accepted"
+    assert k.submit(w["w1"].sub(1 + AHEAD_WINDOW, 20.0), now=0.0).status == "held"  # beyond reach: held
     short = keeper(["w0"], max_episodes=3)
     assert short.submit(Fake("w0").sub(4, 20.0), now=0.0).reason == "out_of_window"
 
@@ -279,22 +281,22 @@ def test_the_last_finisher_leaves_without_a_transfer() -> None:
 
 def test_plain_policy_is_uniform_and_hard() -> None:
     k, w = keeper(["w0", "w1"], policy="plain"), fakes("w0", "w1")
-    m = mature_after(w["w0"], 1, k)
     for e in range(1, PI_WINDOW):
+        k.submit(w["w0"].sub(e, 200.0), now=0.0)
         [agg] = outcomes(k.submit(w["w1"].sub(e, 97.5), now=0.0))
         assert agg.weights == {"w0": 0.5, "w1": 0.5}
-    k.submit(m, now=0.0)
+    k.submit(w["w0"].sub(PI_WINDOW, 200.0, mature=True), now=0.0)
     [out] = outcomes(k.submit(w["w1"].sub(PI_WINDOW, 97.5), now=0.0))
     assert out.keep_weights == {"w1": 0.0}
 
 
 def test_independent_policy_shares_nothing() -> None:
     k, w = keeper(["w0", "w1"], policy="independent"), fakes("w0", "w1")
-    m = mature_after(w["w0"], 1, k)
     for e in range(1, PI_WINDOW):
+        k.submit(w["w0"].sub(e, 200.0), now=0.0)
         [out] = outcomes(k.submit(w["w1"].sub(e, 30.0), now=0.0))
         assert out.kind == "aggregate" and out.gradient is None and out.weights == {}
-    k.submit(m, now=1.0)
+    k.submit(w["w0"].sub(PI_WINDOW, 200.0, mature=True), now=1.0)
     [fin] = outcomes(k.submit(w["w1"].sub(PI_WINDOW, 30.0), now=1.0))
     assert fin.kind == "aggregate" and fin.finished == ["w0"] and fin.params is None
 
@@ -327,12 +329,17 @@ def test_bad_config_raises() -> None:
 
 def test_workers_that_went_on_without_an_answer_are_resynchronised() -> None:
     # Both submissions for round 1 were lost (say, a broker restart); the workers timed out and went on.
+    # Their round-2 submissions are beyond reach (a forger could have sent them): held, counting nothing, until round
+    # 1 times out (the first one held started its clock); round 2 then takes them up, as neither worker's round 1
+    # was counted (chief/rounds.py displaces).
     k, w = keeper(["w0", "w1"], timeout=10.0), fakes("w0", "w1")
     w["w0"].returns, w["w1"].returns = [50.0], [150.0]  # their lost episode-1 returns
-    assert outcomes(k.submit(w["w0"].sub(2, 50.0, 1.0), now=0.0)) == []  # w0 is past round 1; w1 still awaited
-    assert k.episode == 1 and k.waiting_for() == ["w1"]
-    outs = outcomes(k.submit(w["w1"].sub(2, 150.0, 3.0), now=0.1))
-    # Round 1 closes empty (nobody is waiting for it), round 2 closes with both submissions.
+    assert k.submit(w["w0"].sub(2, 50.0, 1.0), now=0.0).status == "held"
+    assert k.submit(w["w1"].sub(2, 150.0, 3.0), now=0.1).status == "held"
+    assert k.episode == 1 and k.waiting_for() == ["w0", "w1"] and k.tick(now=9.9) == []
+    outs = k.tick(now=10.0)
+    assert [v.status for v in outs[0].taken_up] == ["accepted", "accepted"]
+    # Round 1 closes empty (timed out), round 2 closes with both submissions.
     assert [(o.episode, o.contributors) for o in outs] == [(1, []), (2, ["w0", "w1"])]
     assert outs[1].weights == pytest.approx({"w0": 0.25, "w1": 0.75})
     assert k.episode == 3
@@ -342,18 +349,18 @@ def test_a_worker_ahead_does_not_block_the_round_timeout() -> None:
     k, w = keeper(["w0", "w1", "w2"], timeout=5.0), fakes("w0", "w1", "w2")
     k.submit(w["w0"].sub(1, 10.0), now=0.0)
     w["w1"].returns = [10.0]
-    k.submit(w["w1"].sub(2, 10.0), now=0.5)  # w1 skipped round 1
+    k.submit(w["w1"].sub(2, 10.0), now=0.5)  # w1 skipped round 1 (held: beyond reach)
     [out1, *rest] = k.tick(now=5.0)  # w2 is silent
-    assert out1.episode == 1 and out1.timed_out == ["w2"] and out1.contributors == ["w0"]
+    assert out1.episode == 1 and out1.timed_out == ["w1", "w2"] and out1.contributors == ["w0"]
     assert rest == [] and k.episode == 2 and set(k.pending) == {"w1"}
 
 
 def test_keep_weight_uses_the_recipients_pi_at_that_round_not_a_later_one() -> None:
-    k, w = keeper(["w0", "w1", "w2"]), fakes("w0", "w1", "w2")
-    m = mature_after(w["w0"], 1, k)
-    for e in range(1, PI_WINDOW):
-        k.submit(w["w1"].sub(e, 39.0), now=0.0)
-        k.submit(w["w2"].sub(e, 39.0), now=0.0)
+    # Under S = 1 a worker may be one round ahead of the open one (in reach: filed ahead at once).
+    k = RoundKeeper(["w0", "w1", "w2"], "weighted", CARTPOLE, max_episodes=100, round_timeout=10.0, actor_spec=SPEC,
+                    max_staleness=1)
+    w = fakes("w0", "w1", "w2")
+    m = mature_after(w["w0"], 1, k, others=((w["w1"], 39.0), (w["w2"], 39.0)))
     k.submit(m, now=0.0)
     k.submit(w["w1"].sub(PI_WINDOW, 39.0), now=0.0)
     # w2 skipped round PI_WINDOW: its submission for the next one closes it (nobody else is awaited there).
@@ -417,9 +424,10 @@ def test_a_per_step_strategy_has_k_rounds_per_episode() -> None:
 
     k, w = sync_keeper(max_episodes=2, k=3), fakes("w0", "w1")
     a1, b1 = steps_of(w["w0"], 1, 20.0, 3, gv=1.0), steps_of(w["w1"], 1, 20.0, 3, gv=3.0)
-    assert k.submit(a1[1], now=0.0).reason == "out_of_order"  # step 1 before step 0
+    assert k.submit(a1[1], now=0.0).status == "held"  # step 1 before step 0: beyond reach
     k.submit(a1[0], now=0.0)
     [out] = outcomes(k.submit(b1[0], now=0.0))
+    assert [v.reason for v in out.taken_up] == ["unreachable"]  # it came before the step 0 it follows
     assert (out.round, out.episode, out.step) == (1, 1, 0) and out.weights == {"w0": 0.5, "w1": 0.5}
     np.testing.assert_allclose(out.gradient["g"], [2.0])
     np.testing.assert_allclose(out.critic_gradient["c"], [20.0])
@@ -632,3 +640,33 @@ def test_a_finish_with_only_lagging_learners_says_why_and_the_summary_keeps_what
     states = {s.id: s.state for s in summarize(k, "stopped").workers}
     assert states == {"w0": "finished", "w1": "lagging", "w2": "stopped"}
     assert keeper(["w0", "w1"], policy="independent").why_no_transfer() == "policy independent"
+
+
+def test_reach_and_displacement_are_pure_rules() -> None:
+    from chief.rounds import displaces, reachable
+
+    assert reachable(5, 0, 5) == 5 and reachable(5, 2, 5) == 7 and reachable(5, 0, 7) == 7  # S ahead; a joiner
+    assert displaces(7, previous_counted=False, already_counted=False) is None  # its worker went on: it counts
+    assert "counted from its worker" in (displaces(7, previous_counted=False, already_counted=True) or "")
+    assert "could have played round 7" in (displaces(7, previous_counted=True, already_counted=False) or "")
+
+
+def test_an_update_for_a_round_its_worker_could_not_have_reached_never_displaces_the_real_one() -> None:
+    """Issue 32: a forger sends, in w1's name, an update for round r + 2 (return 50, PI 50) while round r is open.
+    Held, it counts nothing: w1's real rounds r, r + 1, r + 2 are counted as sent (none is refused as
+    `inconsistent` or a duplicate), and the forgery is refused as unreachable when its round opens."""
+    k, w = keeper(["w0", "w1"]), fakes("w0", "w1")
+    for e in (1, 2):
+        k.submit(w["w0"].sub(e, 20.0), now=0.0)
+        k.submit(w["w1"].sub(e, 20.0), now=0.0)
+    forged = Submission("w1", 5, 50.0, 50.0, recent_returns=(50.0,), steps=50, gradient={"g": np.zeros(1, np.float32)})
+    assert k.round == 3 and k.submit(forged, now=0.0).status == "held"
+    assert k.submit(forged, now=0.1).status == "duplicate"  # one held per worker and round
+    taken: list[Verdict] = []
+    for e in (3, 4, 5):
+        assert k.submit(w["w0"].sub(e, 20.0), now=1.0).status == "accepted"
+        v = k.submit(w["w1"].sub(e, 21.0 + e), now=1.0)
+        assert v.status == "accepted", v.detail
+        taken += [t for o in v.outcomes for t in o.taken_up]
+    assert [(t.round, t.reason) for t in taken] == [(5, "unreachable")]
+    assert k.round == 6 and k.workers["w1"].returns[5] == 26.0 and k.workers["w1"].pis[5] != 50.0

@@ -22,6 +22,7 @@ from tests.federations import as_started
 pytestmark = pytest.mark.slow
 
 ENV, POLICY, SEED, WORKERS, EPISODES = "CartPole-v0", "weighted", 101, 2, 30
+RUN_KEY = "interrupt-test-run-key-0123456789"
 ARGV = ["--workers", str(WORKERS), "--env", ENV, "--policy", POLICY, "--seed", str(SEED), "--max-episodes",
         str(EPISODES), "--dashboard-port", "off"]
 
@@ -177,11 +178,13 @@ def test_a_workers_storage_fault_stops_the_run_with_exit_5_and_the_same_command_
     """A worker that cannot write (a full disk) says ``storage`` on its status topic and exits 5: the chief stops
     the run resumably and exits 5 as well, and so does the launcher, with the command that resumes it (it waited
     out its 120 s idle timeout, ended the run as aborted and exited 4; the same command then refused the folder).
-    Here the status comes from outside, in w1's name on an open broker, so that every worker saves its state and
-    the resumed run ends with the result of a run that never stopped."""
+    Here the status comes from outside, in w1's name on an open broker (tagged with w1's own key, derived from the
+    run key the test gives the launcher), so that every worker saves its state and the resumed run ends with the
+    result of a run that never stopped."""
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
     from protocol import topics
+    from protocol.auth import signed, worker_key
     from protocol.codec import encode
     from protocol.messages import WorkerStatus
     from protocol.mqtt import BrokerAddress, MqttConnection
@@ -191,7 +194,7 @@ def test_a_workers_storage_fault_stops_the_run_with_exit_5_and_the_same_command_
     out = tmp_path / "launcher.log"
     launcher = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *ARGV, "--broker", amqtt_broker,
                                  "--run-dir", str(run_dir), "--run-id", run_id], stdout=out.open("wb"),
-                                stderr=subprocess.STDOUT)
+                                stderr=subprocess.STDOUT, env={**os.environ, "FEDRL_RUN_KEY": RUN_KEY})
     paused: list[int] = []
     try:
         deadline = time.monotonic() + 300
@@ -201,9 +204,9 @@ def test_a_workers_storage_fault_stops_the_run_with_exit_5_and_the_same_command_
         paused = worker_pids(out.read_text())
         signal_all(paused, signal.SIGSTOP)  # the run is still open when the status lands
         with MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="full-disk") as conn:
-            conn.publish(topics.worker(run_id, "w1", topics.STATUS), encode(WorkerStatus(
+            conn.publish(topics.worker(run_id, "w1", topics.STATUS), encode(signed(WorkerStatus(
                 worker_id="w1", state="storage", detail=f"cannot write {run_dir}/workers/{run_id}.w1.state.pt: No "
-                "space left on device (ENOSPC)"))).wait_for_publish(5)
+                "space left on device (ENOSPC)"), worker_key(RUN_KEY.encode(), "w1").encode()))).wait_for_publish(5)
         taken = time.monotonic() + 60
         while "stopped on a storage fault" not in (run_dir / "logs" / "chief.log").read_text():
             assert time.monotonic() < taken and launcher.poll() is None, out.read_text()[-3000:]

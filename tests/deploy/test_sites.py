@@ -152,3 +152,18 @@ def test_the_secrets_deploy_sites_writes_are_never_committed() -> None:
              for place in ("core", "site-a") for name in sites.SECRET_FILES]
     done = subprocess.run(["git", "check-ignore", "--no-index", *paths], capture_output=True, text=True, cwd=ROOT)
     assert sorted(done.stdout.split()) == sorted(paths)
+
+
+def test_each_workers_credentials_hold_its_own_key_and_the_chief_key_never_the_run_key(tmp_path: Path) -> None:
+    from protocol.auth import chief_key, worker_key
+
+    creds = tmp_path / "credentials"
+    creds.mkdir()
+    (creds / "chief.env").write_text("FEDRL_MQTT_USERNAME=chief\n")
+    (creds / "a-w0.env").write_text("FEDRL_MQTT_USERNAME=a-w0\nFEDRL_WORKER_ID=a-w0\n")
+    key = "k" * 64
+    sites.with_key(tmp_path, key)
+    env = {p.stem: dict(line.split("=", 1) for line in p.read_text().split()) for p in creds.glob("*.env")}
+    assert env["chief"]["FEDRL_RUN_KEY"] == key
+    assert env["a-w0"]["FEDRL_WORKER_KEY"] == worker_key(key.encode(), "a-w0")
+    assert env["a-w0"]["FEDRL_CHIEF_KEY"] == chief_key(key.encode()) and "FEDRL_RUN_KEY" not in env["a-w0"]

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from protocol import topics
-from protocol.auth import signed
+from protocol.auth import chief_key_of, signed, worker_key
 from protocol.codec import encode
 from protocol.messages import (
     ChiefAggregate,
@@ -240,7 +240,7 @@ def test_view_shows_the_workers_of_a_tiered_run_from_their_edges_partials() -> N
 
 def test_view_refuses_an_edge_partial_without_the_run_key() -> None:
     view = RunView(RUN, key=KEY)
-    view.apply(topics.chief(RUN, topics.START), signed(start(["w0"]), KEY), 1.0)
+    view.apply(topics.chief(RUN, topics.START), signed(start(["w0"]), chief_key_of(KEY)), 1.0)
     topic = topics.edge(RUN, "e0", topics.PARTIAL)
     assert view.apply(topic, partial("e0", 1, update("w0", 1, 10.0)), 2.0) == []
     assert view.snapshot()["refused"] == {"unsigned partial": 1} and workers_of(view)["w0"]["episode"] == 0
@@ -517,26 +517,32 @@ def test_event_stream_and_page_over_a_real_broker(dashboard: DashboardService, a
 
 
 KEY = b"dashboard-test-run-key-0123456789"
+CHIEF_KEY = chief_key_of(KEY)
 
 
-def test_view_shows_only_chief_messages_tagged_with_the_run_key() -> None:
-    """An unsigned or wrongly tagged RunStart/RunStop/aggregate changes nothing shown and is counted as refused; the
-    chief's own (tagged) ones are shown. Worker messages are not the chief's and are not checked here."""
+def test_view_shows_only_messages_tagged_with_their_senders_keys() -> None:
+    """An unsigned or wrongly tagged RunStart/RunStop/aggregate, or a worker's update not tagged with that worker's
+    own key, changes nothing shown and is counted as refused; the chief's (chief key) and the workers' own are shown."""
     view = RunView(RUN, key=KEY)
     chief = lambda leaf: topics.chief(RUN, leaf)  # noqa: E731
     assert view.apply(chief(topics.START), start(["w0"]), 1.0) == []  # unsigned
+    assert view.apply(chief(topics.START), signed(start(["w0"]), KEY), 1.5) == []  # the run key is not the chief key
     assert view.snapshot()["run"]["phase"] == "waiting"
-    assert view.apply(chief(topics.START), signed(start(["w0"]), KEY), 2.0) != []
+    assert view.apply(chief(topics.START), signed(start(["w0"]), CHIEF_KEY), 2.0) != []
     stop = RunStop(run_id=RUN, reason="forged by an outsider", episodes=1, all_solved=False)
     assert view.apply(chief(topics.STOP), stop, 3.0) == []
     assert view.apply(chief(topics.STOP), signed(stop, b"another-key-of-somebody-else"), 4.0) == []
     assert view.apply(chief(topics.AGGREGATE), aggregate(1, {"w0": 1.0}), 5.0) == []
+    w0 = topics.worker(RUN, "w0", topics.UPDATE)
+    assert view.apply(w0, update("w0", 1, 10.0), 5.5) == []  # unsigned
+    assert view.apply(w0, signed(update("w0", 1, 10.0), worker_key(KEY, "w1").encode()), 5.6) == []  # w1's key
     snap = view.snapshot()
     assert snap["run"]["phase"] == "running" and snap["rounds"] == []
-    assert snap["refused"] == {"unsigned run_start": 1, "unsigned run_stop": 1, "forged run_stop": 1,
-                               "unsigned aggregate": 1}
-    assert view.apply(topics.worker(RUN, "w0", topics.UPDATE), update("w0", 1, 10.0), 6.0) != []  # not the chief's
-    view.apply(chief(topics.STOP), signed(stop.model_copy(update={"reason": "episode limit"}), KEY), 7.0)
+    assert snap["refused"] == {"unsigned run_start": 1, "forged run_start": 1, "unsigned run_stop": 1,
+                               "forged run_stop": 1, "unsigned aggregate": 1, "unsigned update": 1,
+                               "forged update": 1}
+    assert view.apply(w0, signed(update("w0", 1, 10.0), worker_key(KEY, "w0").encode()), 6.0) != []
+    view.apply(chief(topics.STOP), signed(stop.model_copy(update={"reason": "episode limit"}), CHIEF_KEY), 7.0)
     assert view.snapshot()["run"]["phase"] == "stopped"
     assert RunView(RUN).apply(chief(topics.STOP), stop, 1.0) != []  # without a key: trusted, as before
 
@@ -553,7 +559,7 @@ def test_a_forged_run_stop_never_reaches_the_snapshot_over_a_real_broker(amqtt_b
         def send(topic: str, payload: Any) -> None:
             pub.publish(topic, encode(payload), qos=1).wait_for_publish(5)
 
-        send_until(send, sse, topics.chief(RUN, topics.START), signed(start(["w0", "w1"]), KEY),
+        send_until(send, sse, topics.chief(RUN, topics.START), signed(start(["w0", "w1"]), CHIEF_KEY),
                    lambda n, d: n == "delta" and any(e["type"] == "run" and e["phase"] == "running" for e in d),
                    tries=100, timeout=0.3)
         forged = RunStop(run_id=RUN, reason="forged by an outsider", episodes=3, all_solved=False)

@@ -14,13 +14,12 @@ from protocol.topics import check_id
 from runtime.model_file import ModelPath
 from runtime.settings import (
     LearnerName,
+    LearnerTaskSettings,
     OneOf,
     QubeActions,
     RunKeySettings,
     RunMqttSettings,
-    Settings,
     TaskName,
-    fits_task,
     qube_actions_setting,
     setting,
 )
@@ -28,7 +27,7 @@ from runtime.settings import (
 PolicyName = Annotated[str, OneOf(strategies.names)]
 
 
-class FederationSettings(Settings):
+class FederationSettings(LearnerTaskSettings):
     """What a run is: the task, the federation strategy, the seed and the limits of its rounds."""
 
     env: TaskName = setting("CartPole-v0", "task every worker learns")
@@ -60,11 +59,6 @@ class FederationSettings(Settings):
         if edges and not tiers.decomposable(self.strategy):
             return 0, tiers.why_flat(self.strategy)
         return edges, None
-
-    @model_validator(mode="after")
-    def _learner_fits(self) -> FederationSettings:
-        fits_task(self.algo, self.env, self.qube_actions)
-        return self
 
     @model_validator(mode="after")
     def _quorum_fits(self) -> FederationSettings:

@@ -39,7 +39,14 @@ from chief.settings import PolicyName
 from protocol import learners
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
-from runtime.settings import LearnerName, QubeActions, Settings, fits_task, qube_actions_setting, returns_code, setting
+from runtime.settings import (
+    LearnerName,
+    LearnerTaskSettings,
+    QubeActions,
+    qube_actions_setting,
+    returns_code,
+    setting,
+)
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
@@ -47,7 +54,7 @@ STAGES = ("identify", "pretrain", "finetune")
 TRUTH = ("FEDRL_RIG_PROFILE", "FEDRL_RANDOMIZE")
 
 
-class LabSettings(Settings):
+class LabSettings(LearnerTaskSettings):
     """A lab's rigs from identification to a fine-tuned controller (docs/how-to/lab.md)."""
 
     env: Literal["qube", "qube-local"] = setting("qube-local", "qube: rigs over MQTT (real bridges, or the simulated "
@@ -81,7 +88,6 @@ class LabSettings(Settings):
 
     @model_validator(mode="after")
     def _fits(self) -> LabSettings:
-        fits_task(self.algo, self.env, self.qube_actions)
         if self.env == "qube-local" and self.qube_clock == "realtime":
             raise ValueError("--env qube-local runs on a simulated clock: --qube-clock lockstep or delayed")
         if self.env == "qube-local" and self.broker is not None:

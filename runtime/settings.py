@@ -29,7 +29,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from contextvars import ContextVar
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, ClassVar, NoReturn, Protocol, TypeVar, cast
+from typing import Annotated, Any, ClassVar, NoReturn, Protocol, Self, TypeVar, cast
 
 from dotenv import dotenv_values
 from pydantic import (
@@ -40,6 +40,7 @@ from pydantic import (
     PrivateAttr,
     ValidationError,
     field_validator,
+    model_validator,
 )
 from pydantic.fields import FieldInfo
 from pydantic_core import PydanticUndefined, core_schema
@@ -451,6 +452,21 @@ class _OneLineParser(argparse.ArgumentParser):
 
 
 # -- settings every MQTT client shares -----------------------------------------------------------------------------
+
+
+class LearnerTaskSettings(Settings):
+    """A task and the learner that acts in it, with the QUBE tasks' action set, checked together here once: a
+    learner that cannot act in the task's action space is refused in one line before a process starts. A process's
+    settings inherit this and may give the three fields help text of their own."""
+
+    env: TaskName = setting("CartPole-v0", "task to learn")
+    qube_actions: QubeActions = qube_actions_setting()
+    algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them)")
+
+    @model_validator(mode="after")
+    def _learner_fits(self) -> Self:
+        fits_task(self.algo, self.env, self.qube_actions)
+        return self
 
 
 class MqttSettings(Settings):

@@ -16,6 +16,7 @@ from protocol.topics import check_id
 from runtime.model_file import ModelPath
 from runtime.settings import (
     LearnerName,
+    LearnerTaskSettings,
     LogLevel,
     MqttSettings,
     QubeActions,
@@ -23,7 +24,6 @@ from runtime.settings import (
     RunMqttSettings,
     Settings,
     TaskName,
-    fits_task,
     qube_actions_setting,
     setting,
 )
@@ -36,7 +36,7 @@ class DeviceNoiseSettings(Settings):
                                   "it off", ge=0, allow_inf_nan=False)
 
 
-class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
+class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, LearnerTaskSettings):
     """A federated RL worker (paper Algorithm 2)."""
 
     worker_id: str = setting("auto", "worker id, unique in the run ('auto' = hostname plus a random suffix)",
@@ -88,11 +88,6 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings):
     chief_key: CliSuppress[str | None] = setting(None, "the key the chief tags its messages with, which this worker "
                                                  "checks them with (a variable only; protocol/auth.py chief_key); "
                                                  "unset: derived from FEDRL_RUN_KEY, if that is set")
-
-    @model_validator(mode="after")
-    def _learner_fits(self) -> WorkerSettings:
-        fits_task(self.algo, self.env, self.qube_actions)
-        return self
 
     @field_validator("worker_key", "chief_key")
     @classmethod
@@ -210,7 +205,7 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
         return self
 
 
-class TrainLocalSettings(DeviceNoiseSettings):
+class TrainLocalSettings(DeviceNoiseSettings, LearnerTaskSettings):
     """One worker, no federation: Algorithm 2 without the chief, for experiments and tuning."""
 
     env: TaskName = setting("CartPole-v0", "task to learn")
@@ -222,11 +217,6 @@ class TrainLocalSettings(DeviceNoiseSettings):
                                                 "(PPOConfig, SACConfig)", aliases=["--set"], env=False,
                                                 metavar="KEY=VALUE")
     print_every: int = setting(10, "print every N episodes", aliases=["--every"], ge=1)
-
-    @model_validator(mode="after")
-    def _learner_fits(self) -> TrainLocalSettings:
-        fits_task(self.algo, self.env, self.qube_actions)
-        return self
 
     @model_validator(mode="after")
     def _overrides_parse(self) -> TrainLocalSettings:

@@ -313,7 +313,9 @@ class Identification:
     def _centre(self, label: str, target: float = 0.0) -> Generator[float, _Tick, None]:
         """PD to ``target``, plus an integral while the arm is stuck outside half the tolerance (dry friction would
         otherwise hold it short: arm friction 3x lab's stops a PD 9 deg out), until the arm has been within the
-        tolerance and slow for ``settle_s``."""
+        tolerance and slow for ``settle_s``. An arm within the tolerance but never slow by the timeout (a lightly
+        damped pendulum still swinging shakes a low-friction arm) is centred enough: the segments record what moves
+        the arm, and only an arm that never reached the tolerance ends the identification."""
         cfg = self.config
         self._begin(label)
         still = 0
@@ -328,6 +330,8 @@ class Identification:
             if abs(error) > cfg.centre_tolerance / 2 and abs(s.theta_dot) < 0.3:  # held short by friction
                 integral = max(-cfg.centre_ki_max, min(cfg.centre_ki_max, integral + cfg.centre_ki * error * s.dt))
             yield self._pd(cfg.centre_kp, cfg.centre_kd, target) + volts_to_counts(integral)
+        if abs(self._tick.theta - target) < cfg.centre_tolerance:
+            return
         raise Abort(f"the arm did not settle within {math.degrees(cfg.centre_tolerance):.0f} deg of "
                     f"{math.degrees(target):.0f} deg in {cfg.centre_timeout_s:.0f} s (at "
                     f"{math.degrees(self._tick.theta):.0f} deg): blocked arm or a rig much weaker than assumed?")

@@ -56,6 +56,10 @@ FIRST_STAGE = ("Dr", "Dp", "coulomb_arm", "coulomb_pendulum", "motor", "mr")
 _VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr", "Lp")
 #: Parameters whose uncertainty decides whether the fit is trusted (the ones that decide control).
 GATED = ("Dr", "Dp", "coulomb_arm", "motor", "mr")
+#: Viscous damping this small is negligible for the swing-up and the hold: a damping's 1-sigma is gated relative to
+#: the larger of its value and this (lab's value), so that a pendulum damped 0.1x lab is known to be lightly damped
+#: rather than refused because the small number is known only to +-50 % (N m s/rad).
+NEGLIGIBLE_DAMPING = {"Dr": QubeParams.Dr, "Dp": QubeParams.Dp}
 
 
 class FitRefused(RuntimeError):
@@ -360,12 +364,22 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
                wall_s=time.perf_counter() - began, params=problem.params(values), windows=(len(train), len(held)))
 
 
+def gated_sigma(result: Fit, name: str) -> float:
+    """The 1-sigma the trust gate compares: relative, and for a damping relative to at least its negligible level
+    (:data:`NEGLIGIBLE_DAMPING`)."""
+    floor = NEGLIGIBLE_DAMPING.get(name)
+    if floor is None or not math.isfinite(result.sigma[name]):
+        return result.sigma[name]
+    value = result.values[name]
+    return result.sigma[name] * value / max(value, floor)
+
+
 def check(result: Fit, cfg: FitConfig | None = None) -> None:
     """FitRefused (one line) unless the fit is to be trusted (see the module docstring)."""
     cfg = cfg or FitConfig()
     if not result.converged:
         raise FitRefused(f"the fit did not converge ({result.iterations} evaluations in all: {result.message})")
-    loose = [f"{k} +-{result.sigma[k]:.0%}" for k in GATED if not result.sigma[k] <= cfg.max_sigma]
+    loose = [f"{k} +-{result.sigma[k]:.0%}" for k in GATED if not gated_sigma(result, k) <= cfg.max_sigma]
     if loose:
         raise FitRefused(f"the fit is too uncertain: {', '.join(loose)} (at most +-{cfg.max_sigma:.0%} trusted): "
                          "the recording does not determine them")

@@ -116,6 +116,33 @@ def test_a_fit_that_does_not_converge_is_refused(recordings: dict[str, Path]) ->
         check(result)
 
 
+def test_a_small_damping_is_gated_against_its_negligible_level(recordings: dict[str, Path]) -> None:
+    """A pendulum damped 0.1x lab, known to +-56 %, is known to be lightly damped (it was refused, and the rig could
+    not be identified); lab's damping known to +-56 % is still refused, and so is a damping the recording does not
+    see at all (an infinite 1-sigma)."""
+    from dataclasses import replace
+
+    from services.qube_sim.identify import NEGLIGIBLE_DAMPING, check, gated_sigma
+
+    result = fit(Recording.load(recordings["lab"]), LAB)
+    check(result)
+    light = replace(result, values={**result.values, "Dp": NEGLIGIBLE_DAMPING["Dp"] / 10},
+                    sigma={**result.sigma, "Dp": 0.56})
+    assert gated_sigma(light, "Dp") == pytest.approx(0.056)
+    check(light)
+    with pytest.raises(FitRefused, match=r"Dp \+-56%"):
+        check(replace(light, values=result.values))
+    with pytest.raises(FitRefused, match=r"Dp \+-inf%"):
+        check(replace(light, sigma={**result.sigma, "Dp": math.inf}))
+
+
+def test_a_low_friction_arm_shaken_by_the_swinging_pendulum_is_centred_enough() -> None:
+    """Rig 601001 of arm friction 0.5x lab (bench.ood's sweep): the arm stayed within the centring tolerance but
+    never still, and the identification ended with 'the arm did not settle within 5 deg of 0 deg (at -0 deg)'."""
+    rec = record_simulated(families.family("arm_friction", 0.5), 601001)
+    assert rec.t and max(abs(v) for v in rec.theta) > 0.1
+
+
 def test_the_simulated_rig_command_exits_with_one_line(tmp_path: Path) -> None:
     out = tmp_path / "p.json"
     base = [sys.executable, "-m", "services.qube_sim", "--rig-profile", "lab", "--seed", "3", "--identify", str(out)]

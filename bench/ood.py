@@ -257,15 +257,9 @@ def finetune(seed: int, run_dir: str, options: dict[str, Any], model: str, max_e
              identify_s: list[float]) -> dict[str, Any]:
     """The lab of ``seed`` fine-tuned in process from ``model`` (a finished run is reused; an unfinished folder is
     started again); its last rig: the rig with the most rig minutes (identification + balance + reset)."""
-
     t0 = time.process_time()
-    folder = Path(run_dir)
-    if (folder / "summary.json").exists():
-        summary = json.loads((folder / "summary.json").read_text())
-    else:
-        shutil.rmtree(folder, ignore_errors=True)
-        folder.mkdir(parents=True)
-        summary = federation(seed, len(identify_s), max_episodes, folder, options, algo, init_model=model)
+    summary = reused(Path(run_dir), lambda folder: federation(seed, len(identify_s), max_episodes, folder, options,
+                                                              algo, init_model=model))
     return {**last_rig(summary, identify_s), "run_dir": run_dir, "cpu_s": round(time.process_time() - t0, 1)}
 
 
@@ -292,26 +286,35 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
     ``identified``, the ``lab``-randomised one (bench.sim2real's ``randomised``: each rig's physics drawn afresh within
     +-RANDOMIZE at every reset); with the identified profiles of a lab's rigs, deploy.lab's, randomised around them
     (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model."""
-
     t0 = time.process_time()
-    folder = Path(run_dir)
-    if (folder / "summary.json").exists():
-        summary = json.loads((folder / "summary.json").read_text())
-    else:
-        shutil.rmtree(folder, ignore_errors=True)
-        folder.mkdir(parents=True)
-        options: dict[str, Any] = {"rig_profile": "lab", "randomize": RANDOMIZE, "qube_actions": actions}
-        if identified is not None:
-            from services.qube_sim.pretrain import around
-            from services.qube_sim.profile import load_profile
-
-            profile = folder.parent / f"{folder.name}-profile.json"
-            profile.write_text(around([load_profile(f) for f in identified], name="around-identified").to_json())
-            options = {"rig_profile": str(profile), "rig_model": str(profile), "qube_actions": actions}
-        summary = federation(seed, RIGS, max_episodes, folder, options, algo)
+    summary = reused(Path(run_dir), lambda folder: _pretrain(folder, seed, actions, max_episodes, algo, identified))
     solved = any(w["solved"] for w in summary.get("workers", []))
     return {"finished": solved, "model": run_dir if solved else None, "end_reason": summary.get("end_reason"),
             "episodes": summary.get("episodes_to_all_solved"), "cpu_s": round(time.process_time() - t0, 1)}
+
+
+def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: str,
+              identified: list[str] | None) -> dict[str, Any]:
+    """Run the pretrain :func:`pretrain` describes into ``folder``; its summary."""
+    options: dict[str, Any] = {"rig_profile": "lab", "randomize": RANDOMIZE, "qube_actions": actions}
+    if identified is not None:
+        from services.qube_sim.pretrain import around
+        from services.qube_sim.profile import load_profile
+
+        profile = folder.parent / f"{folder.name}-profile.json"
+        profile.write_text(around([load_profile(f) for f in identified], name="around-identified").to_json())
+        options = {"rig_profile": str(profile), "rig_model": str(profile), "qube_actions": actions}
+    return federation(seed, RIGS, max_episodes, folder, options, algo)
+
+
+def reused(folder: Path, run: Callable[[Path], dict[str, Any]]) -> dict[str, Any]:
+    """The summary of the finished run in ``folder``, else of ``run(folder)`` in the folder made empty (an
+    unfinished run is started again)."""
+    if (folder / "summary.json").exists():
+        return dict(json.loads((folder / "summary.json").read_text()))
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    return run(folder)
 
 
 # -- the plan -----------------------------------------------------------------------------------------------------

@@ -167,18 +167,19 @@ def clean(tmp_path_factory: pytest.TempPathFactory) -> dict:
                           tensorboard_files=False)
 
 
-@pytest.mark.slow
-def test_forged_worker_messages_change_nothing(any_broker: str, tmp_path: Path, clean: dict) -> None:
-    run, run_dir = f"forged-workers-{time.monotonic_ns()}", tmp_path / "run"
-    chief = ChiefService(ChiefSettings.given(broker=any_broker, run_id=run, workers=WORKERS, env=ENV,
+def attacked_run(broker: str, run_dir: Path, run: str, forger_keyed: bool, key: str | None) -> tuple[ChiefService,
+                                                                                                  Forger]:
+    """A federation (under ``key``, or none) with a Forger beside it, to its end: the chief, whose run must equal
+    the clean one per worker (asserted here), and the forger."""
+    chief = ChiefService(ChiefSettings.given(broker=broker, run_id=run, workers=WORKERS, env=ENV,
                                              policy="weighted", seed=SEED, max_episodes=EPISODES,
                                              round_timeout=math.inf, start_timeout=60, idle_timeout=120,
-                                             run_dir=run_dir, run_key=KEY),
+                                             run_dir=run_dir, run_key=key),
                          outputs=Outputs(state=False, tensorboard=False, plot=False, progress=False))
-    forger = Forger(any_broker, run)
-    workers = [WorkerService(WorkerSettings.given(broker=any_broker, run_id=run, worker_id=f"w{i}", env=ENV,
+    forger = Forger(broker, run, keyed=forger_keyed)
+    workers = [WorkerService(WorkerSettings.given(broker=broker, run_id=run, worker_id=f"w{i}", env=ENV,
                                                   reply_timeout=120, start_timeout=60, ack_timeout=120,
-                                                  resend_interval=60, **handed_keys(KEY, f"w{i}")))
+                                                  resend_interval=60, **(handed_keys(key, f"w{i}") if key else {})))
                for i in range(WORKERS)]
     threads = [threading.Thread(target=w.run, daemon=True) for w in workers]
     time.sleep(0.5)  # the forger's first hellos are out before any worker's
@@ -190,13 +191,21 @@ def test_forged_worker_messages_change_nothing(any_broker: str, tmp_path: Path, 
         for t in threads:
             t.join(timeout=60)
         forger.stop()
-    summary = chief.summary("", True, 0)
-    assert [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]] == [
-        (w["id"], w["episodes"], w["steps"]) for w in clean["workers"]]
+    return chief, forger
+
+
+def per_worker(summary: dict) -> list[tuple[str, int, int]]:
+    return [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]]
+
+
+@pytest.mark.slow
+def test_forged_worker_messages_change_nothing(any_broker: str, tmp_path: Path, clean: dict) -> None:
+    chief, forger = attacked_run(any_broker, tmp_path / "run", f"forged-workers-{time.monotonic_ns()}", True, KEY)
+    assert per_worker(chief.summary("", True, 0)) == per_worker(clean)
     refused = chief.rejects.as_dict()
     assert forger.sent > 0 and refused.get("unsigned", 0) > 0 and refused.get("forged", 0) > 0, refused
     assert set(refused) <= {"unsigned", "forged"}, refused  # nothing forged got as far as the rounds
-    audit(run_dir)
+    audit(tmp_path / "run")
 
 
 @pytest.mark.slow
@@ -206,28 +215,8 @@ def test_without_a_key_an_update_for_a_round_ahead_still_never_displaces_the_rea
     """Issue 32's probe on an open broker and a run without a key: for every update of w1, one in its name for
     rounds ahead (return 50, zero gradient). Each is held and refused as unreachable when its round opens; w1's real
     updates all count (none `inconsistent`), so the run is the clean one and the audit passes (chief/rounds.py)."""
-    run, run_dir = f"ahead-{time.monotonic_ns()}", tmp_path / "run"
-    chief = ChiefService(ChiefSettings.given(broker=amqtt_broker, run_id=run, workers=WORKERS, env=ENV,
-                                             policy="weighted", seed=SEED, max_episodes=EPISODES,
-                                             round_timeout=math.inf, start_timeout=60, idle_timeout=120,
-                                             run_dir=run_dir),
-                         outputs=Outputs(state=False, tensorboard=False, plot=False, progress=False))
-    forger = Forger(amqtt_broker, run, keyed=False)
-    workers = [WorkerService(WorkerSettings.given(broker=amqtt_broker, run_id=run, worker_id=f"w{i}", env=ENV,
-                                                  reply_timeout=120, start_timeout=60, ack_timeout=120,
-                                                  resend_interval=60)) for i in range(WORKERS)]
-    threads = [threading.Thread(target=w.run, daemon=True) for w in workers]
-    for t in threads:
-        t.start()
-    try:
-        assert chief.run() == 0
-    finally:
-        for t in threads:
-            t.join(timeout=60)
-        forger.stop()
-    summary = chief.summary("", True, 0)
-    assert [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]] == [
-        (w["id"], w["episodes"], w["steps"]) for w in clean["workers"]]
+    chief, forger = attacked_run(amqtt_broker, tmp_path / "run", f"ahead-{time.monotonic_ns()}", False, None)
+    assert per_worker(chief.summary("", True, 0)) == per_worker(clean)
     refused = chief.rejects.as_dict()
     assert forger.sent > 0 and refused.get("unreachable", 0) > 0 and "inconsistent" not in refused, refused
-    audit(run_dir)
+    audit(tmp_path / "run")

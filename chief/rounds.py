@@ -333,6 +333,7 @@ class RoundKeeper:
         self.max_staleness = max_staleness  # S: a worker plays on with up to S of its rounds unanswered (RunStart)
         self.workers = {w: WorkerRecord(w) for w in sorted(workers)}
         self.round = 1
+        self.joined = 1  # the round it started at (``join_at``)
         self.pending: dict[str, Submission] = {}
         self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
         self.held: dict[int, dict[str, Submission]] = {}  # submissions beyond reach, not counted (``_hold``)
@@ -343,6 +344,11 @@ class RoundKeeper:
         self.done_reason: str | None = None
         self.aborted = False
         self.interrupted = False  # ended early by ``interrupt``: resumable
+
+    def join_at(self, round_: int) -> None:
+        """Start at round ``round_`` (an edge that joins a run mid-way, chief/failover.py): a later step of an
+        episode whose step 0 came before is checked against nothing of that episode (the root checks it)."""
+        self.round = self.joined = round_
 
     # -- rounds and episodes ---------------------------------------------------------------------------------
 
@@ -580,6 +586,8 @@ class RoundKeeper:
             norm = l2_norm(arrays)
             if not norm <= NORM_LIMIT:
                 return "absurd_norm", f"{sub.kind} {what} tensors have an L2 norm of {norm:.3g} (limit {NORM_LIMIT:g})"
+        if sub.step > 0 and self.shape.number(sub.episode) < self.joined:
+            return None  # its episode's step 0 came before this keeper joined the run (join_at): the root checks it
         if sub.step > 0:
             # A later step of an episode whose step 0 was counted: it must repeat that episode's return and PI.
             if (sub.worker_id, self.shape.number(sub.episode)) not in self.counted:

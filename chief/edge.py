@@ -19,6 +19,12 @@ answer; the root counts it once and answers again).
 It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
 workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
 run folder (the root's records cover every submission).
+
+It says ``online`` every second (EdgeStatus; its last will says ``offline``). When the root finds another edge dead,
+its RunStart may name this edge the dead one's stand-in (``stand_ins``, chief/failover.py): the edge then takes that
+edge's workers as a group of their own, with a keeper from the root's open round (RunStart ``round``) on, and sums
+them in partials of their own (EdgePartial ``group``). Started again mid-run, it serves the groups the root's
+RunStart gives it, from that round on.
 """
 
 from __future__ import annotations
@@ -147,8 +153,7 @@ class EdgeService:
                     topic, msg, payload = self.events.get(timeout=0.1)
                 except queue.Empty:
                     if self.start is None and time.monotonic() > deadline:
-                        log.error("no RunStart naming workers of edge %s within %.0f s", self.edge,
-                                  self.cfg.start_timeout)
+                        log.error("edge %s: no RunStart of the root within %.0f s", self.edge, self.cfg.start_timeout)
                         return EXIT_NOT_STARTED
                 else:
                     if isinstance(msg, RunStop):

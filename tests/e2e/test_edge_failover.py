@@ -61,13 +61,15 @@ def wait_for(path: Path, text: str, timeout: float = 120) -> None:
 
 def check_the_same(run_dir: Path, reference: Path) -> None:
     """The run is the one without a death: each worker's episodes and steps, every round with all its workers
-    (none timed out), each edge's workers summed in a partial of their own; the audit passes."""
+    (none timed out), each edge's workers summed in a partial of their own, every answer bit for bit; the audit
+    passes."""
     assert per_worker(run_dir) == per_worker(reference), warnings_of(run_dir)
     rounds = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()
               if '"type":"round"' in line]
-    expected = [r["edges"] for r in map(json.loads, (reference / "metrics.jsonl").read_text().splitlines())
+    expected = [r for r in map(json.loads, (reference / "metrics.jsonl").read_text().splitlines())
                 if r["type"] == "round"]
-    assert [r["edges"] for r in rounds] == expected
+    assert [r["edges"] for r in rounds] == [r["edges"] for r in expected]
+    assert [r["digest"] for r in rounds] == [r["digest"] for r in expected]  # the same answers, bit for bit
     assert not any(r["timed_out"] for r in rounds)
     report = audit(run_dir)
     assert report.tiered == sum(1 for r in rounds if r["kind"] == "aggregate" and r["digest"]) > 0

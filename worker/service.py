@@ -84,7 +84,8 @@ class WorkerService:
         self.stop: RunStop | None = None
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler)
         self.start: RunStart | None = None
-        self.restarted = False  # a RunStart of a new epoch arrived: the chief restarted
+        self.restarted = False  # a RunStart of a new epoch arrived (the chief restarted), or its edge changed
+        self.why = "the chief restarted"  # ... which of the two (for the log)
         self.epoch = 0
         self.duplicates = 0  # answers sent again and ignored (each round's first copy logged): see _ignore
         self.ignored: set[int] = set()  # rounds whose repeated answer was logged already
@@ -437,6 +438,7 @@ class WorkerService:
                                     f"{start.session!r}")
             elif start is not None and msg.epoch > self.epoch:
                 self.epoch, self.restarted = msg.epoch, True  # the chief restarted: it may have lost our submission
+                self.why = "the chief restarted"
             if start is not None and msg.session == start.session:
                 self._route(topic, msg)
         elif self._answer_fits(topic, msg) and self._round_agrees(topic, msg):  # filed by the round it answers
@@ -461,9 +463,9 @@ class WorkerService:
             self.conn.unsubscribe(old)
             self.conn.subscribe(new, self._on_chief, qos=qos_of(new))
             log.warning("edge %s stands in for edge %s: this worker's rounds go through it", via, home)
-            self.via, self.restarted = via, True
+            self.via, self.restarted, self.why = via, True, f"edge {via} stands in for edge {home}"
         if start.moves > self.moves and topic == topics.relayed(run, self.via, topics.START):
-            self.moves, self.restarted = start.moves, True
+            self.moves, self.restarted, self.why = start.moves, True, f"edge {self.via} took this worker"
 
     def _ignore(self, topic: str, answer: ChiefAggregate | ChiefTransfer) -> None:
         """An answer sent again (the chief answers a resent submission, a broker redelivers): applied once, the
@@ -537,7 +539,7 @@ class WorkerService:
             if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
                 if connects != -1:
                     log.info("sending round %d again (%s)", round_, "reconnected" if self.conn.connects != connects
-                             else "the chief restarted" if self.restarted else "no answer yet")
+                             else self.why if self.restarted else "no answer yet")
                 self._send(topics.UPDATE, payload)
                 sent_at, connects, self.restarted = now, self.conn.connects, False
             self._receive(timeout=min(deadline - now, 0.5))
@@ -579,7 +581,7 @@ class WorkerService:
                 continue
             if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
                 log.info("sending rounds %s again (%s)", algo.owed, "reconnected" if self.conn.connects != connects
-                         else "the chief restarted" if self.restarted else "no answer yet")
+                         else self.why if self.restarted else "no answer yet")
                 for r in algo.owed:
                     self._send(topics.UPDATE, self.outbox[r][0])
                 sent_at, connects, self.restarted = now, self.conn.connects, False

@@ -463,7 +463,10 @@ class ChiefService:
             self._announce()
 
     def _fail_over(self, now: float) -> None:
-        """Move the workers of the edges found dead now to their stand-ins (chief/failover.py)."""
+        """Move the workers of the edges found dead now to their stand-ins (chief/failover.py); only once the root
+        has read what came (a root that fell behind must not take its own backlog for an edge's silence)."""
+        if not self.events.empty():
+            return
         dead = self.watch.newly_dead(now, self.cfg.round_timeout)
         if not dead:
             return

@@ -458,7 +458,11 @@ class ChiefService:
         elif back:
             assert self.keeper is not None
             log.warning("edge %s is back: it rejoins at round %d", msg.edge_id, self.keeper.round)
-            self._moved(failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch))
+            stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
+            if stand_ins != self.stand_ins or not msg.started:  # it takes workers: they send their round again
+                self._moved(stand_ins)
+            elif msg.edge_id in self.stand_ins:  # its own workers went elsewhere while it was away: let it know
+                self._announce()
         elif not msg.started and now - self._announced >= ANNOUNCE_INTERVAL:
             self._announce()
 
@@ -470,24 +474,25 @@ class ChiefService:
         dead = self.watch.newly_dead(now, self.cfg.round_timeout)
         if not dead:
             return
+        assert self.keeper is not None
+        stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
         for edge in dead:
             log.warning("edge %s is dead (its last will, or %.0f s of silence)", edge,
                         failover.silence_limit(self.cfg.round_timeout))
-        stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
-        if stand_ins != self.stand_ins or any(failover.serving(g, stand_ins) in dead for g in self.edge_of.values()):
+        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) in dead}):
+            log.warning("round %d: no live edge of edge %s's site is left: its workers wait (lagging once the round "
+                        "times out)", self.keeper.round, group)
+        if stand_ins != self.stand_ins:
             self._moved(stand_ins)
 
     def _moved(self, stand_ins: dict[str, str]) -> None:
         """Take the edges' new stand-ins (saved), and tell every edge and worker (a RunStart with ``moves`` + 1)."""
         assert self.keeper is not None
         for group in sorted(set(self.edge_of.values())):
-            now_at, was_at = failover.serving(group, stand_ins), failover.serving(group, self.stand_ins)
-            if now_at != was_at:
+            now_at = failover.serving(group, stand_ins)
+            if now_at != failover.serving(group, self.stand_ins):
                 log.warning("round %d: the workers of edge %s go through edge %s from now on", self.keeper.round,
                             group, now_at)
-            elif now_at in self.watch.found_dead:
-                log.warning("round %d: no live edge of edge %s's site is left: its workers wait", self.keeper.round,
-                            group)
         self.stand_ins, self.moves = stand_ins, self.moves + 1
         self._save()
         self._announce()

@@ -758,8 +758,16 @@ class RoundKeeper:
         """A root keeps an edge's partial of round ``r`` (before its contributors' submissions, whose last closes
         the round), and notes which of the round's contributors it holds and the factors the edge scaled by."""
         key = (edge, tuple(sorted(contributors)))
-        self.partials.setdefault(r, {})[key] = HeldPartial(partial, sorted(contributors), clipped,
-                                                           dict(critic_clipped or {}))
+        held, new = self.partials.setdefault(r, {}), set(contributors)
+        for other in [k for k in held if k[0] == edge and k != key and new & set(k[1])]:
+            # Two partials of one edge's workers that overlap (a dead edge's and its stand-in's, chief/failover.py):
+            # the one that holds the other supersedes it; neither sums a worker twice.
+            if not new >= set(other[1]):
+                log.warning("round %d: a partial of edge %s's workers %s overlaps the held %s: not summed", r,
+                            edge, sorted(new), list(other[1]))
+                return
+            del held[other]
+        held[key] = HeldPartial(partial, sorted(contributors), clipped, dict(critic_clipped or {}))
 
     def _partial(self, r: int, subs: dict[str, Submission], finished: list[str]) -> RoundOutcome:
         """An edge's round: its learners' (bounded) gradients summed into one Partial for the root (chief/tiers.py);

@@ -7,6 +7,7 @@ import numpy as np
 from chief import failover
 from chief.failover import WILL_GRACE, EdgeWatch, dead, fail_over, groups_of, silence_limit, stand_in
 from chief.rounds import RoundKeeper, Submission
+from chief.tiers import Partial
 from protocol.rounds import RoundShape
 from protocol.tasks import task
 
@@ -74,3 +75,16 @@ def test_a_keeper_that_joins_mid_run_starts_at_the_roots_round() -> None:
     g = {"w": np.ones(3, np.float32)}
     verdict = keeper.submit(Submission("w0", 3, 9.0, 9.0, (9.0,), step=1, gradient=g, critic_gradient=g), 0.0)
     assert verdict.status == "accepted", verdict
+
+
+def test_a_root_sums_no_worker_twice_from_overlapping_partials_of_one_group() -> None:
+    """A dead edge's partial {w0} (it timed w2 out) and its stand-in's {w0, w2} of the same round: the fuller one
+    supersedes; one that overlaps without holding the held one is not summed."""
+    keeper = RoundKeeper(["w0", "w1", "w2"], "plain", task("CartPole-v0"), 10, 30.0, tier="root")
+    one = Partial({"w": np.ones(2, np.float32)}, 1.0, 1)
+    keeper.add_partial(1, "e0", one, ["w0"], {})
+    keeper.add_partial(1, "e1", one, ["w1"], {})
+    keeper.add_partial(1, "e0", Partial({"w": np.full(2, 2, np.float32)}, 2.0, 2), ["w0", "w2"], {})
+    assert sorted(keeper.partials[1]) == [("e0", ("w0", "w2")), ("e1", ("w1",))]
+    keeper.add_partial(1, "e0", one, ["w2", "w9"], {})
+    assert sorted(keeper.partials[1]) == [("e0", ("w0", "w2")), ("e1", ("w1",))]

@@ -260,7 +260,7 @@ class EdgeService:
         what = "its" if group == self.edge else f"edge {group}'s (standing in)"
         log.info("edge %s: %s %d workers (%s) from round %d, policy %s%s", self.edge, what, len(mine),
                  ", ".join(mine), start.round, start.policy,
-                 f", their share of the quorum {start.quorum} of {len(start.workers)}: {share}" if share else "")
+                 f", its share of the quorum {start.quorum} of {len(start.workers)}: {share}" if share else "")
 
     def _count(self, group: str, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
         """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused

@@ -103,9 +103,9 @@ class EdgeService:
         self.partials = 0
         self._beat = -math.inf  # when its last ``online`` status went out
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
-        will = encode(signed(EdgeStatus(edge_id=self.edge, state="offline"), self.key))
+        self._offline = encode(signed(EdgeStatus(edge_id=self.edge, state="offline"), self.key))  # its last will
         self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}",
-                                                           (self._status_topic, will), self.rejects)
+                                                           (self._status_topic, self._offline), self.rejects)
 
     @property
     def _status_topic(self) -> str:
@@ -170,6 +170,7 @@ class EdgeService:
                     self._forward(group, keeper.tick(time.monotonic()))
             log.warning("edge %s: interrupted after %d partials; the root goes on, and moves this edge's workers to "
                         "another edge", self.edge, self.partials)
+            self.conn.publish(self._status_topic, self._offline, qos=1)  # a clean stop sends no will: say it
             return EXIT_INTERRUPTED
         finally:
             self.conn.stop()

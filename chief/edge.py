@@ -19,6 +19,12 @@ answer; the root counts it once and answers again).
 It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
 workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
 run folder (the root's records cover every submission).
+
+It says ``online`` every second (EdgeStatus; its last will says ``offline``). When the root finds another edge dead,
+its RunStart may name this edge the dead one's stand-in (``stand_ins``, chief/failover.py): the edge then takes that
+edge's workers as a group of their own, with a keeper from the root's open round (RunStart ``round``) on, and sums
+them in partials of their own (EdgePartial ``group``). Started again mid-run, it serves the groups the root's
+RunStart gives it, from that round on.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ import threading
 import time
 from typing import Any
 
-from chief import tiers
+from chief import failover, tiers
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
@@ -42,6 +48,7 @@ from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
     EdgePartial,
+    EdgeStatus,
     MatureParams,
     RunStart,
     RunStop,
@@ -82,17 +89,27 @@ class EdgeService:
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any, bytes]] = queue.Queue()
         self.specs: dict[str, tuple[dict[str, tuple[int, ...]], dict[str, tuple[int, ...]]]] = {}
-        self.keeper: RoundKeeper | None = None
+        self.keepers: dict[str, RoundKeeper] = {}  # group (chief/failover.py) -> its keeper
+        self.group_of: dict[str, str] = {}  # a worker it serves -> its group
+        self.first_round: dict[str, int] = {}  # group -> the round its keeper started at (>1: it joined mid-run)
+        self.watched: set[str] = set()  # workers whose updates and statuses it subscribed to
         self.start: RunStart | None = None
         self.held: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # accepted, not yet in a partial
         self.unreached: dict[tuple[str, int], WorkerUpdate | MatureParams] = {}  # held by the keeper (beyond reach)
         self.answers: dict[int, tuple[str, bytes]] = {}  # round -> the root's answer (leaf, payload)
-        self.sent: dict[int, list[bytes]] = {}  # round -> the partials sent for it (the last ANSWERS_KEPT rounds)
-        self.resent: dict[int, float] = {}  # round -> when its partial last went again
+        self.sent: dict[tuple[str, int], list[bytes]] = {}  # (group, round) -> its partials (the last ANSWERS_KEPT)
+        self.resent: dict[tuple[str, int], float] = {}  # (group, round) -> when its partial last went again
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
+        self._beat = -math.inf  # when its last ``online`` status went out
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
-        self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
+        self._offline = encode(signed(EdgeStatus(edge_id=self.edge, state="offline"), self.key))  # its last will
+        self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}",
+                                                           (self._status_topic, self._offline), self.rejects)
+
+    @property
+    def _status_topic(self) -> str:
+        return topics.edge(self.cfg.run_id, self.edge, topics.STATUS)
 
     def interrupt(self) -> None:
         """Stop within a tenth of a second (SIGTERM, SIGINT, SIGHUP): the root goes on, and this edge's workers
@@ -131,12 +148,12 @@ class EdgeService:
             log.info("edge %s of run %s: waiting for the root's RunStart", self.edge, run)
             deadline = time.monotonic() + self.cfg.start_timeout
             while not self._interrupt.is_set():
+                self._heartbeat(time.monotonic())
                 try:
                     topic, msg, payload = self.events.get(timeout=0.1)
                 except queue.Empty:
-                    if self.keeper is None and time.monotonic() > deadline:
-                        log.error("no RunStart naming workers of edge %s within %.0f s", self.edge,
-                                  self.cfg.start_timeout)
+                    if self.start is None and time.monotonic() > deadline:
+                        log.error("edge %s: no RunStart of the root within %.0f s", self.edge, self.cfg.start_timeout)
                         return EXIT_NOT_STARTED
                 else:
                     if isinstance(msg, RunStop):
@@ -149,29 +166,36 @@ class EdgeService:
                     except Exception as exc:  # one message never ends the edge
                         log.exception("handling %s from %s failed", msg.kind, topic)
                         self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
-                if self.keeper is not None:
-                    self._forward(self.keeper.tick(time.monotonic()))
-            log.warning("edge %s: interrupted after %d partials; the root goes on, and this edge's workers are "
-                        "lagging until an edge speaks for them", self.edge, self.partials)
+                for group, keeper in list(self.keepers.items()):
+                    self._forward(group, keeper.tick(time.monotonic()))
+            log.warning("edge %s: interrupted after %d partials; the root goes on, and moves this edge's workers to "
+                        "another edge", self.edge, self.partials)
+            self.conn.publish(self._status_topic, self._offline, qos=1)  # a clean stop sends no will: say it
             return EXIT_INTERRUPTED
         finally:
             self.conn.stop()
 
+    def _heartbeat(self, now: float) -> None:
+        """Say ``online`` every failover.HEARTBEAT seconds (the root finds a silent edge dead)."""
+        if now - self._beat < failover.HEARTBEAT:
+            return
+        self._beat = now
+        status = EdgeStatus(edge_id=self.edge, state="online", started=self.start is not None, site=self.cfg.site)
+        self.conn.publish(self._status_topic, encode(signed(status, self.key)), qos=1)
+
     def _handle(self, msg: Any, payload: bytes) -> None:
         if isinstance(msg, WorkerHello):
-            if msg.edge == self.edge and msg.worker_id not in self.specs:
-                # From its first hello on (before the root's RunStart lets it submit), so nothing it sends is missed.
-                for leaf in (topics.UPDATE, topics.STATUS):
-                    self.conn.subscribe(topics.worker(self.cfg.run_id, msg.worker_id, leaf), self._on_worker, qos=1)
             if msg.edge == self.edge:
-                self.specs[msg.worker_id] = (dict(msg.actor_spec), dict(msg.critic_spec))
+                # From its first hello on (before the root's RunStart lets it submit), so nothing it sends is missed.
+                self._watch([msg.worker_id])
+            self.specs[msg.worker_id] = (dict(msg.actor_spec), dict(msg.critic_spec))
             return
         if isinstance(msg, RunStart):
-            self._started(msg)
+            self._adopt(msg)
             self._relay(topics.START, payload)
             return
         if isinstance(msg, ChiefAck):
-            if self.keeper is not None and msg.worker_id in self.keeper.workers:
+            if msg.worker_id in self.group_of:
                 self.acks = {k: v for k, v in self.acks.items() if k[1] > msg.round - ANSWERS_KEPT}
                 self.acks[(msg.worker_id, msg.round)] = payload
                 self._relay(topics.ACK, payload)
@@ -182,38 +206,64 @@ class EdgeService:
             self.answers.pop(msg.round - ANSWERS_KEPT, None)
             self._relay(leaf, payload)
             return
-        keeper = self.keeper
-        if keeper is None or msg.worker_id not in keeper.workers:
+        group = self.group_of.get(msg.worker_id)
+        keeper = self.keepers.get(group) if group is not None else None
+        if keeper is None or group is None:
             return
         now = time.monotonic()
         if isinstance(msg, WorkerStatus):
-            self._forward(keeper.note_status(msg.worker_id, msg.state, now))
+            self._forward(group, keeper.note_status(msg.worker_id, msg.state, now))
             return
         verdict = keeper.submit(submission_of(msg), now)
-        self._count(verdict, msg)
-        self._forward(verdict.outcomes)
+        self._count(group, verdict, msg)
+        self._forward(group, verdict.outcomes)
 
-    def _started(self, start: RunStart) -> None:
-        """The root's RunStart: this edge's workers are those it names for it; build their keeper once."""
-        if self.keeper is not None:
-            return
-        mine = sorted(w for w, e in start.edges.items() if e == self.edge and w in start.workers)
-        if not mine:
-            log.warning("the run names no worker of edge %s", self.edge)
-            return
-        known = [w for w in mine if w in self.specs]
-        actor, critic = self.specs[known[0]] if known else (None, None)
-        spec = task(start.env_id)
-        share = tiers.edge_quorum(start.quorum, len(start.workers), len(mine))
-        self.keeper = RoundKeeper(mine, start.policy, spec, start.max_episodes, self.cfg.round_timeout,
-                                  actor_spec=actor, critic_spec=critic or None,
-                                  shape=RoundShape(per_episode=start.rounds_per_episode),
-                                  max_staleness=start.max_staleness, tier="edge", quorum=share)
+    def _watch(self, workers: list[str]) -> None:
+        """Subscribe to these workers' updates and statuses (once each)."""
+        for w in workers:
+            if w not in self.watched:
+                self.watched.add(w)
+                for leaf in (topics.UPDATE, topics.STATUS):
+                    self.conn.subscribe(topics.worker(self.cfg.run_id, w, leaf), self._on_worker, qos=1)
+
+    def _adopt(self, start: RunStart) -> None:
+        """The root's RunStart: serve the groups it gives this edge (its own workers, and a dead edge's it stands in
+        for: chief/failover.py), each with a keeper from the root's open round on; let go of those it does not."""
         self.start = start
-        log.info("edge %s: %d workers (%s), policy %s%s", self.edge, len(mine), ", ".join(mine), start.policy,
+        named = {w: e for w, e in start.edges.items() if w in start.workers}
+        groups = failover.groups_of(self.edge, named, start.stand_ins)
+        for group in [g for g in self.keepers if g not in groups]:
+            log.warning("edge %s: the workers of %s go through %s now", self.edge, group,
+                        failover.serving(group, start.stand_ins))
+            del self.keepers[group]
+            for w in [w for w, g in self.group_of.items() if g == group]:
+                del self.group_of[w]
+        for group, mine in groups.items():
+            if group not in self.keepers:
+                self._keeper(group, mine, start)
+        if not groups and not self.keepers:
+            log.info("edge %s: the run names no worker it serves (now)", self.edge)
+
+    def _keeper(self, group: str, mine: list[str], start: RunStart) -> None:
+        """A keeper for one group's rounds, from the root's open round on."""
+        known = [w for w in mine if w in self.specs] or list(self.specs)
+        actor, critic = self.specs[known[0]] if known else (None, None)
+        share = tiers.edge_quorum(start.quorum, len(start.workers), len(mine))
+        keeper = RoundKeeper(mine, start.policy, task(start.env_id), start.max_episodes, self.cfg.round_timeout,
+                             actor_spec=actor, critic_spec=critic or None,
+                             shape=RoundShape(per_episode=start.rounds_per_episode),
+                             max_staleness=start.max_staleness, tier="edge", quorum=share)
+        if start.round > 1:
+            keeper.join_at(start.round)
+        self.keepers[group], self.first_round[group] = keeper, start.round
+        self.group_of.update(dict.fromkeys(mine, group))
+        self._watch(mine)
+        what = "its" if group == self.edge else f"edge {group}'s (standing in)"
+        log.info("edge %s: %s %d workers (%s) from round %d, policy %s%s", self.edge, what, len(mine),
+                 ", ".join(mine), start.round, start.policy,
                  f", its share of the quorum {start.quorum} of {len(start.workers)}: {share}" if share else "")
 
-    def _count(self, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
+    def _count(self, group: str, verdict: Verdict, msg: WorkerUpdate | MatureParams) -> None:
         """Hold what counts for its partial; answer again a round a worker missed; refuse the rest (a refused
         mature actor with the root's session, as the root would)."""
         if verdict.status == "accepted":
@@ -232,25 +282,41 @@ class EdgeService:
                     reason=ack.reason[:2000], session=self.start.session), self.chief_key)))
         if verdict.reason not in ("duplicate", "stale"):
             return
-        answer = self.answers.get(verdict.round)
+        r, now = verdict.round, time.monotonic()
+        answer = self.answers.get(r)
         if answer is not None:
             self._relay(*answer)
-        acked = self.acks.get((msg.worker_id, verdict.round)) if isinstance(msg, MatureParams) else None
+        acked = self.acks.get((msg.worker_id, r)) if isinstance(msg, MatureParams) else None
         if acked is not None:
             self._relay(topics.ACK, acked)
-        r, now = verdict.round, time.monotonic()
-        if (answer is None or (isinstance(msg, MatureParams) and acked is None)) and r in self.sent:
+        if answer is not None and (acked is not None or not isinstance(msg, MatureParams)):
+            return
+        if now - self.resent.get((group, r), -math.inf) < RESEND_GAP:
+            return
+        if (group, r) in self.sent:
             # What the worker waits for never came though the partial went out: the partial or the root's answer was
             # lost on the way (a broker that died holding it). The root counts the partial once and answers again.
-            if now - self.resent.get(r, -math.inf) >= RESEND_GAP:
-                log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
-                         msg.worker_id, r)
-                self.resent[r] = now
-                for payload in self.sent[r]:
-                    self._publish_partial(payload)
+            log.info("edge %s: %s sent round %d again, unanswered: sending its partial again", self.edge,
+                     msg.worker_id, r)
+            self.resent[(group, r)] = now
+            for payload in self.sent[(group, r)]:
+                self._publish_partial(payload)
+        elif verdict.reason == "stale" and r < self.first_round.get(group, 1):
+            # A round closed before this edge took the group (the edge it went through died before passing the
+            # answer on): the submission alone, for the root to answer the closed round again (no part of a sum).
+            log.info("edge %s: %s sent round %d, closed before this edge took it: asking the root to answer again",
+                     self.edge, msg.worker_id, r)
+            self.resent[(group, r)] = now
+            bare = msg.model_copy(update={"gradient": {}, "critic_gradient": None}) \
+                if isinstance(msg, WorkerUpdate) else msg
+            self._publish_partial(encode(signed(EdgePartial(
+                edge_id=self.edge, round=r, episode=msg.episode, step=getattr(msg, "step", 0),
+                updates=(bare,) if isinstance(bare, WorkerUpdate) else (),
+                matures=(bare,) if isinstance(bare, MatureParams) else (),
+                group=None if group == self.edge else group, again=True), self.key)))
 
-    def _forward(self, outcomes: list[RoundOutcome]) -> None:
-        """Each of its closed rounds as one EdgePartial to the root."""
+    def _forward(self, group: str, outcomes: list[RoundOutcome]) -> None:
+        """Each of a group's closed rounds as one EdgePartial to the root."""
         for outcome in outcomes:
             part = outcome.partial
             assert part is not None
@@ -265,21 +331,22 @@ class EdgeService:
                 gradient=None if part.gradient is None else pack_arrays(part.gradient),
                 critic_gradient=None if part.critic is None else pack_arrays(part.critic),
                 total=part.total, count=part.count, uniform=part.uniform, clipped=outcome.clipped,
-                critic_clipped=outcome.critic_clipped, timed_out=tuple(outcome.timed_out))
-            self._partial(signed(msg, self.key))
+                critic_clipped=outcome.critic_clipped, timed_out=tuple(outcome.timed_out),
+                group=None if group == self.edge else group)
+            self._partial(group, signed(msg, self.key))
             self.partials += 1
             for verdict in outcome.taken_up:  # what the next round made of the submissions its keeper held
                 sub = verdict.submission
                 held = self.unreached.pop((sub.worker_id, verdict.round), None) if sub is not None else None
                 if held is not None:
-                    self._count(verdict, held)
+                    self._count(group, verdict, held)
 
-    def _partial(self, msg: EdgePartial) -> None:
+    def _partial(self, group: str, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
         payload = encode(msg)
-        self.sent.setdefault(msg.round, []).append(payload)
-        self.sent.pop(msg.round - ANSWERS_KEPT, None)
-        self.resent.pop(msg.round - ANSWERS_KEPT, None)
+        self.sent.setdefault((group, msg.round), []).append(payload)
+        self.sent.pop((group, msg.round - ANSWERS_KEPT), None)
+        self.resent.pop((group, msg.round - ANSWERS_KEPT), None)
         self._publish_partial(payload)
 
     def _publish_partial(self, payload: bytes) -> None:

@@ -384,6 +384,8 @@ class ServiceState(Record):
     claimed_since: float = 0.0  # when this session first claimed the run (chief/claim.py); 0: a state from before
     algo: str = "ppo"  # the run's learner (protocol/learners.py); a state from before learners had names ran PPO
     edges: dict[str, str] = Field(default_factory=dict)  # a root's workers: the edge each is behind
+    stand_ins: dict[str, str] = Field(default_factory=dict)  # a root's dead edges -> their stand-ins (failover.py)
+    moves: int = 0  # how often a root's edges changed (RunStart ``moves``)
 
 
 class ChiefState(Record):

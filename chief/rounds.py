@@ -333,6 +333,7 @@ class RoundKeeper:
         self.max_staleness = max_staleness  # S: a worker plays on with up to S of its rounds unanswered (RunStart)
         self.workers = {w: WorkerRecord(w) for w in sorted(workers)}
         self.round = 1
+        self.joined = 1  # the round it started at (``join_at``)
         self.pending: dict[str, Submission] = {}
         self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
         self.held: dict[int, dict[str, Submission]] = {}  # submissions beyond reach, not counted (``_hold``)
@@ -343,6 +344,11 @@ class RoundKeeper:
         self.done_reason: str | None = None
         self.aborted = False
         self.interrupted = False  # ended early by ``interrupt``: resumable
+
+    def join_at(self, round_: int) -> None:
+        """Start at round ``round_`` (an edge that joins a run mid-way, chief/failover.py): a later step of an
+        episode whose step 0 came before is checked against nothing of that episode (the root checks it)."""
+        self.round = self.joined = round_
 
     # -- rounds and episodes ---------------------------------------------------------------------------------
 
@@ -580,6 +586,8 @@ class RoundKeeper:
             norm = l2_norm(arrays)
             if not norm <= NORM_LIMIT:
                 return "absurd_norm", f"{sub.kind} {what} tensors have an L2 norm of {norm:.3g} (limit {NORM_LIMIT:g})"
+        if sub.step > 0 and self.shape.number(sub.episode) < self.joined:
+            return None  # its episode's step 0 came before this keeper joined the run (join_at): the root checks it
         if sub.step > 0:
             # A later step of an episode whose step 0 was counted: it must repeat that episode's return and PI.
             if (sub.worker_id, self.shape.number(sub.episode)) not in self.counted:
@@ -750,8 +758,16 @@ class RoundKeeper:
         """A root keeps an edge's partial of round ``r`` (before its contributors' submissions, whose last closes
         the round), and notes which of the round's contributors it holds and the factors the edge scaled by."""
         key = (edge, tuple(sorted(contributors)))
-        self.partials.setdefault(r, {})[key] = HeldPartial(partial, sorted(contributors), clipped,
-                                                           dict(critic_clipped or {}))
+        held, new = self.partials.setdefault(r, {}), set(contributors)
+        for other in [k for k in held if k[0] == edge and k != key and new & set(k[1])]:
+            # Two partials of one edge's workers that overlap (a dead edge's and its stand-in's, chief/failover.py):
+            # the one that holds the other supersedes it; neither sums a worker twice.
+            if not new >= set(other[1]):
+                log.warning("round %d: a partial of edge %s's workers %s overlaps the held %s: not summed", r,
+                            edge, sorted(new), list(other[1]))
+                return
+            del held[other]
+        held[key] = HeldPartial(partial, sorted(contributors), clipped, dict(critic_clipped or {}))
 
     def _partial(self, r: int, subs: dict[str, Submission], finished: list[str]) -> RoundOutcome:
         """An edge's round: its learners' (bounded) gradients summed into one Partial for the root (chief/tiers.py);

@@ -16,7 +16,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from chief import checkpoint, tensorboard
+from chief import checkpoint, failover, tensorboard
 from chief.claim import EXIT_CLAIMED, RunClaim
 from chief.records import SUMMARY
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
@@ -34,6 +34,7 @@ from protocol.messages import (
     ChiefClaim,
     ChiefTransfer,
     EdgePartial,
+    EdgeStatus,
     MatureParams,
     RunStart,
     RunStop,
@@ -59,6 +60,8 @@ EXIT_INTERRUPTED = 130
 
 #: The kinds of a worker's submissions (a root takes them summed, in its edges' partials).
 UPDATE_KINDS = frozenset({"update", "mature"})
+#: The kinds only a root reads: its edges' partials and statuses.
+EDGE_KINDS = frozenset({"partial", "edge_status"})
 
 #: The fewest seconds between two RunStarts the chief sends again for workers' hellos.
 ANNOUNCE_INTERVAL = 1.0
@@ -114,7 +117,10 @@ class ChiefService:
         self._outbox: list[tuple[str, bytes]] = []  # held back until the state is saved
         self._must_save = False
         self.duplicates = 0
-        self.edge_of: dict[str, str] = {}  # a root's workers: the edge each said it is behind
+        self.edge_of: dict[str, str] = {}  # a root's workers: the edge each said it is behind (its group)
+        self.stand_ins: dict[str, str] = {}  # a root's dead edges -> the edge standing in (chief/failover.py)
+        self.moves = 0  # how often the edges changed (RunStart ``moves``)
+        self.watch = failover.EdgeWatch()  # a root's edges: when each was heard, which are dead
         self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
@@ -148,13 +154,15 @@ class ChiefService:
 
     def _on_message(self, topic: str, payload: bytes) -> None:
         try:
-            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, EdgePartial, topic=topic)
+            msg = decode(payload, WorkerHello, WorkerStatus, WorkerUpdate, MatureParams, EdgePartial, EdgeStatus,
+                         topic=topic)
         except DecodeError as err:
             self.rejects.reject_error(topic, err)
             return
         # An edge holds the run's key, a worker only its own (protocol/auth.py): a message without its sender's tag is
         # not its sender's.
-        refused = refusal(msg, self.key) if isinstance(msg, EdgePartial) else self.worker_keys.refusal(msg)
+        refused = (refusal(msg, self.key) if isinstance(msg, EdgePartial | EdgeStatus)
+                   else self.worker_keys.refusal(msg))
         if refused is not None:
             self.rejects.reject(topic, *refused)
             return
@@ -178,7 +186,7 @@ class ChiefService:
                           dt.datetime.fromtimestamp(other.since).isoformat(timespec="seconds"), self.claim.topic)
                 return EXIT_CLAIMED
             for route in received_by(CHIEF):  # the workers' hello, status and update (a root: the edges' partials)
-                if route.retain or (UPDATE_KINDS & route.kinds if cfg.edges else "partial" in route.kinds):
+                if route.retain or (UPDATE_KINDS if cfg.edges else EDGE_KINDS) & route.kinds:
                     continue  # the claim is RunClaim's; a root's updates come summed in the partials
                 self.conn.subscribe(route.filter(run=run), self._on_message, qos=route.qos)
             if self.saved is not None:
@@ -211,6 +219,7 @@ class ChiefService:
                 log.info("%d workers: the TensorBoard event files are drawn at the end of the run, not live (more "
                          "than %d); python -m chief.tensorboard %s draws them at any time", cfg.workers,
                          tensorboard.LIVE_WORKERS, cfg.run_dir)
+            self.watch.expect(set(self.edge_of.values()), time.monotonic())
             self._announce()
             if not self._federate():
                 return EXIT_CLAIMED
@@ -244,6 +253,7 @@ class ChiefService:
             self.roster.init_model_path = service["init_model"]["path"]
         self.rejects.restore(service["rejects"])
         self.edge_of = dict(service.get("edges", {}))
+        self.stand_ins, self.moves = dict(service.get("stand_ins", {})), service.get("moves", 0)
         self.metrics = MetricsLog(self.cfg.run_dir, resume_at=service["metrics_bytes"])
         self.t0 = time.monotonic() - service["elapsed_s"]
         log.warning("resuming run %s from %s at round %d (%d workers, %d finished)", self.cfg.run_id,
@@ -262,7 +272,7 @@ class ChiefService:
             "rejects": self.rejects.as_dict(), "metrics_bytes": self.metrics.offset,
             "elapsed_s": time.monotonic() - self.t0, "init_model": self._init_model(),
             "init_model_known": self.roster.init_model_known, "claimed_since": self.claim.claim.since,
-            "algo": self.roster.algo, "edges": self.edge_of})
+            "algo": self.roster.algo, "edges": self.edge_of, "stand_ins": self.stand_ins, "moves": self.moves})
 
     def _init_model(self) -> dict[str, str] | None:
         """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""
@@ -317,7 +327,8 @@ class ChiefService:
                        session=self.session, epoch=self.epoch, rounds_per_episode=self.keeper.shape.per_episode,
                        finishers_help=self.keeper.strategy.finishers_help,
                        max_staleness=self.keeper.max_staleness, quorum=self.keeper.quorum,
-                       edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers})
+                       edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers},
+                       round=self.keeper.round, stand_ins=self.stand_ins, moves=self.moves)
         self._send(msg)
 
     def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
@@ -356,6 +367,8 @@ class ChiefService:
                     self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
             now = time.monotonic()
             outcomes += keeper.tick(now)
+            if self.cfg.edges:
+                self._fail_over(now)
             if outcomes:
                 self._close_rounds(outcomes)
             elif self._must_save:
@@ -386,6 +399,9 @@ class ChiefService:
             return []
         if msg.kind == "partial":
             return self._partial(msg, now)
+        if msg.kind == "edge_status":
+            self._edge_status(msg, now)
+            return []
         if msg.worker_id not in keeper.workers:
             self.rejects.reject(topics.worker(self.cfg.run_id, msg.worker_id, msg.kind), "unknown_worker",
                                 "not part of this run")
@@ -409,8 +425,20 @@ class ChiefService:
         keeper = self.keeper
         assert keeper is not None
         subs: list[WorkerUpdate | MatureParams] = [*msg.updates, *msg.matures]
+        group = msg.group or msg.edge_id  # a stand-in sums a dead edge's workers as that edge would have
+        self.watch.alive_now(msg.edge_id, now)
+        topic = topics.edge(self.cfg.run_id, msg.edge_id, topics.PARTIAL)
+        if msg.edge_id not in (group, self.stand_ins.get(group)) or any(self.edge_of.get(s.worker_id) != group
+                                                                       for s in subs):
+            self.rejects.reject(topic, "not_serving", f"edge {msg.edge_id}'s partial of round {msg.round} for edge "
+                                f"{group}'s workers {[s.worker_id for s in subs]}, which it does not serve")
+            return []
+        if msg.again:  # only for the root's answer to a closed round again: no part of a sum
+            for sub in subs if msg.round < keeper.round else ():
+                self._answer(keeper.submit(submission_of(sub), now), now)
+            return []
         if msg.round >= keeper.round:
-            keeper.add_partial(msg.round, msg.edge_id, partial_of(msg), [s.worker_id for s in subs],
+            keeper.add_partial(msg.round, group, partial_of(msg), [s.worker_id for s in subs],
                                dict(msg.clipped), dict(msg.critic_clipped))
         outcomes: list[RoundOutcome] = []
         for sub in subs:
@@ -418,6 +446,56 @@ class ChiefService:
             self._answer(verdict, now)
             outcomes += verdict.outcomes
         return outcomes + keeper.excuse(msg.round, list(msg.timed_out), now)
+
+    def _edge_status(self, msg: EdgeStatus, now: float) -> None:
+        """An edge's status: its heartbeat (a RunStart again if it holds none), or its last will. One that comes
+        back (found dead, or restarted) rejoins at the open round (chief/failover.py)."""
+        online = msg.state == "online"
+        back = self.watch.status(msg.edge_id, online, now, msg.started, msg.site)
+        if not online:
+            log.warning("edge %s: its last will came (connection lost); its workers move to another edge in %.0f s "
+                        "unless it says it is back", msg.edge_id, failover.WILL_GRACE)
+        elif back:
+            assert self.keeper is not None
+            log.warning("edge %s is back: it rejoins at round %d", msg.edge_id, self.keeper.round)
+            stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
+            if stand_ins != self.stand_ins or not msg.started:  # it takes workers: they send their round again
+                self._moved(stand_ins)
+            elif msg.edge_id in self.stand_ins:  # its own workers went elsewhere while it was away: let it know
+                self._announce()
+        elif not msg.started and now - self._announced >= ANNOUNCE_INTERVAL:
+            self._announce()
+
+    def _fail_over(self, now: float) -> None:
+        """Move the workers of the edges found dead now to their stand-ins (chief/failover.py); only once the root
+        has read what came (a root that fell behind must not take its own backlog for an edge's silence)."""
+        if not self.events.empty():
+            return
+        dead = self.watch.newly_dead(now, self.cfg.round_timeout)
+        if not dead:
+            return
+        assert self.keeper is not None
+        stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
+        for edge in dead:
+            log.warning("edge %s is dead (its last will, or %.0f s of silence)", edge,
+                        failover.silence_limit(self.cfg.round_timeout))
+        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) in dead}):
+            log.warning("round %d: no live edge of edge %s's site is left: its workers wait (lagging once the round "
+                        "times out)", self.keeper.round, group)
+        if stand_ins != self.stand_ins:
+            self._moved(stand_ins)
+
+    def _moved(self, stand_ins: dict[str, str]) -> None:
+        """Take the edges' new stand-ins (saved), and tell every edge and worker (a RunStart with ``moves`` + 1)."""
+        assert self.keeper is not None
+        for group in sorted(set(self.edge_of.values())):
+            now_at = failover.serving(group, stand_ins)
+            if now_at != failover.serving(group, self.stand_ins):
+                log.warning("round %d: the workers of edge %s go through edge %s from now on", self.keeper.round,
+                            group, now_at)
+        self.stand_ins, self.moves = stand_ins, self.moves + 1
+        self._save()
+        self._announce()
 
     def _answer(self, verdict: Verdict, now: float) -> None:
         """Record what was accepted, count what was not, acknowledge mature actors, answer again a round a worker
@@ -479,8 +557,8 @@ class ChiefService:
         for edge in sorted({self.edge_of[w] for w in outcome.timed_out if w in self.edge_of} - set(outcome.edges)):
             behind = sorted(w for w in outcome.timed_out if self.edge_of.get(w) == edge)
             log.warning("round %d: nothing came from edge %s within %.0f s (%s timed out): its edge chief, its broker "
-                        "or all of its workers are down; they are lagging until it sends again (an edge chief is "
-                        "not replaced mid-run)", outcome.round, edge, self.cfg.round_timeout, ", ".join(behind))
+                        "or all of its workers are down; they are lagging until it sends again (or its workers "
+                        "move to another edge)", outcome.round, edge, self.cfg.round_timeout, ", ".join(behind))
 
     def _progress(self, now: float, force: bool = False) -> None:
         if not force and (not self.outputs.progress or now - self._last_progress < PROGRESS_INTERVAL):

@@ -102,8 +102,10 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     edge_id: str | None = setting(None, "--role edge: this edge's id (its workers say it in their --edge)")
     edges: int = setting(0, "--role chief: how many edge chiefs feed this root (0: a flat run, every worker's update "
                          "to this chief)", ge=0, le=1024)
+    site: str | None = setting(None, "--role edge: the site this edge runs at (unset: the run's one broker); a dead "
+                               "edge's workers move to a live edge of its site (chief/failover.py)")
 
-    @field_validator("edge_id")
+    @field_validator("edge_id", "site")
     @classmethod
     def _edge_id(cls, value: str | None) -> str | None:
         return None if value is None else check_id(value, "edge id")

@@ -158,8 +158,9 @@ def main(argv: list[str] | None = None) -> int:
                 DashboardSettings, **common, **login("observer"), run_key=key, dashboard_host="127.0.0.1",
                 dashboard_port=s.dashboard_port, dashboard_url_file=url_file))
         for k, e in enumerate(sorted(set(edges.values()), key=lambda e: int(e[1:]))):
-            # Before the workers (it passes the root's RunStart on to them); with sites, at its workers' site.
-            at = {**common, "broker": s.site_brokers[k]} if s.site_brokers else common
+            # Before the workers (it passes the root's RunStart on to them); with sites, at its workers' site (its
+            # own: no other edge can stand in for it there, chief/failover.py).
+            at = {**common, "broker": s.site_brokers[k], "site": e} if s.site_brokers else common
             fleet.start(f"edge-{e}", "chief", s.child(ChiefSettings, **at, **login(e), run_key=key,
                                                       role="edge", edge_id=e, edges=0, run_dir=run_dir))
         witness = (Witness(_observer(broker, s.run_id, login), s.run_id, run_dir) if s.witness and edges

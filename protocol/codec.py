@@ -27,6 +27,7 @@ B = TypeVar("B", bound=Message)
 C = TypeVar("C", bound=Message)
 D = TypeVar("D", bound=Message)
 E = TypeVar("E", bound=Message)
+F = TypeVar("F", bound=Message)
 
 
 class DecodeError(ValueError):
@@ -58,6 +59,9 @@ def decode(payload: bytes, a: type[A], b: type[B], c: type[C], d: type[D], /, *,
 @overload
 def decode(payload: bytes, a: type[A], b: type[B], c: type[C], d: type[D], e: type[E], /, *, max_bytes: int = ...,
            topic: str | None = ...) -> A | B | C | D | E: ...
+@overload
+def decode(payload: bytes, a: type[A], b: type[B], c: type[C], d: type[D], e: type[E], f: type[F], /, *,
+           max_bytes: int = ..., topic: str | None = ...) -> A | B | C | D | E | F: ...
 def decode(payload: bytes, *expected: type[Message], max_bytes: int = MAX_PAYLOAD_BYTES,
            topic: str | None = None) -> Message:
     """msgpack bytes -> validated message of one of the ``expected`` types (any type when none given).

@@ -299,6 +299,14 @@ class RunStart(Message):
     quorum: int = Field(default=0, ge=0)
     #: Worker -> the edge its rounds go through (a tiered run, docs/explanation/tiered.md); empty: a flat run.
     edges: dict[Ident, Ident] = Field(default_factory=dict)
+    #: A tiered run's open round: an edge that joins mid-run (restarted, or standing in) starts its rounds there.
+    round: int = Field(default=1, ge=1)
+    #: A dead edge -> the live edge that stands in for it: its workers' rounds go through that edge now
+    #: (chief/failover.py); the edge sums them in a partial of their own, as the dead edge would have.
+    stand_ins: dict[Ident, Ident] = Field(default_factory=dict)
+    #: How often the run's edges changed (an edge failed over or rejoined): a worker sends its unanswered round
+    #: again once the edge it goes through passes on a RunStart with a higher count (that edge now takes it).
+    moves: int = Field(default=0, ge=0)
     tag: Tag = ""
 
     @property
@@ -331,6 +339,24 @@ class EdgePartial(Message):
     clipped: dict[Ident, Annotated[float, Field(gt=0.0, le=1.0)]] = Field(default_factory=dict)
     critic_clipped: dict[Ident, Annotated[float, Field(gt=0.0, le=1.0)]] = Field(default_factory=dict)
     timed_out: tuple[Ident, ...] = ()
+    #: The edge whose workers this partial sums, when the sender stands in for it (a dead edge, chief/failover.py).
+    group: Ident | None = None
+    #: Only its submissions, passed on for the root to answer a closed round again (a worker sent the round to an
+    #: edge that joined after it closed): no part of any sum.
+    again: bool = False
+    tag: Tag = ""
+
+
+class EdgeStatus(Message):
+    """An edge chief is ``online`` (every ``chief.failover.HEARTBEAT`` seconds while it runs; ``started``: it holds
+    the run's RunStart; ``site``: where it runs, None for the run's one broker), or ``offline`` (its MQTT last will).
+    The root moves a dead edge's workers to another edge (chief/failover.py)."""
+
+    kind: Literal["edge_status"] = "edge_status"
+    edge_id: Ident
+    state: Literal["online", "offline"]
+    started: bool = False
+    site: Ident | None = None
     tag: Tag = ""
 
 
@@ -487,6 +513,7 @@ MESSAGE_TYPES: dict[str, type[Message]] = {
         RunStart,
         RunStop,
         EdgePartial,
+        EdgeStatus,
         ChiefClaim,
         QubeState,
         QubeAction,

@@ -113,7 +113,9 @@ ROUTES: tuple[Route, ...] = (
     Route(_w(topics.UPDATE), WORKER, _FEDERATION, (M["update"], M["mature"]), 1,
           "one per episode; sent again after a reconnect or a chief restart until answered; MatureParams until a "
           "ChiefAck for its episode arrives"),
-    Route(_c(topics.START), CHIEF, _WORKERS, (M["run_start"],), 1, "again whenever a worker of the run says hello"),
+    Route(_c(topics.START), CHIEF, _WORKERS, (M["run_start"],), 1,
+          "again whenever a worker of the run says hello, an edge says it has none, or the edges change (a worker "
+          "behind an edge reads it here too: it learns of a dead edge's stand-in while its edge says nothing)"),
     Route(_c(topics.AGGREGATE), CHIEF, _WORKERS, (M["aggregate"],), 1, "the answer to a round without a finisher"),
     Route(_c(topics.TRANSFER), CHIEF, _WORKERS, (M["transfer"],), 1,
           "the answer to a round in which a worker finished"),
@@ -121,6 +123,9 @@ ROUTES: tuple[Route, ...] = (
     Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
     Route(_e(topics.PARTIAL), EDGE, (CHIEF, DASHBOARD), (M["partial"],), 1,
           "an edge's part of a round: its counted submissions without their tensors, one unnormalised Eq. 9 sum"),
+    Route(_e(topics.STATUS), EDGE, (CHIEF,), (M["edge_status"],), 1,
+          "every second while it runs (online); the root moves a dead edge's workers to another edge "
+          "(chief/failover.py)", will=True),
     *(Route(_e(f"{topics.CHIEF}/{leaf}"), EDGE, (WORKER, DASHBOARD), (M[kind],), 1,
             f"the root chief's {kind} message on fedrl/<run>/chief/{leaf}, passed on verbatim to the edge's workers")
       for leaf, kind in _RELAYED),

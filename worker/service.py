@@ -84,7 +84,8 @@ class WorkerService:
         self.stop: RunStop | None = None
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler)
         self.start: RunStart | None = None
-        self.restarted = False  # a RunStart of a new epoch arrived: the chief restarted
+        self.restarted = False  # a RunStart of a new epoch arrived (the chief restarted), or its edge changed
+        self.why = "the chief restarted"  # ... which of the two (for the log)
         self.epoch = 0
         self.duplicates = 0  # answers sent again and ignored (each round's first copy logged): see _ignore
         self.ignored: set[int] = set()  # rounds whose repeated answer was logged already
@@ -102,6 +103,8 @@ class WorkerService:
         self.key = cfg.chief_check_key()
         self.own_key = cfg.own_key(cfg.worker_id)
         self.submitted = 0  # the last round this worker submitted to: no answer to a later one is taken
+        self.via = cfg.edge  # the edge its rounds go through now (its own, or a dead one's stand-in)
+        self.moves = 0  # the RunStart ``moves`` its edge last passed on
         self.outbox: dict[int, tuple[bytes, float]] = {}  # staleness: owed rounds' payloads and when first sent
         will = self._signed(WorkerStatus(worker_id=cfg.worker_id, state="offline", detail="connection lost"))
         self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-worker-{cfg.worker_id}",
@@ -160,6 +163,9 @@ class WorkerService:
             return EXIT_INTERRUPTED  # not connected: nobody to tell
         chief = topics.chief(cfg.run_id, "+") if cfg.edge is None else topics.relayed(cfg.run_id, cfg.edge, "+")
         self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
+        if cfg.edge is not None:  # the root's RunStart too: it names a stand-in while a dead edge says nothing
+            direct = topics.chief(cfg.run_id, topics.START)
+            self.conn.subscribe(direct, self._on_chief, qos=qos_of(direct))
         try:
             start = self._join()
             if start is None and self._interrupt.is_set():
@@ -226,6 +232,7 @@ class WorkerService:
                     raise ValueError(f"the chief runs learner {msg.algo!r} but this worker was started with "
                                      f"{cfg.algo!r}")
                 self.start, self.epoch = msg, msg.epoch
+                self._route(topic, msg)
                 return msg
             reason = "not_in_run" if isinstance(msg, RunStart) else "before_start"
             self.rejects.reject(topic, reason, f"a {msg.kind} before a RunStart naming {cfg.worker_id}")
@@ -389,12 +396,16 @@ class WorkerService:
         interval = 2.0
         while not self.halted and time.monotonic() < deadline:
             self._send(topics.UPDATE, payload)
+            self.restarted = False
             resend_at = min(deadline, time.monotonic() + interval)
-            while not self.halted and round_ not in self.acks and time.monotonic() < resend_at:
+            while (not self.halted and round_ not in self.acks and time.monotonic() < resend_at
+                   and not self.restarted):
                 self._receive(timeout=min(0.5, max(0.0, resend_at - time.monotonic())))
             if round_ in self.acks:
                 self.idle_s += time.monotonic() - began
                 return self.acks.pop(round_)
+            if self.restarted:  # its edge changed, or the chief restarted: at once
+                continue
             interval = min(2 * interval, 30.0)
             log.warning("no acknowledgement of the mature actor of episode %d yet; sending it again", mature.episode)
         self.idle_s += time.monotonic() - began
@@ -427,6 +438,9 @@ class WorkerService:
                                     f"{start.session!r}")
             elif start is not None and msg.epoch > self.epoch:
                 self.epoch, self.restarted = msg.epoch, True  # the chief restarted: it may have lost our submission
+                self.why = "the chief restarted"
+            if start is not None and msg.session == start.session:
+                self._route(topic, msg)
         elif self._answer_fits(topic, msg) and self._round_agrees(topic, msg):  # filed by the round it answers
             if isinstance(msg, ChiefAck):
                 self.acks[msg.round] = msg
@@ -434,6 +448,24 @@ class WorkerService:
                 self._ignore(topic, msg)
             else:
                 self.replies[msg.round] = msg
+
+    def _route(self, topic: str, start: RunStart) -> None:
+        """A tiered run's RunStart: listen to the edge that serves this worker now (a dead edge's stand-in,
+        chief/failover.py), and send the unanswered round again when it changed, and when the serving edge passes on
+        a RunStart with more ``moves`` (it has taken this worker: a stand-in, or its own edge restarted)."""
+        if self.via is None:
+            return
+        run, home = self.cfg.run_id, self.cfg.edge
+        assert home is not None
+        via = start.stand_ins.get(home, home)
+        if via != self.via:
+            old, new = topics.relayed(run, self.via, "+"), topics.relayed(run, via, "+")
+            self.conn.unsubscribe(old)
+            self.conn.subscribe(new, self._on_chief, qos=qos_of(new))
+            log.warning("edge %s stands in for edge %s: this worker's rounds go through it", via, home)
+            self.via, self.restarted, self.why = via, True, f"edge {via} stands in for edge {home}"
+        if start.moves > self.moves and topic == topics.relayed(run, self.via, topics.START):
+            self.moves, self.restarted, self.why = start.moves, True, f"edge {self.via} took this worker"
 
     def _ignore(self, topic: str, answer: ChiefAggregate | ChiefTransfer) -> None:
         """An answer sent again (the chief answers a resent submission, a broker redelivers): applied once, the
@@ -507,7 +539,7 @@ class WorkerService:
             if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
                 if connects != -1:
                     log.info("sending round %d again (%s)", round_, "reconnected" if self.conn.connects != connects
-                             else "the chief restarted" if self.restarted else "no answer yet")
+                             else self.why if self.restarted else "no answer yet")
                 self._send(topics.UPDATE, payload)
                 sent_at, connects, self.restarted = now, self.conn.connects, False
             self._receive(timeout=min(deadline - now, 0.5))
@@ -549,7 +581,7 @@ class WorkerService:
                 continue
             if self.conn.connects != connects or self.restarted or now - sent_at >= self.cfg.resend_interval:
                 log.info("sending rounds %s again (%s)", algo.owed, "reconnected" if self.conn.connects != connects
-                         else "the chief restarted" if self.restarted else "no answer yet")
+                         else self.why if self.restarted else "no answer yet")
                 for r in algo.owed:
                     self._send(topics.UPDATE, self.outbox[r][0])
                 sent_at, connects, self.restarted = now, self.conn.connects, False

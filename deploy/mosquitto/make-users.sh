@@ -95,8 +95,9 @@ write_acl() {
         echo "topic write fedrl/$RUN/chief/#"
         echo "topic readwrite fedrl/$RUN/claim"
         echo "topic read fedrl/$RUN/worker/#"
-        echo "# As the root of a tiered run: its edge chiefs' partial aggregates."
+        echo "# As the root of a tiered run: its edge chiefs' partial aggregates and statuses (chief/failover.py)."
         echo "topic read fedrl/$RUN/edge/+/partial"
+        echo "topic read fedrl/$RUN/edge/+/status"
     fi
     if [ -n "$EDGE" ]; then
         echo

@@ -192,11 +192,13 @@ def run_acl(run_id: str, workers: list[str], rigs: dict[str, str], edges: dict[s
     """Who may publish and subscribe where in one run: the chief on its topics, each worker on its own (and its
     rig's action and reset), each rig on its own, and a read-only observer (the dashboard). In a tiered run
     (``edges``: worker -> its edge chief) each edge on its own topics, reading the chief's and the workers', and
-    each worker reads its edge's instead of the chief's."""
+    each worker reads the edges' instead of the chief's (any edge's: a stand-in's, chief/failover.py), and the
+    chief's RunStart."""
     run = f"fedrl/{run_id}"
     edges = edges or {}
     publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#", f"{run}/claim"], "observer": []}
-    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#", f"{run}/claim", f"{run}/edge/+/partial"],
+    subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#", f"{run}/claim", f"{run}/edge/+/partial",
+                                                 f"{run}/edge/+/status"],
                                        "observer": [f"{run}/#", "qube/#"]}
     for e in sorted(set(edges.values())):
         publish[e] = [f"{run}/edge/{e}/#"]
@@ -205,8 +207,9 @@ def run_acl(run_id: str, workers: list[str], rigs: dict[str, str], edges: dict[s
         rig = rigs.get(w)
         commands = [f"qube/{rig}/{leaf}" for leaf in ("action", "reset", "identify")] if rig else []
         publish[w] = [f"{run}/worker/{w}/#", *commands]
-        answers = f"{run}/edge/{edges[w]}/chief/#" if w in edges else f"{run}/chief/#"
-        subscribe[w] = [answers] + ([f"qube/{rig}/#"] if rig else [])
+        # Behind an edge: any edge's (a dead edge's stand-in passes the answers on), and the root's RunStart.
+        answers = [f"{run}/edge/+/chief/#", f"{run}/chief/start"] if w in edges else [f"{run}/chief/#"]
+        subscribe[w] = answers + ([f"qube/{rig}/#"] if rig else [])
     for rig in rigs.values():
         publish[rig] = [f"qube/{rig}/#"]
         subscribe[rig] = [f"qube/{rig}/#"]

@@ -1,14 +1,12 @@
 """Edge aggregation end to end (docs/explanation/tiered.md): a tiered federation, 2 edge chiefs x 2 workers, in
 process (deploy/inprocess.py --edges). Every round's root aggregate is the flat Eq. 9 of the same submissions within
 the derived bound (the audit's tiered-exact check on the wire's witness), a finisher's actor reached learners behind
-both edges, and the audit passes. The same over MQTT, and what an edge chief that dies costs."""
+both edges, and the audit passes. The same over MQTT (an edge chief that dies: tests/e2e/test_edge_failover.py)."""
 
 from __future__ import annotations
 
 import json
-import os
 import re
-import signal
 import subprocess
 import sys
 import time
@@ -22,7 +20,6 @@ from chief.audit import AuditFailure, audit
 from chief.records import GRADIENTS, ROOT, gradient_key
 from deploy.inprocess import run_federation
 from deploy.settings import InprocessSettings
-from tests.federations import federate_through
 
 pytestmark = pytest.mark.slow
 
@@ -102,33 +99,3 @@ def test_a_tiered_federation_over_a_real_broker(tmp_path: Path) -> None:
     assert snapshot["kinds"]["partial"] == 6 and snapshot["run"]["phase"] == "stopped"
     # It stopped reading the workers' updates once the RunStart named the edges (at most those already on their way).
     assert snapshot["kinds"].get("update", 0) < 4 * 3
-
-def _pid_of_edge(run_id: str, edge: str) -> int:
-    """The process id of a run's edge chief (deploy.run_local gives each child its settings as FEDRL_* variables)."""
-    wanted = {f"FEDRL_RUN_ID={run_id}".encode(), f"FEDRL_EDGE_ID={edge}".encode()}
-    for proc in Path("/proc").iterdir():
-        try:
-            if proc.name.isdigit() and wanted <= set((proc / "environ").read_bytes().split(b"\0")):
-                return int(proc.name)
-        except OSError:  # gone, or not ours
-            continue
-    raise AssertionError(f"no edge chief {edge} of run {run_id} is running")
-
-
-def test_an_edge_chief_that_dies_leaves_its_workers_lagging_and_says_so(tmp_path: Path) -> None:
-    """What a dead edge chief costs (not replaced mid-run, docs/explanation/tiered.md): edge e0 is killed after round
-    5; the launcher names it, the root's round times out on its worker and names the silent edge, and the run goes
-    on with the other edge's worker to its end, w0 left lagging; the audit passes."""
-    run = "deadedge"
-    run_dir = federate_through(
-        tmp_path, lambda: os.kill(_pid_of_edge(run, "e0"), signal.SIGKILL),
-        ["--workers", "2", "--edges", "2", "--env", ENV, "--seed", str(SEED), "--max-episodes", "20",
-         "--dashboard-port", "off"], {"FEDRL_ROUND_TIMEOUT": "10"}, after_rounds=5, name=run)
-    launcher = (tmp_path / f"{run}-launcher.log").read_text()
-    assert "!! edge-e0 exited with code -9" in launcher
-    assert "nothing came from edge e0 within 10 s (w0 timed out)" in (run_dir / "logs" / "chief.log").read_text()
-    workers = {w["id"]: w for w in json.loads((run_dir / "summary.json").read_text())["workers"]}
-    assert workers["w0"]["state"] == "lagging" and 5 <= workers["w0"]["episodes"] < 20
-    assert workers["w1"]["episodes"] == 20
-    audit(run_dir)
-

@@ -1,0 +1,90 @@
+"""chief/failover.py: when an edge is dead, and where its workers go (pure, time passed in)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from chief import failover
+from chief.failover import WILL_GRACE, EdgeWatch, dead, fail_over, groups_of, silence_limit, stand_in
+from chief.rounds import RoundKeeper, Submission
+from chief.tiers import Partial
+from protocol.rounds import RoundShape
+from protocol.tasks import task
+
+EDGES = {"w0": "e0", "w1": "e1", "w2": "e0", "w3": "e1", "w4": "e2"}
+
+
+def test_an_edge_is_dead_after_its_will_and_a_grace_or_after_a_silence() -> None:
+    assert not dead(last_heard=10.0, will_at=11.0, now=11.0 + WILL_GRACE - 0.01, round_timeout=30)
+    assert dead(last_heard=10.0, will_at=11.0, now=11.0 + WILL_GRACE, round_timeout=30)
+    # a will older than its last word: a broker restart delivered it, and the edge said online again since
+    assert not dead(last_heard=12.0, will_at=11.0, now=13.5, round_timeout=30)
+    assert silence_limit(30) == 10 and silence_limit(600) == failover.SILENCE_LIMIT and silence_limit(3) == 3
+    assert not dead(last_heard=0.0, will_at=None, now=9.99, round_timeout=30)
+    assert dead(last_heard=0.0, will_at=None, now=10.0, round_timeout=30)
+
+
+def test_the_watch_finds_each_death_once_and_a_return() -> None:
+    watch = EdgeWatch()
+    watch.expect({"e0", "e1"}, now=0.0)
+    watch.status("e0", True, 0.5, started=True)
+    watch.status("e1", True, 0.5, started=True)
+    watch.status("e0", False, 1.0)  # its will
+    watch.status("e1", True, 1.5, started=True)
+    assert watch.newly_dead(1.0 + WILL_GRACE - 0.1, 30) == []
+    assert watch.newly_dead(1.0 + WILL_GRACE, 30) == ["e0"]
+    assert watch.newly_dead(5.0, 30) == [] and watch.alive() == {"e1"}
+    watch.alive_now("e0", 5.0)  # a late partial of the dead edge brings nothing back
+    assert watch.alive() == {"e1"}
+    assert watch.status("e0", True, 6.0, started=False)  # back
+    assert watch.alive() == {"e0", "e1"}
+    assert watch.status("e1", True, 6.0, started=False)  # it held the run, now says it holds none: it restarted
+    assert not watch.status("e1", True, 7.0, started=False)
+    assert watch.newly_dead(7.0 + silence_limit(30), 30) == ["e0", "e1"]
+
+
+def test_a_dead_edges_group_goes_to_the_least_loaded_live_edge_of_its_site() -> None:
+    watch = EdgeWatch()
+    for e, site in (("e0", None), ("e1", None), ("e2", None)):
+        watch.status(e, True, 0.0, site=site)
+    watch.found_dead.add("e0")
+    assert fail_over(["e0"], EDGES, {}, watch) == {"e0": "e2"}  # e2 serves 1 worker, e1 2
+    assert groups_of("e2", EDGES, {"e0": "e2"}) == {"e0": ["w0", "w2"], "e2": ["w4"]}
+    watch.found_dead.add("e2")  # then its stand-in dies: both groups go to the one left
+    assert fail_over(["e2"], EDGES, {"e0": "e2"}, watch) == {"e0": "e1", "e2": "e1"}
+    watch.status("e0", True, 9.0, started=False)  # e0 back; then e1 dies: every group goes to e0, its own back home
+    watch.found_dead.add("e1")
+    assert fail_over(["e1"], EDGES, {"e0": "e1", "e2": "e1"}, watch) == {"e1": "e0", "e2": "e0"}
+
+
+def test_no_live_edge_of_its_site_leaves_a_group_where_it_is() -> None:
+    watch = EdgeWatch()
+    watch.status("a", True, 0.0, site="a")
+    watch.status("b", True, 0.0, site="b")
+    watch.found_dead.add("a")
+    assert stand_in("a", watch.sites, watch.alive(), {}) is None
+    assert fail_over(["a"], {"w0": "a", "w1": "b"}, {}, watch) == {}
+
+
+def test_a_keeper_that_joins_mid_run_starts_at_the_roots_round() -> None:
+    """An edge that joins at round 8 of a per-step run (3 rounds an episode: episode 3, step 1): a later step of
+    an episode whose step 0 came before it joined is not refused as out of order (the root checks it)."""
+    keeper = RoundKeeper(["w0"], "sync", task("CartPole-v0"), 10, 30.0, shape=RoundShape(per_episode=3), tier="edge")
+    keeper.join_at(8)  # episode 3, step 1
+    assert keeper.round == 8 and keeper.joined == 8
+    g = {"w": np.ones(3, np.float32)}
+    verdict = keeper.submit(Submission("w0", 3, 9.0, 9.0, (9.0,), step=1, gradient=g, critic_gradient=g), 0.0)
+    assert verdict.status == "accepted", verdict
+
+
+def test_a_root_sums_no_worker_twice_from_overlapping_partials_of_one_group() -> None:
+    """A dead edge's partial {w0} (it timed w2 out) and its stand-in's {w0, w2} of the same round: the fuller one
+    supersedes; one that overlaps without holding the held one is not summed."""
+    keeper = RoundKeeper(["w0", "w1", "w2"], "plain", task("CartPole-v0"), 10, 30.0, tier="root")
+    one = Partial({"w": np.ones(2, np.float32)}, 1.0, 1)
+    keeper.add_partial(1, "e0", one, ["w0"], {})
+    keeper.add_partial(1, "e1", one, ["w1"], {})
+    keeper.add_partial(1, "e0", Partial({"w": np.full(2, 2, np.float32)}, 2.0, 2), ["w0", "w2"], {})
+    assert sorted(keeper.partials[1]) == [("e0", ("w0", "w2")), ("e1", ("w1",))]
+    keeper.add_partial(1, "e0", one, ["w2", "w9"], {})
+    assert sorted(keeper.partials[1]) == [("e0", ("w0", "w2")), ("e1", ("w1",))]

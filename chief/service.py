@@ -18,7 +18,6 @@ from typing import Any
 
 from chief import checkpoint, tensorboard
 from chief.claim import EXIT_CLAIMED, RunClaim
-from chief.records import SUMMARY
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
@@ -48,6 +47,7 @@ from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
+from runtime.records import SUMMARY
 from runtime.storage import EXIT_STORAGE
 
 log = logging.getLogger("chief")
@@ -265,7 +265,7 @@ class ChiefService:
             "algo": self.roster.algo, "edges": self.edge_of})
 
     def _init_model(self) -> dict[str, str] | None:
-        """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""
+        """The run's model as the records name it (runtime.records.InitModelRecord), None from scratch."""
         roster = self.roster
         return None if roster.init_model is None else {"path": roster.init_model_path, "digest": roster.init_model}
 

@@ -87,7 +87,7 @@ class ChiefService:
         """``cfg``: the chief's settings, already checked (the policy, the task and the run id among them)."""
         self.cfg = cfg
         self.outputs = outputs or Outputs()
-        self.broker = cfg.address()
+        self.broker = cfg.where()
         self.spec = task(cfg.env)
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()

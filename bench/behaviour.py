@@ -59,7 +59,7 @@ def per_worker(run: Run, runs_dir: Path) -> list[list[object]]:
     summary = run_federation(InprocessSettings.given(env=run.task, policy=run.strategy, seed=run.seed, workers=WORKERS,
                              max_episodes=run.cap, run_dir=runs_dir / run.name, algo=run.algo), plot=False,
                              tensorboard_files=False, models=False)
-    return [[w["id"], w["episodes"], w["steps"], w.get("final_pi")] for w in summary["workers"]]
+    return [[w.id, w.episodes, w.steps, w.final_pi] for w in summary.workers]
 
 
 def compare(a: dict[str, list], b: dict[str, list]) -> list[str]:

@@ -38,7 +38,6 @@ from typing import Any
 import numpy as np
 
 from chief import strategies
-from chief.records import EpisodeRecord, RoundRecord, StepRecord, read_metrics
 from protocol import topics
 from protocol.codec import decode, encode
 from protocol.messages import (
@@ -54,6 +53,7 @@ from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import digest, pack_arrays
 from protocol.transport import Transport, connector
+from runtime.records import EpisodeRecord, RoundRecord, StepRecord, read_metrics
 from services.broker import mosquitto
 
 WORKER_COUNTS = (4, 16, 64)

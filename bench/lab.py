@@ -27,8 +27,8 @@ from typing import TYPE_CHECKING, Any
 from bench.output import write_block, write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
-from chief.records import SUMMARY, RunSummary
 from protocol.qube import MAX_RETURN
+from runtime.records import SUMMARY, RunSummary
 
 if TYPE_CHECKING:
     from services.qube_sim.profile import RigProfile

@@ -30,8 +30,8 @@ from typing import Any
 from bench.output import write_report
 from chief import strategies
 from chief.audit import AuditFailure, audit
-from chief.records import RunSummary
 from protocol import learners
+from runtime.records import RunSummary
 
 TASKS = ("CartPole-v0", "Acrobot-v1", "MountainCarContinuous-v0", "Pendulum-v1", "qube-local")
 MODES = ("mqtt", "inprocess")

@@ -48,6 +48,7 @@ from bench.lab import family_profile, seeds_of, truth_file
 from bench.output import command, write_block
 from bench.runs import process_pool
 from bench.stats import spread_censored
+from runtime.records import SUMMARY, RunSummary
 
 OUT = Path("bench/results/ood.json")
 RUNS = Path("runs/bench-ood")
@@ -242,7 +243,7 @@ def zeroshot(model: str, truth: str, seeds: list[int], models: list[str | None],
 
 
 def federation(seed: int, rigs: int, max_episodes: int, folder: Path, options: dict[str, Any], algo: str,
-               init_model: str | None = None) -> dict[str, Any]:
+               init_model: str | None = None) -> RunSummary:
     """One in-process federation of the sweep's task and strategy on ``rigs`` rigs with the rig ``options``
     (rig_profile, rig_model, randomize, qube_actions, qube_clock); its summary."""
     from deploy.inprocess import run_federation
@@ -263,21 +264,20 @@ def finetune(seed: int, run_dir: str, options: dict[str, Any], model: str, max_e
     return {**last_rig(summary, identify_s), "run_dir": run_dir, "cpu_s": round(time.process_time() - t0, 1)}
 
 
-def last_rig(summary: dict[str, Any], identify_s: list[float]) -> dict[str, Any]:
+def last_rig(summary: RunSummary, identify_s: list[float]) -> dict[str, Any]:
     """From a fine-tune's summary: finished (every rig solved), the last rig's episodes and rig minutes, the workers
     stopped on their rig."""
     rigs = []
-    for w in summary.get("workers", []):
-        rig = w.get("rig") or {}
-        extra = identify_s[w["index"]] if w["index"] < len(identify_s) else 0.0
-        rigs.append({"solved": bool(w["solved"]), "episodes": w.get("episodes"),
-                     "rig_min": round((rig.get("rig_s", 0.0) + extra) / 60, 3),
-                     "stopped": w.get("state") in ("failed", "stopped")})
+    for w in summary.workers:
+        extra = identify_s[w.index] if w.index < len(identify_s) else 0.0
+        rigs.append({"solved": w.solved, "episodes": w.episodes,
+                     "rig_min": round(((w.rig.rig_s if w.rig else 0.0) + extra) / 60, 3),
+                     "stopped": w.state == "stopped"})
     finished = bool(rigs) and all(r["solved"] for r in rigs)
     last = max(rigs, key=lambda r: r["rig_min"]) if rigs else {}
     return {"finished": finished, "episodes": last.get("episodes") if finished else None,
             "rig_min": last.get("rig_min") if finished else None, "stopped": sum(r["stopped"] for r in rigs),
-            "end_reason": summary.get("end_reason")}
+            "end_reason": summary.end_reason}
 
 
 def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int = PRETRAIN_SEED,
@@ -288,13 +288,13 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
     (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model."""
     t0 = time.process_time()
     summary = reused(Path(run_dir), lambda folder: _pretrain(folder, seed, actions, max_episodes, algo, identified))
-    solved = any(w["solved"] for w in summary.get("workers", []))
-    return {"finished": solved, "model": run_dir if solved else None, "end_reason": summary.get("end_reason"),
-            "episodes": summary.get("episodes_to_all_solved"), "cpu_s": round(time.process_time() - t0, 1)}
+    solved = any(w.solved for w in summary.workers)
+    return {"finished": solved, "model": run_dir if solved else None, "end_reason": summary.end_reason,
+            "episodes": summary.episodes_to_all_solved, "cpu_s": round(time.process_time() - t0, 1)}
 
 
 def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: str,
-              identified: list[str] | None) -> dict[str, Any]:
+              identified: list[str] | None) -> RunSummary:
     """Run the pretrain :func:`pretrain` describes into ``folder``; its summary."""
     options: dict[str, Any] = {"rig_profile": "lab", "randomize": RANDOMIZE, "qube_actions": actions}
     if identified is not None:
@@ -307,11 +307,11 @@ def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: st
     return federation(seed, RIGS, max_episodes, folder, options, algo)
 
 
-def reused(folder: Path, run: Callable[[Path], dict[str, Any]]) -> dict[str, Any]:
+def reused(folder: Path, run: Callable[[Path], RunSummary]) -> RunSummary:
     """The summary of the finished run in ``folder``, else of ``run(folder)`` in the folder made empty (an
     unfinished run is started again)."""
-    if (folder / "summary.json").exists():
-        return dict(json.loads((folder / "summary.json").read_text()))
+    if (folder / SUMMARY).exists():
+        return RunSummary.read(folder)
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
     return run(folder)

@@ -46,8 +46,8 @@ from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
-from chief.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_metrics
 from protocol import learners
+from runtime.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_metrics
 
 #: The strategy every other is compared with (bench.paper, bench.report).
 BASELINE = "independent"

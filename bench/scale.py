@@ -50,13 +50,13 @@ from bench.cost import RUN, actor_arrays
 from bench.fleets import PER_PROCESS, SpreadFleet
 from bench.rigs import RigProcess
 from chief.audit import audit
-from chief.records import EpisodeRecord, RoundRecord, read_metrics
 from protocol.codec import encode
 from protocol.messages import WorkerUpdate
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import pack_arrays
 from protocol.transport import connector
+from runtime.records import EpisodeRecord, RoundRecord, read_metrics
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
 

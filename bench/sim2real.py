@@ -11,9 +11,9 @@ code as over MQTT, lockstep clock, rig time from the simulated clock). Compared,
 - and each pretrained model zero-shot, before any fine-tuning: balanced to the end or not on held-out ``lab`` rigs
   (worker/evaluate.py's robustness test without disturbances), and the fine-tuned controllers under the disturbances.
 
-Each pretrain runs once, on a tuning seed (PRETRAIN_SEED). Reported for the last rig (chief.records.LastRig): episodes,
-balance steps, rig minutes (balance + reset), idle minutes and wall minutes, as median [IQR] with unfinished runs
-counted as worse (bench.stats.spread_censored), against the targets of the rig-time issue. A rig whose swing-up
+Each pretrain runs once, on a tuning seed (PRETRAIN_SEED). Reported for the last rig (runtime.records.LastRig):
+episodes, balance steps, rig minutes (balance + reset), idle minutes and wall minutes, as median [IQR] with unfinished
+runs counted as worse (bench.stats.spread_censored), against the targets of the rig-time issue. A rig whose swing-up
 reset fails five times in a row stops its worker, as a real rig's would (worker/qube_env.py); its run then ends
 unfinished, and the report names it with its end reason. Results:
 ``<out>/sim2real.json``; run folders under ``<runs-dir>``. ``--quick`` is a smoke-sized variant (one seed, small caps)
@@ -41,6 +41,7 @@ from typing import Any
 
 from bench import stats
 from bench.runs import process_pool
+from runtime.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_metrics
 
 TASK = "qube-local"
 POLICY = "plain"  # the QUBE's best strategy in bench/results/paper.json (plain 108 episodes, weighted 128, sync 131)
@@ -79,48 +80,47 @@ class Setup:
 
 
 def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str, Any],
-             init_model: Path | None = None, setup: Setup = Setup()) -> dict[str, Any]:
-    """One in-process federation of RIGS rigs; its summary plus the run folder (reuses a finished run)."""
-    summary_path = run_dir / "summary.json"
-    if summary_path.exists():
-        return {**json.loads(summary_path.read_text()), "run_dir": str(run_dir)}
+             init_model: Path | None = None, setup: Setup = Setup()) -> RunSummary:
+    """One in-process federation of RIGS rigs in ``run_dir``; its summary (reuses a finished run)."""
+    if (run_dir / SUMMARY).exists():
+        return RunSummary.read(run_dir)
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
 
     run_dir.mkdir(parents=True, exist_ok=True)
-    summary = run_federation(InprocessSettings.given(env=TASK, policy=setup.policy, seed=seed, workers=RIGS,
-                             max_episodes=max_episodes, run_dir=run_dir, **env_options, init_model=init_model,
-                             algo=setup.algo), plot=False, tensorboard_files=False, tolerate_failures=True)
-    return {**summary, "run_dir": str(run_dir)}
+    return run_federation(InprocessSettings.given(env=TASK, policy=setup.policy, seed=seed, workers=RIGS,
+                          max_episodes=max_episodes, run_dir=run_dir, **env_options, init_model=init_model,
+                          algo=setup.algo), plot=False, tensorboard_files=False, tolerate_failures=True)
 
 
-def last_rig(summary: dict[str, Any]) -> dict[str, Any]:
+def last_rig(summary: RunSummary, run_dir: Path) -> dict[str, Any]:
     """The figures the table reports for a run's last rig (None where the run did not finish)."""
-    rig = summary.get("last_rig") or {}
-    solved = summary.get("episodes_to_all_solved") is not None
-    return {"finished": solved, "episodes": summary.get("episodes_to_all_solved"),
-            "balance_steps": rig.get("balance_steps") if solved else None,
-            "rig_min": round(rig["rig_s"] / 60, 3) if solved and rig else None,
-            "balance_min": round(rig["balance_s"] / 60, 3) if solved and rig else None,
-            "reset_min": round(rig["reset_s"] / 60, 3) if solved and rig else None,
-            "idle_min": round(rig["idle_s"] / 60, 3) if rig else None,
-            "wall_min": round(summary.get("wall_s", 0.0) / 60, 3), "run_dir": summary["run_dir"],
+    rig = summary.last_rig
+    solved = summary.episodes_to_all_solved is not None
+    done = rig if solved else None
+    return {"finished": solved, "episodes": summary.episodes_to_all_solved,
+            "balance_steps": done.balance_steps if done else None,
+            "rig_min": round(done.rig_s / 60, 3) if done else None,
+            "balance_min": round(done.balance_s / 60, 3) if done else None,
+            "reset_min": round(done.reset_s / 60, 3) if done else None,
+            "idle_min": round(rig.idle_s / 60, 3) if rig else None,
+            "wall_min": round((summary.wall_s or 0.0) / 60, 3), "run_dir": str(run_dir),
             "rig_wall_ratio": rig_wall_ratio(summary) if solved else None,
-            "end_reason": summary.get("end_reason"),
-            "unsolved": {w["id"]: w["state"] + (f": {w['detail']}" if w.get("detail") else "")
-                         for w in summary.get("workers", []) if not w["solved"]}}
+            "end_reason": summary.end_reason,
+            "unsolved": {w.id: w.state + (f": {w.detail}" if w.detail else "") for w in summary.workers
+                         if not w.solved}}
 
 
-def rig_wall_ratio(summary: dict[str, Any]) -> float | None:
+def rig_wall_ratio(summary: RunSummary) -> float | None:
     """Wall-clock on real rigs over the slowest rig's rig time: the run lasts until its last rig is done, which is
     its rig time plus the idle time it waited for the federation (summary.json ``last_rig``), against the most rig
     time any rig spent. Under a simulated clock the idle time is modelled (protocol/rigtime.py); the learners'
     compute between episodes is not in it."""
-    rigs = [w["rig"]["rig_s"] for w in summary.get("workers", []) if w.get("rig")]
-    last = summary.get("last_rig")
+    rigs = [w.rig.rig_s for w in summary.workers if w.rig]
+    last = summary.last_rig
     if not rigs or not last or not max(rigs) > 0:
         return None
-    return round((last["rig_s"] + last["idle_s"]) / max(rigs), 3)
+    return round((last.rig_s + last.idle_s) / max(rigs), 3)
 
 
 def zero_shot(model: Path, rigs: int, disturbed: bool, seed: int = HELD_OUT_SEED) -> dict[str, Any]:
@@ -170,8 +170,9 @@ def reference_trials(rigs: int) -> dict[str, Any]:
 def pretrain(name: str, runs_dir: Path, max_episodes: int, setup: Setup) -> dict[str, Any]:
     """The ``name`` pretrain's federation (lockstep); its model is that of the first rig to solve
     (runtime.model_file)."""
-    summary = federate(runs_dir / f"pretrain-{name}", PRETRAIN_SEED, max_episodes, PRETRAINS[name], setup=setup)
-    return {"name": name, **last_rig(summary), "options": PRETRAINS[name], "seed": PRETRAIN_SEED}
+    folder = runs_dir / f"pretrain-{name}"
+    summary = federate(folder, PRETRAIN_SEED, max_episodes, PRETRAINS[name], setup=setup)
+    return {"name": name, **last_rig(summary, folder), "options": PRETRAINS[name], "seed": PRETRAIN_SEED}
 
 
 def _job(setting: str, seed: int, clock: str, runs_dir: Path, max_episodes: int, model: str | None,
@@ -180,9 +181,9 @@ def _job(setting: str, seed: int, clock: str, runs_dir: Path, max_episodes: int,
 
     torch.set_num_threads(1)
     options = {"rig_profile": "lab", **({"qube_clock": clock} if clock != "lockstep" else {})}
-    summary = federate(runs_dir / clock / f"{setting}-s{seed}", seed, max_episodes, options,
-                       Path(model) if model else None, setup)
-    return {"setting": setting, "seed": seed, "clock": clock, **last_rig(summary)}
+    folder = runs_dir / clock / f"{setting}-s{seed}"
+    summary = federate(folder, seed, max_episodes, options, Path(model) if model else None, setup)
+    return {"setting": setting, "seed": seed, "clock": clock, **last_rig(summary, folder)}
 
 
 def fine_tune(models: dict[str, str | None], seeds: list[int], clocks: list[str], runs_dir: Path,
@@ -208,7 +209,7 @@ def realtime(seed: int, model: str, runs_dir: Path, max_episodes: int, setup: Se
     rounds over the broker), where the wall-clock and every rig's time are measured: the wall-clock target's figure.
     Reuses a finished run."""
     run_dir = runs_dir / "realtime" / f"randomised-s{seed}"
-    if not (run_dir / "summary.json").exists():
+    if not (run_dir / SUMMARY).exists():
         command = [sys.executable, "-m", "deploy.run_local", "--env", "qube", "--qube-clock", "realtime",
                    "--workers", str(RIGS), "--seed", str(seed), "--policy", setup.policy, "--algo", setup.algo,
                    "--max-episodes", str(max_episodes), "--init-model", model, "--run-dir", str(run_dir),
@@ -216,10 +217,10 @@ def realtime(seed: int, model: str, runs_dir: Path, max_episodes: int, setup: Se
         print(" ".join(command), flush=True)
         subprocess.run(command, env={**os.environ, "FEDRL_RIG_PROFILE": "lab"}, check=False,
                        stdout=subprocess.DEVNULL)
-    summary = json.loads((run_dir / "summary.json").read_text())
+    summary = RunSummary.read(run_dir)
     wall = measured_wall(run_dir)
-    slowest = max((w["rig"]["rig_s"] for w in summary.get("workers", []) if w.get("rig")), default=0.0)
-    return {"seed": seed, **last_rig({**summary, "run_dir": str(run_dir)}), "measured_wall_min": wall,
+    slowest = max((w.rig.rig_s for w in summary.workers if w.rig), default=0.0)
+    return {"seed": seed, **last_rig(summary, run_dir), "measured_wall_min": wall,
             "slowest_rig_min": round(slowest / 60, 3), "missed_actions": missed_actions(run_dir),
             "measured_ratio": round(wall * 60 / slowest, 3) if wall and slowest > 0 else None}
 
@@ -241,13 +242,12 @@ def measured_wall(run_dir: Path) -> float | None:
     ``t``; a worker's first episode began its reset and balance seconds before its record)."""
     starts, end = [], None
     seen: set[str] = set()
-    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
-        rec = json.loads(line)
-        if rec.get("type") == "episode" and rec["worker"] not in seen and rec.get("reset_s") is not None:
-            seen.add(rec["worker"])
-            starts.append(rec["t"] - rec["reset_s"] - (rec.get("balance_s") or 0.0))
-        if rec.get("type") in ("episode", "round") and "t" in rec:
-            end = rec["t"]
+    for rec in read_metrics(run_dir):
+        if isinstance(rec, EpisodeRecord) and rec.worker not in seen and rec.reset_s is not None:
+            seen.add(rec.worker)
+            starts.append(rec.t - rec.reset_s - (rec.balance_s or 0.0))
+        if isinstance(rec, (EpisodeRecord, RoundRecord)):
+            end = rec.t
     return round((end - min(starts)) / 60, 3) if starts and end is not None else None
 
 
@@ -438,9 +438,8 @@ def _first(p: dict[str, Any]) -> str:
 
 def _first_of(run_dir: str) -> str:
     """models/<id>.pt of the run's first worker to solve."""
-    summary = json.loads((Path(run_dir) / "summary.json").read_text())
-    solved = [w for w in summary["workers"] if w["solved"]]
-    return f"{min(solved, key=lambda w: (w['episodes'], w['index']))['id']}.pt"
+    solved = [w for w in RunSummary.read(Path(run_dir)).workers if w.solved]
+    return f"{min(solved, key=lambda w: (w.episodes, w.index)).id}.pt"
 
 
 def config(args: argparse.Namespace) -> dict[str, Any]:

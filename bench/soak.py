@@ -23,7 +23,7 @@ from typing import Any
 
 from chief import strategies
 from chief.audit import audit
-from chief.records import RoundRecord, RunSummary, read_metrics
+from runtime.records import RoundRecord, RunSummary, read_metrics
 from services.broker import mosquitto
 
 RESULTS = Path("bench/results")

@@ -74,10 +74,10 @@ def run_one(staleness: int, args: argparse.Namespace, runs: Path) -> dict[str, A
                                  max_episodes=args.episodes, run_dir=run_dir, max_staleness=staleness), plot=False,
                                  tensorboard_files=False, models=False)
     report = audit(run_dir)
-    rigs = {w["id"]: {k: w["rig"][k] for k in ("idle_s", "reset_s", "balance_s", "rig_s")} | {
-        "episodes": w["episodes"], "solved": w["solved"]} for w in summary["workers"]}
+    rigs = {w.id: {k: getattr(w.rig, k) for k in ("idle_s", "reset_s", "balance_s", "rig_s")} | {
+        "episodes": w.episodes, "solved": w.solved} for w in summary.workers}
     return {"max_staleness": staleness, "rigs": rigs, "idle_s_total": round(sum(r["idle_s"] for r in rigs.values()), 3),
-            "rounds": summary["rounds"], "end_reason": summary["end_reason"], "audit": str(report),
+            "rounds": summary.rounds, "end_reason": summary.end_reason, "audit": str(report),
             "wall_s": round(time.monotonic() - began, 1), "run_dir": str(run_dir)}
 
 

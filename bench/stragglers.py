@@ -26,9 +26,9 @@ from typing import Any
 
 from bench.output import command
 from chief.audit import audit
-from chief.records import RoundRecord, read_metrics
 from deploy.inprocess import run_federation
 from deploy.settings import InprocessSettings
+from runtime.records import RoundRecord, read_metrics
 
 OUT = Path("bench/results/stragglers.json")
 OUT_EDGES = Path("bench/results/stragglers-edges.json")
@@ -56,10 +56,10 @@ def measure(name: str, workers: int, episodes: int, seed: int, env: str, folder:
     report = audit(run_dir)
     rounds = rounds_of(run_dir)
     return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {}, "edges": edges,
-            "rounds": summary["rounds"], "s_per_round": round(seconds_per_round(run_dir), 4),
+            "rounds": summary.rounds, "s_per_round": round(seconds_per_round(run_dir), 4),
             "wall_s": round(time.monotonic() - began, 1),
             "rounds_without": sum(1 for r in rounds if r.late),
-            "late_refused": summary.get("rejected_messages", {}).get("late", 0), "audit": str(report)}
+            "late_refused": (summary.rejected_messages or {}).get("late", 0), "audit": str(report)}
 
 
 def main(argv: list[str] | None = None) -> int:

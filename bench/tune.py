@@ -58,9 +58,9 @@ def run(task: str, strategy: str, algo: str, seed: int, workers: int, max_episod
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
     return {"task": task, "strategy": strategy, "algo": algo, "set": overrides, "seed": seed, "workers": workers,
-            "max_episodes": max_episodes, "last_worker_episodes": summary.get("episodes_to_all_solved"),
-            "last_worker_steps": summary.get("steps_of_last_worker"),
-            "per_worker": [[w["id"], w["episodes"], w["solved"]] for w in summary["workers"]],
+            "max_episodes": max_episodes, "last_worker_episodes": summary.episodes_to_all_solved,
+            "last_worker_steps": summary.steps_of_last_worker,
+            "per_worker": [[w.id, w.episodes, w.solved] for w in summary.workers],
             "wall_s": round(time.monotonic() - t0, 1), "load_average": [round(x, 2) for x in os.getloadavg()]}
 
 

@@ -3,7 +3,7 @@
 Reads ``summary.json`` and ``metrics.jsonl`` (what the chief accepted, and every round it closed) and re-derives what
 the federation must have done. It exits 0 when every invariant holds, 1 naming the first that does not, 2 when the
 folder cannot be read. The invariants, each one function registered in ``CHECKS`` (run in that order, on the records
-as chief/records.py types them):
+as runtime/records.py types them):
 
 - ``rounds-contiguous``: rounds are 1, 2, ... without gaps, as many as the summary says, each the round of its
   (episode, step);
@@ -54,7 +54,13 @@ import numpy as np
 
 from chief import federation, strategies, tiers
 from chief.played import played_totals
-from chief.records import (
+from chief.rigtime import last_rig, rig_times
+from chief.rounds import scaled
+from protocol.messages import Receipt
+from protocol.rounds import RoundShape
+from protocol.tasks import PI_WINDOW, performance_index
+from protocol.tensors import digest
+from runtime.records import (
     GRADIENTS,
     ROOT,
     EpisodeRecord,
@@ -65,12 +71,6 @@ from chief.records import (
     gradient_key,
     read_metrics,
 )
-from chief.rigtime import last_rig, rig_times
-from chief.rounds import scaled
-from protocol.messages import Receipt
-from protocol.rounds import RoundShape
-from protocol.tasks import PI_WINDOW, performance_index
-from protocol.tensors import digest
 from runtime.settings import program, returns_code
 
 Submitted = EpisodeRecord | StepRecord

@@ -2,7 +2,7 @@
 
 Every submission carries its worker's ``played`` counts (protocol.messages.Played): the episodes and env steps of
 its life in the run so far. The records keep them on counted episodes and on refused submissions that tell more
-(chief.records.RefusedRecord). A worker played the sum, over its lives, of the largest counts on record; the chief
+(runtime.records.RefusedRecord). A worker played the sum, over its lives, of the largest counts on record; the chief
 counted its counted episodes' records; the rest was refused (stale, out of window...) or never arrived.
 """
 
@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-from chief.records import AnyRecord, EpisodeRecord, PlayedTotals, RefusedRecord
 from protocol.messages import Played
+from runtime.records import AnyRecord, EpisodeRecord, PlayedTotals, RefusedRecord
 
 
 @dataclass

@@ -11,7 +11,9 @@ from pathlib import Path
 from typing import Any, Protocol, TextIO
 
 from chief.played import PlayedTally
-from chief.records import (
+from chief.rigtime import last_rig, rig_times
+from chief.rounds import RoundKeeper, WorkerRecord
+from runtime.records import (
     METRICS,
     AnyRecord,
     EpisodeRecord,
@@ -27,8 +29,6 @@ from chief.records import (
     parse_record,
     read_metrics,
 )
-from chief.rigtime import last_rig, rig_times
-from chief.rounds import RoundKeeper, WorkerRecord
 from runtime.storage import storage_errors
 
 log = logging.getLogger(__name__)

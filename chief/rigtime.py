@@ -11,8 +11,8 @@ from __future__ import annotations
 from collections.abc import Iterable
 from typing import Literal
 
-from chief.records import EpisodeRecord, LastRig, RigTime, RoundRecord, StepRecord
 from protocol.rigtime import EpisodeTime, IdleModel, RigTotals
+from runtime.records import EpisodeRecord, LastRig, RigTime, RoundRecord, StepRecord
 
 
 def rig_times(records: Iterable[EpisodeRecord | StepRecord | RoundRecord], staleness: int = 0) -> dict[str, RigTime]:

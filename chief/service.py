@@ -18,7 +18,6 @@ from typing import Any
 
 from chief import checkpoint, failover, tensorboard
 from chief.claim import EXIT_CLAIMED, RunClaim
-from chief.records import SUMMARY
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
@@ -49,6 +48,7 @@ from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
+from runtime.records import SUMMARY
 from runtime.storage import EXIT_STORAGE
 
 log = logging.getLogger("chief")
@@ -90,7 +90,7 @@ class ChiefService:
         """``cfg``: the chief's settings, already checked (the policy, the task and the run id among them)."""
         self.cfg = cfg
         self.outputs = outputs or Outputs()
-        self.broker = cfg.address()
+        self.broker = cfg.where()
         self.spec = task(cfg.env)
         self.rejects = RejectCounter(log)
         self.events: queue.Queue[tuple[str, Any]] = queue.Queue()
@@ -275,7 +275,7 @@ class ChiefService:
             "algo": self.roster.algo, "edges": self.edge_of, "stand_ins": self.stand_ins, "moves": self.moves})
 
     def _init_model(self) -> dict[str, str] | None:
-        """The run's model as the records name it (chief.records.InitModelRecord), None from scratch."""
+        """The run's model as the records name it (runtime.records.InitModelRecord), None from scratch."""
         roster = self.roster
         return None if roster.init_model is None else {"path": roster.init_model_path, "digest": roster.init_model}
 

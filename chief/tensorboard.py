@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from chief.records import METRICS, AnyRecord, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from runtime.records import METRICS, AnyRecord, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
 
 Line = EpisodeRecord | StepRecord | RoundRecord
 

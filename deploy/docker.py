@@ -33,10 +33,10 @@ except ModuleNotFoundError:  # one line naming the extra, not a traceback
     require("deploy", "docker", "requests")
     raise
 
-from chief.records import SUMMARY, RunSummary
 from chief.settings import ChiefSettings
 from deploy.settings import DockerSettings
 from protocol.tasks import worker_seed
+from runtime.records import SUMMARY, RunSummary
 from runtime.settings import Settings, returns_code, to_env
 from services.qube_sim.settings import SimRigSettings
 from worker.settings import WorkerSettings

@@ -24,7 +24,6 @@ from typing import Any
 import msgpack
 
 from chief.edge import EdgeService
-from chief.report import write_summary
 from chief.service import EXIT_ABORTED, EXIT_OK, ChiefService, Outputs
 from chief.settings import ChiefSettings
 from deploy.settings import InprocessSettings
@@ -35,6 +34,7 @@ from protocol.memory import Hub, MemoryConnection
 from protocol.messages import RunStop
 from protocol.transport import Connect, Handler
 from runtime.model_file import ModelFileError
+from runtime.records import RunSummary
 from runtime.settings import returns_code
 from worker.service import EXIT_ERROR, WorkerService
 from worker.settings import WorkerSettings, handed_keys
@@ -50,7 +50,7 @@ IDLE_TIMEOUT = 2.0
 
 def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = False, tensorboard_files: bool = True,
                    models: bool = True, tolerate_failures: bool = False,
-                   pace: dict[str, float] | None = None) -> dict[str, Any]:
+                   pace: dict[str, float] | None = None) -> RunSummary:
     """Run the federation ``s`` describes to its end; returns its summary (also written to ``s.run_dir``). The
     chief's, the edges' and the workers' settings are its children (Settings.child, as deploy.run_local builds
     them), made from ``s`` alone (nothing of this process's environment, as a container's): a warm start that does
@@ -106,11 +106,9 @@ def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = 
     failed = {w: c for w, c in codes.items() if c not in (EXIT_OK, EXIT_ABORTED)}
     if failed and not (tolerate_failures and all(c == EXIT_ERROR for c in failed.values())):
         raise RuntimeError(f"in-process workers failed: {failed}")
-    options = env_options(s)
-    summary = {**json.loads((s.run_dir / "summary.json").read_text()), "run_id": s.run_dir.name,
-               "mode": "in-process", **({"env_options": options} if options else {})}
-    summary.pop("broker", None)
-    write_summary(s.run_dir, summary)
+    summary = RunSummary.read(s.run_dir).model_copy(update={
+        "run_id": s.run_dir.name, "mode": "in-process", "broker": None, "env_options": env_options(s) or None})
+    summary.write(s.run_dir)
     (s.run_dir / "timing.json").write_text(json.dumps(
         {"worker_s": {w: [round(x, 5) for x in c[0].seconds] for w, c in worker_conns.items() if c},
          "chief_s": [round(x, 5) for x in chief_conn[0].seconds]}) + "\n")
@@ -225,12 +223,11 @@ def main(argv: list[str] | None = None) -> int:
     except ModelFileError as err:  # a warm start's model that does not fit: one line, exit 2
         print(f"python -m deploy.inprocess: {err}", file=sys.stderr)
         return 2
-    last = summary["episodes_to_all_solved"]
-    reason = summary["end_reason"]
-    failed = [w["id"] for w in summary["workers"] if not w["solved"] and str(w.get("detail", "")).startswith("error")]
+    last, reason = summary.episodes_to_all_solved, summary.end_reason
+    failed = [w.id for w in summary.workers if not w.solved and (w.detail or "").startswith("error")]
     outcome = (f"all workers solved by episode {last}" if last is not None else f"not all solved ({reason}"
                + (f"; failed: {', '.join(failed)}, see the lines above" if failed else "") + ")")
-    print(f"{s.env} / {s.policy} / seed {s.seed}: {outcome}; {summary['wall_s']:.1f} s; results in {s.run_dir}")
+    print(f"{s.env} / {s.policy} / seed {s.seed}: {outcome}; {summary.wall_s or 0.0:.1f} s; results in {s.run_dir}")
     return 0
 
 

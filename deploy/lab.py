@@ -34,11 +34,11 @@ from typing import Any, Literal
 
 from pydantic import field_validator, model_validator
 
-from chief.records import RunSummary
 from chief.settings import PolicyName
 from protocol import learners
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
+from runtime.records import SUMMARY, RunSummary
 from runtime.settings import (
     LearnerName,
     LearnerTaskSettings,
@@ -235,10 +235,7 @@ def finetune(s: LabSettings, folder: Path) -> None:
 
 
 def read_summary(run_dir: Path) -> RunSummary | None:
-    path = run_dir / "summary.json"
-    if not path.exists():
-        return None
-    return RunSummary.model_validate_json(path.read_text())
+    return RunSummary.read(run_dir) if (run_dir / SUMMARY).exists() else None
 
 
 def report(s: LabSettings, folder: Path, progress: dict[str, Any]) -> list[dict[str, Any]]:
@@ -246,10 +243,9 @@ def report(s: LabSettings, folder: Path, progress: dict[str, Any]) -> list[dict[
     the fine-tune's summary.json beside rig_s."""
     from services.qube_sim.profile import load_profile
 
-    summary_path = folder / "finetune" / "summary.json"
-    data = json.loads(summary_path.read_text())
-    summary = RunSummary.model_validate(data)
+    summary = RunSummary.read(folder / "finetune")
     rows: list[dict[str, Any]] = []
+    identified: dict[str, float] = {}
     for i, path in enumerate(identified_files(s, folder)):
         record = load_profile(path).identified
         identify_s = record.rig_seconds if record is not None else 0.0
@@ -259,10 +255,10 @@ def report(s: LabSettings, folder: Path, progress: dict[str, Any]) -> list[dict[
                      "balance_s": rig.balance_s if rig else None, "reset_s": rig.reset_s if rig else None,
                      "idle_s": rig.idle_s if rig else None, "rig_s": rig.rig_s if rig else None,
                      "episodes": worker.episodes if worker else None, "solved": worker.solved if worker else False})
-        for entry in data.get("workers", []):
-            if entry.get("id") == f"w{i}" and isinstance(entry.get("rig"), dict):
-                entry["rig"]["identify_s"] = round(identify_s, 3)
-    summary_path.write_text(json.dumps(data, indent=2) + "\n")
+        identified[f"w{i}"] = round(identify_s, 3)
+    workers = [w.model_copy(update={"rig": w.rig.model_copy(update={"identify_s": identified[w.id]})})
+               if w.rig is not None and w.id in identified else w for w in summary.workers]
+    summary.model_copy(update={"workers": workers}).write(folder / "finetune")
     progress["rigs"] = rows
     print(f"\n{'rig':<6}{'solved':>7}{'episodes':>9}{'identify s':>11}{'balance s':>10}{'reset s':>9}{'idle s':>8}"
           f"{'rig min':>8}")

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as dt
-import json
 import os
 import secrets
 import shlex
@@ -41,6 +40,7 @@ from protocol.mqtt import DEFAULT_BROKER, PROBE_TIMEOUT, BrokerAddress, connect_
 from protocol.tasks import worker_seed
 from protocol.transport import Connect
 from runtime.cli import exits_on_storage_faults
+from runtime.records import SUMMARY, RigTime, RunSummary
 from runtime.settings import MqttSettings, RunMqttSettings, Settings, env_name, flags, returns_code, to_env
 from runtime.storage import EXIT_STORAGE, storage_errors
 from services.broker.embedded import make_credentials, start_broker_process
@@ -177,7 +177,7 @@ def main(argv: list[str] | None = None) -> int:
         if witness is not None:
             print(f"witness: every gradient and root aggregate in {witness.save()}")
         code = report(s, code, time.monotonic() - t0)
-        ended = (run_dir / "summary.json").exists() and code != EXIT_INTERRUPTED
+        ended = (run_dir / SUMMARY).exists() and code != EXIT_INTERRUPTED
         if ended and s.dashboard_port is not None and s.dashboard_linger > 0 and dashboard.poll() is None:
             print(f"the dashboard stays up for {s.dashboard_linger:.0f} s (Ctrl-C ends it sooner)", flush=True)
             try:
@@ -314,7 +314,7 @@ def run_chief(fleet: Fleet, chief: Settings, run_dir: Path) -> int:
     restarts = 0
     while True:
         code = relay(fleet.start("chief", "chief", chief, stream=True), fleet.log_dir / "chief.log", fleet)
-        if code in CHIEF_FINAL_CODES or (run_dir / "summary.json").exists() or restarts >= MAX_CHIEF_RESTARTS:
+        if code in CHIEF_FINAL_CODES or (run_dir / SUMMARY).exists() or restarts >= MAX_CHIEF_RESTARTS:
             return code
         restarts += 1
         print(f"!! the chief died (exit code {code}); restarting it ({restarts} of {MAX_CHIEF_RESTARTS}): it "
@@ -324,7 +324,7 @@ def run_chief(fleet: Fleet, chief: Settings, run_dir: Path) -> int:
 def report(s: LocalRunSettings, code: int, wall: float) -> int:
     """The summary table and next steps (or why there is none, or how to resume); the launcher's exit code."""
     assert s.run_dir is not None and s.run_id is not None
-    summary_path = s.run_dir / "summary.json"
+    summary_path = s.run_dir / SUMMARY
     if code in (2, EXIT_CLAIMED):  # refused before it ran (its line is above): a summary there is an earlier part's
         print(f"the chief refused to run (exit code {code}); see above or {s.run_dir / 'logs' / 'chief.log'}",
               file=sys.stderr)
@@ -335,12 +335,12 @@ def report(s: LocalRunSettings, code: int, wall: float) -> int:
         print(f"the chief exited with code {code} and wrote no summary; see {s.run_dir / 'logs'}{hint}",
               file=sys.stderr)
         return code or 1
-    summary = json.loads(summary_path.read_text())
+    summary = RunSummary.read(s.run_dir)
     print_summary(summary, s, wall)
-    if summary["end_reason"] == INTERRUPTED:
-        print(f"\nthe run stopped on a storage fault after {summary['rounds']} rounds (the chief's log names it); once "
+    if summary.end_reason == INTERRUPTED:
+        print(f"\nthe run stopped on a storage fault after {summary.rounds} rounds (the chief's log names it); once "
               "there is room, resume it:" if code == EXIT_STORAGE else
-              f"\nthe run was interrupted after {summary['rounds']} rounds; its state is saved. To resume it:")
+              f"\nthe run was interrupted after {summary.rounds} rounds; its state is saved. To resume it:")
         print(f"  {resume_command(s)}", flush=True)
         return EXIT_STORAGE if code == EXIT_STORAGE else EXIT_INTERRUPTED
     return code
@@ -447,46 +447,45 @@ def linger_command(s: LocalRunSettings, seconds: float = 600) -> str:
     return run_command(s, ["make", "run"], **on, FEDRL_DASHBOARD_LINGER=f"{seconds:g}")
 
 
-def print_summary(summary: dict, s: LocalRunSettings, wall: float) -> None:
+def print_summary(summary: RunSummary, s: LocalRunSettings, wall: float) -> None:
     assert s.run_dir is not None
     run_dir = s.run_dir
     print()
     print(f"{'worker':<12}{'solved':<8}{'episodes':>9}{'final PI':>11}  state")
-    for w in summary["workers"]:
-        pi = "-" if w.get("final_pi") is None else f"{w['final_pi']:.1f}"
-        print(f"{w['id']:<12}{'yes' if w['solved'] else 'no':<8}{w['episodes']:>9}{pi:>11}  {w['state']}")
-    all_solved = summary.get("episodes_to_all_solved")
-    print(f"\n{summary['env']} / {summary['policy']} / seed {summary['seed']}: "
+    for w in summary.workers:
+        pi = "-" if w.final_pi is None else f"{w.final_pi:.1f}"
+        print(f"{w.id:<12}{'yes' if w.solved else 'no':<8}{w.episodes:>9}{pi:>11}  {w.state}")
+    all_solved = summary.episodes_to_all_solved
+    print(f"\n{summary.env} / {summary.policy} / seed {summary.seed}: "
           + (f"all workers solved by episode {all_solved}" if all_solved is not None
-             else f"not all solved ({summary['end_reason']})")
-          + f"; chief wall time {summary['wall_s']:.1f} s, launcher {wall:.1f} s")
+             else f"not all solved ({summary.end_reason})")
+          + f"; chief wall time {summary.wall_s or 0.0:.1f} s, launcher {wall:.1f} s")
     print_rig_time(summary)
     print(f"results: {run_dir}/summary.json, metrics.jsonl, learning_curve.png")
     print_next_steps(summary, s)
 
 
-def print_rig_time(summary: dict) -> None:
+def print_rig_time(summary: RunSummary) -> None:
     """QUBE-Servo 2 tasks: each rig's time (balance + reset = rig time; idle waiting for the federation) and the last
     rig's, from summary.json (nothing for the gymnasium tasks)."""
-    rigs = [(w["id"], w["rig"]) for w in summary["workers"] if w.get("rig")]
+    rigs: list[tuple[str, RigTime]] = [(w.id, w.rig) for w in summary.workers if w.rig]
     if not rigs:
         return
     print(f"\n{'rig time':<12}{'balance steps':>14}{'balance s':>11}{'reset s':>10}{'rig s':>10}{'idle s':>10}")
-    last = summary.get("last_rig") or {}
-    for wid, r in rigs + ([(f"last: {last['id']}", last)] if last else []):
-        idle = f"{r['idle_s']:.1f}" + ("*" if r["idle"] == "modelled" else "")
-        print(f"{wid:<12}{r['balance_steps']:>14}{r['balance_s']:>11.1f}{r['reset_s']:>10.1f}{r['rig_s']:>10.1f}"
-              f"{idle:>10}")
-    if any(r["idle"] == "modelled" for _, r in rigs):
+    last = summary.last_rig
+    for wid, r in rigs + ([(f"last: {last.id}", last)] if last else []):
+        idle = f"{r.idle_s:.1f}" + ("*" if r.idle == "modelled" else "")
+        print(f"{wid:<12}{r.balance_steps:>14}{r.balance_s:>11.1f}{r.reset_s:>10.1f}{r.rig_s:>10.1f}{idle:>10}")
+    if any(r.idle == "modelled" for _, r in rigs):
         print("(* idle modelled on the simulated clock: a round closes when its slowest rig is ready)")
 
 
-def print_next_steps(summary: dict, s: LocalRunSettings) -> None:
+def print_next_steps(summary: RunSummary, s: LocalRunSettings) -> None:
     """The footer: how to evaluate a controller, audit the run, view TensorBoard, warm-start from this run and keep
     the dashboard up (the last two with every setting of this run, run_command)."""
     assert s.run_dir is not None
     run_dir, py = s.run_dir, this_python()
-    solved = [w["id"] for w in summary["workers"] if w["solved"]]
+    solved = [w.id for w in summary.workers if w.solved]
     print("\nnext steps:")
     if solved:  # the model records its task (a rig's controller runs on the in-process rig)
         print(f"  evaluate a controller:  {py} -m worker.evaluate {run_dir}/models/{solved[0]}.pt")

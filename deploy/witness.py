@@ -1,5 +1,5 @@
 """A tiered run's witness (docs/explanation/tiered.md): an observer of the wire that keeps every worker's actor
-gradient and every aggregate the root chief sent, and saves them as the run folder's GRADIENTS (chief/records.py)
+gradient and every aggregate the root chief sent, and saves them as the run folder's GRADIENTS (runtime/records.py)
 for the audit's ``tiered-exact`` check. It reads what a dashboard may read (the observer's login) and decides
 nothing; the root chief never sees a worker's gradient, this observer does, so it is for checking runs, not for
 production (deploy.inprocess --edges always has one; deploy.run_local --edges N --witness)."""
@@ -12,12 +12,12 @@ from pathlib import Path
 
 import numpy as np
 
-from chief.records import GRADIENTS, ROOT, gradient_key
 from protocol.codec import DecodeError, RejectCounter, decode
 from protocol.messages import ChiefAggregate, WorkerUpdate
 from protocol.routes import CHIEF, WORKER, route_for
 from protocol.tensors import unpack_arrays
 from protocol.transport import Connect
+from runtime.records import GRADIENTS, ROOT, gradient_key
 
 log = logging.getLogger("witness")
 

@@ -12,6 +12,10 @@ chief and the workers run unchanged over it (deploy/inprocess.py). What it keeps
 - a connection closed without a clean ``stop`` (``drop``) has its last will published to the others.
 
 What it leaves out: QoS (nothing is lost), retained messages (none are kept), sessions, chunking and sizes.
+
+A hub is passed by value (``Hub.connect``, deploy/inprocess.py) or chosen by address: ``memory://<name>`` is the hub
+of that name in this process (made at its first connection), so services whose settings name the same address talk
+through one hub, as over ``mqtt://`` they talk through one broker (protocol.transport.connector).
 """
 
 from __future__ import annotations
@@ -21,7 +25,7 @@ import queue
 import threading
 
 from protocol.codec import RejectCounter
-from protocol.transport import Handler
+from protocol.transport import Connect, Handler
 
 log = logging.getLogger(__name__)
 
@@ -87,6 +91,27 @@ class Hub:
             for client in self._clients:
                 if client.wants(topic):
                     client._enqueue(topic, payload)
+
+
+SCHEME = "memory://"
+_NAMED: dict[str, Hub] = {}
+_NAMED_LOCK = threading.Lock()
+
+
+def connector(address: str) -> Connect:
+    """The Connect of ``memory://<name>``: connections to the hub of that name in this process (protocol.transport's
+    factory calls it); a ValueError for an address that names no hub."""
+    name = address.removeprefix(SCHEME)
+    if not address.startswith(SCHEME) or not name or "/" in name or "@" in name:
+        raise ValueError(f"in-memory address {address!r}: use memory://<name> (a name without '/' or '@')")
+
+    def connect(client_id: str, will: tuple[str, bytes] | None = None,
+                rejects: RejectCounter | None = None) -> MemoryConnection:
+        with _NAMED_LOCK:
+            hub = _NAMED.setdefault(name, Hub())
+        return hub.connect(client_id, will, rejects)
+
+    return connect
 
 
 class MemoryConnection:

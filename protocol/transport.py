@@ -3,8 +3,10 @@ protocol/memory.py's in-memory connection both satisfy, so the chief and the wor
 the one factory of connections, :func:`connector`.
 
 A service takes a :data:`Connect` by value (the chief, an edge, a worker, the bridge, the dashboard): by default
-``connector`` of its settings' broker (MqttSettings.connector), in process ``Hub.connect`` of protocol/memory.py.
-Adding a transport is one module whose connection satisfies :class:`Transport`, and its branch in ``connector``.
+``connector`` of its settings' broker address (MqttSettings.connector), in process ``Hub.connect`` of
+protocol/memory.py. The address chooses the transport: ``mqtt://`` or ``mqtts://`` a broker, ``memory://<name>`` the
+in-memory hub of that name in this process. Adding a transport is one module whose connection satisfies
+:class:`Transport` and whose ``connector(address)`` makes its Connect, and its scheme's line in :data:`TRANSPORTS`.
 
 Handlers are called with the topic and the raw payload, on the connection's own delivery thread (paho's network
 thread over MQTT); a handler that raises is logged and counted and never stops the delivery.
@@ -12,9 +14,10 @@ thread over MQTT); a handler that raises is logged and counted and never stops t
 
 from __future__ import annotations
 
+import importlib
 import threading
 from collections.abc import Callable
-from typing import Protocol
+from typing import Protocol, cast
 
 from protocol.codec import RejectCounter
 from protocol.mqtt import BrokerAddress, MqttConnection
@@ -60,11 +63,32 @@ class Connect(Protocol):
                  rejects: RejectCounter | None = None) -> Transport: ...
 
 
-def connector(address: BrokerAddress, max_payload: int | None = None) -> Connect:
-    """The Connect of the broker at ``address``: MQTT, over TLS for ``mqtts://`` (``max_payload``: larger payloads
-    travel in chunks, protocol/mqtt.py). The one place a service's connection is made."""
+#: The transports besides MQTT, by the scheme of their address: the module whose ``connector(address)`` makes the
+#: Connect.
+TRANSPORTS = {
+    "memory": "protocol.memory",  # memory://<name>: the in-memory hub of that name in this process
+}
+
+
+def transport_of(address: str) -> str | None:
+    """The module of the transport an address names by its scheme (TRANSPORTS); None for MQTT."""
+    return TRANSPORTS.get(address.split("://", 1)[0]) if "://" in address else None
+
+
+def connector(address: str | BrokerAddress, max_payload: int | None = None, username: str | None = None,
+              password: str | None = None, ca_file: str | None = None) -> Connect:
+    """The Connect of ``address``, the one place a service's connection is made: a transport of TRANSPORTS by its
+    scheme, else MQTT to the broker the URL (with the login given, which wins over the URL's) or BrokerAddress names,
+    over TLS for ``mqtts://`` (``max_payload``: larger payloads travel in chunks, protocol/mqtt.py). A ValueError for
+    an address no transport takes."""
+    module = transport_of(address) if isinstance(address, str) else None
+    if module is not None:
+        return cast(Connect, importlib.import_module(module).connector(address))
+    broker = address if isinstance(address, BrokerAddress) else BrokerAddress.parse(address, username, password,
+                                                                                    ca_file)
+
     def connect(client_id: str, will: tuple[str, bytes] | None = None,
                 rejects: RejectCounter | None = None) -> Transport:
-        return MqttConnection(address, client_id=client_id, will=will, max_payload=max_payload, rejects=rejects)
+        return MqttConnection(broker, client_id=client_id, will=will, max_payload=max_payload, rejects=rejects)
 
     return connect

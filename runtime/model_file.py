@@ -18,7 +18,6 @@ Every problem is a ``ModelFileError`` (a ValueError): one line, exit code 2 wher
 from __future__ import annotations
 
 import hashlib
-import json
 import pickle
 import zipfile
 from dataclasses import dataclass
@@ -26,6 +25,8 @@ from pathlib import Path
 from typing import Annotated, Any
 
 from pydantic import AfterValidator
+
+from runtime.records import RunSummary
 
 #: The networks the digest covers (keys of the saved dict).
 NETWORKS = ("actor", "critic")
@@ -167,11 +168,9 @@ def resolve(path: Path) -> Path:
         if not path.exists():
             raise ModelFileError(f"no model file or run folder at {path}")
         return path
-    summary = path / "summary.json"
     try:
-        workers = json.loads(summary.read_text(encoding="utf-8"))["workers"]
-        solved = [(int(w["episodes"]), str(w["id"])) for w in workers if w.get("solved")]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
+        solved = [(w.episodes, w.id) for w in RunSummary.read(path).workers if w.solved]
+    except (OSError, ValueError) as exc:
         raise ModelFileError(f"{path} is a folder but not a finished run folder (its summary.json: "
                              f"{type(exc).__name__}: {exc})") from None
     if not solved:

@@ -63,7 +63,7 @@ from protocol.auth import key_bytes
 from protocol.mqtt import DEFAULT_BROKER, BrokerAddress
 from protocol.tasks import TASKS
 from protocol.topics import check_id
-from protocol.transport import Connect, connector
+from protocol.transport import Connect, connector, transport_of
 
 ENV_PREFIX = "FEDRL_"
 ENV_FILE_VAR = "FEDRL_ENV_FILE"
@@ -472,7 +472,8 @@ class LearnerTaskSettings(Settings):
 class MqttSettings(Settings):
     """Where the broker is, how to log in, and how loud to log."""
 
-    broker: str = setting(DEFAULT_BROKER, "broker URL mqtt://[user:pass@]host:port, or mqtts:// for TLS")
+    broker: str = setting(DEFAULT_BROKER, "broker URL mqtt://[user:pass@]host:port, or mqtts:// for TLS "
+                          "(memory://NAME: the in-memory hub NAME of this process, for services run in one process)")
     mqtt_username: str | None = setting(None, "broker user name (make-users.sh writes one per process)")
     mqtt_password: CliSuppress[str | None] = setting(None, "broker password (a variable only: flags show in the "
                                                      "process list)")
@@ -484,7 +485,7 @@ class MqttSettings(Settings):
     @field_validator("broker")
     @classmethod
     def _broker_parses(cls, value: str) -> str:
-        BrokerAddress.parse(value)
+        connector(value)  # a transport takes it (nothing connects yet)
         return value
 
     @field_validator("max_payload")
@@ -499,14 +500,23 @@ class MqttSettings(Settings):
             print(f"{self._prog}: no broker configured (--broker, FEDRL_BROKER): joining {self.broker}",
                   file=sys.stderr, flush=True)
 
+    def _login(self) -> dict[str, str | None]:
+        return {"username": self.mqtt_username, "password": self.mqtt_password,
+                "ca_file": str(self.mqtt_ca_file) if self.mqtt_ca_file else None}
+
     def address(self) -> BrokerAddress:
-        """The broker with these credentials (explicit ones win over those in the URL)."""
-        return BrokerAddress.parse(self.broker, username=self.mqtt_username, password=self.mqtt_password,
-                                   ca_file=str(self.mqtt_ca_file) if self.mqtt_ca_file else None)
+        """The MQTT broker with these credentials (explicit ones win over those in the URL)."""
+        return BrokerAddress.parse(self.broker, **self._login())
+
+    def where(self) -> str:
+        """The broker as logs and summary.json name it: an MQTT broker without its login, another transport's address
+        as it is."""
+        return self.broker if transport_of(self.broker) else str(self.address())
 
     def connector(self) -> Connect:
-        """How this process connects: protocol.transport.connector of its broker, login and max_payload."""
-        return connector(self.address(), self.max_payload)
+        """How this process connects: protocol.transport.connector of its broker address (MQTT: with the login) and
+        max_payload."""
+        return connector(self.broker, self.max_payload, **self._login())
 
 
 class RunMqttSettings(MqttSettings):

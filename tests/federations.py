@@ -110,8 +110,9 @@ class Runs:
 
 def over_mqtt(url: str, run_id: str, run_dir: Path, env: str, policy: str, seed: int, workers: int,
               max_episodes: int, algo: str = "ppo") -> None:
-    """A federation whose chief and workers each have their own MQTT connection to the broker at ``url``, in threads
-    of this process (the services deploy.inprocess runs on its in-memory hub), to its end."""
+    """A federation whose chief and workers each have their own connection to the broker at ``url`` (MQTT; or the
+    in-memory hub ``memory://<name>``), in threads of this process (the services deploy.inprocess runs on its
+    in-memory hub), to its end: each service's connection is its settings' ``connector()``."""
     from chief.service import ChiefService, Outputs
     from chief.settings import ChiefSettings
     from worker.service import WorkerService

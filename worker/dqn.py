@@ -38,10 +38,6 @@ from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
 from worker.replay import FiniteTransitions, Replay
 
-#: A replay transition's columns: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m.
-COLUMNS = ("obs", "actions", "returns", "next_obs", "terminated", "discounts")
-__all__ = ["DQNConfig", "DQNLearner", "ReplayBatch", "double_q_target", "n_step_return", "td_loss"]
-
 
 @dataclass
 class DQNConfig(FromDict):
@@ -76,7 +72,6 @@ class DQNConfig(FromDict):
                                   "learning_starts and eps_decay_steps must be >= 0"),
                                  (not 0.0 <= self.eps_end <= self.eps_start <= 1.0,
                                   "need 0 <= eps_end <= eps_start <= 1")))
-
 
 
 # ----------------------------------------------------------------------------------------------------
@@ -120,8 +115,8 @@ def epsilon(config: DQNConfig, env_steps: int) -> float:
 
 class DQNLearner(OffPolicyLearner):
     """One worker's Double DQN: acting (epsilon-greedy), the n-step window into the replay, the TD loss; the replay,
-    the schedule and the federation's seams are worker/offpolicy.py's (``seed``: init, exploration and mini-batch
-    draws; ``init_seed``: the init alone)."""
+    the schedule and the federation's seams are worker/offpolicy.py's (``seed`` and ``init_seed``: worker/
+    federation.py)."""
 
     ALGO = "dqn"
     CONFIG = DQNConfig
@@ -147,6 +142,7 @@ class DQNLearner(OffPolicyLearner):
         self.replay = Replay(cfg.replay_size, self._columns())
 
     def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        """A replay transition: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m."""
         obs = ((int(np.prod(self.obs_shape)),), np.float32)
         return {"obs": obs, "actions": ((), np.int64), "returns": ((), np.float64), "next_obs": obs,
                 "terminated": ((), bool), "discounts": ((), np.float64)}
@@ -188,11 +184,6 @@ class DQNLearner(OffPolicyLearner):
         obs, action, _ = self._window.popleft()
         self.replay.add(obs=obs, actions=action, returns=ret, next_obs=next_obs, terminated=terminated,
                         discounts=discount)
-
-    def _ordered(self) -> list[tuple[Any, ...]]:
-        """The replay's transitions, oldest first, as tuples of COLUMNS."""
-        order = self.replay.order()
-        return list(zip(*(self.replay.data[c][order] for c in COLUMNS), strict=True))
 
     # -- updates ------------------------------------------------------------------------------------------------
 

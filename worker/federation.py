@@ -7,13 +7,17 @@ A learner (worker/ppo.py, worker/sac.py, worker/dqn.py) subclasses it and declar
   ``prepare`` returns, rebuilt from ``vars(batch)`` when a worker resumes);
 - ``NETWORKS``: its attributes that a model holds and a warm start takes (modules, or tensors such as SAC's log
   alpha), by name; ``OPTIMIZERS``: each optimizer's attribute and the configuration field of its learning rate;
+- ``MEMORY``: the attribute of its memory (a ``worker.replay.Replay`` of the columns ``_columns`` declares) and the
+  configuration field of its capacity;
 - ``STEP``: its ``StepGradients`` class, when its steps report more than the common statistics;
 - ``GRADIENT_DTYPE``: the precision the episode gradient is summed in; ``SKIP_ZERO_STEPS``: whether an optimizer
   step with all-zero gradients (no worker had one) is skipped, so that Adam's moments stay as they are.
 
-It builds ``actor``, ``critic``, ``generator``, the optimizers and whatever else it names, and writes its own acting,
-memory, ``prepare``, ``minibatch_gradients``, ``apply_step`` and ``update`` (with ``_steps``, the loop that records
-the episode gradient). ``_own_state``/``_load_own``/``_resized`` carry what it saves beyond the declared names.
+It builds ``actor``, ``critic``, ``generator``, the optimizers and whatever else it names, and writes its own acting
+(``act``, and ``_to_env`` for the greedy action ``actor.greedy`` gives), ``remember``, ``prepare``,
+``minibatch_gradients`` (with ``_gradients``), ``apply_step`` (with ``_step``) and ``update`` (with ``_steps``, the loop
+that records the episode gradient, and ``_means``). ``_own_state``/``_load_own`` carry what it saves beyond the
+declared names.
 """
 
 from __future__ import annotations
@@ -30,10 +34,19 @@ from torch import nn
 
 from worker.adam import Adam
 from worker.nets import StepGradients, blend, tensors
+from worker.replay import Replay
 
 
 class FederatedLearner:
-    """The seams every federation strategy uses, over the attributes a learner declares (see the module)."""
+    """The seams every federation strategy uses, over the attributes a learner declares (see the module).
+
+    A learner is built as ``Learner(obs_space, action_space, config, seed=..., init_seed=...)``. ``seed`` fixes all
+    of its randomness (network init, acting, mini-batch draws, the samples inside its losses: a private
+    ``torch.Generator``, the global RNGs are left alone), so the same seed and the same transitions give the same
+    parameters. ``init_seed``, when given, seeds only the network init: federated workers share it, so that they
+    start from the same networks (as clients of federated learning start from one global model) and the shared
+    gradient (Eq. 9) and the parameter blend (Eq. 11) act on aligned parameters.
+    """
 
     ALGO: ClassVar[str]
     CONFIG: ClassVar[Any]
@@ -43,6 +56,9 @@ class FederatedLearner:
     STEP: ClassVar[type[StepGradients]] = StepGradients
     GRADIENT_DTYPE: ClassVar[type[np.floating]] = np.float32
     SKIP_ZERO_STEPS: ClassVar[bool] = False
+    #: The memory (worker/replay.py) that never leaves the device: its attribute, and the configuration field of its
+    #: capacity.
+    MEMORY: ClassVar[tuple[str, str]] = ("replay", "replay_size")
 
     config: Any
     actor: Any  # an nn.Module, of the learner's own class
@@ -103,12 +119,48 @@ class FederatedLearner:
         """Critic and actor steps skipped because a loss or gradient was not finite."""
         return sum((s.critic is None) + (s.actor is None) for s in steps)
 
+    @staticmethod
+    def _means(steps: list[StepGradients], keys: tuple[str, ...]) -> dict[str, float]:
+        """The mean of each statistic ``keys`` names over the steps (zeros after none)."""
+        totals = dict.fromkeys(keys, 0.0)
+        for step in steps:
+            for key in totals:
+                totals[key] += getattr(step, key)
+        return {key: value / max(len(steps), 1) for key, value in totals.items()}
+
+    def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
+        """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is
+        accumulated in any .grad), norm-clipped when configured; None when the loss or a gradient is not finite (so a
+        numerical blow-up never reaches the parameters or the chief)."""
+        if not torch.isfinite(loss):
+            return None
+        named = list(net.named_parameters())
+        raw = torch.autograd.grad(loss, [p for _, p in named], allow_unused=True)
+        grads = [torch.zeros_like(p) if g is None else g.detach() for (_, p), g in zip(named, raw, strict=True)]
+        if self.config.max_grad_norm is not None:
+            total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
+            coef = torch.clamp(self.config.max_grad_norm / (total + 1e-6), max=1.0)
+            grads = [g * coef for g in grads]
+        out = {name: g.numpy().astype(np.float32, copy=True) for (name, _), g in zip(named, grads, strict=True)}
+        if not all(bool(np.isfinite(g).all()) for g in out.values()):
+            return None
+        return out
+
     # -- what each learner writes: acting, its memory, its update -------------------------------------------------
 
+    @torch.no_grad()
     def act(self, obs: Any) -> Any:
-        raise NotImplementedError
+        """Sample a_t ~ pi_theta(.|s_t) (``actor.sample``, with the learner's generator), in the environment's
+        units."""
+        return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator)[0])
 
+    @torch.no_grad()
     def act_greedy(self, obs: Any) -> Any:
+        """The deterministic action (``actor.greedy``: arg-max or the Gaussian's mean), for evaluation."""
+        return self._to_env(self.actor.greedy(self._obs_tensor(obs))[0])
+
+    def _to_env(self, action: torch.Tensor) -> Any:
+        """One of the actor's actions as the environment takes it."""
         raise NotImplementedError
 
     def remember(self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool,
@@ -127,11 +179,22 @@ class FederatedLearner:
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         raise NotImplementedError
 
-    def memory_state(self) -> dict[str, torch.Tensor]:
+    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
+        """The memory's columns: name -> (shape, dtype) of one transition's value."""
         raise NotImplementedError
 
+    def memory_state(self) -> dict[str, torch.Tensor]:
+        """The memory (which spans episodes) as tensors, oldest first, with ``pending`` (transitions not yet used by an
+        update), for a worker's resumable state (worker/resume.py); ``load_memory`` restores it exactly."""
+        memory: Replay = getattr(self, self.MEMORY[0])
+        return memory.state()
+
     def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
-        raise NotImplementedError
+        """Replace the memory with ``memory_state()`` output (its newest transitions, as many as the capacity)."""
+        name, capacity = self.MEMORY
+        memory = Replay(getattr(self.config, capacity), self._columns())
+        memory.load(state)
+        setattr(self, name, memory)
 
     def _step(self, net: nn.Module, optimizer: Adam, grads: Mapping[str, np.ndarray] | None) -> bool:
         """One optimizer step of ``net`` with ``grads``; none (False) for None, or all zeros when SKIP_ZERO_STEPS."""
@@ -202,8 +265,9 @@ class FederatedLearner:
             getattr(self, name).load_state_dict(state[name])
         self.generator.set_state(state["generator"])
         self._load_own(state)
-        old, self.config = self.config, config
-        self._resized(old)
+        self.config = config
+        name, capacity = self.MEMORY  # fit the memory to the saved configuration
+        setattr(self, name, getattr(self, name).resized(getattr(config, capacity)))
 
     def _load_networks(self, state: Mapping[str, Any]) -> None:
         for name in self.NETWORKS:
@@ -233,9 +297,6 @@ class FederatedLearner:
 
     def _load_own(self, state: Mapping[str, Any]) -> None:
         """Restore ``_own_state``."""
-
-    def _resized(self, old: Any) -> None:
-        """After ``load_state_dict`` took the saved configuration: fit the memory to it."""
 
     def save(self, path: str | Path, provenance: Mapping[str, Any] | None = None) -> None:
         """``state_dict()`` to ``path``, with the model's ``provenance`` (worker/model.py) when given."""

@@ -17,23 +17,12 @@ import importlib
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
-from typing import Any, Protocol
+from typing import Any
 
 from gymnasium import spaces
 
 from protocol import learners
 from worker.federation import FederatedLearner
-
-
-class LearnerConfig(Protocol):
-    """What the federation reads of a learner's configuration: K, its mini-batch steps per episode under a per-step
-    strategy (the rounds per episode of ``sync``), and the fields a warm start compares."""
-
-    update_epochs: int
-    hidden_sizes: tuple[int, ...]
-    activation: str
-    obs_scale: tuple[float, ...] | None
-
 
 #: The seams of a worker's learner: worker/federation.py's base, which every learner subclasses.
 Learner = FederatedLearner
@@ -41,8 +30,8 @@ Learner = FederatedLearner
 
 @dataclass(frozen=True)
 class LearnerKind:
-    """Where a learner lives: ``module`` defines the learner class ``learner``, which declares its configuration
-    dataclass (``CONFIG``) and its per-step batch (``BATCH``, rebuilt from ``vars(batch)`` when a worker resumes)."""
+    """Where a learner lives: ``module`` defines the learner class ``learner``, which declares the rest (its
+    configuration dataclass ``CONFIG``, its per-step batch ``BATCH``: worker/federation.py)."""
 
     name: str
     module: str
@@ -55,10 +44,6 @@ class LearnerKind:
     @property
     def config_class(self) -> Any:
         return self.learner_class.CONFIG
-
-    @property
-    def batch_class(self) -> type:
-        return self.learner_class.BATCH
 
     def config_fields(self) -> list[str]:
         return [f.name for f in fields(self.config_class)]

@@ -1,7 +1,8 @@
-"""The network pieces every learner shares: the MLP and its configuration fields, the seeded initialisation, the one
-conversion from the API's arrays to torch, Eq. 11's blend, and the shapes of what a gradient step and an update
-report (``StepGradients``, ``UpdateStats``: the statistics every learner has; each learner declares its own beside
-them, and the wire, the records and TensorBoard take whichever of the wire's statistics a learner's carry).
+"""The network pieces every learner shares: the kind of action space, the MLP and its configuration fields, the
+seeded initialisation, the one conversion from the API's arrays to torch, Eq. 11's blend, and the shapes of what a
+gradient step and an update report (``StepGradients``, ``UpdateStats``: the statistics every learner has; each learner
+declares its own beside them, and the wire, the records and TensorBoard take whichever of the wire's statistics a
+learner's carry).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from gymnasium import spaces
 from torch import nn
 
 ACTIVATIONS: dict[str, type[nn.Module]] = {"tanh": nn.Tanh, "relu": nn.ReLU, "leaky_relu": nn.LeakyReLU}
@@ -61,6 +63,15 @@ class FromDict:
         if unknown:
             raise ValueError(f"unknown {cls.__name__} keys: {sorted(unknown)}")
         return cls(**dict(values))
+
+
+def action_kind(action_space: spaces.Space) -> tuple[bool, tuple[int, ...], int]:
+    """(discrete, action shape, units of one action head) of a Discrete or Box action space."""
+    if isinstance(action_space, spaces.Discrete):
+        return True, (), int(action_space.n)
+    if isinstance(action_space, spaces.Box):
+        return False, tuple(action_space.shape), int(np.prod(action_space.shape))
+    raise ValueError(f"unsupported action space {action_space!r}: use Discrete or Box")
 
 
 def mlp(

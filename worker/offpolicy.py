@@ -1,7 +1,7 @@
 """What the off-policy learners (worker/sac.py, worker/dqn.py) share beyond the federation's seams, as
-Stable-Baselines3's OffPolicyAlgorithm: the replay buffer (worker/replay.py) and its persistence, the per-episode
-schedule of gradient steps (round(utd_ratio * new transitions), none before ``learning_starts``; a fixed K =
-``update_epochs`` under a per-step strategy), and the gradient of a loss with respect to one network.
+Stable-Baselines3's OffPolicyAlgorithm: the replay buffer (worker/replay.py, saved as the federation's ``MEMORY``)
+and the per-episode schedule of gradient steps (round(utd_ratio * new transitions), none before ``learning_starts``; a
+fixed K = ``update_epochs`` under a per-step strategy).
 
 A learner declares its replay's columns (``_columns``) and writes its acting, ``remember``, ``minibatch_gradients``,
 ``apply_step`` and the statistics of its ``update``. Its configuration has ``replay_size``, ``batch_size``,
@@ -10,13 +10,7 @@ A learner declares its replay's columns (``_columns``) and writes its acting, ``
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
-
-import numpy as np
-import torch
-from torch import nn
 
 from worker.federation import FederatedLearner
 from worker.nets import StepGradients
@@ -40,10 +34,6 @@ class OffPolicyLearner(FederatedLearner):
     SKIP_ZERO_STEPS = True  # sync's mean of zeros (every worker before learning_starts) is no step
     replay: Replay
     _finite: FiniteTransitions
-
-    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
-        """The replay's columns: name -> (shape, dtype) of one transition's value."""
-        raise NotImplementedError
 
     @property
     def rejected_transitions(self) -> int:
@@ -71,34 +61,3 @@ class OffPolicyLearner(FederatedLearner):
         new, batch = self.replay.pending, self.prepare()
         n = max(1, round(self.config.utd_ratio * new)) if self._learning(batch) else 0
         return batch, self._steps(batch, n)
-
-    def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
-        """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is
-        accumulated in any .grad), norm-clipped when configured; None when the loss or a gradient is not finite."""
-        if not torch.isfinite(loss):
-            return None
-        named = list(net.named_parameters())
-        raw = torch.autograd.grad(loss, [p for _, p in named], allow_unused=True)
-        grads = [torch.zeros_like(p) if g is None else g.detach() for (_, p), g in zip(named, raw, strict=True)]
-        if self.config.max_grad_norm is not None:
-            total = torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads]))
-            coef = torch.clamp(self.config.max_grad_norm / (total + 1e-6), max=1.0)
-            grads = [g * coef for g in grads]
-        out = {name: g.numpy().astype(np.float32, copy=True) for (name, _), g in zip(named, grads, strict=True)}
-        if not all(bool(np.isfinite(g).all()) for g in out.values()):
-            return None
-        return out
-
-    def memory_state(self) -> dict[str, torch.Tensor]:
-        """The replay as tensors, oldest first, with ``pending`` (transitions not yet used by an update), for a
-        worker's resumable state (worker/resume.py); ``load_memory`` restores it exactly."""
-        return self.replay.state()
-
-    def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
-        """Replace the replay with ``memory_state()`` output (the newest ``replay_size`` of it)."""
-        self.replay = Replay(self.config.replay_size, self._columns())
-        self.replay.load(state)
-
-    def _resized(self, old: Any) -> None:
-        if self.config.replay_size != old.replay_size:
-            self.replay = self.replay.resized(self.config.replay_size)

@@ -5,9 +5,6 @@ pure math (GAE Eq. 2, critic loss Eq. 3, clipped surrogate Eq. 6) and the learne
 memory, the two Adam optimizers (Eq. 4 and 7), ``prepare()``, ``minibatch_gradients()`` and ``apply_step()`` (the K
 steps of ``update()`` one at a time, for strategies that share every mini-batch step's gradients). The federation's
 seams (the episode gradient g_theta^n, Eq. 9's step, Eq. 11's blend, persistence) are worker/federation.py's.
-
-Randomness (network init, action sampling, mini-batch draws) comes from the learner's own seed, so a run is
-reproducible given the seed and the environment, and the learner never touches the global RNGs.
 """
 
 from __future__ import annotations
@@ -24,7 +21,7 @@ from torch import nn
 
 from worker.adam import Adam
 from worker.federation import FederatedLearner
-from worker.nets import FromDict, StepGradients, mlp, seeded
+from worker.nets import FromDict, StepGradients, action_kind, mlp, seeded
 from worker.nets import UpdateStats as CommonStats
 from worker.replay import Replay
 
@@ -81,7 +78,6 @@ class PPOConfig(FromDict):
                                  (self.entropy_coef < 0, "entropy_coef must be >= 0")))
 
 
-
 # ----------------------------------------------------------------------------------------------------
 # Networks
 # ----------------------------------------------------------------------------------------------------
@@ -96,16 +92,7 @@ class Actor(nn.Module):
 
     def __init__(self, obs_dim: int, action_space: spaces.Space, config: PPOConfig) -> None:
         super().__init__()
-        if isinstance(action_space, spaces.Discrete):
-            self.discrete = True
-            self.action_shape: tuple[int, ...] = ()
-            out_dim = int(action_space.n)
-        elif isinstance(action_space, spaces.Box):
-            self.discrete = False
-            self.action_shape = tuple(action_space.shape)
-            out_dim = int(np.prod(self.action_shape))
-        else:
-            raise ValueError(f"unsupported action space {action_space!r}: use Discrete or Box")
+        self.discrete, self.action_shape, out_dim = action_kind(action_space)
         cfg = config
         self.net = mlp(obs_dim, cfg.hidden_sizes, out_dim, cfg.activation, cfg.ortho_init, out_gain=0.01)
         if not self.discrete:
@@ -282,14 +269,8 @@ class UpdateStats(CommonStats):
 
 
 class PPOLearner(FederatedLearner):
-    """One worker's Actor-Critic PPO: acting, the trajectory memory, Algorithm 2's update, federation hooks.
-
-    ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the
-    global RNGs are left alone), so the same seed and the same transitions give the same parameters.
-    ``init_seed``, when given, seeds only the network init: federated workers share it, so that they start from
-    the same networks (as clients of federated learning start from one global model) and the shared gradient
-    (Eq. 9) and the parameter blend (Eq. 11) act on aligned parameters.
-    """
+    """One worker's Actor-Critic PPO: acting, the trajectory memory, Algorithm 2's update (``seed`` and
+    ``init_seed``: worker/federation.py)."""
 
     ALGO = "ppo"
     CONFIG = PPOConfig
@@ -297,6 +278,7 @@ class PPOLearner(FederatedLearner):
     OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr", "critic_optimizer": "critic_lr"}
     BATCH = Batch
     STEP = PPOStepGradients
+    MEMORY = ("memory", "memory_size")
 
     def __init__(
         self,
@@ -330,19 +312,10 @@ class PPOLearner(FederatedLearner):
         return self.obs_norm.normalize(x) if self.config.normalize_obs else x
 
     def _to_env(self, action: torch.Tensor) -> Any:
+        """A numpy int (Discrete) or a raw float32 array (Box, not clipped: the environment clips)."""
         if self.actor.discrete:
             return np.int64(action.item())
         return action.reshape(self.actor.action_shape).numpy().astype(np.float32)
-
-    @torch.no_grad()
-    def act(self, obs: Any) -> Any:
-        """Sample a_t ~ pi_theta(.|s_t): a numpy int (Discrete) or a raw float32 array (Box, not clipped)."""
-        return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator)[0])
-
-    @torch.no_grad()
-    def act_greedy(self, obs: Any) -> Any:
-        """The deterministic action (arg-max or Gaussian mean), for evaluation."""
-        return self._to_env(self.actor.greedy(self._obs_tensor(obs))[0])
 
     def remember(
         self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool, truncated: bool
@@ -362,12 +335,7 @@ class PPOLearner(FederatedLearner):
         and an actor step (Eq. 6-7). Also records the episode's actor gradient (see ``actor_gradient``)."""
         batch = self.prepare()
         steps = self._steps(batch, self.config.update_epochs)
-        totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"), 0.0)
-        for step in steps:
-            for key in totals:
-                totals[key] += getattr(step, key)
-        k = float(self.config.update_epochs)
-        means = {key: value / k for key, value in totals.items()}
+        means = self._means(steps, ("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"))
         return UpdateStats(**means, memory_size=batch.n, skipped_steps=self._skipped(steps))
 
     def prepare(self) -> Batch:
@@ -406,14 +374,14 @@ class PPOLearner(FederatedLearner):
         cfg = self.config
         idx = torch.randperm(batch.n, generator=self.generator)[: cfg.batch_size]
         critic_loss = value_loss(self.critic(batch.obs[idx]), batch.returns[idx], cfg.value_loss)
-        critic_grad = self._gradients(critic_loss, self.critic, self.critic_optimizer)
+        critic_grad = self._gradients(critic_loss, self.critic)
         new_logp, entropy = self.actor.log_prob_entropy(batch.obs[idx], batch.actions[idx])
         adv = batch.advantages[idx]
         if cfg.normalize_advantages and len(idx) > 1:
             adv = (adv - adv.mean()) / (adv.std() + 1e-8)
         surrogate = clipped_surrogate_loss(new_logp, batch.old_logp[idx], adv, cfg.clip_epsilon)
         actor_loss = surrogate - cfg.entropy_coef * entropy.mean()
-        actor_grad = self._gradients(actor_loss, self.actor, self.actor_optimizer)
+        actor_grad = self._gradients(actor_loss, self.actor)
         with torch.no_grad():
             log_ratio = new_logp - batch.old_logp[idx]
             ratio = log_ratio.exp()
@@ -423,39 +391,8 @@ class PPOLearner(FederatedLearner):
                              critic_loss=critic_loss.item(), entropy=entropy.mean().item(), approx_kl=approx_kl,
                              clip_fraction=clip_fraction)
 
-    def _gradients(self, loss: torch.Tensor, net: nn.Module, optimizer: Adam
-                   ) -> dict[str, np.ndarray] | None:
-        """Backward and optional gradient-norm clipping; the gradients, or None when the loss or a gradient is not
-        finite (so a numerical blow-up never reaches the parameters or the chief)."""
-        optimizer.zero_grad()
-        if not torch.isfinite(loss):
-            return None
-        loss.backward()
-        if self.config.max_grad_norm is not None:
-            nn.utils.clip_grad_norm_(net.parameters(), self.config.max_grad_norm)
-        grads = {name: p.grad.detach().numpy().copy() for name, p in net.named_parameters() if p.grad is not None}
-        optimizer.zero_grad()
-        if not all(bool(np.isfinite(g).all()) for g in grads.values()):
-            return None
-        return grads
-
     def apply_step(self, critic: Mapping[str, np.ndarray] | None, actor: Mapping[str, np.ndarray] | None) -> None:
         """One critic-optimizer step (Eq. 4) and one actor-optimizer step (Eq. 7) with the given gradients; a
         network whose gradient is None is not stepped."""
         self._step(self.critic, self.critic_optimizer, critic)
         self._step(self.actor, self.actor_optimizer, actor)
-
-    # -- persistence ----------------------------------------------------------------------------------------
-
-    def _resized(self, old: Any) -> None:
-        self.memory = self.memory.resized(self.config.memory_size)
-
-    def memory_state(self) -> dict[str, torch.Tensor]:
-        """The trajectory memory (which spans episodes) as tensors, oldest first, for a worker's resumable state
-        (worker/resume.py); ``load_memory`` restores it exactly."""
-        return self.memory.state()
-
-    def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
-        """Replace the trajectory memory with ``memory_state()`` output."""
-        self.memory = Replay(self.config.memory_size, self._columns())
-        self.memory.load(state)

@@ -20,10 +20,6 @@ replay buffer.
 
 Exploration: SAC's acting noise is white (a fresh Gaussian draw each step); ``noise_beta`` > 0 colours it in time
 (``colored_noise``), which reaches MountainCarContinuous-v0's goal where white noise does not.
-
-Randomness (network init, action sampling, replay mini-batch draws, the policy samples inside the losses) comes from
-the learner's own seed, so a run is reproducible given the seed and the environment, and the learner never touches
-the global RNGs.
 """
 
 
@@ -41,7 +37,7 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, action_kind, mlp, seeded
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
 from worker.replay import FiniteTransitions, Replay
 
@@ -105,7 +101,6 @@ class SACConfig(FromDict):
                       (self.noise_horizon < 2, "noise_horizon must be >= 2")))
 
 
-
 # ----------------------------------------------------------------------------------------------------
 # Exploration noise
 # ----------------------------------------------------------------------------------------------------
@@ -138,17 +133,6 @@ def colored_noise(beta: float, shape: tuple[int, ...], generator: torch.Generato
 # ----------------------------------------------------------------------------------------------------
 
 
-def _action_kind(action_space: spaces.Space) -> tuple[bool, tuple[int, ...], int]:
-    """(discrete, action shape, actor output units per head) of a supported action space."""
-    if isinstance(action_space, spaces.Discrete):
-        return True, (), int(action_space.n)
-    if isinstance(action_space, spaces.Box):
-        if not (np.all(np.isfinite(action_space.low)) and np.all(np.isfinite(action_space.high))):
-            raise ValueError(f"SAC needs finite Box bounds to squash actions into, got {action_space!r}")
-        return False, tuple(action_space.shape), int(np.prod(action_space.shape))
-    raise ValueError(f"unsupported action space {action_space!r}: use Discrete or Box")
-
-
 class SACActor(nn.Module):
     """pi_theta(a|s): Categorical over logits (Discrete), or a tanh-squashed diagonal Gaussian (Box) whose mean and
     state-dependent log standard deviation are the two halves of the MLP's output. Box actions are in [-1, 1]; the
@@ -156,7 +140,9 @@ class SACActor(nn.Module):
 
     def __init__(self, obs_dim: int, action_space: spaces.Space, config: SACConfig) -> None:
         super().__init__()
-        self.discrete, self.action_shape, self.action_dim = _action_kind(action_space)
+        self.discrete, self.action_shape, self.action_dim = action_kind(action_space)
+        if isinstance(action_space, spaces.Box) and not np.isfinite([action_space.low, action_space.high]).all():
+            raise ValueError(f"SAC needs finite Box bounds to squash actions into, got {action_space!r}")
         out_dim = self.action_dim if self.discrete else 2 * self.action_dim
         self.net = mlp(obs_dim, config.hidden_sizes, out_dim, config.activation, ortho=False, out_gain=1.0)
 
@@ -293,7 +279,6 @@ def polyak_update(target: Iterable[torch.Tensor], source: Iterable[torch.Tensor]
 # ----------------------------------------------------------------------------------------------------
 
 
-
 @dataclass
 class SACUpdateStats(UpdateStats):
     """Means over the gradient steps of one ``update()`` (zeros when it took none). actor_loss is J_pi, critic_loss
@@ -305,13 +290,8 @@ class SACUpdateStats(UpdateStats):
 
 class SACLearner(OffPolicyLearner):
     """One worker's SAC: acting, the soft actor-critic losses, the temperature and the target critics; the replay,
-    the schedule and the federation's seams are worker/offpolicy.py's.
-
-    ``seed`` fixes the network init, action sampling and mini-batch draws (a private torch.Generator; the global RNGs
-    are left alone), so the same seed and the same transitions give the same parameters. ``init_seed``, when given,
-    seeds only the network init (federated workers share it, as for PPO). The target critic starts as a copy of the
-    critic.
-    """
+    the schedule and the federation's seams are worker/offpolicy.py's (``seed`` and ``init_seed``: worker/
+    federation.py). The target critic starts as a copy of the critic."""
 
     ALGO = "sac"
     CONFIG = SACConfig
@@ -395,11 +375,6 @@ class SACLearner(OffPolicyLearner):
         """Sample a_t ~ pi_theta(.|s_t): a numpy int64 (Discrete) or a float32 array within the Box bounds."""
         return self._to_env(self.actor.sample(self._obs_tensor(obs), self.generator, self._next_eps())[0])
 
-    @torch.no_grad()
-    def act_greedy(self, obs: Any) -> Any:
-        """The deterministic action (arg-max, or tanh of the Gaussian mean scaled to the bounds), for evaluation."""
-        return self._to_env(self.actor.greedy(self._obs_tensor(obs))[0])
-
     def remember(
         self, obs: Any, action: Any, reward: float, next_obs: Any, terminated: bool, truncated: bool
     ) -> None:
@@ -428,11 +403,7 @@ class SACLearner(OffPolicyLearner):
         offpolicy.py), each: a twin soft Q critic step, an actor step, a temperature step and the Polyak update of the
         target critics. Also records the episode's actor gradient (see ``actor_gradient``)."""
         batch, steps = self._episode_steps()
-        totals = dict.fromkeys(("actor_loss", "critic_loss", "entropy"), 0.0)
-        for step in steps:
-            for key in totals:
-                totals[key] += getattr(step, key)
-        means = {key: value / max(len(steps), 1) for key, value in totals.items()}
+        means = self._means(steps, ("actor_loss", "critic_loss", "entropy"))
         return SACUpdateStats(**means, memory_size=batch.n, skipped_steps=self._skipped(steps), alpha=self.alpha,
                               gradient_steps=len(steps))
 

@@ -10,7 +10,7 @@ import pytest
 
 from bench import matrix
 from bench.matrix import Cell
-from chief.records import RunSummary
+from runtime.records import RunSummary
 
 
 def test_the_matrix_has_every_strategy_of_every_fitting_pair_and_each_misfit_once_per_mode() -> None:

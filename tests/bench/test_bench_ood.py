@@ -11,6 +11,7 @@ import pytest
 
 from bench import ood
 from bench.output import write_block
+from runtime.records import RigTime, RunSummary, WorkerSummary
 
 
 def args(tmp_path: Path, *extra: str) -> object:
@@ -90,13 +91,18 @@ def test_controller_units_wait_for_a_model_and_a_refused_rig_ends_the_lab(tmp_pa
 
 
 def test_last_rig_is_the_one_with_most_rig_minutes_identification_included() -> None:
-    summary = {"end_reason": "all solved", "workers": [
-        {"index": 0, "solved": True, "episodes": 10, "rig": {"rig_s": 200.0}, "state": "solved"},
-        {"index": 1, "solved": True, "episodes": 14, "rig": {"rig_s": 150.0}, "state": "solved"}]}
+    def rig(rig_s: float) -> RigTime:
+        return RigTime(balance_steps=0, balance_s=0.0, reset_s=rig_s, idle_s=0.0, rig_s=rig_s, idle="modelled")
+
+    workers = [WorkerSummary(id=f"w{i}", index=i, solved=True, episodes=episodes, steps=0, state="finished",
+                             rig=rig(rig_s)) for i, (episodes, rig_s) in enumerate(((10, 200.0), (14, 150.0)))]
+    summary = RunSummary(env="qube-local", policy="plain", tc=1.0, r_floor=0.0, max_episodes=20, workers=workers,
+                         total_steps=0, rounds=14, end_reason="all solved")
     assert ood.last_rig(summary, [0.0, 120.0]) == {"finished": True, "episodes": 14, "rig_min": round(270 / 60, 3),
                                                    "stopped": 0, "end_reason": "all solved"}
-    summary["workers"][1].update(solved=False, state="failed")
-    assert ood.last_rig(summary, [0.0, 0.0])["episodes"] is None
+    workers[1] = workers[1].model_copy(update={"solved": False, "state": "stopped"})
+    last = ood.last_rig(summary.model_copy(update={"workers": workers}), [0.0, 0.0])
+    assert last["episodes"] is None and last["stopped"] == 1
 
 
 def entries() -> dict[str, dict]:

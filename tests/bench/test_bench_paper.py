@@ -13,7 +13,7 @@ import pytest
 
 from bench import figures, paper, report
 from bench.runs import Job, _modelled_times, _mqtt_times, execute, learning_curve, run_folder_lock
-from chief.records import EpisodeRecord, RoundRecord
+from runtime.records import EpisodeRecord, RoundRecord
 
 
 def test_tiny_inprocess_benchmark_end_to_end(tmp_path: Path) -> None:

@@ -13,7 +13,7 @@ from bench.cost import actor_arrays
 from bench.fleets import SpreadFleet
 from bench.rigs import RigProcess
 from bench.scale import check_counted, gone, point, rig_row
-from chief.records import RoundRecord
+from runtime.records import RoundRecord
 
 
 @pytest.mark.slow

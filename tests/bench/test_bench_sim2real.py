@@ -30,12 +30,13 @@ def test_the_table_takes_medians_counts_unfinished_runs_as_worse_and_checks_the_
 
 @pytest.mark.slow
 def test_a_lab_federation_reports_its_last_rig(tmp_path: Path) -> None:
-    summary = sim2real.federate(tmp_path / "scratch", 101, 2, {"rig_profile": "lab"})
-    r = sim2real.last_rig(summary)
+    folder = tmp_path / "scratch"
+    summary = sim2real.federate(folder, 101, 2, {"rig_profile": "lab"})
+    r = sim2real.last_rig(summary, folder)
     assert r["finished"] is False and r["episodes"] is None and r["idle_min"] is not None
-    assert summary["last_rig"]["rig_s"] > 0 and summary["run_dir"] == str(tmp_path / "scratch")
-    again = sim2real.federate(tmp_path / "scratch", 101, 2, {"rig_profile": "lab"})  # reused, not run again
-    assert again["wall_s"] == summary["wall_s"]
+    assert summary.last_rig is not None and summary.last_rig.rig_s > 0 and r["run_dir"] == str(folder)
+    again = sim2real.federate(folder, 101, 2, {"rig_profile": "lab"})  # reused, not run again
+    assert again.wall_s == summary.wall_s
 
 
 def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ from protocol.codec import RejectCounter, decode, encode
 from protocol.messages import ChiefAggregate, ChiefClaim, ChiefTransfer, RunStart
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tensors import pack_arrays
+from runtime.records import RunSummary
 from worker.service import WorkerService
 from worker.settings import WorkerSettings
 
@@ -169,7 +170,7 @@ def federation(broker: str, run: str, run_dir: Path) -> tuple[ChiefService, list
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory: pytest.TempPathFactory) -> dict:
+def clean(tmp_path_factory: pytest.TempPathFactory) -> RunSummary:
     """The same federation without a rogue, in process: what the attacked runs must equal."""
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
@@ -181,7 +182,7 @@ def clean(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 @pytest.mark.slow
 def test_forged_and_replayed_answers_are_refused_and_change_nothing(any_broker: str, tmp_path: Path,
-                                                                    clean: dict) -> None:
+                                                                    clean: RunSummary) -> None:
     run = f"forged-{time.monotonic_ns()}"
     rogue = Rogue(any_broker, run)
     chief, workers = federation(any_broker, run, tmp_path / "run")
@@ -197,7 +198,7 @@ def test_forged_and_replayed_answers_are_refused_and_change_nothing(any_broker: 
     summary = chief.summary("", True, 0)
     # every env step of every episode is the same: no forged answer was applied (steps follow each update)
     assert [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]] == [
-        (w["id"], w["episodes"], w["steps"]) for w in clean["workers"]]
+        (w.id, w.episodes, w.steps) for w in clean.workers]
     assert rogue.sent > 0
     for w in workers:
         refused = w.rejects.as_dict()

@@ -12,9 +12,9 @@ from pydantic import ValidationError
 
 from chief.audit import audit
 from chief.played import played_totals
-from chief.records import parse_record
 from protocol.messages import ChiefAck, ChiefAggregate, Played, WorkerUpdate
 from protocol.tensors import pack_arrays
+from runtime.records import parse_record
 from tests.chief.test_chief_service import HISTORY, ScriptedWorkers, mature, start_chief, update
 
 STEPS = 10  # the scripted workers' env steps per episode (tests/chief/test_chief_service.py)

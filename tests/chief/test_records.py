@@ -1,4 +1,4 @@
-"""chief/records.py: the run folder's records read back as written (same keys, same bytes), a bad line is named, and
+"""runtime/records.py: the run folder's records read back as written (same keys, same bytes), a bad line is named, and
 the chief's saved state restores every worker's record field by field."""
 
 from __future__ import annotations
@@ -11,18 +11,10 @@ import msgpack
 import pytest
 
 from chief import checkpoint
-from chief.records import (
-    RoundRecord,
-    RunSummary,
-    SavedWorker,
-    ServiceState,
-    StepRecord,
-    line,
-    parse_record,
-    read_metrics,
-)
+from chief.records import SavedWorker, ServiceState
 from chief.rounds import RoundKeeper, WorkerRecord
 from protocol.tasks import task
+from runtime.records import RoundRecord, RunSummary, StepRecord, line, parse_record, read_metrics
 from tests.chief.test_audit import simulate
 
 SERVICE = ServiceState(run_id="r", session="0" * 16, epoch=1, duplicates=2, hosts={"w0": "h"}, update_steps=3,

@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 
 from chief.audit import AuditFailure, audit
-from chief.records import EpisodeRecord, RoundRecord, StepRecord
 from chief.rigtime import last_rig, rig_times
 from protocol.qube import PERIOD_S
 from protocol.rigtime import IdleModel, model_idle
+from runtime.records import EpisodeRecord, RoundRecord, RunSummary, StepRecord
 
 
 def test_a_round_closes_when_its_slowest_rig_is_ready() -> None:
@@ -98,7 +98,7 @@ def test_a_doctored_rig_record_fails_the_audit(rig_run: Path, tmp_path: Path) ->
 
 
 def test_a_gymnasium_record_carries_no_rig_time() -> None:
-    from chief.records import line
+    from runtime.records import line
 
     record = EpisodeRecord(worker="a", round=1, episode=1, **{"return": 1.0}, pi=1.0, steps=1, kind="update")
     assert "balance_s" not in line(record) and "reset_s" not in line(record)
@@ -107,10 +107,11 @@ def test_a_gymnasium_record_carries_no_rig_time() -> None:
 def test_the_console_summary_prints_each_rigs_time(rig_run: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from deploy.run_local import print_rig_time
 
-    summary = json.loads((rig_run / "summary.json").read_text())
+    summary = RunSummary.read(rig_run)
     print_rig_time(summary)
     out = capsys.readouterr().out
-    assert "balance steps" in out and f"last: {summary['last_rig']['id']}" in out
-    assert all(f"{w['rig']['rig_s']:.1f}" in out for w in summary["workers"])
-    print_rig_time(json.loads(json.dumps({**summary, "workers": [{**w, "rig": None} for w in summary["workers"]]})))
+    assert summary.last_rig is not None and "balance steps" in out and f"last: {summary.last_rig.id}" in out
+    assert all(w.rig is not None and f"{w.rig.rig_s:.1f}" in out for w in summary.workers)
+    without = [w.model_copy(update={"rig": None}) for w in summary.workers]
+    print_rig_time(summary.model_copy(update={"workers": without}))
     assert capsys.readouterr().out == ""

@@ -7,10 +7,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chief.records import RoundRecord
 from chief.rounds import AHEAD_WINDOW, RoundKeeper, Submission, Verdict
 from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index, task
+from runtime.records import RoundRecord
 
 CARTPOLE = task("CartPole-v0")
 SPEC = {"g": (1,)}

@@ -23,6 +23,7 @@ from protocol.messages import ChiefAggregate
 from protocol.rigtime import model_idle
 from protocol.tasks import PI_WINDOW, performance_index, task, worker_seed
 from protocol.tensors import answer_digest, pack_arrays
+from runtime.records import RunSummary
 from tests.federations import run_in_threads
 from worker import service as worker_service
 from worker.episode import build_learner_and_env
@@ -284,9 +285,9 @@ def test_in_process_and_over_mqtt_keep_the_same_invariants_under_staleness(
     summary = run_federation(InprocessSettings.given(env=ENV, policy="plain", seed=SEED, workers=2,
                              max_episodes=MQTT_EPISODES, run_dir=tmp_path / "inprocess", max_staleness=1), plot=False,
                              tensorboard_files=False, models=False)
-    mqtt = json.loads((tmp_path / "mqtt" / "summary.json").read_text())
-    assert [(w["id"], w["episodes"]) for w in summary["workers"]] == [(w["id"], w["episodes"]) for w in mqtt["workers"]]
-    assert summary["max_staleness"] == mqtt["max_staleness"] == 1
+    mqtt = RunSummary.read(tmp_path / "mqtt")
+    assert [(w.id, w.episodes) for w in summary.workers] == [(w.id, w.episodes) for w in mqtt.workers]
+    assert summary.max_staleness == mqtt.max_staleness == 1
     a, b = audit(tmp_path / "inprocess"), audit(tmp_path / "mqtt")
     assert (a.rounds, a.submissions, a.staleness) == (b.rounds, b.submissions, b.staleness)
     assert played_on(tmp_path / "inprocess", "w0")

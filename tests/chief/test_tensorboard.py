@@ -85,7 +85,7 @@ def weighted_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     run_dir = tmp_path_factory.mktemp("tb") / "weighted"
     summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=3, workers=4,
                              max_episodes=600, run_dir=run_dir), plot=False)
-    assert summary["episodes_to_all_solved"] is not None
+    assert summary.episodes_to_all_solved is not None
     return run_dir
 
 
@@ -229,7 +229,7 @@ def test_without_tensorboardx_the_run_goes_on_and_says_so_once(tmp_path: Path, m
     with caplog.at_level(logging.WARNING):
         summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=1, workers=2,
                                  max_episodes=3, run_dir=tmp_path / "run"), plot=False)
-    assert summary["rounds"] == 3 and len(records(tmp_path / "run")) == 2 * 3 + 3
+    assert summary.rounds == 3 and len(records(tmp_path / "run")) == 2 * 3 + 3
     said = [r.getMessage() for r in caplog.records if "tensorboardX" in r.getMessage()]
     assert len(said) == 1 and "not installed" in said[0] and "pip install .[tb]" in said[0]
     assert not (tmp_path / "run" / "tensorboard").exists()
@@ -244,7 +244,7 @@ def test_a_board_that_cannot_write_never_stops_the_run(tmp_path: Path, caplog: p
     with caplog.at_level(logging.ERROR):
         summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=1, workers=2,
                                  max_episodes=3, run_dir=run_dir), plot=False)
-    assert summary["rounds"] == 3
+    assert summary.rounds == 3
     assert len([r for r in caplog.records if "TensorBoard" in r.getMessage()]) == 1
 
 

@@ -24,6 +24,7 @@ from protocol.codec import decode, encode
 from protocol.messages import Message, WorkerHello, WorkerStatus, WorkerUpdate
 from protocol.mqtt import BrokerAddress, MqttConnection
 from protocol.tensors import pack_arrays, unpack_arrays
+from runtime.records import RunSummary
 from worker.service import WorkerService
 from worker.settings import WorkerSettings, handed_keys
 
@@ -157,7 +158,7 @@ class Forger:
 
 
 @pytest.fixture(scope="module")
-def clean(tmp_path_factory: pytest.TempPathFactory) -> dict:
+def clean(tmp_path_factory: pytest.TempPathFactory) -> RunSummary:
     """The same federation without a forger, in process: what the attacked runs must equal."""
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
@@ -194,8 +195,10 @@ def attacked_run(broker: str, run_dir: Path, run: str, forger_keyed: bool, key: 
     return chief, forger
 
 
-def per_worker(summary: dict) -> list[tuple[str, int, int]]:
-    return [(w["id"], w["episodes"], w["steps"]) for w in summary["workers"]]
+def per_worker(summary: RunSummary | dict) -> list[tuple[str, int, int]]:
+    """Each worker's id, episodes and env steps, of a summary or of a chief's summary data."""
+    typed = summary if isinstance(summary, RunSummary) else RunSummary.model_validate(summary)
+    return [(w.id, w.episodes, w.steps) for w in typed.workers]
 
 
 @pytest.mark.slow

@@ -53,8 +53,8 @@ def test_a_failed_worker_ends_the_run_as_aborted_once_the_others_are_done(broken
     summary = run_federation(InprocessSettings.given(env=ENV, policy=POLICY, seed=SEED, workers=WORKERS,
                              max_episodes=EPISODES, run_dir=run_dir), plot=False, tensorboard_files=False,
                              tolerate_failures=True)
-    by_id = {w["id"]: w for w in summary["workers"]}
-    assert not by_id["w1"]["solved"] and by_id["w1"]["episodes"] == FAIL_AT - 1 and by_id["w1"]["state"] == "offline"
-    assert by_id["w0"]["solved"] and by_id["w2"]["solved"]  # the others learned on to their end
-    assert summary["end_reason"].startswith("aborted") and summary["episodes_to_all_solved"] is None
+    by_id = {w.id: w for w in summary.workers}
+    assert not by_id["w1"].solved and by_id["w1"].episodes == FAIL_AT - 1 and by_id["w1"].state == "offline"
+    assert by_id["w0"].solved and by_id["w2"].solved  # the others learned on to their end
+    assert summary.end_reason.startswith("aborted") and summary.episodes_to_all_solved is None
     audit(run_dir)

@@ -108,7 +108,7 @@ def test_ctrl_c_keeps_the_story_and_the_printed_command_resumes_the_run(tmp_path
     uninterrupted = run_federation(InprocessSettings.given(env=ENV, policy=POLICY, seed=SEED, workers=WORKERS,
                                    max_episodes=EPISODES, run_dir=tmp_path / "uninterrupted"), plot=False,
                                    tensorboard_files=False)
-    assert per_worker(run_dir) == [(w["id"], w["episodes"], w["steps"]) for w in uninterrupted["workers"]]
+    assert per_worker(run_dir) == [(w.id, w.episodes, w.steps) for w in uninterrupted.workers]
 
 
 def marked(marker: str) -> list[int]:
@@ -232,4 +232,4 @@ def test_a_workers_storage_fault_stops_the_run_with_exit_5_and_the_same_command_
                                    tensorboard_files=False)
     # Every worker finishes at the uninterrupted run's episode and env step. (It once did not when the resumed
     # chief's first round closed before w1 came back: the stop had left w1 excused; RoundKeeper.resume waits again.)
-    assert per_worker(run_dir) == [(w["id"], w["episodes"], w["steps"]) for w in uninterrupted["workers"]]
+    assert per_worker(run_dir) == [(w.id, w.episodes, w.steps) for w in uninterrupted.workers]

@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from deploy import run_local
+from runtime.records import RunSummary, WorkerSummary
 from tests.deploy.test_interrupt import ctrl_c_as_in_a_terminal, rounds_closed, signal_all, worker_pids
 from tests.federations import as_started
 
@@ -34,7 +35,7 @@ def closed_port() -> Iterator[int]:
         yield sock.getsockname()[1]
 
 
-def solved_run(run_dir: Path, s: run_local.LocalRunSettings) -> dict:
+def solved_run(run_dir: Path, s: run_local.LocalRunSettings) -> RunSummary:
     """A run folder whose w0 solved: an untrained model of the run's task and learner, and its summary."""
     from worker.episode import build_learner_and_env
     from worker.model import provenance
@@ -45,14 +46,15 @@ def solved_run(run_dir: Path, s: run_local.LocalRunSettings) -> dict:
                                        env_options=options)
     (run_dir / "models").mkdir(parents=True)
     learner.save(run_dir / "models" / "w0.pt", provenance(s.env, options, 0, s.seed, 1, 1, None, "w0", "made"))
-    summary = {"env": s.env, "policy": s.policy, "seed": s.seed, "end_reason": "all solved", "wall_s": 1.0,
-               "episodes_to_all_solved": 1,
-               "workers": [{"id": "w0", "solved": True, "episodes": 1, "final_pi": 1.0, "state": "finished"}]}
-    (run_dir / "summary.json").write_text(json.dumps(summary))
+    summary = RunSummary(env=s.env, policy=s.policy, seed=s.seed, tc=1.0, r_floor=0.0, max_episodes=1, total_steps=1,
+                         rounds=1, end_reason="all solved", wall_s=1.0, episodes_to_all_solved=1,
+                         workers=[WorkerSummary(id="w0", index=0, solved=True, episodes=1, steps=1, final_pi=1.0,
+                                                state="finished")])
+    summary.write(run_dir)
     return summary
 
 
-def footer(summary: dict, s: run_local.LocalRunSettings, capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
+def footer(summary: RunSummary, s: run_local.LocalRunSettings, capsys: pytest.CaptureFixture[str]) -> dict[str, str]:
     """The footer's commands by what they do."""
     capsys.readouterr()
     run_local.print_next_steps(summary, s)

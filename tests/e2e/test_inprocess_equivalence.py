@@ -42,11 +42,11 @@ def test_in_process_and_over_mqtt_give_the_same_federation(broker: str, tmp_path
     summary = run_federation(InprocessSettings.given(env=ENV, policy=policy, seed=SEED, workers=WORKERS,
                              max_episodes=EPISODES, run_dir=tmp_path / "inprocess"), plot=False,
                              tensorboard_files=False)
-    assert summary["mode"] == "in-process"
+    assert summary.mode == "in-process"
     assert per_worker_final(tmp_path / "inprocess") == per_worker_final(tmp_path / "mqtt")
     subs, rounds = all_records(tmp_path / "inprocess")
     assert (subs, rounds) == all_records(tmp_path / "mqtt")
-    assert len(rounds) == summary["rounds"] > 0
+    assert len(rounds) == summary.rounds > 0
     assert audit(tmp_path / "inprocess").transfers == audit(tmp_path / "mqtt").transfers
 
 
@@ -70,7 +70,7 @@ def test_off_policy_learners_in_process_and_over_mqtt_give_the_same_federation(
     summary = run_federation(InprocessSettings.given(env=env, policy=policy, seed=seed, workers=WORKERS,
                              max_episodes=episodes, run_dir=tmp_path / "inprocess", algo=algo), plot=False,
                              tensorboard_files=False)
-    assert summary["algo"] == algo
+    assert summary.algo == algo
     assert per_worker_final(tmp_path / "inprocess") == per_worker_final(tmp_path / "mqtt")
     subs, rounds = all_records(tmp_path / "inprocess")
     assert (subs, rounds) == all_records(tmp_path / "mqtt")

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from chief.audit import audit
-from chief.records import EpisodeRecord, RoundRecord, RunSummary, read_metrics
+from runtime.records import EpisodeRecord, RoundRecord, RunSummary, read_metrics
 from tests.federations import cpu_load
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("e2e")]  # one federation at a time with the others

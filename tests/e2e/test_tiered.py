@@ -17,9 +17,9 @@ import numpy as np
 import pytest
 
 from chief.audit import AuditFailure, audit
-from chief.records import GRADIENTS, ROOT, gradient_key
 from deploy.inprocess import run_federation
 from deploy.settings import InprocessSettings
+from runtime.records import GRADIENTS, ROOT, gradient_key
 
 pytestmark = pytest.mark.slow
 
@@ -33,7 +33,7 @@ def test_a_tiered_federation_is_the_flat_one_across_levels(tmp_path: Path) -> No
     assert (tmp_path / GRADIENTS).exists()
     report = audit(tmp_path)
     rounds = [r for r in map(json.loads, (tmp_path / "metrics.jsonl").open()) if r["type"] == "round"]
-    assert len(rounds) == summary["rounds"] == EPISODES
+    assert len(rounds) == summary.rounds == EPISODES
     # every round went through both edges, worker i behind e<i mod 2>
     assert all(r["edges"] == {"e0": sorted(w for w in r["contributors"] if int(w[1:]) % 2 == 0),
                               "e1": sorted(w for w in r["contributors"] if int(w[1:]) % 2 == 1)} for r in rounds)

@@ -35,12 +35,12 @@ def test_a_quorum_across_edges_in_process(tmp_path: Path) -> None:
                              tensorboard_files=False, models=False, pace={"w3": 3.0})
     report = audit(tmp_path)
     rounds = _rounds(tmp_path)
-    assert summary["quorum"] == 3 and len(rounds) == summary["rounds"] == episodes
+    assert summary.quorum == 3 and len(rounds) == summary.rounds == episodes
     assert all(len(r["contributors"]) >= 3 for r in rounds)
     closed_early = [r for r in rounds if r.get("late")]
     assert closed_early and all(r["partials"] == 3 for r in closed_early)  # 1 + 1, then the third on its own
     assert report.tiered == len([r for r in rounds if r["digest"]])
-    assert summary["rejected_messages"].get("late", 0) >= 1  # w3's, dropped at the root
+    assert (summary.rejected_messages or {}).get("late", 0) >= 1  # w3's, dropped at the root
 
 
 def test_bounded_staleness_with_edges_in_process(tmp_path: Path) -> None:
@@ -52,7 +52,7 @@ def test_bounded_staleness_with_edges_in_process(tmp_path: Path) -> None:
                              tensorboard_files=False, models=False)
     report = audit(tmp_path)
     rounds = _rounds(tmp_path)
-    assert summary["max_staleness"] == 1 and len(rounds) == episodes
+    assert summary.max_staleness == 1 and len(rounds) == episodes
     assert all(len(r["contributors"]) == WORKERS for r in rounds)
     assert report.tiered == episodes
 

@@ -1,6 +1,7 @@
 """A transport is chosen by value (protocol/transport.py): every service takes a Connect, by default its settings'
 ``connector()``, and nothing but ``protocol.transport.connector`` makes an MqttConnection. Choosing the in-memory
-hub is passing ``Hub.connect`` instead, the rig bridge and the dashboard included."""
+hub is passing ``Hub.connect`` instead, the rig bridge and the dashboard included, or naming it by address:
+``memory://<name>``, on which a federation gives the same per-worker episodes as over ``mqtt://``."""
 
 from __future__ import annotations
 
@@ -8,12 +9,18 @@ import ast
 import queue
 import threading
 import time
+import uuid
+from pathlib import Path
+
+import pytest
 
 from protocol import topics
 from protocol.codec import decode, encode
-from protocol.memory import Hub
+from protocol.memory import Hub, MemoryConnection
 from protocol.messages import QubeStatus, WorkerStatus
 from protocol.mqtt import MqttConnection
+from protocol.transport import connector
+from tests.federations import over_mqtt, per_worker_final
 from tests.paths import ROOT
 from worker.settings import WorkerSettings
 
@@ -87,3 +94,32 @@ def test_the_dashboards_feed_runs_on_the_in_memory_hub() -> None:
         sender.stop()
         feed.stop()
     assert feed.stats()["received"] == 1 and feed.stats()["rejected"] == {}
+
+
+def test_a_memory_address_names_one_hub_of_this_process() -> None:
+    name = f"memory://hub-{uuid.uuid4().hex[:8]}"
+    cfg = WorkerSettings.given(broker=name, mqtt_username="ignored")
+    a, b = cfg.connector()("a").start(), connector(name)("b").start()
+    said = queue.Queue[bytes]()
+    try:
+        assert isinstance(a, MemoryConnection) and a.hub is b.hub and cfg.where() == name
+        b.subscribe("x/#", lambda t, p: said.put(p))
+        a.publish("x/y", b"hello")
+        assert _first(said) == b"hello"
+        assert connector(f"{name}-other")("c").hub is not a.hub  # another name, another hub
+    finally:
+        a.stop()
+        b.stop()
+    for bad in ("memory://", "memory://a/b"):
+        with pytest.raises(ValueError, match="memory://<name>"):
+            WorkerSettings.given(broker=bad)
+
+
+def test_a_federation_over_memory_and_over_mqtt_gives_the_same_episodes(amqtt_broker: str, tmp_path: Path) -> None:
+    """The same services and settings, only the broker address differs: every worker's episodes, env steps and final
+    PI are the same."""
+    fed = ("CartPole-v0", "weighted", 1, 2, 3)  # task, strategy, seed, workers, episodes
+    over_mqtt(f"memory://fed-{uuid.uuid4().hex[:8]}", "mem", tmp_path / "memory", *fed)
+    over_mqtt(amqtt_broker, "mqtt", tmp_path / "mqtt", *fed)
+    assert per_worker_final(tmp_path / "memory") == per_worker_final(tmp_path / "mqtt")
+    assert [w[1] for w in per_worker_final(tmp_path / "memory")] == [3, 3]

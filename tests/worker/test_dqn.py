@@ -49,7 +49,7 @@ def test_the_window_stores_n_step_transitions_and_flushes_at_the_episode_end() -
     obs = [np.full(3, i / 10, np.float32) for i in range(5)]
     for i in range(4):
         dqn.remember(obs[i], 0, 1.0, obs[i + 1], terminated=i == 3, truncated=False)
-    replay = dqn._ordered()
+    replay = dqn.replay  # columns: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m
     assert len(replay) == 4 and dqn.memory_size == 4
     first = replay[0]  # s0, rewards r1 r2 r3, bootstraps from s3 with gamma^3
     assert np.array_equal(first[0], obs[0]) and np.array_equal(first[3], obs[3])
@@ -84,7 +84,7 @@ def test_a_non_finite_transition_never_enters_the_replay() -> None:
     size = dqn.memory_size
     dqn.remember(np.zeros(3, np.float32), 0, math.nan, np.zeros(3, np.float32), terminated=True, truncated=False)
     assert dqn.memory_size == size and dqn.rejected_transitions == 1
-    assert all(math.isfinite(t[2]) for t in dqn._ordered())
+    assert all(math.isfinite(t) for t in dqn.replay.ordered()["returns"])
 
 
 def test_the_hooks_and_a_state_round_trip_go_on_bit_for_bit() -> None:

@@ -145,9 +145,9 @@ def test_an_off_policy_federation_shares_and_audits(algo: str, policy: str, tmp_
     summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy=policy, seed=1, workers=2,
                              max_episodes=2, run_dir=tmp_path, algo=algo), plot=False, tensorboard_files=False,
                              models=False)
-    assert summary["algo"] == algo
+    assert summary.algo == algo
     per_episode = env_spec("CartPole-v0").learner_config(algo).update_epochs if policy == "sync" else 1
-    assert summary["rounds"] == 2 * per_episode
+    assert summary.rounds == 2 * per_episode
     rounds = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()
               if json.loads(line)["type"] == "round"]
     assert len(rounds) == 2 * per_episode

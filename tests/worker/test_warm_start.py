@@ -19,6 +19,7 @@ from deploy.settings import InprocessSettings
 from protocol.memory import Hub, MemoryConnection
 from protocol.messages import WorkerHello
 from runtime.model_file import InitModel, ModelFileError, network_digest, provenance, resolve
+from runtime.records import InitModelRecord, RunSummary, WorkerSummary
 from worker.__main__ import main as worker_main
 from worker.evaluate import main as evaluate_main
 
@@ -34,7 +35,7 @@ def pretrained(tmp_path_factory: pytest.TempPathFactory) -> Path:
     run_dir = tmp_path_factory.mktemp("pretrain")
     summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=101, workers=1,
                              max_episodes=120, run_dir=run_dir), plot=False, tensorboard_files=False)
-    assert summary["episodes_to_all_solved"] is not None, "the pretraining did not solve CartPole-v0"
+    assert summary.episodes_to_all_solved is not None, "the pretraining did not solve CartPole-v0"
     return run_dir
 
 
@@ -46,12 +47,12 @@ def test_warm_started_federation_plays_well_from_its_first_episode(pretrained: P
     firsts = {r["worker"]: r["return"] for r in map(json.loads, (tmp_path / "metrics.jsonl").open())
               if r["type"] == "episode" and r["episode"] == 1}
     assert set(firsts) == {"w0", "w1"} and min(firsts.values()) >= GOOD_RETURN, firsts
-    assert summary["episodes_to_all_solved"] is not None and summary["episodes_to_all_solved"] <= 12
-    assert summary["init_model"] == {"path": str(pretrained), "digest": network_digest(model)}
+    assert summary.episodes_to_all_solved is not None and summary.episodes_to_all_solved <= 12
+    assert summary.init_model == InitModelRecord(path=str(pretrained), digest=network_digest(model))
     prov = provenance(tmp_path / "models" / "w0.pt")
     assert prov is not None and prov["task"] == "CartPole-v0" and prov["run_seed"] == 7 and prov["seed"] == 7000
     assert prov["init_model"] == {"path": str(pretrained), "digest": network_digest(model)}
-    assert prov["episodes"] == summary["workers"][0]["episodes"] and prov["env_steps"] > 0 and prov["code_version"]
+    assert prov["episodes"] == summary.workers[0].episodes and prov["env_steps"] > 0 and prov["code_version"]
     # The fine-tuned networks are another model: a run warm-started from it would have another digest.
     assert network_digest(tmp_path / "models" / "w0.pt") != network_digest(model)
 
@@ -73,12 +74,14 @@ def test_run_folder_names_its_first_worker_to_solve(pretrained: Path, tmp_path: 
     (run / "models").mkdir(parents=True)
     for wid in ("w0", "w1", "w2"):
         shutil.copy(pretrained / "models" / "w0.pt", run / "models" / f"{wid}.pt")
-    workers = [{"id": "w0", "solved": True, "episodes": 40}, {"id": "w1", "solved": True, "episodes": 31},
-               {"id": "w2", "solved": False, "episodes": 12}]
-    (run / "summary.json").write_text(json.dumps({"workers": workers}))
+    workers = [WorkerSummary(id=wid, index=i, solved=solved, episodes=episodes, steps=0, state="finished")
+               for i, (wid, solved, episodes) in enumerate((("w0", True, 40), ("w1", True, 31), ("w2", False, 12)))]
+    summary = RunSummary(env="CartPole-v0", policy="weighted", tc=195.0, r_floor=0.0, max_episodes=50, workers=workers,
+                         total_steps=0, rounds=0, end_reason="reached the maximum of 50 episodes")
+    summary.write(run)
     assert resolve(run) == run / "models" / "w1.pt"
     assert InitModel.open(run).given == str(run)
-    (run / "summary.json").write_text(json.dumps({"workers": [{**workers[2]}]}))
+    summary.model_copy(update={"workers": workers[2:]}).write(run)
     with pytest.raises(ModelFileError, match=r"no worker of the run .* solved"):
         resolve(run)
     with pytest.raises(ModelFileError, match="not a finished run folder"):

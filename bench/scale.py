@@ -230,8 +230,8 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
                             stdout=logs[0], stderr=subprocess.STDOUT)
     edge_procs = [subprocess.Popen(
         hosts.command(k, [sys.executable, "-m", "chief", *common, "--broker", hosts.broker(k, outer), "--role", "edge",
-                          "--edge-id", f"e{k}"]) if hosts else
-        [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}"],
+                          "--edge-id", f"e{k}", "--run-dir", str(run_dir)]) if hosts else
+        [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}", "--run-dir", str(run_dir)],
         stdout=logs[k + 1], stderr=subprocess.STDOUT) for k in range(edges)]
     fleet = counters = None
     answered: list[RigProcess] = []

@@ -17,8 +17,12 @@ it holds for that round, and sends the round's partial again when it holds none 
 answer; the root counts it once and answers again).
 
 It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
-workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
-run folder (the root's records cover every submission).
+workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on).
+
+It keeps its workers' records: every submission it counted, as a flat chief records it (chief.records EpisodeRecord,
+StepRecord), appended to RUN/edges/<edge>/metrics.jsonl (``--run-dir``). Its partial carries each one to the root as
+a Contribution (protocol/messages.py: the few fields the root's round needs and the digest of that record line); the
+root keeps one record per partial (chief.records.EdgeRecord) and the audit reads both levels.
 """
 
 from __future__ import annotations
@@ -28,9 +32,11 @@ import math
 import queue
 import threading
 import time
-from typing import Any
+from pathlib import Path
+from typing import Any, TextIO
 
 from chief import tiers
+from chief.records import EDGES, METRICS, line, parse_record, record_digest
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.service import submission_of
 from chief.settings import ChiefSettings
@@ -41,6 +47,7 @@ from protocol.messages import (
     ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
+    Contribution,
     EdgePartial,
     MatureParams,
     RunStart,
@@ -54,6 +61,7 @@ from protocol.routes import WORKER, route_for
 from protocol.tasks import task
 from protocol.tensors import pack_arrays
 from protocol.transport import Connect, Transport
+from runtime.storage import storage_errors
 
 log = logging.getLogger("edge")
 
@@ -91,6 +99,9 @@ class EdgeService:
         self.resent: dict[int, float] = {}  # round -> when its partial last went again
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
+        self.digests: dict[tuple[str, int], str] = {}  # (worker, round) -> its record's digest, until in a partial
+        self.records: TextIO | None = None  # RUN/edges/<edge>/metrics.jsonl, from the RunStart on
+        self.t0 = time.monotonic()
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
         self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}", None, self.rejects)
 
@@ -156,6 +167,9 @@ class EdgeService:
             return EXIT_INTERRUPTED
         finally:
             self.conn.stop()
+            if self.records is not None:
+                with storage_errors(self.records.name):
+                    self.records.close()
 
     def _handle(self, msg: Any, payload: bytes) -> None:
         if isinstance(msg, WorkerHello):
@@ -210,6 +224,10 @@ class EdgeService:
                                   shape=RoundShape(per_episode=start.rounds_per_episode),
                                   max_staleness=start.max_staleness, tier="edge", quorum=share)
         self.start = start
+        path = records_path(self.cfg.run_dir, self.edge)
+        with storage_errors(path):  # appended to: an edge started again goes on with its file
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self.records = path.open("a", encoding="utf-8")
         log.info("edge %s: %d workers (%s), policy %s%s", self.edge, len(mine), ", ".join(mine), start.policy,
                  f", its share of the quorum {start.quorum} of {len(start.workers)}: {share}" if share else "")
 
@@ -218,6 +236,7 @@ class EdgeService:
         mature actor with the root's session, as the root would)."""
         if verdict.status == "accepted":
             self.held[(msg.worker_id, verdict.round)] = msg
+            self._record(verdict)
             return
         if verdict.status == "held":  # beyond reach: it counts, or is refused, when its round opens (_forward)
             self.unreached[(msg.worker_id, verdict.round)] = msg
@@ -255,12 +274,12 @@ class EdgeService:
             part = outcome.partial
             assert part is not None
             subs = [self.held.pop((w, outcome.round)) for w in outcome.contributors]
+            contributions = tuple(self._contribution(s, outcome.round) for s in subs)
             if outcome.round in self.answers:  # a late worker's, and the root answered: it refuses it as late
                 part = tiers.Partial(None, 0.0, part.count)  # ... so its tensors need not travel
             msg = EdgePartial(
                 edge_id=self.edge, round=outcome.round, episode=outcome.episode, step=outcome.step,
-                updates=tuple(s.model_copy(update={"gradient": {}, "critic_gradient": None}) for s in subs
-                              if isinstance(s, WorkerUpdate)),
+                contributions=contributions,
                 matures=tuple(s for s in subs if isinstance(s, MatureParams)),
                 gradient=None if part.gradient is None else pack_arrays(part.gradient),
                 critic_gradient=None if part.critic is None else pack_arrays(part.critic),
@@ -273,6 +292,23 @@ class EdgeService:
                 held = self.unreached.pop((sub.worker_id, verdict.round), None) if sub is not None else None
                 if held is not None:
                     self._count(verdict, held)
+
+    def _record(self, verdict: Verdict) -> None:
+        """Keep a counted submission's record (RUN/edges/<edge>/metrics.jsonl) and its digest for the partial."""
+        record = parse_record(verdict.record(time.monotonic() - self.t0))
+        assert verdict.submission is not None
+        self.digests[(verdict.submission.worker_id, verdict.round)] = record_digest(record)
+        if self.records is not None:
+            with storage_errors(self.records.name):
+                self.records.write(line(record) + "\n")
+                self.records.flush()
+
+    def _contribution(self, sub: WorkerUpdate | MatureParams, r: int) -> Contribution:
+        """A counted submission as its partial carries it: what the root's round needs, and its record's digest."""
+        rig = None if sub.balance_steps is None else (sub.balance_steps, sub.balance_s or 0.0, sub.reset_s or 0.0,
+                                                      sub.idle_s)
+        return Contribution(sub.worker_id, sub.episode, sub.step if isinstance(sub, WorkerUpdate) else 0, sub.pi,
+                            sub.episode_return, sub.steps, self.digests.pop((sub.worker_id, r)), sub.played, rig)
 
     def _partial(self, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
@@ -288,3 +324,8 @@ class EdgeService:
     def _relay(self, leaf: str, payload: bytes) -> None:
         """A root's message (or an edge's refusal in the root's name) to this edge's workers, as it came."""
         self.conn.publish(topics.relayed(self.cfg.run_id, self.edge, leaf), payload, qos=1)
+
+
+def records_path(run_dir: Path, edge: str) -> Path:
+    """Where edge ``edge`` of a run in ``run_dir`` keeps its workers' records."""
+    return run_dir / EDGES / edge / METRICS

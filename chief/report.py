@@ -14,6 +14,7 @@ from chief.played import PlayedTally
 from chief.records import (
     METRICS,
     AnyRecord,
+    EdgeRecord,
     EpisodeRecord,
     PlayedTotals,
     RefusedRecord,
@@ -98,6 +99,11 @@ class MetricsLog:
         self._write(typed)
         return True
 
+    def edge(self, record: EdgeRecord) -> None:
+        """A tiered root's record of an edge's partial (chief.records.EdgeRecord; built unchecked by the root from
+        a message already validated): one line for all of its contributions."""
+        self._write(record)
+
     def round(self, record: RoundRecord | Mapping[str, Any]) -> None:
         """A closed round (chief.rounds.RoundOutcome.record, with its time ``t``)."""
         self._write(record if isinstance(record, RoundRecord) else RoundRecord.model_validate(
@@ -119,6 +125,10 @@ class MetricsLog:
         return self._played.totals()
 
     def _note(self, record: AnyRecord) -> None:
+        if isinstance(record, EdgeRecord):
+            for sub in record.submissions():
+                self._note(sub)
+            return
         self._played.add(record)
         if isinstance(record, EpisodeRecord):
             self.curves.setdefault(record.worker, []).append((record.episode, record.pi))
@@ -129,7 +139,7 @@ class MetricsLog:
         self._note(record)
         with storage_errors(self.path):
             self._file.write(line(record) + "\n")
-        if isinstance(record, RefusedRecord):
+        if isinstance(record, (RefusedRecord, EdgeRecord)):
             return
         for sink in self.sinks:
             sink.record(record)

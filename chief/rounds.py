@@ -587,6 +587,8 @@ class RoundKeeper:
             if rec.returns.get(sub.episode) != sub.episode_return or rec.pis.get(sub.episode) != sub.pi:
                 return "inconsistent", f"step {sub.step} of episode {sub.episode} reports another return or PI"
             return None
+        if self.tier == "root" and not sub.mature:
+            return None  # its edge checked its returns and PI as above (it sends its episode's return alone)
         returns = sub.recent_returns
         if not returns or len(returns) > PI_WINDOW:
             return "invalid", f"{len(returns)} recent returns (1..{PI_WINDOW} expected)"

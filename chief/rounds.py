@@ -92,6 +92,12 @@ RETURN_MARGIN = 0.1
 NORM_FACTOR = 10.0
 #: Closed rounds whose answers are kept for workers that missed them.
 ANSWERS_KEPT = 32
+#: Episodes of each worker's returns and PIs a keeper keeps behind the open round's episode: the furthest back a
+#: submission it still checks can reach (an answered round up to ANSWERS_KEPT rounds back, PI_WINDOW returns before
+#: it). Older ones, and the counted (worker, round) pairs of rounds older than ANSWERS_KEPT, are forgotten every
+#: FORGET_EVERY rounds, so a long run's keeper (and its saved state, chief/checkpoint.py) stays the same size.
+HISTORY = ANSWERS_KEPT + PI_WINDOW
+FORGET_EVERY = 16
 
 
 @dataclass(frozen=True)
@@ -286,6 +292,15 @@ class WorkerRecord:
         """The PI of this worker's latest accepted submission for an episode <= ``episode``."""
         known = [e for e in self.pis if e <= episode]
         return self.pis[max(known)] if known else None
+
+    def forget(self, before: int) -> None:
+        """Forget the returns and PIs of episodes before ``before``, but the latest PI among them (``pi_at`` of a
+        later episode may still need it)."""
+        self.returns = {e: v for e, v in self.returns.items() if e >= before}
+        older = [e for e in self.pis if e < before]
+        if older:
+            keep = max(older)
+            self.pis = {e: v for e, v in self.pis.items() if e >= before or e == keep}
 
 
 class RoundKeeper:
@@ -696,11 +711,24 @@ class RoundKeeper:
         self.pending = {}
         self.round_opened_at = None
         self.round += 1
+        if self.round % FORGET_EVERY == 0:
+            self._forget()
         if not self.any_in("active", "lagging", "offline"):
             self.done_reason = "all workers solved"
         elif r >= self.shape.last_of(self.max_episodes):
             self.done_reason = f"reached the maximum of {self.max_episodes} episodes"
         return [outcome]
+
+    def _forget(self) -> None:
+        """Drop the history no submission can be checked against any more (HISTORY): the keeper's size, and its
+        saved state's, stays bounded however long the run."""
+        before = self.episode - HISTORY
+        if before > 1:
+            for rec in self.workers.values():
+                rec.forget(before)
+        oldest = self.round - ANSWERS_KEPT
+        if oldest > 1:
+            self.counted = {(w, r) for w, r in self.counted if r >= oldest}
 
     def _outcome(self, r: int, kind: Literal["aggregate", "transfer", "partial"],
                  subs: dict[str, Submission]) -> RoundOutcome:

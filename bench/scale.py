@@ -9,7 +9,7 @@ device publishes its update at once and waits for the answer. Per point, over th
 (connections warming up):
 
 - ``root_ms_per_round``: the median of the root's own time per round, from its records (metrics.jsonl): first
-  submission counted to the round's record (receiving, decoding, the round state machine, Eq. 9, the record);
+  submission (a tiered root: first edge's partial) counted to the round's record (receiving, decoding, the round state machine, Eq. 9, the record);
 - ``root_cpu_ms_per_round``: the root process's CPU time per round (/proc, user + system);
 - ``root_bytes_per_round``: the bytes the root's connection received per round (the kernel's TCP counters);
 - ``round_ms``: round latency, from the first device's publish until the last device has the answer (median);
@@ -50,7 +50,7 @@ from bench.cost import RUN, actor_arrays
 from bench.fleets import PER_PROCESS, SpreadFleet
 from bench.rigs import RigProcess
 from chief.audit import audit
-from chief.records import EpisodeRecord, RoundRecord, read_metrics
+from chief.records import EdgeRecord, EpisodeRecord, RoundRecord, read_metrics
 from protocol.codec import encode
 from protocol.messages import WorkerUpdate
 from protocol.mqtt import BrokerAddress
@@ -183,7 +183,7 @@ def root_times(run_dir: Path) -> list[float]:
     for rec in read_metrics(run_dir):
         if isinstance(rec, RoundRecord):
             closed[rec.round] = rec.t
-        elif isinstance(rec, EpisodeRecord):
+        elif isinstance(rec, (EpisodeRecord, EdgeRecord)):  # a tiered root records its edges' partials
             first[rec.round] = min(first.get(rec.round, rec.t), rec.t)
     return [closed[r] - first[r] for r in sorted(closed) if r in first]
 

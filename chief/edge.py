@@ -2,8 +2,8 @@
 
 The adapter between an edge's workers and the root chief. It decides nothing itself: its RoundKeeper (tier
 ``edge``, chief/rounds.py) counts its workers' submissions with the chief's own checks and closes their part of each
-round into one partial (chief/tiers.py), which goes to the root as an EdgePartial (the submissions without their
-tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of the root (RunStart, aggregate,
+round into one partial (chief/tiers.py), which goes to the root as an EdgePartial (each submission as a
+Contribution, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of the root (RunStart, aggregate,
 transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 

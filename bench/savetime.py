@@ -51,7 +51,7 @@ def measure(devices: int, edges: int, rounds: int, early: int) -> dict[str, Any]
     actor = actor_arrays(ENV)
     keeper = RoundKeeper(workers, "weighted", spec, rounds + 1, 60.0,
                          actor_spec={k: v.shape for k, v in actor.items()}, tier="root")
-    returns = {w: [] for w in workers}
+    returns: dict[str, list[float]] = {w: [] for w in workers}
     times: list[float] = []
     cpu: list[float] = []
     sizes: dict[int, int] = {}

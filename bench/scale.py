@@ -9,7 +9,8 @@ device publishes its update at once and waits for the answer. Per point, over th
 (connections warming up):
 
 - ``root_ms_per_round``: the median of the root's own time per round, from its records (metrics.jsonl): first
-  submission (a tiered root: first edge's partial) counted to the round's record (receiving, decoding, the round state machine, Eq. 9, the record);
+  submission (a tiered root: its first edge's partial) counted to the round's record (receiving, decoding, the
+  round state machine, Eq. 9, the record);
 - ``root_cpu_ms_per_round``: the root process's CPU time per round (/proc, user + system);
 - ``root_bytes_per_round``: the bytes the root's connection received per round (the kernel's TCP counters);
 - ``round_ms``: round latency, from the first device's publish until the last device has the answer (median);

@@ -201,11 +201,12 @@ class EdgeRecord(Record):
                                                       step=c.step, receipt=None, t=self.t, earlier_receipts=None,
                                                       stats=None))
                 continue
-            rig = dict(zip(("balance_steps", "balance_s", "reset_s", "idle_s"), c.rig or (None,) * 4, strict=True))
+            balance_steps, balance_s, reset_s, idle_s = c.rig or (None, None, None, None)
             out.append(EpisodeRecord.model_construct(
                 worker=c.worker_id, round=self.round, episode=c.episode, return_=c.episode_return, pi=c.pi,
                 steps=c.steps, kind="mature" if c.worker_id in matures else "update", receipt=None, t=self.t,
-                earlier_receipts=None, recent_returns=None, stats=None, played=c.played, **rig))
+                earlier_receipts=None, recent_returns=None, stats=None, played=c.played, balance_steps=balance_steps,
+                balance_s=balance_s, reset_s=reset_s, idle_s=idle_s))
         return out
 
 
@@ -406,13 +407,17 @@ class KeeperState(Record):
     workers: list[SavedWorker]
     pending: list[dict[str, Any]]
     ahead: list[dict[str, Any]]
-    counted: list[tuple[str, int]]
+    counted: list[tuple[str, int]]  # (worker, round) pairs, as states before ``counted_rounds`` kept them
     answers: list[dict[str, Any]]
     done_reason: str | None
     aborted: bool
     interrupted: bool = False  # ended by Ctrl-C or SIGTERM: a chief started again resumes it
     tier: Literal["flat", "root"] = "flat"  # a root of edges (docs/explanation/tiered.md) or a flat chief
     partials: list[dict[str, Any]] = Field(default_factory=list)  # a root's: the edges' partials of open rounds
+    #: The counted (worker, round) pairs, compactly: per worker, a little-endian bit mask of its rounds from
+    #: ``counted_from`` (bit i: round counted_from + i), so the state's size does not grow with its pairs.
+    counted_from: int = 0
+    counted_rounds: dict[str, bytes] = Field(default_factory=dict)
 
 
 class ServiceState(Record):

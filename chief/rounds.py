@@ -93,10 +93,13 @@ NORM_FACTOR = 10.0
 #: Closed rounds whose answers are kept for workers that missed them.
 ANSWERS_KEPT = 32
 #: Episodes of each worker's returns and PIs a keeper keeps behind the open round's episode: the furthest back a
-#: submission it still checks can reach (an answered round up to ANSWERS_KEPT rounds back, PI_WINDOW returns before
-#: it). Older ones, and the counted (worker, round) pairs of rounds older than ANSWERS_KEPT, are forgotten every
-#: FORGET_EVERY rounds, so a long run's keeper (and its saved state, chief/checkpoint.py) stays the same size.
-HISTORY = ANSWERS_KEPT + PI_WINDOW
+#: submission it checks can reach (one of the open round or later, its PI_WINDOW returns; at an edge with a quorum,
+#: one for an answered round up to ANSWERS_KEPT rounds back, ``_late``). Older ones are forgotten as the episodes go
+#: by (the latest older PI kept, for Eq. 10), and every FORGET_EVERY rounds the counted (worker, round) pairs of
+#: rounds older than ANSWERS_KEPT too, so a long run's keeper (and its saved state, chief/checkpoint.py) stays the
+#: same size.
+HISTORY = PI_WINDOW
+LATE_HISTORY = ANSWERS_KEPT + PI_WINDOW
 FORGET_EVERY = 16
 
 
@@ -351,7 +354,8 @@ class RoundKeeper:
         self.pending: dict[str, Submission] = {}
         self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
         self.held: dict[int, dict[str, Submission]] = {}  # submissions beyond reach, not counted (``_hold``)
-        self.counted: set[tuple[str, int]] = set()  # (worker, round) of every accepted submission
+        self.counted: set[tuple[str, int]] = set()  # (worker, round) of every accepted submission (recent rounds')
+        self._forgotten = 1  # the episodes before it are forgotten (``_forget``)
         self.answers: dict[int, RoundOutcome] = {}  # the last ANSWERS_KEPT closed rounds' answers
         self.round_opened_at: float | None = None  # time of the round's first submission
         self._blocker: str | None = None  # the last waited-on worker found missing from the open round (a cache)
@@ -711,18 +715,33 @@ class RoundKeeper:
         self.pending = {}
         self.round_opened_at = None
         self.round += 1
-        if self.round % FORGET_EVERY == 0:
-            self._forget()
+        self._forget(full=self.round % FORGET_EVERY == 0)
         if not self.any_in("active", "lagging", "offline"):
             self.done_reason = "all workers solved"
         elif r >= self.shape.last_of(self.max_episodes):
             self.done_reason = f"reached the maximum of {self.max_episodes} episodes"
         return [outcome]
 
-    def _forget(self) -> None:
-        """Drop the history no submission can be checked against any more (HISTORY): the keeper's size, and its
-        saved state's, stays bounded however long the run."""
-        before = self.episode - HISTORY
+    @property
+    def history(self) -> int:
+        """Episodes of returns and PIs kept behind the open round's (HISTORY; LATE_HISTORY at an edge with a
+        quorum)."""
+        return LATE_HISTORY if self.tier == "edge" and self.quorum else HISTORY
+
+    def _forget(self, full: bool) -> None:
+        """Drop the history no submission can be checked against any more (``history``): each episode that falls
+        out of it (one dict lookup per worker), and, when ``full``, everything older and the counted rounds older
+        than ANSWERS_KEPT. The keeper's size, and its saved state's, stays bounded however long the run."""
+        before = self.episode - self.history
+        full = full or before - self._forgotten > FORGET_EVERY  # a keeper restored from an older, longer state
+        for e in range(self._forgotten, before) if not full else ():
+            for rec in self.workers.values():
+                rec.returns.pop(e, None)
+                if rec.last_episode > e:  # a later PI of it is on record: this one is nobody's latest
+                    rec.pis.pop(e, None)
+        self._forgotten = max(self._forgotten, before)
+        if not full:
+            return
         if before > 1:
             for rec in self.workers.values():
                 rec.forget(before)

@@ -116,7 +116,7 @@ def counted_masks(counted: set[tuple[str, int]]) -> tuple[int, dict[str, bytes]]
 
 def uncounted_masks(base: int, masks: dict[str, bytes]) -> set[tuple[str, int]]:
     """``counted_masks`` undone: the (worker, round) pairs."""
-    out = set()
+    out: set[tuple[str, int]] = set()
     for w, raw in masks.items():
         b = int.from_bytes(raw, "little")
         out.update((w, base + i) for i in range(b.bit_length()) if b >> i & 1)

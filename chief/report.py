@@ -139,10 +139,14 @@ class MetricsLog:
         self._note(record)
         with storage_errors(self.path):
             self._file.write(line(record) + "\n")
-        if isinstance(record, (RefusedRecord, EdgeRecord)):
+        if isinstance(record, RefusedRecord):
             return
-        for sink in self.sinks:
-            sink.record(record)
+        if not self.sinks:
+            return
+        subs: list[Line] = [*record.submissions()] if isinstance(record, EdgeRecord) else [record]
+        for sub in subs:  # a tiered root's edge record: its contributions, as the sinks took them from its partials
+            for sink in self.sinks:
+                sink.record(sub)
 
     def close(self) -> None:
         with storage_errors(self.path):

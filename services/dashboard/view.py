@@ -485,6 +485,7 @@ def as_update(c: Contribution) -> WorkerUpdate:
     """A partial's Contribution as the update it stands for, with the fields the view reads (no tensors)."""
     balance_steps, balance_s, reset_s, idle_s = c.rig or (None, None, None, None)
     return WorkerUpdate.model_construct(worker_id=c.worker_id, episode=c.episode, step=c.step, pi=c.pi,
-                                        episode_return=c.episode_return, steps=c.steps, played=c.played,
+                                        episode_return=c.episode_return, recent_returns=(c.episode_return,),
+                                        steps=c.steps, gradient={}, played=c.played,
                                         balance_steps=balance_steps, balance_s=balance_s, reset_s=reset_s,
                                         idle_s=idle_s)

@@ -730,8 +730,9 @@ class RoundKeeper:
 
     def _forget(self, full: bool) -> None:
         """Drop the history no submission can be checked against any more (``history``): each episode that falls
-        out of it (one dict lookup per worker), and, when ``full``, everything older and the counted rounds older
-        than ANSWERS_KEPT. The keeper's size, and its saved state's, stays bounded however long the run."""
+        out of it and the counted round whose answer was just dropped (a few dict lookups per worker), and, when
+        ``full``, everything older and every counted round older than ANSWERS_KEPT. The keeper's size, and its saved
+        state's, stays bounded however long the run."""
         before = self.episode - self.history
         full = full or before - self._forgotten > FORGET_EVERY  # a keeper restored from an older, longer state
         for e in range(self._forgotten, before) if not full else ():
@@ -741,6 +742,9 @@ class RoundKeeper:
                     rec.pis.pop(e, None)
         self._forgotten = max(self._forgotten, before)
         if not full:
+            old = self.round - ANSWERS_KEPT - 1  # the round whose answer was just dropped
+            for w in self.workers if old >= 1 else ():
+                self.counted.discard((w, old))
             return
         if before > 1:
             for rec in self.workers.values():

@@ -741,15 +741,17 @@ class RoundKeeper:
                 if rec.last_episode > e:  # a later PI of it is on record: this one is nobody's latest
                     rec.pis.pop(e, None)
         self._forgotten = max(self._forgotten, before)
+        # The counted rounds still needed: those whose answers are kept, and every round of the open episode (a
+        # per-step strategy's later step is checked against its episode's step 0, maybe more rounds back).
+        oldest = min(self.round - ANSWERS_KEPT, self.shape.number(self.episode))
         if not full:
             old = self.round - ANSWERS_KEPT - 1  # the round whose answer was just dropped
-            for w in self.workers if old >= 1 else ():
+            for w in self.workers if 1 <= old < oldest else ():
                 self.counted.discard((w, old))
             return
         if before > 1:
             for rec in self.workers.values():
                 rec.forget(before)
-        oldest = self.round - ANSWERS_KEPT
         if oldest > 1:
             self.counted = {(w, r) for w, r in self.counted if r >= oldest}
 

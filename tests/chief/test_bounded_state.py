@@ -95,3 +95,27 @@ def test_a_resumed_keeper_decides_as_the_one_that_never_stopped_and_its_state_st
     assert late <= early * 1.05, (early, late)  # what grew with the run is forgotten
     for rec in resumed.workers.values():
         assert len(rec.returns) <= HISTORY + 16 and len(rec.pis) <= HISTORY + 17
+
+
+def test_a_per_step_episode_longer_than_the_kept_answers_is_still_counted_step_by_step() -> None:
+    """Under a per-step strategy an episode may have more rounds than the keeper keeps answers for (ANSWERS_KEPT):
+    the counted round of its step 0, which each later step is checked against, is not forgotten before the episode
+    ends (forgetting it refused every later step as ``out_of_order``, found by bench.behaviour's DQN sync run)."""
+    from chief.rounds import ANSWERS_KEPT
+    from protocol.rounds import RoundShape
+
+    steps = ANSWERS_KEPT + 8
+    k = RoundKeeper(["w0", "w1"], "sync", task("CartPole-v0"), 3, 1.0, actor_spec=SPEC, critic_spec=SPEC,
+                    shape=RoundShape(per_episode=steps))
+    returns: list[float] = []
+    for episode in (1, 2, 3):
+        returns.append(20.0 + episode)
+        recent = tuple(returns[-PI_WINDOW:])
+        for step in range(steps):
+            for w in ("w0", "w1"):
+                arrays = {"a": np.full(3, 0.01, np.float32)}
+                verdict = k.submit(Submission(w, episode, float(np.mean(recent)), recent[-1], recent_returns=recent,
+                                              steps=20, gradient=arrays, critic_gradient=arrays, step=step),
+                                   float(episode * 1000 + step))
+                assert verdict.status == "accepted", (episode, step, verdict.reason, verdict.detail)
+    assert k.done

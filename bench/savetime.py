@@ -8,7 +8,8 @@ whose root still checks them), the round closed, then ``checkpoint.save`` into a
 ``time.perf_counter``). No MQTT and no learning: only the state's size decides the save time. Reports the median
 save time (wall, with the file's fsync; and the process's CPU time) over the rounds around round 10 (``--early``) and
 around the last round, their ratios (and the ratio of the least CPU time of each: the least disturbed by other
-processes on a shared machine), and the state file's size at both.
+processes on a shared machine), the same for building the state's bytes alone (``checkpoint.encoded``: no file,
+no fsync), and the state file's size at both.
 ``--quick``: 64 devices, 4 edges, 60 rounds (seconds).
 
     python -m bench.savetime --devices 256 --edges 16 --rounds 500 --out bench/results/savetime.json
@@ -55,6 +56,7 @@ def measure(devices: int, edges: int, rounds: int, early: int) -> dict[str, Any]
     returns: dict[str, list[float]] = {w: [] for w in workers}
     times: list[float] = []
     cpu: list[float] = []
+    encode: list[float] = []  # the state's bytes only (checkpoint.encoded): no file, no fsync
     sizes: dict[int, int] = {}
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -70,6 +72,9 @@ def measure(devices: int, edges: int, rounds: int, early: int) -> dict[str, Any]
                 verdict = keeper.submit(sub, float(r))
                 assert verdict.status == "accepted", (verdict.reason, verdict.detail)
             assert keeper.round == r + 1, f"round {r} did not close"
+            start_cpu = time.process_time()
+            checkpoint.encoded(keeper, _service(edge_of))
+            encode.append(time.process_time() - start_cpu)
             start, start_cpu = time.perf_counter(), time.process_time()
             path = checkpoint.save(folder, keeper, _service(edge_of))
             times.append(time.perf_counter() - start)
@@ -84,12 +89,16 @@ def measure(devices: int, edges: int, rounds: int, early: int) -> dict[str, Any]
 
     (wall_early, wall_last), (cpu_early, cpu_last) = around(times), around(cpu)
     (min_early, min_last) = least(cpu)
+    (enc_early, enc_last), (enc_min_early, enc_min_last) = around(encode), least(encode)
     return {"devices": devices, "edges": edges, "rounds": rounds, "early_round": early,
             "save_ms_early": round(wall_early * 1e3, 3), "save_ms_last": round(wall_last * 1e3, 3),
             "ratio": round(wall_last / wall_early, 3),
             "save_cpu_ms_early": round(cpu_early * 1e3, 3), "save_cpu_ms_last": round(cpu_last * 1e3, 3),
             "cpu_ratio": round(cpu_last / cpu_early, 3), "min_cpu_ms_early": round(min_early * 1e3, 3),
             "min_cpu_ms_last": round(min_last * 1e3, 3), "min_cpu_ratio": round(min_last / min_early, 3),
+            "encode_cpu_ms_early": round(enc_early * 1e3, 3), "encode_cpu_ms_last": round(enc_last * 1e3, 3),
+            "encode_cpu_ratio": round(enc_last / enc_early, 3),
+            "encode_min_cpu_ratio": round(enc_min_last / enc_min_early, 3),
             "state_bytes_early": sizes[early],
             "state_bytes_last": sizes[rounds], "save_ms": [round(t * 1e3, 3) for t in times],
             "save_cpu_ms": [round(t * 1e3, 3) for t in cpu]}
@@ -110,7 +119,9 @@ def main(argv: list[str] | None = None) -> int:
     print(f"save time at round {args.early}: {result['save_ms_early']} ms wall, {result['save_cpu_ms_early']} ms CPU "
           f"({result['state_bytes_early']} B); at round {args.rounds}: {result['save_ms_last']} ms wall, "
           f"{result['save_cpu_ms_last']} ms CPU ({result['state_bytes_last']} B); ratio {result['ratio']} wall, "
-          f"{result['cpu_ratio']} CPU (medians), {result['min_cpu_ratio']} CPU (least of each)")
+          f"{result['cpu_ratio']} CPU (medians), {result['min_cpu_ratio']} CPU (least of each); the state's bytes "
+          f"alone (no file): {result['encode_cpu_ms_early']} -> {result['encode_cpu_ms_last']} ms CPU, ratio "
+          f"{result['encode_cpu_ratio']} (medians), {result['encode_min_cpu_ratio']} (least)")
     output.write_report(args.out, "bench.savetime", argv, result)
     return 0
 

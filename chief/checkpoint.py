@@ -181,9 +181,13 @@ def save(run_dir: Path, keeper: RoundKeeper, service: ServiceState | Mapping[str
     """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset: a
     chief.records.ServiceState or its fields)."""
     path = run_dir / FILENAME
+    return atomic_write(path, encoded(keeper, service), tmp=path.with_suffix(".tmp"))  # StorageError: disk full...
+
+
+def encoded(keeper: RoundKeeper, service: ServiceState | Mapping[str, Any]) -> bytes:
+    """The state file's bytes (``save`` writes them)."""
     state = ChiefState(version=VERSION, keeper=keeper_state(keeper), service=ServiceState.model_validate(service))
-    data = msgpack.packb(state.model_dump(), use_bin_type=True)
-    return atomic_write(path, data, tmp=path.with_suffix(".tmp"))  # StorageError on a full or read-only disk
+    return msgpack.packb(state.model_dump(), use_bin_type=True)
 
 
 def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:

@@ -9,7 +9,8 @@ device publishes its update at once and waits for the answer. Per point, over th
 (connections warming up):
 
 - ``root_ms_per_round``: the median of the root's own time per round, from its records (metrics.jsonl): first
-  submission counted to the round's record (receiving, decoding, the round state machine, Eq. 9, the record);
+  submission (a tiered root: its first edge's partial) counted to the round's record (receiving, decoding, the
+  round state machine, Eq. 9, the record);
 - ``root_cpu_ms_per_round``: the root process's CPU time per round (/proc, user + system);
 - ``root_bytes_per_round``: the bytes the root's connection received per round (the kernel's TCP counters);
 - ``round_ms``: round latency, from the first device's publish until the last device has the answer (median);
@@ -56,7 +57,7 @@ from protocol.mqtt import BrokerAddress
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import pack_arrays
 from protocol.transport import connector
-from runtime.records import EpisodeRecord, RoundRecord, read_metrics
+from runtime.records import EdgeRecord, EpisodeRecord, RoundRecord, read_metrics
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
 
@@ -183,7 +184,7 @@ def root_times(run_dir: Path) -> list[float]:
     for rec in read_metrics(run_dir):
         if isinstance(rec, RoundRecord):
             closed[rec.round] = rec.t
-        elif isinstance(rec, EpisodeRecord):
+        elif isinstance(rec, (EpisodeRecord, EdgeRecord)):  # a tiered root records its edges' partials
             first[rec.round] = min(first.get(rec.round, rec.t), rec.t)
     return [closed[r] - first[r] for r in sorted(closed) if r in first]
 
@@ -230,8 +231,8 @@ def point(devices: int, topology: str, edges: int, rounds: int, arrays: dict[str
                             stdout=logs[0], stderr=subprocess.STDOUT)
     edge_procs = [subprocess.Popen(
         hosts.command(k, [sys.executable, "-m", "chief", *common, "--broker", hosts.broker(k, outer), "--role", "edge",
-                          "--edge-id", f"e{k}"]) if hosts else
-        [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}"],
+                          "--edge-id", f"e{k}", "--run-dir", str(run_dir)]) if hosts else
+        [sys.executable, "-m", "chief", *common, "--role", "edge", "--edge-id", f"e{k}", "--run-dir", str(run_dir)],
         stdout=logs[k + 1], stderr=subprocess.STDOUT) for k in range(edges)]
     fleet = counters = None
     answered: list[RigProcess] = []

@@ -5,6 +5,10 @@ the federation must have done. It exits 0 when every invariant holds, 1 naming t
 folder cannot be read. The invariants, each one function registered in ``CHECKS`` (run in that order, on the records
 as runtime/records.py types them):
 
+- ``edge-records``: in a tiered run whose root keeps one record per edge and round (runtime.records.EdgeRecord), each
+  contribution the root counted is exactly a record its edge kept (RUN/edges/<edge>/metrics.jsonl: same digest, same
+  fields), and each partial's share total, count and ``uniform`` flag are what those records' PIs give (Eq. 8's
+  numerators, summed as the edge sums them); the other checks then read the edges' records as the run's;
 - ``rounds-contiguous``: rounds are 1, 2, ... without gaps, as many as the summary says, each the round of its
   (episode, step);
 - ``counted-once``: no worker's episode (or, under a per-step strategy, step) is counted twice;
@@ -61,8 +65,10 @@ from protocol.rounds import RoundShape
 from protocol.tasks import PI_WINDOW, performance_index
 from protocol.tensors import digest
 from runtime.records import (
+    EDGES,
     GRADIENTS,
     ROOT,
+    EdgeRecord,
     EpisodeRecord,
     RefusedRecord,
     RoundRecord,
@@ -70,6 +76,7 @@ from runtime.records import (
     StepRecord,
     gradient_key,
     read_metrics,
+    record_digest,
 )
 from runtime.settings import program, returns_code
 
@@ -98,13 +105,15 @@ class AuditReport:
     receipts: int = 0
     staleness: int = 0
     tiered: int = 0
+    edge_records: int = 0
     uncounted: list[tuple[str, int]] = field(default_factory=list)
 
     def __str__(self) -> str:
         text = (f"{self.rounds} rounds, {self.submissions} counted submissions, {self.transfers} transfers "
                 f"({self.transfer_deliveries} recipients), {self.receipts} receipts confirmed"
                 + (f" (max staleness {self.staleness})" if self.staleness else "")
-                + (f"; {self.tiered} tiered aggregates within the bound of the flat Eq. 9" if self.tiered else ""))
+                + (f"; {self.tiered} tiered aggregates within the bound of the flat Eq. 9" if self.tiered else "")
+                + (f"; {self.edge_records} edge records agree with the edges' own" if self.edge_records else ""))
         if self.uncounted:
             text += (f"; {len(self.uncounted)} submissions left in a round the run never closed (an aborted run, "
                      "or a finished helper's after the last finish)")
@@ -120,12 +129,40 @@ def _close(a: float | None, b: float | None) -> bool:
 def load(run_dir: Path) -> tuple[RunSummary, list[EpisodeRecord], list[StepRecord], list[RoundRecord],
                                  list[RefusedRecord]]:
     """summary, episode records, later-step records, round records and refused submissions' records of a run folder
-    (OSError/ValueError when unreadable)."""
+    (OSError/ValueError when unreadable); a tiered root's EdgeRecords stand for the edges' records they count
+    (``edge_submissions``)."""
     summary = RunSummary.read(run_dir)
     records = read_metrics(run_dir)
+    edged = [r for r in records if isinstance(r, EdgeRecord)]
+    if edged:
+        records = [*records, *edge_submissions(edged, edge_records(run_dir, edged))]
     return (summary, [r for r in records if isinstance(r, EpisodeRecord)],
             [r for r in records if isinstance(r, StepRecord)], [r for r in records if isinstance(r, RoundRecord)],
             [r for r in records if isinstance(r, RefusedRecord)])
+
+
+def edge_records(run_dir: Path, edged: list[EdgeRecord]) -> dict[str, list[Submitted]]:
+    """Each edge's records of its workers' submissions (RUN/edges/<edge>/metrics.jsonl; [] when it has none)."""
+    out: dict[str, list[Submitted]] = {}
+    for edge in sorted({r.edge for r in edged}):
+        folder = run_dir / EDGES / edge
+        out[edge] = [r for r in read_metrics(folder) if isinstance(r, (EpisodeRecord, StepRecord))]
+    return out
+
+
+def edge_submissions(edged: list[EdgeRecord], kept: dict[str, list[Submitted]]) -> list[Submitted]:
+    """The edges' records of the contributions the root counted, in the root's order: for each, the edge's record
+    whose digest it carries (the first of its worker and round when none has: ``edge-records`` names it)."""
+    index: dict[tuple[str, str, int], list[Submitted]] = defaultdict(list)
+    for edge, records in kept.items():
+        for rec in records:
+            index[(edge, rec.worker, rec.round)].append(rec)
+    out: list[Submitted] = []
+    for r in edged:
+        for c in r.contributions:
+            found = index.get((r.edge, c.worker_id, r.round), [])
+            out += [next((e for e in found if record_digest(e) == c.digest), found[0])] if found else []
+    return out
 
 
 @dataclass
@@ -140,6 +177,8 @@ class Run:
     refused: list[RefusedRecord] = field(default_factory=list)
     report: AuditReport = field(default_factory=AuditReport)
     gradients: dict[str, np.ndarray] | None = None  # a tiered run's witness (GRADIENTS), when it has one
+    edged: list[EdgeRecord] = field(default_factory=list)  # a tiered root's records of its edges' partials
+    kept: dict[str, list[Submitted]] = field(default_factory=dict)  # each edge's own records of its submissions
 
     @classmethod
     def read(cls, run_dir: Path) -> Run:
@@ -149,8 +188,10 @@ class Run:
         if witness.exists():
             with np.load(witness) as data:
                 gradients = {k: data[k] for k in data.files}
+        edged = [r for r in read_metrics(run_dir) if isinstance(r, EdgeRecord)]
         return cls(summary, episodes, steps, rounds, refused,
-                   AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)), gradients)
+                   AuditReport(rounds=len(rounds), submissions=len(episodes) + len(steps)), gradients, edged,
+                   edge_records(run_dir, edged) if edged else {})
 
     # -- rounds: the run's shape (protocol.rounds) maps (episode, step) to a round number and back --------------
 
@@ -274,6 +315,37 @@ def check(invariant: str) -> Callable[[Callable[[Run], None]], Callable[[Run], N
         CHECKS.append(Check(invariant, fn))
         return fn
     return register
+
+
+@check("edge-records")
+def edge_records_agree(run: Run) -> None:
+    """Algorithm 1's messages of a round, kept at two levels (docs/explanation/tiered.md): every contribution a
+    tiered root counted from an edge's partial is a record that edge kept (the digest the partial carried, the same
+    episode, step, PI, return, env steps and played counts), and the partial's share total T_e, count N_e and
+    ``uniform`` flag are what Eq. 8's numerators of those records' PIs sum to, as the edge sums them (exactly)."""
+    kept = {(edge, record_digest(e)): e for edge, records in run.kept.items() for e in records}
+    for r in run.edged:
+        matures = set(r.matures or ())
+        progress = {}
+        for c in r.contributions:
+            e = kept.get((r.edge, c.digest))
+            e = e if e is not None and (e.worker, e.round) == (c.worker_id, r.round) else None
+            _holds(e is not None, f"round {r.round}: the root counted {c.worker_id}'s submission from edge {r.edge} "
+                   f"with digest {c.digest}, and that edge kept no such record of it")
+            assert e is not None
+            step = run.step(e)
+            mature = isinstance(e, EpisodeRecord) and e.kind == "mature"
+            same = (e.episode, step, c.worker_id in matures) == (c.episode, c.step, mature)
+            if isinstance(e, EpisodeRecord):
+                same = same and (e.pi, e.return_, e.steps, e.played) == (c.pi, c.episode_return, c.steps, c.played)
+            _holds(same, f"round {r.round}: edge {r.edge}'s record of {c.worker_id} is not the contribution the root "
+                   f"counted ({c})")
+            if not mature:
+                progress[c.worker_id] = run.progress(c.pi)
+        got, want = (r.total, r.count, r.uniform), tiers.expected_totals(run.strategy, progress)
+        _holds(got == want, f"round {r.round}: edge {r.edge}'s partial says (total, count, uniform) {got}, its "
+               f"records give {want}")
+        run.report.edge_records += 1
 
 
 @check("rounds-contiguous")

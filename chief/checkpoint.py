@@ -1,8 +1,9 @@
 """The chief's state on disk, so a chief that died can resume its run (``python -m chief`` with the same run id and
 run folder finds ``chief-state.msgpack`` and carries on from it).
 
-What is kept: the round state machine (open round, every worker's record with its accepted returns and PIs, the
-pending and early submissions, which episodes were counted, the answers of the last few rounds), the roster, the
+What is kept: the round state machine (open round, every worker's record with its recent returns and PIs, the
+pending and early submissions, which recent rounds were counted, the answers of the last few rounds: what the keeper
+still holds, chief/rounds.py HISTORY, so the file stays the same size however long the run), the roster, the
 reject counters, the run's session id, and how far ``metrics.jsonl`` had been written. It is written atomically
 (temporary file, fsync, rename) whenever a round closes and before a mature actor is acknowledged, so what the chief
 confirmed to a worker is never lost. Tensors are stored as raw float32 bytes in msgpack, never pickled: a state file
@@ -85,16 +86,41 @@ def keeper_state(k: RoundKeeper) -> KeeperState:
                                            returns=sorted(rec.returns.items()), pis=sorted(rec.pis.items()))
                for rec in k.workers.values()]
     last = sorted(k.answers)[-ANSWERS_SAVED:]
+    # The counted rounds a resumed keeper needs: those whose answers it keeps (an older one sent again is refused as
+    # stale instead of a duplicate: it counts nothing either way, and no answer of it is kept), and the open
+    # episode's (a later step checks its step 0).
+    since = min([k.round - k.shape.per_episode, *last[:1]])
+    base, masks = counted_masks({(w, r) for w, r in k.counted if r >= since})
     return KeeperState(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
         actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.shape.per_episode,
         max_staleness=k.max_staleness, quorum=k.quorum, round=k.round, workers=workers,
         pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
-        counted=sorted(k.counted), answers=[_outcome(k.answers[e]) for e in last],
+        counted=[], counted_from=base, counted_rounds=masks, answers=[_outcome(k.answers[e]) for e in last],
         done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted, tier=k.tier,
         partials=[_partial(r, e, held) for r, by_edge in sorted(k.partials.items())
                   for (e, _), held in sorted(by_edge.items())])
+
+
+def counted_masks(counted: set[tuple[str, int]]) -> tuple[int, dict[str, bytes]]:
+    """The counted (worker, round) pairs as (first round, worker -> little-endian bit mask of its rounds from it)."""
+    if not counted:
+        return 0, {}
+    base = min(r for _, r in counted)
+    bits: dict[str, int] = {}
+    for w, r in counted:
+        bits[w] = bits.get(w, 0) | (1 << (r - base))
+    return base, {w: b.to_bytes((b.bit_length() + 7) // 8, "little") for w, b in sorted(bits.items())}
+
+
+def uncounted_masks(base: int, masks: dict[str, bytes]) -> set[tuple[str, int]]:
+    """``counted_masks`` undone: the (worker, round) pairs."""
+    out: set[tuple[str, int]] = set()
+    for w, raw in masks.items():
+        b = int.from_bytes(raw, "little")
+        out.update((w, base + i) for i in range(b.bit_length()) if b >> i & 1)
+    return out
 
 
 def _partial(r: int, edge: str, held: HeldPartial) -> dict[str, Any]:
@@ -143,7 +169,7 @@ def restore_keeper(state: KeeperState, task: TaskSpec) -> RoundKeeper:
     for s in state.ahead:
         sub = _unsubmission(s)
         k.ahead.setdefault(k.shape.number(sub.episode, sub.step), {})[sub.worker_id] = sub
-    k.counted = {(w, e) for w, e in state.counted}
+    k.counted = {(w, e) for w, e in state.counted} | uncounted_masks(state.counted_from, state.counted_rounds)
     k.answers = {o.round: o for o in map(_unoutcome, state.answers)}
     k.done_reason, k.aborted, k.interrupted = state.done_reason, state.aborted, state.interrupted
     for d in state.partials:
@@ -155,9 +181,13 @@ def save(run_dir: Path, keeper: RoundKeeper, service: ServiceState | Mapping[str
     """Write the state atomically; ``service`` holds the service's own part (roster, counters, records offset: a
     chief.records.ServiceState or its fields)."""
     path = run_dir / FILENAME
+    return atomic_write(path, encoded(keeper, service), tmp=path.with_suffix(".tmp"))  # StorageError: disk full...
+
+
+def encoded(keeper: RoundKeeper, service: ServiceState | Mapping[str, Any]) -> bytes:
+    """The state file's bytes (``save`` writes them)."""
     state = ChiefState(version=VERSION, keeper=keeper_state(keeper), service=ServiceState.model_validate(service))
-    data = msgpack.packb(state.model_dump(), use_bin_type=True)
-    return atomic_write(path, data, tmp=path.with_suffix(".tmp"))  # StorageError on a full or read-only disk
+    return msgpack.packb(state.model_dump(), use_bin_type=True)
 
 
 def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:

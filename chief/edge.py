@@ -2,8 +2,8 @@
 
 The adapter between an edge's workers and the root chief. It decides nothing itself: its RoundKeeper (tier
 ``edge``, chief/rounds.py) counts its workers' submissions with the chief's own checks and closes their part of each
-round into one partial (chief/tiers.py), which goes to the root as an EdgePartial (the submissions without their
-tensors, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of the root (RunStart, aggregate,
+round into one partial (chief/tiers.py), which goes to the root as an EdgePartial (each submission as a
+Contribution, a finisher's actor whole, one unnormalised Eq. 9 sum). Every answer of the root (RunStart, aggregate,
 transfer, acknowledgement, RunStop) it passes on verbatim to its workers on fedrl/<run>/edge/<edge>/..., so the
 root's tag stays valid and a transfer (Eq. 10-11) fans out through the edges.
 
@@ -17,14 +17,18 @@ it holds for that round, and sends the round's partial again when it holds none 
 answer; the root counts it once and answers again).
 
 It learns the run from the root's RunStart (task, strategy, round shape, which workers are its: ``edges``) and its
-workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on); it writes no
-run folder (the root's records cover every submission).
+workers' tensor shapes from their hellos (subscribing to a worker's updates from its first hello on).
+
+It keeps its workers' records: every submission it counted, as a flat chief records it (runtime.records
+EpisodeRecord, StepRecord), appended to RUN/edges/<edge>/metrics.jsonl (``--run-dir``). Its partial carries each one
+to the root as a Contribution (protocol/messages.py: the few fields the root's round needs and the digest of that
+record line); the root keeps one record per partial (runtime.records.EdgeRecord) and the audit reads both levels.
 
 It says ``online`` every second (EdgeStatus; its last will says ``offline``). When the root finds another edge dead,
 its RunStart may name this edge the dead one's stand-in (``stand_ins``, chief/failover.py): the edge then takes that
 edge's workers as a group of their own, with a keeper from the root's open round (RunStart ``round``) on, and sums
-them in partials of their own (EdgePartial ``group``). Started again mid-run, it serves the groups the root's
-RunStart gives it, from that round on.
+them in partials of their own (EdgePartial ``group``), keeping their records in its own file. Started again mid-run,
+it serves the groups the root's RunStart gives it, from that round on.
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ import math
 import queue
 import threading
 import time
-from typing import Any
+from pathlib import Path
+from typing import Any, TextIO
 
 from chief import failover, tiers
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
@@ -47,6 +52,7 @@ from protocol.messages import (
     ChiefAck,
     ChiefAggregate,
     ChiefTransfer,
+    Contribution,
     EdgePartial,
     EdgeStatus,
     MatureParams,
@@ -61,6 +67,8 @@ from protocol.routes import WORKER, route_for
 from protocol.tasks import task
 from protocol.tensors import pack_arrays
 from protocol.transport import Connect, Transport
+from runtime.records import EDGES, METRICS, line, parse_record, record_digest
+from runtime.storage import storage_errors
 
 log = logging.getLogger("edge")
 
@@ -102,6 +110,9 @@ class EdgeService:
         self.acks: dict[tuple[str, int], bytes] = {}  # (worker, round) -> the root's acknowledgement of its actor
         self.partials = 0
         self._beat = -math.inf  # when its last ``online`` status went out
+        self.digests: dict[tuple[str, int], str] = {}  # (worker, round) -> its record's digest, until in a partial
+        self.records: TextIO | None = None  # RUN/edges/<edge>/metrics.jsonl, from the RunStart on
+        self.t0 = time.monotonic()
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
         self._offline = encode(signed(EdgeStatus(edge_id=self.edge, state="offline"), self.key))  # its last will
         self.conn: Transport = (connect or cfg.connector())(f"fedrl-{cfg.run_id}-edge-{self.edge}",
@@ -174,6 +185,9 @@ class EdgeService:
             return EXIT_INTERRUPTED
         finally:
             self.conn.stop()
+            if self.records is not None:
+                with storage_errors(self.records.name):
+                    self.records.close()
 
     def _heartbeat(self, now: float) -> None:
         """Say ``online`` every failover.HEARTBEAT seconds (the root finds a silent edge dead)."""
@@ -230,6 +244,11 @@ class EdgeService:
         """The root's RunStart: serve the groups it gives this edge (its own workers, and a dead edge's it stands in
         for: chief/failover.py), each with a keeper from the root's open round on; let go of those it does not."""
         self.start = start
+        if self.records is None:
+            path = records_path(self.cfg.run_dir, self.edge)
+            with storage_errors(path):  # appended to: an edge started again goes on with its file
+                path.parent.mkdir(parents=True, exist_ok=True)
+                self.records = path.open("a", encoding="utf-8")
         named = {w: e for w, e in start.edges.items() if w in start.workers}
         groups = failover.groups_of(self.edge, named, start.stand_ins)
         for group in [g for g in self.keepers if g not in groups]:
@@ -268,6 +287,7 @@ class EdgeService:
         mature actor with the root's session, as the root would)."""
         if verdict.status == "accepted":
             self.held[(msg.worker_id, verdict.round)] = msg
+            self._record(verdict)
             return
         if verdict.status == "held":  # beyond reach: it counts, or is refused, when its round opens (_forward)
             self.unreached[(msg.worker_id, verdict.round)] = msg
@@ -321,12 +341,12 @@ class EdgeService:
             part = outcome.partial
             assert part is not None
             subs = [self.held.pop((w, outcome.round)) for w in outcome.contributors]
+            contributions = tuple(self._contribution(s, outcome.round) for s in subs)
             if outcome.round in self.answers:  # a late worker's, and the root answered: it refuses it as late
                 part = tiers.Partial(None, 0.0, part.count)  # ... so its tensors need not travel
             msg = EdgePartial(
                 edge_id=self.edge, round=outcome.round, episode=outcome.episode, step=outcome.step,
-                updates=tuple(s.model_copy(update={"gradient": {}, "critic_gradient": None}) for s in subs
-                              if isinstance(s, WorkerUpdate)),
+                contributions=contributions,
                 matures=tuple(s for s in subs if isinstance(s, MatureParams)),
                 gradient=None if part.gradient is None else pack_arrays(part.gradient),
                 critic_gradient=None if part.critic is None else pack_arrays(part.critic),
@@ -340,6 +360,23 @@ class EdgeService:
                 held = self.unreached.pop((sub.worker_id, verdict.round), None) if sub is not None else None
                 if held is not None:
                     self._count(group, verdict, held)
+
+    def _record(self, verdict: Verdict) -> None:
+        """Keep a counted submission's record (RUN/edges/<edge>/metrics.jsonl) and its digest for the partial."""
+        record = parse_record(verdict.record(time.monotonic() - self.t0))
+        assert verdict.submission is not None
+        self.digests[(verdict.submission.worker_id, verdict.round)] = record_digest(record)
+        if self.records is not None:
+            with storage_errors(self.records.name):
+                self.records.write(line(record) + "\n")
+                self.records.flush()
+
+    def _contribution(self, sub: WorkerUpdate | MatureParams, r: int) -> Contribution:
+        """A counted submission as its partial carries it: what the root's round needs, and its record's digest."""
+        rig = None if sub.balance_steps is None else (sub.balance_steps, sub.balance_s or 0.0, sub.reset_s or 0.0,
+                                                      sub.idle_s)
+        return Contribution(sub.worker_id, sub.episode, sub.step if isinstance(sub, WorkerUpdate) else 0, sub.pi,
+                            sub.episode_return, sub.steps, self.digests.pop((sub.worker_id, r)), sub.played, rig)
 
     def _partial(self, group: str, msg: EdgePartial) -> None:
         """Send a round's partial to the root, and keep it to send again (the last ANSWERS_KEPT rounds')."""
@@ -355,3 +392,8 @@ class EdgeService:
     def _relay(self, leaf: str, payload: bytes) -> None:
         """A root's message (or an edge's refusal in the root's name) to this edge's workers, as it came."""
         self.conn.publish(topics.relayed(self.cfg.run_id, self.edge, leaf), payload, qos=1)
+
+
+def records_path(run_dir: Path, edge: str) -> Path:
+    """Where edge ``edge`` of a run in ``run_dir`` keeps its workers' records."""
+    return run_dir / EDGES / edge / METRICS

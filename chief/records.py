@@ -45,13 +45,17 @@ class KeeperState(Record):
     workers: list[SavedWorker]
     pending: list[dict[str, Any]]
     ahead: list[dict[str, Any]]
-    counted: list[tuple[str, int]]
+    counted: list[tuple[str, int]]  # (worker, round) pairs, as states before ``counted_rounds`` kept them
     answers: list[dict[str, Any]]
     done_reason: str | None
     aborted: bool
     interrupted: bool = False  # ended by Ctrl-C or SIGTERM: a chief started again resumes it
     tier: Literal["flat", "root"] = "flat"  # a root of edges (docs/explanation/tiered.md) or a flat chief
     partials: list[dict[str, Any]] = Field(default_factory=list)  # a root's: the edges' partials of open rounds
+    #: The counted (worker, round) pairs, compactly: per worker, a little-endian bit mask of its rounds from
+    #: ``counted_from`` (bit i: round counted_from + i), so the state's size does not grow with its pairs.
+    counted_from: int = 0
+    counted_rounds: dict[str, bytes] = Field(default_factory=dict)
 
 
 class ServiceState(Record):

@@ -16,6 +16,7 @@ from chief.rounds import RoundKeeper, WorkerRecord
 from runtime.records import (
     METRICS,
     AnyRecord,
+    EdgeRecord,
     EpisodeRecord,
     PlayedTotals,
     RefusedRecord,
@@ -98,6 +99,11 @@ class MetricsLog:
         self._write(typed)
         return True
 
+    def edge(self, record: EdgeRecord) -> None:
+        """A tiered root's record of an edge's partial (runtime.records.EdgeRecord; built unchecked by the root from
+        a message already validated): one line for all of its contributions."""
+        self._write(record)
+
     def round(self, record: RoundRecord | Mapping[str, Any]) -> None:
         """A closed round (chief.rounds.RoundOutcome.record, with its time ``t``)."""
         self._write(record if isinstance(record, RoundRecord) else RoundRecord.model_validate(
@@ -119,6 +125,10 @@ class MetricsLog:
         return self._played.totals()
 
     def _note(self, record: AnyRecord) -> None:
+        if isinstance(record, EdgeRecord):
+            for sub in record.submissions():
+                self._note(sub)
+            return
         self._played.add(record)
         if isinstance(record, EpisodeRecord):
             self.curves.setdefault(record.worker, []).append((record.episode, record.pi))
@@ -131,8 +141,12 @@ class MetricsLog:
             self._file.write(line(record) + "\n")
         if isinstance(record, RefusedRecord):
             return
-        for sink in self.sinks:
-            sink.record(record)
+        if not self.sinks:
+            return
+        subs: list[Line] = [*record.submissions()] if isinstance(record, EdgeRecord) else [record]
+        for sub in subs:  # a tiered root's edge record: its contributions, as the sinks took them from its partials
+            for sink in self.sinks:
+                sink.record(sub)
 
     def close(self) -> None:
         with storage_errors(self.path):

@@ -92,6 +92,15 @@ RETURN_MARGIN = 0.1
 NORM_FACTOR = 10.0
 #: Closed rounds whose answers are kept for workers that missed them.
 ANSWERS_KEPT = 32
+#: Episodes of each worker's returns and PIs a keeper keeps behind the open round's episode: the furthest back a
+#: submission it checks can reach (one of the open round or later, its PI_WINDOW returns; at an edge with a quorum,
+#: one for an answered round up to ANSWERS_KEPT rounds back, ``_late``). Older ones are forgotten as the episodes go
+#: by (the latest older PI kept, for Eq. 10), and every FORGET_EVERY rounds the counted (worker, round) pairs of
+#: rounds older than ANSWERS_KEPT too, so a long run's keeper (and its saved state, chief/checkpoint.py) stays the
+#: same size.
+HISTORY = PI_WINDOW
+LATE_HISTORY = ANSWERS_KEPT + PI_WINDOW
+FORGET_EVERY = 16
 
 
 @dataclass(frozen=True)
@@ -287,6 +296,15 @@ class WorkerRecord:
         known = [e for e in self.pis if e <= episode]
         return self.pis[max(known)] if known else None
 
+    def forget(self, before: int) -> None:
+        """Forget the returns and PIs of episodes before ``before``, but the latest PI among them (``pi_at`` of a
+        later episode may still need it)."""
+        self.returns = {e: v for e, v in self.returns.items() if e >= before}
+        older = [e for e in self.pis if e < before]
+        if older:
+            keep = max(older)
+            self.pis = {e: v for e, v in self.pis.items() if e >= before or e == keep}
+
 
 class RoundKeeper:
     """Rounds for a fixed set of workers (Algorithm 1), shaped by ``shape`` (its strategy's ``rounds(K)``)."""
@@ -337,7 +355,8 @@ class RoundKeeper:
         self.pending: dict[str, Submission] = {}
         self.ahead: dict[int, dict[str, Submission]] = {}  # submissions for rounds not open yet
         self.held: dict[int, dict[str, Submission]] = {}  # submissions beyond reach, not counted (``_hold``)
-        self.counted: set[tuple[str, int]] = set()  # (worker, round) of every accepted submission
+        self.counted: set[tuple[str, int]] = set()  # (worker, round) of every accepted submission (recent rounds')
+        self._forgotten = 1  # the episodes before it are forgotten (``_forget``)
         self.answers: dict[int, RoundOutcome] = {}  # the last ANSWERS_KEPT closed rounds' answers
         self.round_opened_at: float | None = None  # time of the round's first submission
         self._blocker: str | None = None  # the last waited-on worker found missing from the open round (a cache)
@@ -595,6 +614,8 @@ class RoundKeeper:
             if rec.returns.get(sub.episode) != sub.episode_return or rec.pis.get(sub.episode) != sub.pi:
                 return "inconsistent", f"step {sub.step} of episode {sub.episode} reports another return or PI"
             return None
+        if self.tier == "root" and not sub.mature:
+            return None  # its edge checked its returns and PI as above (it sends its episode's return alone)
         returns = sub.recent_returns
         if not returns or len(returns) > PI_WINDOW:
             return "invalid", f"{len(returns)} recent returns (1..{PI_WINDOW} expected)"
@@ -702,11 +723,45 @@ class RoundKeeper:
         self.pending = {}
         self.round_opened_at = None
         self.round += 1
+        self._forget(full=self.round % FORGET_EVERY == 0)
         if not self.any_in("active", "lagging", "offline"):
             self.done_reason = "all workers solved"
         elif r >= self.shape.last_of(self.max_episodes):
             self.done_reason = f"reached the maximum of {self.max_episodes} episodes"
         return [outcome]
+
+    @property
+    def history(self) -> int:
+        """Episodes of returns and PIs kept behind the open round's (HISTORY; LATE_HISTORY at an edge with a
+        quorum)."""
+        return LATE_HISTORY if self.tier == "edge" and self.quorum else HISTORY
+
+    def _forget(self, full: bool) -> None:
+        """Drop the history no submission can be checked against any more (``history``): each episode that falls
+        out of it and the counted round whose answer was just dropped (a few dict lookups per worker), and, when
+        ``full``, everything older and every counted round older than ANSWERS_KEPT. The keeper's size, and its saved
+        state's, stays bounded however long the run."""
+        before = self.episode - self.history
+        full = full or before - self._forgotten > FORGET_EVERY  # a keeper restored from an older, longer state
+        for e in range(self._forgotten, before) if not full else ():
+            for rec in self.workers.values():
+                rec.returns.pop(e, None)
+                if rec.last_episode > e:  # a later PI of it is on record: this one is nobody's latest
+                    rec.pis.pop(e, None)
+        self._forgotten = max(self._forgotten, before)
+        # The counted rounds still needed: those whose answers are kept, and every round of the open episode (a
+        # per-step strategy's later step is checked against its episode's step 0, maybe more rounds back).
+        oldest = min(self.round - ANSWERS_KEPT, self.shape.number(self.episode))
+        if not full:
+            old = self.round - ANSWERS_KEPT - 1  # the round whose answer was just dropped
+            for w in self.workers if 1 <= old < oldest else ():
+                self.counted.discard((w, old))
+            return
+        if before > 1:
+            for rec in self.workers.values():
+                rec.forget(before)
+        if oldest > 1:
+            self.counted = {(w, r) for w, r in self.counted if r >= oldest}
 
     def _outcome(self, r: int, kind: Literal["aggregate", "transfer", "partial"],
                  subs: dict[str, Submission]) -> RoundOutcome:

@@ -32,6 +32,7 @@ from protocol.messages import (
     ChiefAggregate,
     ChiefClaim,
     ChiefTransfer,
+    Contribution,
     EdgePartial,
     EdgeStatus,
     MatureParams,
@@ -48,7 +49,7 @@ from protocol.tasks import task
 from protocol.tensors import pack_arrays, unpack_arrays
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
-from runtime.records import SUMMARY
+from runtime.records import SUMMARY, EdgeRecord
 from runtime.storage import EXIT_STORAGE
 
 log = logging.getLogger("chief")
@@ -423,16 +424,18 @@ class ChiefService:
         """A root takes an edge's part of a round (docs/explanation/tiered.md): its partial sum first, then its
         contributors' submissions, the last of which may close the round; then the workers the edge timed out."""
         keeper = self.keeper
-        assert keeper is not None
+        assert keeper is not None and self.metrics is not None
         subs: list[WorkerUpdate | MatureParams] = [*msg.updates, *msg.matures]
         group = msg.group or msg.edge_id  # a stand-in sums a dead edge's workers as that edge would have
         self.watch.alive_now(msg.edge_id, now)
         topic = topics.edge(self.cfg.run_id, msg.edge_id, topics.PARTIAL)
-        if msg.edge_id not in (group, self.stand_ins.get(group)) or any(self.edge_of.get(s.worker_id) != group
-                                                                       for s in subs):
+        named = sorted({*(s.worker_id for s in subs), *(c.worker_id for c in msg.contributions)})
+        if msg.edge_id not in (group, self.stand_ins.get(group)) or any(self.edge_of.get(w) != group for w in named):
             self.rejects.reject(topic, "not_serving", f"edge {msg.edge_id}'s partial of round {msg.round} for edge "
-                                f"{group}'s workers {[s.worker_id for s in subs]}, which it does not serve")
+                                f"{group}'s workers {named}, which it does not serve")
             return []
+        if msg.contributions:
+            return self._contributions(msg, group, now)
         if msg.again:  # only for the root's answer to a closed round again: no part of a sum
             for sub in subs if msg.round < keeper.round else ():
                 self._answer(keeper.submit(submission_of(sub), now), now)
@@ -497,14 +500,45 @@ class ChiefService:
         self._save()
         self._announce()
 
-    def _answer(self, verdict: Verdict, now: float) -> None:
-        """Record what was accepted, count what was not, acknowledge mature actors, answer again a round a worker
-        missed."""
+    def _contributions(self, msg: EdgePartial, group: str, now: float) -> list[RoundOutcome]:
+        """``_partial`` for a partial of Contributions: the root counts each as its edge did, and records those it
+        counted in one EdgeRecord (their full records are the edge's)."""
+        keeper = self.keeper
+        assert keeper is not None and self.metrics is not None
+        matures = {m.worker_id: m for m in msg.matures}
+        if msg.round >= keeper.round:
+            keeper.add_partial(msg.round, group, partial_of(msg), [c.worker_id for c in msg.contributions],
+                               dict(msg.clipped), dict(msg.critic_clipped))
+        outcomes: list[RoundOutcome] = []
+        counted: list[Contribution] = []
+        verdicts: list[Verdict] = []  # answered once their EdgeRecord is written
+        for c in msg.contributions:
+            mature = matures.get(c.worker_id)
+            sub = submission_of(mature) if mature is not None else contributed(c)
+            verdict = keeper.submit(sub, now)
+            if verdict.status == "accepted":
+                counted.append(c)
+            verdicts.append(verdict)
+            outcomes += verdict.outcomes
+        if counted:
+            self.metrics.edge(EdgeRecord.model_construct(
+                type="edge", edge=msg.edge_id, round=msg.round, episode=msg.episode, step=msg.step,
+                contributions=counted, total=msg.total, count=msg.count, uniform=msg.uniform,
+                matures=sorted(w for w in matures if any(c.worker_id == w for c in counted)) or None,
+                t=round(now - self.t0, 3)))
+        for verdict in verdicts:
+            self._answer(verdict, now, recorded=True)
+        return outcomes + keeper.excuse(msg.round, list(msg.timed_out), now)
+
+    def _answer(self, verdict: Verdict, now: float, recorded: bool = False) -> None:
+        """Record what was accepted (unless its EdgeRecord did: ``recorded``), count what was not, acknowledge
+        mature actors, answer again a round a worker missed."""
         sub = verdict.submission
         assert sub is not None and self.metrics is not None
         topic = topics.worker(self.cfg.run_id, sub.worker_id, topics.UPDATE)
         if verdict.status == "accepted":
-            self.metrics.episode(verdict.record(now - self.t0))
+            if not recorded:
+                self.metrics.episode(verdict.record(now - self.t0))
         elif verdict.status == "held":  # beyond reach: counted, or refused, when its round opens (chief/rounds.py)
             log.info("%s sent round %d while round %d is open: held until it opens", sub.worker_id, verdict.round,
                      self.keeper.round if self.keeper is not None else 0)
@@ -641,6 +675,15 @@ def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
                       stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS},
                       rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS},
                       played=msg.played.model_dump() if msg.played is not None else None)
+
+
+def contributed(c: Contribution) -> Submission:
+    """An edge's Contribution as the root's RoundKeeper takes it: an update its edge checked, with no tensors and
+    its episode's return as its only recent return (chief/rounds.py: a root checks no edge-checked returns again)."""
+    return Submission(c.worker_id, c.episode, c.pi, c.episode_return, recent_returns=(c.episode_return,),
+                      steps=c.steps, gradient={}, step=c.step,
+                      rig=None if c.rig is None else dict(zip(RIG_FIELDS, c.rig, strict=True)),
+                      played=c.played.model_dump() if c.played is not None else None)
 
 
 def partial_of(msg: EdgePartial) -> Partial:

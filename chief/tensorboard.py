@@ -34,7 +34,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from runtime.records import METRICS, AnyRecord, EpisodeRecord, RoundRecord, RunSummary, StepRecord, read_metrics
+from runtime.records import (
+    METRICS,
+    AnyRecord,
+    EdgeRecord,
+    EpisodeRecord,
+    RoundRecord,
+    RunSummary,
+    StepRecord,
+    read_metrics,
+)
 
 Line = EpisodeRecord | StepRecord | RoundRecord
 
@@ -271,7 +280,8 @@ def _redraw(run_dir: Path, wall_start: float | None) -> tuple[Any, list[Line], f
         for folder in root.glob("*/"):
             if not any(folder.iterdir()):
                 folder.rmdir()  # a worker of an earlier run in this folder
-        records = [r for r in read_metrics(run_dir) if isinstance(r, (EpisodeRecord, StepRecord, RoundRecord))]
+        records = [s for r in read_metrics(run_dir) for s in (r.submissions() if isinstance(r, EdgeRecord) else [r])
+                   if isinstance(s, (EpisodeRecord, StepRecord, RoundRecord))]  # a tiered root's: its partials'
     except (OSError, ValueError) as err:
         log.warning("cannot redraw the TensorBoard event files in %s (%s); the run goes on without them", root, err)
         return None

@@ -109,15 +109,30 @@ def partial(strategy: Strategy, gradients: Mapping[str, Arrays], progress: Mappi
     if not gradients or strategy.aggregate is no_gradient:
         return Partial(None, 0.0, len(gradients))
     s = shares(strategy, {w: progress[w] for w in gradients})
-    total = sum(s[w] for w in sorted(s))
-    uniform = total <= 0.0
+    total, uniform = share_total(s)
     scale = {w: 1.0 for w in s} if uniform else s
 
     def f32(arrays: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
         return {k: v.astype(np.float32) for k, v in arrays.items()}
 
-    return Partial(f32(_sum(gradients, scale)), 0.0 if uniform else total, len(gradients), uniform,
+    return Partial(f32(_sum(gradients, scale)), total, len(gradients), uniform,
                    f32(_sum(critics, scale)) if critics else None)
+
+
+def share_total(all_shares: Mapping[str, float]) -> tuple[float, bool]:
+    """A partial's (T_e, uniform): the sum of its shares in sorted worker order, and whether it is 0 (the partial
+    then carries the plain sum, its total 0)."""
+    total = sum(all_shares[w] for w in sorted(all_shares))
+    return (0.0, True) if total <= 0.0 else (total, False)
+
+
+def expected_totals(strategy: Strategy, progress: Mapping[str, float]) -> tuple[float, int, bool]:
+    """(total, count, uniform) of the Partial an edge sends for learners of this progress (what ``partial`` gives):
+    the audit holds an edge's records to its partial with it."""
+    if not progress or strategy.aggregate is no_gradient:
+        return 0.0, len(progress), False
+    total, uniform = share_total(shares(strategy, progress))
+    return total, len(progress), uniform
 
 
 def combine(partials: Sequence[Partial]) -> tuple[dict[str, np.ndarray] | None, dict[str, np.ndarray] | None]:

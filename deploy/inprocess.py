@@ -82,7 +82,8 @@ def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = 
     services: dict[str, Callable[[], int]] = {"chief": chief.run}
     for e in range(edges):
         services[f"e{e}"] = EdgeService(s.child(ChiefSettings, inherit=False, **chiefs, role="edge",
-                                                edge_id=f"e{e}", edges=0), connect=hub.connect).run
+                                                edge_id=f"e{e}", edges=0, run_dir=s.run_dir),
+                                       connect=hub.connect).run
     witness = Witness(hub.connect, RUN_ID, s.run_dir) if edges else None
     worker_conns: dict[str, list[_Timed]] = {}
     for i in range(s.workers):

@@ -13,7 +13,7 @@ Rigs (QUBE-Servo 2): QubeState, QubeAction, QubeReset, QubeIdentify, QubeRecordi
 
 from __future__ import annotations
 
-from typing import Annotated, Final, Literal
+from typing import Annotated, Final, Literal, NamedTuple
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
@@ -315,20 +315,47 @@ class RunStart(Message):
         return RoundShape(per_episode=self.rounds_per_episode)
 
 
+#: A record digest: the first 16 hex digits of the BLAKE2b digest of an edge's record line (chief/records.py).
+RecordDigest = Annotated[str, StringConstraints(min_length=16, max_length=16, pattern=r"^[0-9a-f]{16}$")]
+#: A rig-time quadruple on the wire: balance steps, balance seconds, reset seconds, measured idle seconds (or None).
+RigQuad = tuple[BalanceSteps, RigSeconds, RigSeconds, RigSeconds | None]
+
+
+class Contribution(NamedTuple):
+    """One submission an edge counted, as its partial carries it to the root (docs/explanation/tiered.md): what the
+    root's round needs (who, which episode and step, its PI and return, its env steps, what it ``played`` and its
+    ``rig`` time, for the root's summary) and the ``digest`` of the edge's full record of it (its receipts, returns,
+    statistics), which the edge keeps and the audit checks. On the wire an array, not a map: about 70 bytes."""
+
+    worker_id: Ident
+    episode: Annotated[int, Field(ge=1)]
+    step: Annotated[int, Field(ge=0)]
+    pi: float
+    episode_return: float
+    steps: Annotated[int, Field(ge=0)]
+    digest: RecordDigest
+    played: Played | None = None
+    rig: RigQuad | None = None
+
+
 class EdgePartial(Message):
     """An edge chief closed its workers' part of round ``round`` (docs/explanation/tiered.md, chief/tiers.py): the
-    submissions it counted, without their tensors (``updates``: each WorkerUpdate with an empty ``gradient``), a
-    finisher's MatureParams whole (``matures``), and the unnormalised Eq. 9 sum of their (bounded) gradients: the
+    submissions it counted as ``contributions`` (no tensors, no receipts: the edge keeps their full records), a
+    finisher's MatureParams whole besides (``matures``), and the unnormalised Eq. 9 sum of their (bounded) gradients:
+    the
     sum of share_n g_n (``gradient``, float32), the share total ``total`` and the count ``count`` (``uniform``: the
     plain sum, every share being 0), the critic's under a per-step strategy. ``clipped``: the factor a gradient was
     scaled by (chief/rounds.py bound_norms, against the edge's own median), ``critic_clipped`` the same for the
-    critics' under a per-step strategy; ``timed_out``: the edge's workers it stopped waiting for."""
+    critics' under a per-step strategy; ``timed_out``: the edge's workers it stopped waiting for. ``updates``: the
+    whole submissions (each WorkerUpdate with an empty ``gradient``), as edges sent them before ``contributions``:
+    a root still takes them, and records them as a flat chief does."""
 
     kind: Literal["partial"] = "partial"
     edge_id: Ident
     round: int = Field(ge=1)
     episode: int = Field(ge=1)
     step: int = Field(default=0, ge=0)
+    contributions: tuple[Contribution, ...] = ()
     updates: tuple[WorkerUpdate, ...] = ()
     matures: tuple[MatureParams, ...] = ()
     gradient: TensorDict | None = None

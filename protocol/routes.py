@@ -122,7 +122,8 @@ ROUTES: tuple[Route, ...] = (
     Route(_c(topics.ACK), CHIEF, _WORKERS, (M["ack"],), 1, "the answer to every MatureParams"),
     Route(_c(topics.STOP), CHIEF, _WORKERS, (M["run_stop"],), 1, "the run is over"),
     Route(_e(topics.PARTIAL), EDGE, (CHIEF, DASHBOARD), (M["partial"],), 1,
-          "an edge's part of a round: its counted submissions without their tensors, one unnormalised Eq. 9 sum"),
+          "an edge's part of a round: its counted submissions as contributions (who, PI, return, their record's "
+          "digest), a finisher's actor, one unnormalised Eq. 9 sum"),
     Route(_e(topics.STATUS), EDGE, (CHIEF,), (M["edge_status"],), 1,
           "every second while it runs (online); the root moves a dead edge's workers to another edge "
           "(chief/failover.py)", will=True),

@@ -14,10 +14,9 @@ thread over MQTT); a handler that raises is logged and counted and never stops t
 
 from __future__ import annotations
 
-import importlib
 import threading
 from collections.abc import Callable
-from typing import Protocol, cast
+from typing import Protocol
 
 from protocol.codec import RejectCounter
 from protocol.mqtt import BrokerAddress, MqttConnection
@@ -65,13 +64,21 @@ class Connect(Protocol):
 
 #: The transports besides MQTT, by the scheme of their address: the module whose ``connector(address)`` makes the
 #: Connect.
-TRANSPORTS = {
-    "memory": "protocol.memory",  # memory://<name>: the in-memory hub of that name in this process
+def _memory(address: str) -> Connect:
+    """memory://<name>: the in-memory hub of that name in this process (imported when chosen: it imports this)."""
+    from protocol import memory
+
+    return memory.connector(address)
+
+
+#: A transport's scheme -> the maker of its Connect from an address; MQTT (``mqtt://``, ``mqtts://``) is the default.
+TRANSPORTS: dict[str, Callable[[str], Connect]] = {
+    "memory": _memory,
 }
 
 
-def transport_of(address: str) -> str | None:
-    """The module of the transport an address names by its scheme (TRANSPORTS); None for MQTT."""
+def transport_of(address: str) -> Callable[[str], Connect] | None:
+    """The maker of the Connect of the transport an address names by its scheme (TRANSPORTS); None for MQTT."""
     return TRANSPORTS.get(address.split("://", 1)[0]) if "://" in address else None
 
 
@@ -81,9 +88,8 @@ def connector(address: str | BrokerAddress, max_payload: int | None = None, user
     scheme, else MQTT to the broker the URL (with the login given, which wins over the URL's) or BrokerAddress names,
     over TLS for ``mqtts://`` (``max_payload``: larger payloads travel in chunks, protocol/mqtt.py). A ValueError for
     an address no transport takes."""
-    module = transport_of(address) if isinstance(address, str) else None
-    if module is not None:
-        return cast(Connect, importlib.import_module(module).connector(address))
+    if isinstance(address, str) and (make := transport_of(address)) is not None:
+        return make(address)
     broker = address if isinstance(address, BrokerAddress) else BrokerAddress.parse(address, username, password,
                                                                                     ca_file)
 

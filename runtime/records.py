@@ -12,17 +12,20 @@ line is bad rather than guessing).
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, TypeAdapter
 
-from protocol.messages import Played, Receipt
+from protocol.messages import Contribution, Played, Receipt
 from runtime.storage import atomic_write
 
 METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
+#: Where a tiered run's edges keep their workers' records: RUN/edges/<edge>/metrics.jsonl (chief/edge.py).
+EDGES = "edges"
 #: A tiered run's witness (written by an observer of the wire, deploy/inprocess.py --edges): every worker's actor
 #: gradient and every aggregate the root sent, so the audit can check the root's Eq. 9 against the flat one.
 GRADIENTS = "gradients.npz"
@@ -169,15 +172,61 @@ class RefusedRecord(Record):
     t: float = 0.0
 
 
+class EdgeRecord(Record):
+    """A tiered root's record of one edge's partial of a round (docs/explanation/tiered.md): the contributions it
+    counted from it (protocol.messages.Contribution: worker, episode, step, PI, return, env steps, the digest of the
+    edge's record of it, played, rig time), the partial's share total, count and ``uniform`` flag, and ``matures``:
+    the contributors whose submission was a mature actor (absent when none). The edge keeps each contribution's full
+    record (EDGES); the audit reads both levels and checks they agree (chief/audit.py ``edge-records``)."""
+
+    OPTIONAL = frozenset({"matures"})
+
+    type: Literal["edge"] = "edge"
+    edge: str
+    round: int
+    episode: int
+    step: int = 0
+    contributions: list[Contribution]
+    total: float = 0.0
+    count: int = 0
+    uniform: bool = False
+    matures: list[str] | None = None
+    t: float = 0.0
+
+    def submissions(self) -> list[EpisodeRecord | StepRecord]:
+        """Its contributions as the root's own (partial) records of them: what the root's summary, played counts,
+        rig time and curves are made of (receipts, statistics and returns are in the edge's records)."""
+        out: list[EpisodeRecord | StepRecord] = []
+        matures = set(self.matures or ())
+        for c in self.contributions:
+            if c.step:
+                out.append(StepRecord.model_construct(worker=c.worker_id, round=self.round, episode=c.episode,
+                                                      step=c.step, receipt=None, t=self.t, earlier_receipts=None,
+                                                      stats=None))
+                continue
+            balance_steps, balance_s, reset_s, idle_s = c.rig or (None, None, None, None)
+            out.append(EpisodeRecord.model_construct(
+                worker=c.worker_id, round=self.round, episode=c.episode, return_=c.episode_return, pi=c.pi,
+                steps=c.steps, kind="mature" if c.worker_id in matures else "update", receipt=None, t=self.t,
+                earlier_receipts=None, recent_returns=None, stats=None, played=c.played, balance_steps=balance_steps,
+                balance_s=balance_s, reset_s=reset_s, idle_s=idle_s))
+        return out
+
+
+def record_digest(record: AnyRecord) -> str:
+    """The digest of a record as an edge writes it (its line): the 16 hex digits a Contribution carries."""
+    return hashlib.blake2b(line(record).encode(), digest_size=8).hexdigest()
+
+
 Submitted = EpisodeRecord | StepRecord
-AnyRecord = EpisodeRecord | StepRecord | RoundRecord | RefusedRecord
+AnyRecord = EpisodeRecord | StepRecord | RoundRecord | RefusedRecord | EdgeRecord
 MetricsRecord = Annotated[AnyRecord, Field(discriminator="type")]
 _LINE: TypeAdapter[AnyRecord] = TypeAdapter(MetricsRecord)
 
 
 def parse_record(data: Any) -> AnyRecord:
     """A record from its JSON data (a dict, or a model already); pydantic.ValidationError (a ValueError) if bad."""
-    if isinstance(data, (EpisodeRecord, StepRecord, RoundRecord, RefusedRecord)):
+    if isinstance(data, (EpisodeRecord, StepRecord, RoundRecord, RefusedRecord, EdgeRecord)):
         return data
     return _LINE.validate_python(data)
 

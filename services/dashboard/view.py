@@ -39,6 +39,7 @@ from protocol.auth import TAG_FIELD, WorkerKeys, chief_key_of, refusal
 from protocol.messages import (
     ChiefAggregate,
     ChiefTransfer,
+    Contribution,
     EdgePartial,
     MatureParams,
     Message,
@@ -326,7 +327,8 @@ class RunView:
     def _on_partial(self, msg: EdgePartial, now: float) -> list[Event]:
         """An edge's part of a round (a tiered run): its workers' submissions as the root counts them."""
         out: list[Event] = []
-        for update in msg.updates:
+        finishers = {m.worker_id for m in msg.matures}
+        for update in [*msg.updates, *(as_update(c) for c in msg.contributions if c.worker_id not in finishers)]:
             out += self._on_update(update, now)
         for mature in msg.matures:
             out += self._on_mature(mature, now)
@@ -477,3 +479,13 @@ class RunView:
             "ignored": dict(self.ignored),
             "refused": dict(self.refused),
         }
+
+
+def as_update(c: Contribution) -> WorkerUpdate:
+    """A partial's Contribution as the update it stands for, with the fields the view reads (no tensors)."""
+    balance_steps, balance_s, reset_s, idle_s = c.rig or (None, None, None, None)
+    return WorkerUpdate.model_construct(worker_id=c.worker_id, episode=c.episode, step=c.step, pi=c.pi,
+                                        episode_return=c.episode_return, recent_returns=(c.episode_return,),
+                                        steps=c.steps, gradient={}, played=c.played,
+                                        balance_steps=balance_steps, balance_s=balance_s, reset_s=reset_s,
+                                        idle_s=idle_s)

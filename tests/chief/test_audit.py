@@ -277,12 +277,12 @@ DOCTORED = [
 
 def test_every_invariant_has_a_doctored_record_and_cites_the_paper() -> None:
     """Each registered check is failed by some doctored run folder below (``summary`` by a doctored summary.json,
-    ``rig-time`` by a doctored rig's record in tests/chief/test_rigtime.py, ``tiered-exact`` by a doctored witness in
-    tests/e2e/test_tiered.py), and its docstring says which equation, algorithm or figure of the paper it
-    protects."""
-    assert ({invariant for _, invariant in DOCTORED} | {"summary", "rig-time", "tiered-exact"}
+    ``rig-time`` by a doctored rig's record in tests/chief/test_rigtime.py, ``tiered-exact`` by a doctored witness and
+    ``edge-records`` by a doctored edge record in tests/e2e/test_tiered.py), and its docstring says which equation,
+    algorithm or figure of the paper it protects."""
+    assert ({invariant for _, invariant in DOCTORED} | {"summary", "rig-time", "tiered-exact", "edge-records"}
             == {c.invariant for c in CHECKS})
-    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 16
+    assert len({c.invariant for c in CHECKS}) == len(CHECKS) == 17
     for c in CHECKS:
         assert c.run.__doc__ and any(cite in c.run.__doc__ for cite in ("Eq. ", "Algorithm ", "Fig. ")), c.invariant
 

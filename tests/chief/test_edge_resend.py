@@ -11,6 +11,7 @@ import secrets
 import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -66,10 +67,10 @@ class Scene:
 
 
 @pytest.fixture
-def scene() -> Iterator[Scene]:
+def scene(tmp_path: Path) -> Iterator[Scene]:
     hub, key = Hub(), secrets.token_hex(32)
     edge = EdgeService(ChiefSettings.given(run_id=RUN, role="edge", edge_id=EDGE, round_timeout=60.0,
-                                           start_timeout=30.0, run_key=key), connect=hub.connect)
+                                           start_timeout=30.0, run_key=key, run_dir=tmp_path), connect=hub.connect)
     codes: list[int] = []
     thread = threading.Thread(target=lambda: codes.append(edge.run()), daemon=True)
     thread.start()
@@ -183,5 +184,5 @@ def test_an_edge_holds_an_update_beyond_reach_and_refuses_it_once_its_workers_re
     for episode in (1, 2, 3):
         scene.worker(topics.UPDATE, update(episode, 20.0, [20.0] * episode))
         partial = decode(scene.partials.get(timeout=10), EdgePartial)
-        assert partial.round == episode and partial.updates[0].episode_return == 20.0
+        assert partial.round == episode and partial.contributions[0].episode_return == 20.0
     assert scene.rejects.as_dict() == {"unreachable": 1}

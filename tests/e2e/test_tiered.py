@@ -99,3 +99,39 @@ def test_a_tiered_federation_over_a_real_broker(tmp_path: Path) -> None:
     assert snapshot["kinds"]["partial"] == 6 and snapshot["run"]["phase"] == "stopped"
     # It stopped reading the workers' updates once the RunStart named the edges (at most those already on their way).
     assert snapshot["kinds"].get("update", 0) < 4 * 3
+
+
+def test_the_audit_reads_both_levels_and_a_tampered_edge_record_fails_it(tmp_path: Path) -> None:
+    """The root keeps one record per edge and round (its partial's contributors with their digests, its share total),
+    each edge its workers' own records (RUN/edges/<edge>/metrics.jsonl): the audit checks every contribution against
+    its edge's record and every partial's total against those records' PIs. An edge record changed afterwards, a
+    contribution missing at its edge, or a partial whose total is not its records' fails it."""
+    run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS, max_episodes=4,
+                   run_dir=tmp_path, edges=EDGES), plot=False, tensorboard_files=False, models=False)
+    root = [json.loads(line) for line in (tmp_path / "metrics.jsonl").open()]
+    assert {r["type"] for r in root} == {"edge", "round"}  # no worker's own record at the root
+    assert sum(len(r["contributions"]) for r in root if r["type"] == "edge") == WORKERS * 4
+    report = audit(tmp_path)
+    assert report.edge_records == EDGES * 4 and report.submissions == WORKERS * 4
+    kept = tmp_path / "edges" / "e0" / "metrics.jsonl"
+    original = kept.read_text()
+    lines = original.splitlines()
+    assert len(lines) == (WORKERS // EDGES) * 4
+    cases = {  # what was changed -> the invariant that names it
+        "a return": (kept, "\n".join([lines[0].replace('"return":', '"return":1', 1), *lines[1:]]) + "\n"),
+        "a lost record": (kept, "\n".join(lines[1:]) + "\n"),
+    }
+    for what, (path, text) in cases.items():
+        path.write_text(text)
+        with pytest.raises(AuditFailure) as failure:
+            audit(tmp_path)
+        assert failure.value.invariant == "edge-records", what
+        path.write_text(original)
+    records = tmp_path / "metrics.jsonl"
+    text = records.read_text()
+    first = next(line for line in text.splitlines() if '"type":"edge"' in line)
+    total = json.loads(first)["total"]
+    records.write_text(text.replace(first, first.replace(f'"total":{total}', f'"total":{total * 1.000001}')))
+    with pytest.raises(AuditFailure) as failure:
+        audit(tmp_path)
+    assert failure.value.invariant == "edge-records" and "total" in str(failure.value)

@@ -87,11 +87,11 @@ class ResetConfig:
     hard_after_turns: int = 3  # ... else after this many turnarounds below horizontal with E0 at boost_max
     hard_swing_accel: float = 400.0  # arm acceleration asked for (more than 10 V gives: full voltage)
     hard_energy: float = 2.0  # E0 while pumping hard (lowered, as ever, by passes over the top)
-    hard_soft_limit: float = math.radians(61.0)  # no push outwards past it
+    hard_soft_limit: float = math.radians(70.0)  # no push outwards past it
     hard_brake_accel: float = 200.0  # braking planned at this (the pull to the middle does most of the stopping)
     hard_brake_delay_ticks: float = 1.3
-    hard_centre: float = 1.7  # per rad of arm angle: the pull to the middle, a fraction of the full pump
-    hopeless_turns: int = 12  # pumping hard, this many turnarounds none of which came within ``hopeless_angle``
+    hard_centre: float = 2.5  # per rad of arm angle: the pull to the middle, a fraction of the full pump
+    hopeless_turns: int = 20  # pumping hard, this many turnarounds none of which came within ``hopeless_angle``
     hopeless_angle: float = math.radians(60.0)  # of upright: the pendulum cannot be swung up (fail at once)
     # settling before the swing-up (a retry's strategy)
     settle_first: bool = False  # centre the arm and let the pendulum calm down before pumping

@@ -27,6 +27,7 @@ reached inside the reset's catch region (|alpha| < 21 deg with |theta| < 57 deg)
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -228,6 +229,29 @@ def study(name: str, p: QubeParams, limit_deg: float, args: argparse.Namespace) 
             "replayed": replay(p, best), "cpu_s": round(time.process_time() - t0, 1)}
 
 
+def line(row: dict[str, Any]) -> str:
+    """One unit's result as a line of text."""
+    best = row["best"]
+    return (f"{row['setting']:10s} zeta {row['damping_ratio']:.3f} arm {row['arm_limit_deg']:.0f}: pump "
+            f"{row['pump']['height_deg']:6.1f} deg, best {best['height_deg']:6.1f} deg (energy {best['energy']:+.3f}, "
+            f"arm {best['max_arm_deg']:.0f} deg), replayed {row['replayed']['height_deg']:.1f} deg")
+
+
+def markdown(data: dict[str, Any]) -> str:
+    """The study's table for the docs (``--markdown``)."""
+    rows = ["| setting | Dp, Dr (N m s/rad) | damping ratio | arm limit | best pump: height reached | open-loop best: "
+            "height reached | energy reached (needed: 0) | arm | top reached |",
+            "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for r in data["results"]:
+        best = r["best"]
+        top = "yes" if best["reaches_top"] and best["within_arm_limit"] else "no"
+        rows.append(f"| `{r['setting']}` | {r['Dp']:.2g}, {r['Dr']:.2g} | {r['damping_ratio']:.3f} | "
+                    f"{r['arm_limit_deg']:.0f} deg | {r['pump']['height_deg']:.1f} deg | "
+                    f"{best['height_deg']:.1f} deg | "
+                    f"{best['energy']:+.2f} | {best['max_arm_deg']:.0f} deg | {top} |")
+    return "\n".join(rows)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.swingup", description=__doc__.splitlines()[0])
     parser.add_argument("--dp-factors", type=float, nargs="+", default=list(DP_FACTORS))
@@ -239,17 +263,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--jobs", type=int, default=1, help="settings at a time (processes)")
+    parser.add_argument("--markdown", action="store_true", help="only print --out's table for the docs")
     args = parser.parse_args(argv)
+    if args.markdown:
+        print(markdown(json.loads(args.out.read_text())))
+        return 0
     units = [(name, p, limit) for name, p in settings(tuple(args.dp_factors)) for limit in args.arm_limits]
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=get_context("spawn")) as pool:
         futures = [pool.submit(study, name, p, limit, args) for name, p, limit in units]
         rows = []
         for future in futures:
             row = future.result()
-            print(f"{row['setting']:10s} zeta {row['damping_ratio']:.3f} arm {row['arm_limit_deg']:.0f}: pump "
-                  f"{row['pump']['height_deg']:6.1f} deg, best {row['best']['height_deg']:6.1f} deg (energy {row['best']['energy']:+.3f}, arm "
-                  f"{row['best']['max_arm_deg']:.0f} deg), replayed {row['replayed']['height_deg']:.1f} deg",
-                  flush=True)
+            print(line(row), flush=True)
             rows.append(row)
             write_report(args.out, "bench.swingup", argv,  # after every unit: an interrupted study keeps its rows
                          {"voltage_cap_v": round(VMAX, 3), "horizon_s": args.horizon, "tick_s": PERIOD_S,

@@ -18,6 +18,14 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    heavily damped pendulum that never gets above horizontal still raises it); each pass over the top (the catch
    did not take it) or each catch that did not hold a pendulum which came in with excess energy lowers E0 by
    ``overshoot_gain`` times the excess. E0 starts at ``initial_energy`` on every attempt.
+   **pumping hard**: a pendulum whose model is damped more than ``heavy_damping_ratio`` (the course files' Dp 5e-4
+   gives 0.18, ``lab``'s 0.018), or one that keeps turning back below horizontal with E0 at ``boost_max``
+   (``hard_after_turns`` times: a rig damped more than its model), is pumped bang-bang at full voltage along
+   alpha_dot*cos(alpha), pulled to the middle by ``hard_centre`` of the full voltage per rad of arm angle and kept
+   inside ``hard_soft_limit``: the pump family that ``python -m bench.swingup`` found to reach the top at 10x
+   ``lab``'s Dp. If even that brings the pendulum no nearer than ``hopeless_angle`` to upright in ``hopeless_turns``
+   turnarounds, the attempt fails at once with one line naming the damping (``bench.swingup`` finds no swing-up
+   within 10 V at the course files' damping: docs/how-to/ood.md).
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum

@@ -238,7 +238,9 @@ def line(row: dict[str, Any]) -> str:
 
 
 def markdown(data: dict[str, Any]) -> str:
-    """The study's table for the docs (``--markdown``)."""
+    """The study's table for the docs (``--markdown``), with the command that made it."""
+    head = (f"Generated from `{OUT}`, made by `{data['command']}` (voltage cap {data['voltage_cap_v']} V, "
+            f"{data['horizon_s']} s from hanging rest).\n\n")
     rows = ["| setting | Dp, Dr (N m s/rad) | damping ratio | arm limit | best pump: height reached | open-loop best: "
             "height reached | energy reached (needed: 0) | arm | top reached |",
             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
@@ -249,7 +251,7 @@ def markdown(data: dict[str, Any]) -> str:
                     f"{r['arm_limit_deg']:.0f} deg | {r['pump']['height_deg']:.1f} deg | "
                     f"{best['height_deg']:.1f} deg | "
                     f"{best['energy']:+.2f} | {best['max_arm_deg']:.0f} deg | {top} |")
-    return "\n".join(rows)
+    return head + "\n".join(rows) + "\n"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -266,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--markdown", action="store_true", help="only print --out's table for the docs")
     args = parser.parse_args(argv)
     if args.markdown:
-        print(markdown(json.loads(args.out.read_text())))
+        print(markdown(json.loads(args.out.read_text())), end="")
         return 0
     units = [(name, p, limit) for name, p in settings(tuple(args.dp_factors)) for limit in args.arm_limits]
     with ProcessPoolExecutor(max_workers=args.jobs, mp_context=get_context("spawn")) as pool:

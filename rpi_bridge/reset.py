@@ -132,7 +132,10 @@ class ResetConfig:
             raise ValueError("need 0 < catch_angle < boost_min_angle < pi/2")
         if not 0 < self.arm_soft_limit < math.pi:
             raise ValueError(f"arm_soft_limit must be in (0, pi), got {self.arm_soft_limit}")
-        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon", "period_s"):
+        if not 0 < self.hard_soft_limit < math.pi or self.hopeless_turns < 1:
+            raise ValueError("need 0 < hard_soft_limit < pi and hopeless_turns >= 1")
+        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon", "period_s",
+                     "hard_swing_accel", "hard_brake_accel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.gains is not None and len(self.gains) not in (4, 6):

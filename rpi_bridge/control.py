@@ -99,7 +99,7 @@ class ControlConfig:
             raise ValueError(f"arm_limit must be in (0, pi) rad, got {self.arm_limit}")
         if not 0 < self.fall_limit < math.pi:
             raise ValueError(f"fall_limit must be in (0, pi) rad, got {self.fall_limit}")
-        if self.reset.arm_soft_limit >= self.arm_limit:
+        if max(self.reset.arm_soft_limit, self.reset.hard_soft_limit) >= self.arm_limit:
             raise ValueError(f"the reset's soft arm limit ({math.degrees(self.reset.arm_soft_limit):.0f} deg) must be "
                              f"inside the arm limit ({math.degrees(self.arm_limit):.0f} deg)")
         for name in ("action_timeout_s", "ready_timeout_s", "stall_timeout_s", "calibration_window_s"):

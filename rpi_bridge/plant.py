@@ -85,6 +85,13 @@ class PlantModel:
         return self.mp * self.g * self.Lp
 
     @property
+    def damping_ratio(self) -> float:
+        """The hanging pendulum's viscous damping ratio Dp / (2 J w0): J = mp*Lp^2/3 about its pivot, w0 =
+        sqrt(mp*g*(Lp/2) / J). ``lab``'s is about 0.018; Quanser's course files' Dp (5e-4) gives 0.18."""
+        j_pivot = self.mp * self.Lp * self.Lp / 3.0
+        return self.Dp / (2.0 * j_pivot * math.sqrt(0.5 * self.mp * self.g * self.Lp / j_pivot))
+
+    @property
     def volts_per_newton_metre(self) -> float:
         """Motor volts per N m of arm torque at rest (Rm/kt)."""
         return self.Rm / self.kt

@@ -18,6 +18,14 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    heavily damped pendulum that never gets above horizontal still raises it); each pass over the top (the catch
    did not take it) or each catch that did not hold a pendulum which came in with excess energy lowers E0 by
    ``overshoot_gain`` times the excess. E0 starts at ``initial_energy`` on every attempt.
+   **pumping hard**: a pendulum whose model is damped more than ``heavy_damping_ratio`` (the course files' Dp 5e-4
+   gives 0.18, ``lab``'s 0.018), or one that keeps turning back below horizontal with E0 at ``boost_max``
+   (``hard_after_turns`` times: a rig damped more than its model), is pumped bang-bang at full voltage along
+   alpha_dot*cos(alpha), pulled to the middle by ``hard_centre`` of the full voltage per rad of arm angle and kept
+   inside ``hard_soft_limit``: the pump family that ``python -m bench.swingup`` found to reach the top at 10x
+   ``lab``'s Dp. If even that brings the pendulum no nearer than ``hopeless_angle`` to upright in ``hopeless_turns``
+   turnarounds, the attempt fails at once with one line naming the damping (``bench.swingup`` finds no swing-up
+   within 10 V at the course files' damping: docs/how-to/ood.md).
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum
@@ -82,6 +90,17 @@ class ResetConfig:
     boost_max: float = 0.8
     overshoot_gain: float = 0.5  # E0 -= overshoot_gain * (excess - overshoot_margin) on a pass over the top
     overshoot_margin: float = 0.1
+    # a heavily damped pendulum: pump at full voltage over more of the arm's travel
+    heavy_damping_ratio: float = 0.12  # a model damped more than this (PlantModel.damping_ratio) pumps hard at once
+    hard_after_turns: int = 3  # ... else after this many turnarounds below horizontal with E0 at boost_max
+    hard_swing_accel: float = 400.0  # arm acceleration asked for (more than 10 V gives: full voltage)
+    hard_energy: float = 2.0  # E0 while pumping hard (lowered, as ever, by passes over the top)
+    hard_soft_limit: float = math.radians(70.0)  # no push outwards past it
+    hard_brake_accel: float = 200.0  # braking planned at this (the pull to the middle does most of the stopping)
+    hard_brake_delay_ticks: float = 1.3
+    hard_centre: float = 2.5  # per rad of arm angle: the pull to the middle, a fraction of the full pump
+    hopeless_turns: int = 20  # pumping hard, this many turnarounds none of which came within ``hopeless_angle``
+    hopeless_angle: float = math.radians(60.0)  # of upright: the pendulum cannot be swung up (fail at once)
     # settling before the swing-up (a retry's strategy)
     settle_first: bool = False  # centre the arm and let the pendulum calm down before pumping
     settle_energy: float = -0.9  # ... until its energy is below this (fraction of swing_depth; -1 is at rest)
@@ -113,7 +132,10 @@ class ResetConfig:
             raise ValueError("need 0 < catch_angle < boost_min_angle < pi/2")
         if not 0 < self.arm_soft_limit < math.pi:
             raise ValueError(f"arm_soft_limit must be in (0, pi), got {self.arm_soft_limit}")
-        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon", "period_s"):
+        if not 0 < self.hard_soft_limit < math.pi or self.hopeless_turns < 1:
+            raise ValueError("need 0 < hard_soft_limit < pi and hopeless_turns >= 1")
+        for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon", "period_s",
+                     "hard_swing_accel", "hard_brake_accel"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.gains is not None and len(self.gains) not in (4, 6):
@@ -172,6 +194,8 @@ class ResetController:
         """Start a new reset attempt (clears the timer, the energy target and a latched failure); ``failures``:
         attempts that failed in a row before this one on this rig, which choose its strategy (:data:`STRATEGIES`)."""
         self.strategy, self.config = strategy(self.base_config, failures)
+        self._catch_config = self.config  # a catch is abandoned by this one's soft limit and braking, also when
+        # pumping hard (whose soft limit is the pump's, not the arm's)
         self._gains = self.config.hold_gains()
         self.elapsed = 0.0
         self.in_band_time = 0.0
@@ -187,6 +211,23 @@ class ResetController:
         self._integral = 0.0  # the hold's integral of the arm angle (rad s)
         self._u_prev = 0.0  # the hold's last linear command, still on its way to the motor (counts)
         self._give_up_at = math.inf  # when the attempt gave up (it then stops the arm before failing)
+        self.hard = False  # pumping at full voltage (a heavily damped pendulum)
+        self._low_turns = 0  # turnarounds below horizontal with the energy target at boost_max
+        self._hard_turns = 0  # turnarounds while pumping hard
+        self.best_turn = math.pi  # pumping hard: the highest turnaround (rad from upright)
+        self.hopeless = ""  # set when pumping hard cannot swing the pendulum up: the attempt gives up with it
+        if self.config.model.damping_ratio > self.config.heavy_damping_ratio:
+            self._pump_hard()
+
+    def _pump_hard(self) -> None:
+        """From now on this attempt pumps at full voltage over ``hard_soft_limit`` of the arm's travel, towards an
+        energy target of at least ``hard_energy``."""
+        cfg = self.config
+        self.hard = True
+        self.config = replace(cfg, swing_accel=cfg.hard_swing_accel, arm_soft_limit=cfg.hard_soft_limit,
+                              brake_accel=cfg.hard_brake_accel, brake_delay_ticks=cfg.hard_brake_delay_ticks,
+                              boost_max=max(cfg.boost_max, cfg.hard_energy))
+        self.energy_target = max(self.energy_target, cfg.hard_energy)
 
     # -- the pieces ----------------------------------------------------------------------------------------------
 
@@ -195,10 +236,11 @@ class ResetController:
         model = self.config.model
         return model.pendulum_energy(alpha, alpha_dot) / model.swing_depth
 
-    def must_brake(self, theta: float, theta_dot: float, dt: float, budget: float = 1.0) -> int:
+    def must_brake(self, theta: float, theta_dot: float, dt: float, budget: float = 1.0,
+                   config: ResetConfig | None = None) -> int:
         """+1 / -1 when the arm moving that way could not stop inside the soft limit with ``budget`` *
-        ``brake_accel`` (after the actuation delay); 0 when it can."""
-        cfg = self.config
+        ``brake_accel`` (after the actuation delay) of ``config`` (default the attempt's); 0 when it can."""
+        cfg = config or self.config
         for direction in (1, -1):
             outward = direction * theta_dot
             if outward <= 0:
@@ -225,6 +267,12 @@ class ResetController:
         energy = self.normalised_energy(alpha, alpha_dot)
         shortfall = (self.energy_target if target is None else target) - energy
         s = alpha_dot * math.cos(alpha)
+        if self.hard:  # bang-bang along s towards the target, pulled to the middle by hard_centre per rad
+            direction = 1.0 if abs(s) < 1e-3 else math.copysign(1.0, s * shortfall)
+            push = max(-1.0, min(1.0, direction - cfg.hard_centre * theta))
+            if abs(theta) >= cfg.arm_soft_limit and push * theta > 0:
+                push = 0.0
+            return clamp_command(-push * cfg.max_command, cfg.max_command)  # +command drives theta negative
         if abs(s) < cfg.kick_threshold and energy < -0.9 and shortfall > 0:
             # hanging (almost) at rest: kick it to get a swing going (on the energy, not the shortfall: a raised
             # target must not turn a turnaround near horizontal into a kick the wrong way)
@@ -278,11 +326,33 @@ class ResetController:
             lacking = (1.0 - math.cos(alpha)) / 2.0
             gain = cfg.boost_gain if abs(alpha) < math.pi / 2 else cfg.low_boost_gain
             self.energy_target = min(cfg.boost_max, self.energy_target + gain * lacking)
+            self._turned(abs(alpha))
         last = self._last_alpha
         if last is not None and abs(alpha) < 0.3 and alpha * last < 0.0:
             excess = self.normalised_energy(0.0, alpha_dot) - cfg.overshoot_margin
             if excess > 0:
                 self.energy_target = max(0.0, self.energy_target - cfg.overshoot_gain * excess)
+
+    def _turned(self, height: float) -> None:
+        """A turnaround ``height`` rad from upright: pump hard after ``hard_after_turns`` below horizontal with the
+        target at its cap; pumping hard, ``hopeless_turns``
+        none of which came within ``hopeless_angle`` of upright make the attempt hopeless."""
+        cfg = self.config
+        if not self.hard:
+            if height > math.pi / 2 and self.energy_target >= cfg.boost_max - 1e-9:
+                self._low_turns += 1
+                if self._low_turns >= cfg.hard_after_turns:
+                    self._pump_hard()
+            return
+        self.best_turn = min(self.best_turn, height)
+        self._hard_turns += 1
+        if self._hard_turns >= cfg.hopeless_turns and self.best_turn > cfg.hopeless_angle and not self.hopeless:
+            model = cfg.model
+            self.hopeless = (f"the pendulum's damping is too heavy for a swing-up within "
+                             f"{cfg.max_command * model.volts_per_count:.0f} V: pumping at full voltage it turns "
+                             f"back {math.degrees(self.best_turn):.0f} deg from upright at best (model Dp "
+                             f"{model.Dp:.1e} N m s/rad, damping ratio {model.damping_ratio:.2f}); see "
+                             f"docs/how-to/ood.md")
 
     # -- one tick ------------------------------------------------------------------------------------------------
 
@@ -316,7 +386,7 @@ class ResetController:
         catchable = (
             abs(alpha) < cfg.catch_angle
             and (caught or abs(theta) < cfg.catch_arm_limit)
-            and not self.must_brake(theta, theta_dot, dt, cfg.catch_abandon)
+            and not self.must_brake(theta, theta_dot, dt, cfg.catch_abandon, self._catch_config)
         )
         if catchable and not brake:
             if not caught:
@@ -345,7 +415,8 @@ class ResetController:
                 command = self.swing_command(theta + theta_dot * h, alpha + alpha_dot * h, theta_dot, alpha_dot)
         self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 
-        if self.phase != "ready" and (self.elapsed >= cfg.timeout_s or self.catches > cfg.max_catches):
+        if self.phase != "ready" and (self.elapsed >= cfg.timeout_s or self.catches > cfg.max_catches
+                                      or self.hopeless):
             return self._give_up(theta, alpha, theta_dot, alpha_dot, brake)
         return command, self.phase
 
@@ -377,6 +448,8 @@ class ResetController:
         if not calm and self.elapsed < self._give_up_at + cfg.wind_down_s:
             return (brake * cfg.max_command if brake else self.centre_command(theta, alpha, theta_dot, alpha_dot,
                                                                               cfg.wind_down_wn), "swing_up")
+        if self.hopeless:
+            return self._fail(self.hopeless)
         if self.catches > cfg.max_catches:
             return self._fail(f"{self.catches - 1} catches did not hold the pendulum (strategy '{self.strategy}', "
                               f"arm up to {math.degrees(self.max_arm):.0f} deg, energy target "

@@ -17,6 +17,7 @@ from rpi_bridge.reset import LQR_GAINS, STRATEGIES, ResetConfig, ResetController
 from rpi_bridge.velocity import VelocityFilter
 from services.qube_sim import families
 from services.qube_sim.clock import VirtualClock
+from services.qube_sim.profile import RigProfile
 from services.qube_sim.spi_peer import SimulatedQube
 
 TICK = qube.PERIOD_S
@@ -75,19 +76,43 @@ def test_the_hold_brings_a_sticky_arm_back_inside_the_arm_band() -> None:
     assert abs(bare[-1]) > 0.3
 
 
-def test_a_heavily_damped_pendulum_swings_up() -> None:
-    """Pendulum damping 5x lab's: the energy target rises on turnarounds below horizontal too."""
-    profile = families.family("Dp", 5.0)
-    sim = SimulatedQube(profile.rig_params(0), period_s=TICK, **profile.device_options())
+def swing_up_from_rest(profile: RigProfile, seed: int, seconds: float) -> tuple[str, float, ResetController]:
+    """The reset controller (the profile's own model) on rig ``seed`` of ``profile``, hanging at rest: (last phase,
+    seconds taken, controller)."""
+    sim = SimulatedQube(profile.rig_params(seed), period_s=TICK, **profile.device_options())
     ctl = ResetController(ResetConfig(model=profile.plant_model()))
     tf, af = VelocityFilter(TICK), VelocityFilter(TICK)
-    command, phase = 0, "swing_up"
-    for _ in range(round(15.0 / TICK)):
+    command, phase, ticks = 0, "swing_up", 0
+    while ticks < round(seconds / TICK) and phase not in ("ready", "failed"):
         r = parse_reply(sim.transfer(build_command(command)))
         command, phase = ctl.step((r.theta, r.alpha, tf.update(r.theta), af.update(r.alpha)), TICK)
-        if phase in ("ready", "failed"):
-            break
+        ticks += 1
+    return phase, ticks * TICK, ctl
+
+
+def test_a_heavily_damped_pendulum_swings_up() -> None:
+    """Pendulum damping 5x lab's: the energy target rises on turnarounds below horizontal too."""
+    phase, _, ctl = swing_up_from_rest(families.family("Dp", 5.0), 0, 15.0)
     assert phase == "ready", ctl.failure
+
+
+def test_a_pendulum_damped_10x_is_pumped_at_full_voltage_to_the_top() -> None:
+    """Pendulum damping 10x lab's (Dp 5e-4, damping ratio 0.18): a model that damped pumps at full voltage from the
+    start, pulled to the middle, and reaches the top (the pump of before turned back about 80 deg short)."""
+    profile = families.family("Dp", 10.0)
+    assert profile.plant_model().damping_ratio == pytest.approx(0.176, abs=0.002)
+    phase, seconds, ctl = swing_up_from_rest(profile, 3, 8.0)
+    assert ctl.hard and phase == "ready", ctl.failure
+    assert seconds < 8.0
+
+
+def test_course_damping_fails_early_with_one_line_naming_the_cause() -> None:
+    """Quanser's course-file damping (Dp 5e-4 and Dr 1.5e-3): no pump within 10 V reaches the top
+    (bench/results/swingup.json), so the attempt ends within seconds with the cause, not after its 15 s timeout."""
+    phase, seconds, ctl = swing_up_from_rest(families.course(), 0, 15.0)
+    assert phase == "failed" and seconds < 8.0
+    assert "damping is too heavy for a swing-up within 10 V" in ctl.failure and "Dp 5.0e-04" in ctl.failure
+    assert "\n" not in ctl.failure and "docs/how-to/ood.md" in ctl.failure
 
 
 def test_retries_change_strategy_and_a_success_clears_the_count() -> None:

@@ -47,6 +47,9 @@ from services.qube_sim import families
 from services.qube_sim.dynamics import QubeDynamics, QubeParams, derivatives_array, motor_torque_array
 
 OUT = Path("bench/results/swingup.json")
+#: The reset's measurements at heavy damping (``--reset-markdown``): bench.reset's and bench.sim2real ood's files.
+RESET_HEAVY = Path("bench/results/reset-heavy.json")
+OOD_SWINGUP = Path("bench/results/ood-swingup.json")
 DP_FACTORS = (1.0, 2.5, 5.0, 7.5, 10.0, 15.0, 20.0, 30.0)
 ARM_LIMITS_DEG = (80.0, 110.0)
 VMAX = MAX_COMMAND * VOLTS_PER_COUNT
@@ -254,6 +257,29 @@ def markdown(data: dict[str, Any]) -> str:
     return head + "\n".join(rows) + "\n"
 
 
+def reset_markdown(heavy: dict[str, Any], ood: dict[str, Any]) -> str:
+    """The reset's success at heavy damping for the docs (``--reset-markdown``): bench.reset's rows per family and
+    bridge model, and bench.sim2real ood's per setting summed over its report seeds."""
+    rows = ["| setting | measured by | bridge model | rigs' resets ready | on the first request |",
+            "| --- | --- | --- | --- | --- |"]
+    for r in heavy["results"]:
+        name = r["family"].removeprefix("lab-")
+        rows.append(f"| `{name}` | `bench.reset` | {r['model']} | {r['ready']} of {r['trials']} | "
+                    f"{r['first_attempt']} |")
+    sums: dict[tuple[str, str], list[int]] = {}
+    for key, entry in ood["entries"].items():
+        measure, setting, variant, _seed = key.split("/")
+        if measure == "reset":
+            total = sums.setdefault((setting, variant), [0, 0, 0])
+            for i, field in enumerate(("ready", "resets", "first_attempt")):
+                total[i] += entry[field]
+    for (setting, variant), (ready, resets, first) in sorted(sums.items()):
+        rows.append(f"| `{setting}` | `bench.sim2real ood` | {variant} | {ready} of {resets} | {first} |")
+    head = (f"Generated from `{RESET_HEAVY}` (`{heavy['command']}`) and `{OOD_SWINGUP}` "
+            f"(`{ood['config']['commands'][-1]}`, load average {ood['config']['load_at_start']} at its start).\n\n")
+    return head + "\n".join(rows) + "\n"
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m bench.swingup", description=__doc__.splitlines()[0])
     parser.add_argument("--dp-factors", type=float, nargs="+", default=list(DP_FACTORS))
@@ -266,7 +292,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=OUT)
     parser.add_argument("--jobs", type=int, default=1, help="settings at a time (processes)")
     parser.add_argument("--markdown", action="store_true", help="only print --out's table for the docs")
+    parser.add_argument("--reset-markdown", action="store_true",
+                        help=f"only print the reset's table at heavy damping ({RESET_HEAVY}, {OOD_SWINGUP})")
     args = parser.parse_args(argv)
+    if args.reset_markdown:
+        print(reset_markdown(json.loads(RESET_HEAVY.read_text()), json.loads(OOD_SWINGUP.read_text())), end="")
+        return 0
     if args.markdown:
         print(markdown(json.loads(args.out.read_text())), end="")
         return 0

@@ -348,8 +348,8 @@ class ResetController:
         self._hard_turns += 1
         if self._hard_turns >= cfg.hopeless_turns and self.best_turn > cfg.hopeless_angle and not self.hopeless:
             model = cfg.model
-            self.hopeless = (f"the pendulum's damping is too heavy for a swing-up within "
-                             f"{cfg.max_command * model.volts_per_count:.0f} V: pumping at full voltage it turns "
+            self.hopeless = (f"the swing-up cannot pump this pendulum to the top within "
+                             f"{cfg.max_command * model.volts_per_count:.0f} V: at full voltage it turns "
                              f"back {math.degrees(self.best_turn):.0f} deg from upright at best (model Dp "
                              f"{model.Dp:.1e} N m s/rad, damping ratio {model.damping_ratio:.2f}); see "
                              f"docs/how-to/ood.md")

@@ -63,3 +63,13 @@ def test_the_out_of_distribution_tables_are_ood_json() -> None:
     data = json.loads((ROOT / source).read_text())
     assert block(ROOT / "README.md", ood.BEGIN, ood.END) == ood.render_readme(data, str(source))
     assert block(ROOT / ood.DOCS, ood.BEGIN, ood.END) == ood.render_docs(data, str(source))
+
+
+def test_the_swing_up_tables_are_their_results_files() -> None:
+    from bench import swingup
+
+    page = ROOT / "docs/how-to/ood.md"
+    study = json.loads((ROOT / swingup.OUT).read_text())
+    assert block(page, "<!-- swingup:begin", "<!-- swingup:end") == swingup.markdown(study)
+    heavy, ood = (json.loads((ROOT / p).read_text()) for p in (swingup.RESET_HEAVY, swingup.OOD_SWINGUP))
+    assert block(page, "<!-- swingup-reset:begin", "<!-- swingup-reset:end") == swingup.reset_markdown(heavy, ood)

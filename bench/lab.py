@@ -201,10 +201,11 @@ def render(report: dict[str, Any], source: str) -> str:
         f"`{report['family']}` family (true physics given to the simulators only), action set "
         f"`{report['qube_actions']}`, report seeds {report['seeds']} ({t['seeds']} labs), the last of each lab's "
         f"rigs, median [IQR], unfinished counted as worse; generated from `{source}` ({report['cpus']} cores, load "
-        f"{report['load_at_start']} at the start, {_lab_minutes(report)} wall minutes per lab, median, "
+        f"{report['load_at_start']} at the {'collection' if report.get('collected') else 'start'}, "
+        f"{_lab_minutes(report)} wall minutes per lab, median, "
         f"by `{report['command']}`)"
         + (f"; seeds {', '.join(map(str, report['not_run']))} were not run in the time this session had"
-           if report.get("not_run") else "") + ".",
+           if report.get("not_run") else "") + "." + (f" {report['note']}" if report.get("note") else ""),
         "",
         "| labs finished | fine-tune episodes | balance steps | rig minutes (identification + balance + reset) | "
         "zero-shot after identification | workers stopped on their rig |",
@@ -255,6 +256,8 @@ def main(argv: list[str] | None = None) -> int:
                    "the paper's actions, lab-<set>.json for another set)")
     p.add_argument("--collect", action="store_true", help="run nothing: measure the labs an earlier invocation left "
                    "in --runs-dir (an unfinished lab counts as unfinished, a seed without a folder as not run)")
+    p.add_argument("--note", default="", help="a sentence the table shows after its header (with --collect: the "
+                   "run that left the labs, its command, start and load)")
     p.add_argument("--report", action="store_true", help="only write the tables into README.md and "
                    "docs/how-to/lab.md (runs nothing): of --out, else of every action set's results file")
     args = p.parse_args(argv)
@@ -280,7 +283,8 @@ def main(argv: list[str] | None = None) -> int:
         "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
         "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
         "wall_s": round(time.monotonic() - began, 1),
-        "collected": args.collect, "not_run": not_run, "targets": TARGETS, "table": table, "results": results})
+        "collected": args.collect, "note": args.note, "not_run": not_run, "targets": TARGETS, "table": table,
+        "results": results})
     print(json.dumps(table, indent=1))
     write_pages(args.out)
     return 0

@@ -195,7 +195,8 @@ def _lab_minutes(report: dict[str, Any]) -> str:
 def render(report: dict[str, Any], source: str) -> str:
     """The markdown of one lab.json: the last rig per seed, median [IQR], and the targets."""
     t = report["table"]
-    met = lambda ok: "met" if ok else "**missed**"  # noqa: E731
+    partial = bool(report.get("not_run"))  # the targets are over every lab: with labs not run, none is judged
+    met = lambda ok: "not judged (labs not run)" if partial else "met" if ok else "**missed**"  # noqa: E731
     lines = [
         f"`python -m deploy.lab --env {report['env']} --workers {report['workers']}` on rigs of the "
         f"`{report['family']}` family (true physics given to the simulators only), action set "
@@ -203,7 +204,7 @@ def render(report: dict[str, Any], source: str) -> str:
         f"rigs, median [IQR], unfinished counted as worse; generated from `{source}` ({report['cpus']} cores, load "
         f"{report['load_at_start']} at the {'collection' if report.get('collected') else 'start'}, "
         f"{_lab_minutes(report)} wall minutes per lab, median, "
-        f"by `{report['command']}`)"
+        f"by `{report['command'].split(' --note ')[0]}`)"
         + (f"; seeds {', '.join(map(str, report['not_run']))} were not run in the time this session had"
            if report.get("not_run") else "") + "." + (f" {report['note']}" if report.get("note") else ""),
         "",

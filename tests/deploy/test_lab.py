@@ -109,3 +109,22 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
 
     again = lab(args, truth)  # resumes at the pretrain: the rig is not identified again
     assert again.returncode == 1 and "[lab identify] done before: skipped" in again.stdout
+
+
+def test_each_action_set_keeps_its_own_results_file_and_table(tmp_path: Path) -> None:
+    """bench.lab --qube-actions levels writes lab-levels.json (never the paper's lab.json) and its table goes between
+    its own markers; an --out that holds another set's table is refused before anything runs."""
+    from bench import lab
+
+    assert lab.results_file("paper") == lab.OUT
+    assert lab.results_file("levels") == lab.OUT.with_name("lab-levels.json")
+    assert lab.markers("paper") == (lab.BEGIN, lab.END)
+    assert lab.markers("levels")[0] != lab.BEGIN and "lab-levels:begin" in lab.markers("levels")[0]
+    paper = tmp_path / "lab.json"
+    paper.write_text(json.dumps({"qube_actions": "paper"}))
+    with pytest.raises(ValueError, match=r"lab-levels\.json"):
+        lab.check_out(paper, "levels")
+    lab.check_out(paper, "paper")  # the same set: replaced, as before
+    with pytest.raises(SystemExit):
+        lab.main(["--qube-actions", "levels", "--out", str(paper), "--runs-dir", str(tmp_path / "runs")])
+    assert not (tmp_path / "runs").exists()

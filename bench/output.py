@@ -33,3 +33,11 @@ def write_block(pages: tuple[Path, ...] | list[Path], begin: str, end: str, bloc
             raise ValueError(f"{page} has no {begin!r} ... {end!r} block")
         page.write_text(text[:start + len(begin)] + "\n" + block + text[stop:])
         print(f"wrote the table into {page}")
+
+
+def append_line(out: Path, line: dict[str, Any]) -> None:
+    """Print one result line and append it to the JSON-lines file ``out`` (a tuning log: each run adds its line)."""
+    print(json.dumps(line), flush=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with out.open("a") as log:
+        log.write(json.dumps(line) + "\n")

@@ -24,8 +24,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+from bench import output
 from protocol.qube import MAX_RETURN
 from protocol.tasks import worker_seed
+from runtime.records import METRICS, SUMMARY, RunSummary
 
 #: The seeds this tool may tune on (never a report seed).
 TUNING_SEEDS = tuple(range(701, 710))
@@ -53,9 +55,10 @@ def identified(seed: int, runs: Path) -> Path:
 
 
 def curve(run_dir: Path) -> dict[str, Any]:
-    """Per worker: episodes played, the last PI, the first episode of a full return, PI and entropy at CHECKPOINTS."""
+    """Per worker: episodes played, the last PI, the first episode of a full return, PI and entropy at CHECKPOINTS.
+    Read as JSON lines, not typed records: a tuning run stopped at any moment may leave records of any shape."""
     episodes: dict[str, list[dict[str, Any]]] = {}
-    for line in (run_dir / "metrics.jsonl").read_text().splitlines():
+    for line in (run_dir / METRICS).read_text().splitlines():
         record = json.loads(line)
         if record.get("type") == "episode":
             episodes.setdefault(record["worker"], []).append(record)
@@ -92,11 +95,11 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
 
 
 def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], wall_s: float | None) -> dict[str, Any]:
-    summary = json.loads((run_dir / "summary.json").read_text()) if (run_dir / "summary.json").exists() else None
+    summary = RunSummary.read(run_dir) if (run_dir / SUMMARY).exists() else None
     return {"seed": seed, "qube_actions": actions, "set": overrides, "finished": summary is not None,
-            "end_reason": summary.get("end_reason") if summary else "stopped before its end",
-            "last_worker_episodes": summary.get("episodes_to_all_solved") if summary else None,
-            "solved": [w["id"] for w in summary["workers"] if w["solved"]] if summary else None,
+            "end_reason": summary.end_reason if summary else "stopped before its end",
+            "last_worker_episodes": summary.episodes_to_all_solved if summary else None,
+            "solved": [w.id for w in summary.workers if w.solved] if summary else None,
             "curve": curve(run_dir), "wall_s": wall_s, "load_average": [round(x, 2) for x in os.getloadavg()]}
 
 
@@ -119,10 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     run_dir = args.summarise or run(args.seed, args.qube_actions, overrides, args.max_episodes, args.runs_dir)
     wall = None if args.summarise else round(time.monotonic() - began, 1)
     line = line_of(run_dir, args.seed, args.qube_actions, overrides, wall)
-    print(json.dumps(line), flush=True)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    with args.out.open("a") as log:
-        log.write(json.dumps(line) + "\n")
+    output.append_line(args.out, line)
     return 0
 
 

@@ -11,7 +11,6 @@ episodes and whether it solved, and the wall seconds with the machine's load ave
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import shutil
 import sys
@@ -21,6 +20,7 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+from bench import output
 from bench.paper import TUNING_SEEDS
 from chief import strategies
 from protocol import learners
@@ -82,10 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"not tuning seeds: {bad} (the report seeds stay unseen)")
     for seed in args.seeds:
         line = run(args.task, args.strategy, args.algo, seed, args.workers, args.max_episodes, overrides)
-        print(json.dumps(line), flush=True)
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        with args.out.open("a") as log:
-            log.write(json.dumps(line) + "\n")
+        output.append_line(args.out, line)
     return 0
 
 

@@ -24,8 +24,9 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    alpha_dot*cos(alpha), pulled to the middle by ``hard_centre`` of the full voltage per rad of arm angle and kept
    inside ``hard_soft_limit``: the pump family that ``python -m bench.swingup`` found to reach the top at 10x
    ``lab``'s Dp. If even that brings the pendulum no nearer than ``hopeless_angle`` to upright in ``hopeless_turns``
-   turnarounds, the attempt fails at once with one line naming the damping (``bench.swingup`` finds no swing-up
-   within 10 V at the course files' damping: docs/how-to/ood.md).
+   turnarounds, the attempt fails at once with one line saying this pump falls short, with the model's damping
+   (``bench.swingup`` finds no swing-up within 10 V at the course files' damping, but one at 10x ``lab``'s Dp:
+   docs/how-to/ood.md).
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum

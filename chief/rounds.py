@@ -522,6 +522,12 @@ class RoundKeeper:
             rec.excused, rec.detail = True, f"{said}: {detail}" if detail else said
         return self._maybe_close(now)
 
+    def restart_clock(self, now: float) -> None:
+        """Give the open round a full timeout from ``now``: workers that moved to another edge send it again
+        (chief/failover.py), and the time their edge spent dying is not theirs to lose."""
+        if self.round_opened_at is not None:
+            self.round_opened_at = now
+
     def tick(self, now: float) -> list[RoundOutcome]:
         """Close the round if its timeout expired; call this periodically."""
         if self.done or self.round_opened_at is None:

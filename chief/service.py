@@ -463,7 +463,7 @@ class ChiefService:
             log.warning("edge %s is back: it rejoins at round %d", msg.edge_id, self.keeper.round)
             stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
             if stand_ins != self.stand_ins or not msg.started:  # it takes workers: they send their round again
-                self._moved(stand_ins)
+                self._moved(stand_ins, now)
             elif msg.edge_id in self.stand_ins:  # its own workers went elsewhere while it was away: let it know
                 self._announce()
         elif not msg.started and now - self._announced >= ANNOUNCE_INTERVAL:
@@ -486,11 +486,13 @@ class ChiefService:
             log.warning("round %d: no live edge of edge %s's site is left: its workers wait (lagging once the round "
                         "times out)", self.keeper.round, group)
         if stand_ins != self.stand_ins:
-            self._moved(stand_ins)
+            self._moved(stand_ins, now)
 
-    def _moved(self, stand_ins: dict[str, str]) -> None:
-        """Take the edges' new stand-ins (saved), and tell every edge and worker (a RunStart with ``moves`` + 1)."""
+    def _moved(self, stand_ins: dict[str, str], now: float) -> None:
+        """Take the edges' new stand-ins (saved), tell every edge and worker (a RunStart with ``moves`` + 1), and give
+        the open round a full timeout from now for the moved workers to send it again."""
         assert self.keeper is not None
+        self.keeper.restart_clock(now)
         for group in sorted(set(self.edge_of.values())):
             now_at = failover.serving(group, stand_ins)
             if now_at != failover.serving(group, self.stand_ins):

@@ -355,6 +355,19 @@ def test_a_worker_ahead_does_not_block_the_round_timeout() -> None:
     assert rest == [] and k.episode == 2 and set(k.pending) == {"w1"}
 
 
+def test_a_restarted_clock_gives_the_open_round_a_full_timeout() -> None:
+    """A move of workers to another edge (chief/failover.py) restarts the open round's clock: the round that would
+    have timed out at 5.0 waits until 3.0 + 5.0 for them, and an unopened round has no clock to restart."""
+    k, w = keeper(["w0", "w1"], timeout=5.0), fakes("w0", "w1")
+    k.restart_clock(now=1.0)
+    assert k.round_opened_at is None
+    k.submit(w["w0"].sub(1, 10.0), now=0.0)
+    k.restart_clock(now=3.0)
+    assert k.tick(now=7.9) == [] and k.episode == 1
+    [out] = k.tick(now=8.0)
+    assert out.timed_out == ["w1"] and out.contributors == ["w0"]
+
+
 def test_keep_weight_uses_the_recipients_pi_at_that_round_not_a_later_one() -> None:
     # Under S = 1 a worker may be one round ahead of the open one (in reach: filed ahead at once).
     k = RoundKeeper(["w0", "w1", "w2"], "weighted", CARTPOLE, max_episodes=100, round_timeout=10.0, actor_spec=SPEC,

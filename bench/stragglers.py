@@ -5,7 +5,9 @@ workers at their own pace, every round waiting for all of them; ``quorum``, the 
 ``--slowdown`` times slower, rounds closing with a quorum of N - 1 (its late submissions dropped); and, unless
 ``--no-unbounded``, ``unbounded``, the same N with every round waiting for the straggler. Each run's time per round
 is the median gap between two rounds' close times in its records (metrics.jsonl ``t``, the chief's clock); the
-slowdown is the quorum run's against the baseline's. Every run is audited. Writes bench/results/stragglers.json.
+slowdown is the quorum run's against the baseline's (``--repeat R``: R pairs, interleaved in ABBA order so that a
+load that drifts weighs on both alike, and the median of the pairs' slowdowns). Every run is audited. Writes
+bench/results/stragglers.json.
 
 With ``--edges E`` every run is tiered (E edge chiefs, worker i behind edge e<i mod E>, k counted across the edges:
 docs/explanation/tiered.md), the baseline's N - 1 workers too; it writes bench/results/stragglers-edges.json.
@@ -46,20 +48,27 @@ def seconds_per_round(run_dir: Path) -> float:
 
 
 def measure(name: str, workers: int, episodes: int, seed: int, env: str, folder: Path, quorum: int = 0,
-            pace: dict[str, float] | None = None, edges: int = 0) -> dict[str, Any]:
+            pace: dict[str, float] | None = None, edges: int = 0, pair: int = 0) -> dict[str, Any]:
     """One federation, audited: its median seconds per round and what it did."""
-    run_dir = folder / name
+    run_dir = folder / f"{name}-{pair}"
     began = time.monotonic()
     summary = run_federation(InprocessSettings.given(env=env, policy="weighted", seed=seed, workers=workers,
                              max_episodes=episodes, run_dir=run_dir, quorum=quorum, edges=edges), plot=False,
                              tensorboard_files=False, models=False, pace=pace)
     report = audit(run_dir)
     rounds = rounds_of(run_dir)
-    return {"name": name, "workers": workers, "quorum": quorum or None, "pace": pace or {}, "edges": edges,
-            "rounds": summary.rounds, "s_per_round": round(seconds_per_round(run_dir), 4),
+    return {"name": name, "pair": pair, "workers": workers, "quorum": quorum or None, "pace": pace or {},
+            "edges": edges, "rounds": summary.rounds, "s_per_round": round(seconds_per_round(run_dir), 4),
             "wall_s": round(time.monotonic() - began, 1),
             "rounds_without": sum(1 for r in rounds if r.late),
             "late_refused": (summary.rejected_messages or {}).get("late", 0), "audit": str(report)}
+
+
+def pair_slowdowns(runs: list[dict[str, Any]]) -> list[float]:
+    """Each pair's quorum run against its own baseline (%), in pair order."""
+    per = {(r["name"], r["pair"]): r["s_per_round"] for r in runs}
+    pairs = sorted({p for name, p in per if name == "quorum"})
+    return [round(100 * (per[("quorum", p)] / per[("baseline", p)] - 1), 1) for p in pairs]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -71,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--env", default="CartPole-v0")
     parser.add_argument("--no-unbounded", action="store_true", help="leave out the run that waits for the straggler")
     parser.add_argument("--edges", type=int, default=0, help="E edge chiefs in every run (default 0: flat)")
+    parser.add_argument("--repeat", type=int, default=1, help="baseline and quorum runs R times each, interleaved "
+                        "in ABBA order; the slowdown is the median of the R pairs' (default 1)")
     parser.add_argument("--out", type=Path, default=None, help=f"default {OUT}, with --edges {OUT_EDGES}")
     args = parser.parse_args(argv)
     args.out = args.out or (OUT_EDGES if args.edges else OUT)
@@ -79,19 +90,24 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        runs = [measure("baseline", n - 1, args.episodes, args.seed, args.env, folder, edges=e),
-                measure("quorum", n, args.episodes, args.seed, args.env, folder, quorum=n - 1,
-                        pace={slow: args.slowdown}, edges=e)]
+        runs: list[dict[str, Any]] = []
+        for i in range(args.repeat):  # pairs in ABBA order: a load that drifts weighs on both sides alike
+            for name in ("baseline", "quorum") if i % 2 == 0 else ("quorum", "baseline"):
+                runs.append(measure(name, n - 1, args.episodes, args.seed, args.env, folder, edges=e, pair=i)
+                            if name == "baseline" else
+                            measure(name, n, args.episodes, args.seed, args.env, folder, quorum=n - 1,
+                                    pace={slow: args.slowdown}, edges=e, pair=i))
         if not args.no_unbounded:
             runs.append(measure("unbounded", n, args.episodes, args.seed, args.env, folder,
                                 pace={slow: args.slowdown}, edges=e))
-    base = runs[0]["s_per_round"]
+    per_pair = pair_slowdowns(runs)
+    base = statistics.median(r["s_per_round"] for r in runs if r["name"] == "baseline")
     result = {"env": args.env, "seed": args.seed, "episodes": args.episodes, "slowdown": args.slowdown, "edges": e,
               "straggler": slow, "load_average_at_start": load, "load_average_at_end": os.getloadavg()[0],
-              "cores": os.cpu_count(),
-              "runs": runs, "quorum_slowdown_pct": round(100 * (runs[1]["s_per_round"] / base - 1), 1),
-              **({"unbounded_slowdown_pct": round(100 * (runs[2]["s_per_round"] / base - 1), 1)}
-                 if len(runs) > 2 else {}),
+              "cores": os.cpu_count(), "repeat": args.repeat, "pair_slowdowns_pct": per_pair,
+              "runs": runs, "quorum_slowdown_pct": round(statistics.median(per_pair), 1),
+              **({"unbounded_slowdown_pct": round(100 * (runs[-1]["s_per_round"] / base - 1), 1)}
+                 if not args.no_unbounded else {}),
               "command": command("bench.stragglers", argv)}
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
@@ -99,6 +115,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{r['name']:>10}: {r['workers']} workers, {r['s_per_round']:.3f} s per round (median), "
               f"{r['rounds_without']} rounds closed without the straggler; audit: {r['audit']}")
     print(f"k-of-n: {result['quorum_slowdown_pct']:+.1f} % per round against {n - 1} workers without the straggler"
+          + (f" (median of {args.repeat} pairs: {', '.join(f'{p:+.1f}' for p in per_pair)})" if args.repeat > 1 else "")
           + (f"; waiting for it: {result['unbounded_slowdown_pct']:+.1f} %" if len(runs) > 2 else "")
           + f"; {args.out}")
     return 0

@@ -268,10 +268,10 @@ def _rig_cell(r: dict) -> str:
 
 
 def scale_section(results: Path, readme_dir: Path) -> list[str]:
-    """Flat against tiered (bench/scale.py's scale.json and scale-quick.json) and one straggler in 16
+    """Flat against tiered (bench/scale.py's scale.json, scale-load.json and scale-quick.json) and one straggler in 16
     (bench/stragglers.py), where they were measured."""
     lines: list[str] = []
-    for name in ("scale.json", "scale-quick.json"):
+    for name in ("scale.json", "scale-load.json", "scale-quick.json"):
         path = results / name
         if not path.exists():
             continue
@@ -279,7 +279,8 @@ def scale_section(results: Path, readme_dir: Path) -> list[str]:
         rows = scale["points"]
         lines += [f"**Scale** (`{scale['command'].strip()}`, [`{name}`]({_rel(name, results, readme_dir)}); "
                   f"{scale['cores']} cores, load average {scale['load_average_at_start']:.1f} at the start, "
-                  f"{scale['wall_s']:.0f} s; {scale['hosts']}). Simulated devices with real-size CartPole-v0 updates; "
+                  f"{scale['wall_s']:.0f} s; {scale['hosts']}{'; ' + scale['note'] if scale.get('note') else ''}). "
+                  "Simulated devices with real-size CartPole-v0 updates; "
                   "per round, medians over the rounds after the first; the root's time from its records (first "
                   "submission counted to the round's record, waiting for the last edge included) and its CPU time; "
                   "bytes the root received; round latency from the first publish to the last device holding the "

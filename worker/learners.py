@@ -50,7 +50,7 @@ class LearnerKind:
 
     def build(self, obs_space: spaces.Space, action_space: spaces.Space, config: Any, seed: int,
               init_seed: int | None = None) -> Learner:
-        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)  # type: ignore[call-arg]
+        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)
 
 
 _KINDS: dict[str, LearnerKind] = {

@@ -98,7 +98,7 @@ class Actor(nn.Module):
             self.log_std = nn.Parameter(torch.full((self.action_dim,), float(config.log_std_init)))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        """Logits (Discrete) or the Gaussian mean (Box), shape (batch, out_dim)."""
+        """Logits (Discrete) or the Gaussian mean (Box), shape (batch, action_dim)."""
         return self.net(obs)
 
     def sample(self, obs: torch.Tensor, generator: torch.Generator) -> torch.Tensor:

@@ -71,8 +71,8 @@ class AnsweredRig:
         self.conn.subscribe(topics.rig(rig_id, topics.TELEMETRY),
                             lambda t, p: self.telemetry.put(decode(p, QubeTelemetry)), qos=0)
         self.env = QubeMqttEnv(self.conn, rig_id, reset_timeout_s=60)
-        self.learner = learners.get(algo).build(self.env.observation_space, self.env.action_space,
-                                                learners_config(algo), seed=0)
+        self.learner = learners.get(algo).learner_class(self.env.observation_space, self.env.action_space,
+                                                        learners_config(algo), seed=0)
         self.compute: list[float] = []
         self.answered = self.episodes = 0
         self.error: BaseException | None = None

@@ -34,9 +34,9 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import FromDict, StepGradients, UpdateStats, mlp, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, mlp
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
-from worker.replay import FiniteTransitions, Replay
+from worker.replay import FiniteTransitions
 
 
 @dataclass
@@ -65,9 +65,7 @@ class DQNConfig(FromDict):
     reward_scale: float = 1.0
 
     def __post_init__(self) -> None:
-        self._validate(positive=("actor_lr", "reward_scale", "utd_ratio"),
-                       at_least_one=("n_step", "replay_size", "batch_size", "update_epochs", "target_update_interval"),
-                       unit=("gamma",),
+        self._validate(positive=("utd_ratio",), at_least_one=("n_step", "replay_size", "target_update_interval"),
                        problems=((self.learning_starts < 0 or self.eps_decay_steps < 0,
                                   "learning_starts and eps_decay_steps must be >= 0"),
                                  (not 0.0 <= self.eps_end <= self.eps_start <= 1.0,
@@ -124,22 +122,17 @@ class DQNLearner(OffPolicyLearner):
     OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr"}
     GRADIENT_DTYPE = np.float64
 
-    def __init__(self, obs_space: spaces.Space, action_space: spaces.Space, config: DQNConfig | None = None,
-                 seed: int = 0, init_seed: int | None = None) -> None:
+    def _build(self, obs_dim: int, action_space: spaces.Space) -> None:
         if not isinstance(action_space, spaces.Discrete):
             raise ValueError(f"DQN needs Discrete actions, got {action_space!r} (use sac or ppo)")
-        self.config = cfg = config if config is not None else DQNConfig()
-        obs_dim, self.n_actions = self._observations(obs_space, action_space), int(action_space.n)
-        with seeded(seed if init_seed is None else init_seed):
-            self.actor = mlp(obs_dim, cfg.hidden_sizes, self.n_actions, cfg.activation, ortho=False, out_gain=1.0)
+        cfg, self.n_actions = self.config, int(action_space.n)
+        self.actor = mlp(obs_dim, cfg.hidden_sizes, self.n_actions, cfg.activation, ortho=False, out_gain=1.0)
         self.critic = nn.Module()  # DQN has no critic: nothing of it travels
         self.target = copy.deepcopy(self.actor).requires_grad_(False)
         self.actor_optimizer = Adam(self.actor.parameters(), lr=cfg.actor_lr)
-        self.generator = torch.Generator().manual_seed(seed + 1_000_003)
         self.env_steps = self.gradient_steps = 0
         self._finite = FiniteTransitions("DQN")
         self._window: deque[tuple[np.ndarray, int, float]] = deque()  # the open n-step window of this episode
-        self.replay = Replay(cfg.replay_size, self._columns())
 
     def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
         """A replay transition: s_t, a_t, R_t^(m), s_{t+m}, terminated, gamma^m."""
@@ -194,8 +187,7 @@ class DQNLearner(OffPolicyLearner):
         batch, steps = self._episode_steps()
         losses = [s.actor_loss for s in steps if s.actor is not None]
         loss = float(np.mean(losses)) if losses else 0.0
-        return UpdateStats(actor_loss=loss, critic_loss=loss, entropy=math.nan, memory_size=batch.n,
-                           skipped_steps=self._skipped(steps))
+        return UpdateStats(actor_loss=loss, critic_loss=loss, entropy=math.nan, **self._statistics(batch, steps))
 
     def minibatch_gradients(self, batch: ReplayBatch) -> StepGradients:
         """One mini-batch's gradient of the TD loss against the Double DQN target, norm-clipped when configured;

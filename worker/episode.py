@@ -41,8 +41,8 @@ def build_learner_and_env(
     extra = {"rig_id": rig_id, "conn": conn, "probe": spec_only, **(env_options or {})} if spec.factory else {}
     env = make_env(env_id, seed, noise, **extra)
     config = spec.learner_config(algo, **(overrides or {}))
-    learner = learners.get(algo).build(env.observation_space, env.action_space, config, seed=seed,
-                                       init_seed=init_seed)
+    learner = learners.get(algo).learner_class(env.observation_space, env.action_space, config, seed=seed,
+                                               init_seed=init_seed)
     return env, learner
 
 

@@ -99,7 +99,8 @@ def load_learner(path: Path, env_id: str, observation_space: gym.Space, action_s
         state = model.load_state(path)
         made_by = learners.recorded(state)
         kind = learners.get(algo or made_by)
-        learner = kind.build(observation_space, action_space, kind.config_class.from_dict(state["config"]), seed=0)
+        learner = kind.learner_class(observation_space, action_space, kind.config_class.from_dict(state["config"]),
+                                     seed=0)
         model.check_fits(state, learner, env_id, path, kind.name, model.recorded_actions(state))
     except (TypeError, ValueError) as exc:
         raise EvalError(str(exc) if isinstance(exc, ModelFileError) else f"{path}: {exc}") from None

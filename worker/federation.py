@@ -7,17 +7,17 @@ A learner (worker/ppo.py, worker/sac.py, worker/dqn.py) subclasses it and declar
   ``prepare`` returns, rebuilt from ``vars(batch)`` when a worker resumes);
 - ``NETWORKS``: its attributes that a model holds and a warm start takes (modules, or tensors such as SAC's log
   alpha), by name; ``OPTIMIZERS``: each optimizer's attribute and the configuration field of its learning rate;
-- ``MEMORY``: the attribute of its memory (a ``worker.replay.Replay`` of the columns ``_columns`` declares) and the
-  configuration field of its capacity;
+- ``MEMORY``: the attribute of its memory (a ``worker.replay.Replay`` of the columns ``_columns`` declares: by default
+  s, a, r, s' and the episode's flags) and the configuration field of its capacity;
 - ``STEP``: its ``StepGradients`` class, when its steps report more than the common statistics;
 - ``GRADIENT_DTYPE``: the precision the episode gradient is summed in; ``SKIP_ZERO_STEPS``: whether an optimizer
   step with all-zero gradients (no worker had one) is skipped, so that Adam's moments stay as they are.
 
-It builds ``actor``, ``critic``, ``generator``, the optimizers and whatever else it names, and writes its own acting
-(``act``, and ``_to_env`` for the greedy action ``actor.greedy`` gives), ``remember``, ``prepare``,
-``minibatch_gradients`` (with ``_gradients``), ``apply_step`` (with ``_step``) and ``update`` (with ``_steps``, the loop
-that records the episode gradient, and ``_means``). ``_own_state``/``_load_own`` carry what it saves beyond the
-declared names.
+The base's ``__init__`` takes the spaces, then the learner's ``_build`` builds ``actor``, ``critic``, the optimizers and
+whatever else it names (the base then makes the generator and the memory); the learner writes its own acting (``act``,
+and ``_to_env`` for the greedy action ``actor.greedy`` gives), ``remember``, ``prepare``, ``minibatch_gradients`` (with
+``_gradients``), ``apply_step`` (with ``_step``) and ``update`` (with ``_steps``, the loop that records the episode
+gradient, and ``_statistics``). ``_own_state``/``_load_own`` carry what it saves beyond the declared names.
 """
 
 from __future__ import annotations
@@ -33,7 +33,7 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import StepGradients, blend, tensors
+from worker.nets import StepGradients, blend, seeded, tensors
 from worker.replay import Replay
 
 
@@ -60,28 +60,36 @@ class FederatedLearner:
     #: capacity.
     MEMORY: ClassVar[tuple[str, str]] = ("replay", "replay_size")
 
-    config: Any
     actor: Any  # an nn.Module, of the learner's own class
     critic: Any
     actor_optimizer: Adam
-    generator: torch.Generator
     _episode_gradient: dict[str, np.ndarray] | None = None
 
-    # -- the observations ------------------------------------------------------------------------------------------
+    # -- building: the observations, the networks, the memory -----------------------------------------------------
 
-    def _observations(self, obs_space: spaces.Space, action_space: spaces.Space) -> int:
-        """Take the spaces (observations must be a Box; ``config.obs_scale``, when given, one entry per dimension);
-        returns the input size of the networks."""
+    def __init__(self, obs_space: spaces.Space, action_space: spaces.Space, config: Any = None, seed: int = 0,
+                 init_seed: int | None = None) -> None:
+        """Take the spaces (observations must be a Box; ``config.obs_scale``, when given, one entry per dimension; a
+        ``CONFIG()`` when no config), ``_build`` the learner with its networks drawn from ``init_seed`` (else ``seed``),
+        then the generator of everything else from ``seed`` and an empty memory."""
+        self.config = config if config is not None else self.CONFIG()
         if not isinstance(obs_space, spaces.Box):
             raise ValueError(f"unsupported observation space {obs_space!r}: use a Box")
-        self.obs_space, self.action_space = obs_space, action_space
         self.obs_shape = tuple(obs_space.shape)
         obs_dim = int(np.prod(self.obs_shape))
         scale = self.config.obs_scale
         if scale is not None and len(scale) != obs_dim:
             raise ValueError(f"obs_scale has {len(scale)} entries for observations of shape {self.obs_shape}")
         self._obs_scale = None if scale is None else torch.tensor(scale, dtype=torch.float32).reshape(self.obs_shape)
-        return obs_dim
+        with seeded(seed if init_seed is None else init_seed):
+            self._build(obs_dim, action_space)
+        self.generator = torch.Generator().manual_seed(seed + 1_000_003)
+        self.load_memory({})
+
+    def _build(self, obs_dim: int, action_space: spaces.Space) -> None:
+        """The learner's networks (``obs_dim`` inputs; their initial weights from the init seed), its optimizers and
+        whatever else it keeps."""
+        raise NotImplementedError
 
     def _obs_tensor(self, obs: Any) -> torch.Tensor:
         """The networks' input of one observation or a batch: float32, times ``obs_scale``, flat per sample."""
@@ -115,18 +123,16 @@ class FederatedLearner:
         return steps
 
     @staticmethod
-    def _skipped(steps: list[StepGradients]) -> int:
-        """Critic and actor steps skipped because a loss or gradient was not finite."""
-        return sum((s.critic is None) + (s.actor is None) for s in steps)
-
-    @staticmethod
-    def _means(steps: list[StepGradients], keys: tuple[str, ...]) -> dict[str, float]:
-        """The mean of each statistic ``keys`` names over the steps (zeros after none)."""
-        totals = dict.fromkeys(keys, 0.0)
+    def _statistics(batch: Any, steps: list[StepGradients], means: tuple[str, ...] = ()) -> dict[str, Any]:
+        """An update's statistics every learner has: the memory's size when ``batch`` was prepared, the critic and actor
+        steps skipped because a loss or gradient was not finite, and the mean over the steps of each statistic
+        ``means`` names (zeros after none)."""
+        totals = dict.fromkeys(means, 0.0)
         for step in steps:
             for key in totals:
                 totals[key] += getattr(step, key)
-        return {key: value / max(len(steps), 1) for key, value in totals.items()}
+        return {**{key: value / max(len(steps), 1) for key, value in totals.items()}, "memory_size": batch.n,
+                "skipped_steps": sum((s.critic is None) + (s.actor is None) for s in steps)}
 
     def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
         """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is
@@ -142,9 +148,7 @@ class FederatedLearner:
             coef = torch.clamp(self.config.max_grad_norm / (total + 1e-6), max=1.0)
             grads = [g * coef for g in grads]
         out = {name: g.numpy().astype(np.float32, copy=True) for (name, _), g in zip(named, grads, strict=True)}
-        if not all(bool(np.isfinite(g).all()) for g in out.values()):
-            return None
-        return out
+        return out if all(bool(np.isfinite(g).all()) for g in out.values()) else None
 
     # -- what each learner writes: acting, its memory, its update -------------------------------------------------
 
@@ -180,8 +184,12 @@ class FederatedLearner:
         raise NotImplementedError
 
     def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
-        """The memory's columns: name -> (shape, dtype) of one transition's value."""
-        raise NotImplementedError
+        """The memory's columns, name -> (shape, dtype) of one transition's value; by default s_t, a_t (an index, or
+        the flat vector of a Box action), r_{t+1}, s_{t+1} and the episode's flags."""
+        obs = (self.obs_shape, np.float32)
+        actions = ((), np.int64) if self.actor.discrete else ((self.actor.action_dim,), np.float32)
+        return {"obs": obs, "actions": actions, "rewards": ((), np.float64), "next_obs": obs,
+                "terminated": ((), bool), "truncated": ((), bool)}
 
     def memory_state(self) -> dict[str, torch.Tensor]:
         """The memory (which spans episodes) as tensors, oldest first, with ``pending`` (transitions not yet used by an
@@ -190,7 +198,8 @@ class FederatedLearner:
         return memory.state()
 
     def load_memory(self, state: Mapping[str, torch.Tensor]) -> None:
-        """Replace the memory with ``memory_state()`` output (its newest transitions, as many as the capacity)."""
+        """Replace the memory with ``memory_state()`` output (its newest transitions, as many as the capacity; ``{}``:
+        empty)."""
         name, capacity = self.MEMORY
         memory = Replay(getattr(self.config, capacity), self._columns())
         memory.load(state)
@@ -256,18 +265,16 @@ class FederatedLearner:
         if state.get("algo", "ppo") != self.ALGO:
             raise ValueError(f"not a {self.ALGO.upper()} checkpoint (algo {state.get('algo')!r})")
         config = self.CONFIG.from_dict(state["config"])
-        arch = ("hidden_sizes", "activation")
-        if any(getattr(config, a) != getattr(self.config, a) for a in arch):
-            raise ValueError(f"checkpoint architecture {[getattr(config, a) for a in arch]} does not match "
-                             f"{[getattr(self.config, a) for a in arch]}")
+        theirs, ours = ([c.hidden_sizes, c.activation] for c in (config, self.config))
+        if theirs != ours:
+            raise ValueError(f"checkpoint architecture {theirs} does not match {ours}")
         self._load_networks(state)
         for name in self.OPTIMIZERS:
             getattr(self, name).load_state_dict(state[name])
         self.generator.set_state(state["generator"])
         self._load_own(state)
         self.config = config
-        name, capacity = self.MEMORY  # fit the memory to the saved configuration
-        setattr(self, name, getattr(self, name).resized(getattr(config, capacity)))
+        self.load_memory(self.memory_state())  # fit the memory to the saved configuration
 
     def _load_networks(self, state: Mapping[str, Any]) -> None:
         for name in self.NETWORKS:

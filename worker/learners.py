@@ -19,8 +19,6 @@ from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from typing import Any
 
-from gymnasium import spaces
-
 from protocol import learners
 from worker.federation import FederatedLearner
 
@@ -39,6 +37,7 @@ class LearnerKind:
 
     @property
     def learner_class(self) -> type[FederatedLearner]:
+        """The class: ``learner_class(obs_space, action_space, config, seed=..., init_seed=...)`` builds a learner."""
         return getattr(importlib.import_module(self.module), self.learner)
 
     @property
@@ -47,10 +46,6 @@ class LearnerKind:
 
     def config_fields(self) -> list[str]:
         return [f.name for f in fields(self.config_class)]
-
-    def build(self, obs_space: spaces.Space, action_space: spaces.Space, config: Any, seed: int,
-              init_seed: int | None = None) -> Learner:
-        return self.learner_class(obs_space, action_space, config, seed=seed, init_seed=init_seed)  # type: ignore[call-arg]
 
 
 _KINDS: dict[str, LearnerKind] = {

@@ -38,8 +38,9 @@ class FromDict:
     def _validate(self, positive: tuple[str, ...] = (), at_least_one: tuple[str, ...] = (), unit: tuple[str, ...] = (),
                   problems: tuple[tuple[bool, str], ...] = ()) -> None:
         """Normalise the network fields (hidden sizes as ints, the input scale as floats) and raise one ValueError
-        naming every problem: ``positive`` fields must be finite and > 0, ``at_least_one`` >= 1, ``unit`` in [0, 1],
-        max_grad_norm > 0 or None; ``problems``: the learner's own (is it wrong, what to say)."""
+        naming every problem: actor_lr, reward_scale and the ``positive`` fields must be finite and > 0, batch_size,
+        update_epochs and ``at_least_one`` >= 1, gamma and ``unit`` in [0, 1], max_grad_norm > 0 or None;
+        ``problems``: the learner's own (is it wrong, what to say)."""
         self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
         self.obs_scale = None if self.obs_scale is None else tuple(float(x) for x in self.obs_scale)
         found = [message for wrong, message in (
@@ -47,10 +48,10 @@ class FromDict:
              "obs_scale entries must be finite and > 0"),
             (not self.hidden_sizes or min(self.hidden_sizes) < 1, "hidden_sizes must be non-empty positive integers"),
             (self.activation not in ACTIVATIONS, f"activation must be one of {sorted(ACTIVATIONS)}")) if wrong]
-        found += [f"{n} must be finite and > 0" for n in positive
+        found += [f"{n} must be finite and > 0" for n in ("actor_lr", "reward_scale", *positive)
                   if not (getattr(self, n) > 0 and math.isfinite(getattr(self, n)))]
-        found += [f"{n} must be >= 1" for n in at_least_one if getattr(self, n) < 1]
-        found += [f"{n} must be in [0, 1]" for n in unit if not 0.0 <= getattr(self, n) <= 1.0]
+        found += [f"{n} must be >= 1" for n in ("batch_size", "update_epochs", *at_least_one) if getattr(self, n) < 1]
+        found += [f"{n} must be in [0, 1]" for n in ("gamma", *unit) if not 0.0 <= getattr(self, n) <= 1.0]
         if self.max_grad_norm is not None and not self.max_grad_norm > 0:
             found.append("max_grad_norm must be > 0 or None")
         found += [message for wrong, message in problems if wrong]

@@ -3,9 +3,9 @@ Stable-Baselines3's OffPolicyAlgorithm: the replay buffer (worker/replay.py, sav
 and the per-episode schedule of gradient steps (round(utd_ratio * new transitions), none before ``learning_starts``; a
 fixed K = ``update_epochs`` under a per-step strategy).
 
-A learner declares its replay's columns (``_columns``) and writes its acting, ``remember``, ``minibatch_gradients``,
-``apply_step`` and the statistics of its ``update``. Its configuration has ``replay_size``, ``batch_size``,
-``learning_starts``, ``utd_ratio``, ``update_epochs`` and ``max_grad_norm``.
+A learner declares its replay's columns (``_columns``, unless the default's) and writes its acting, ``remember``,
+``minibatch_gradients``, ``apply_step`` and the statistics of its ``update``. Its configuration has ``replay_size``,
+``batch_size``, ``learning_starts``, ``utd_ratio``, ``update_epochs`` and ``max_grad_norm``.
 """
 
 from __future__ import annotations

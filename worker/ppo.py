@@ -21,7 +21,7 @@ from torch import nn
 
 from worker.adam import Adam
 from worker.federation import FederatedLearner
-from worker.nets import FromDict, StepGradients, action_kind, mlp, seeded
+from worker.nets import FromDict, StepGradients, action_kind, mlp
 from worker.nets import UpdateStats as CommonStats
 from worker.replay import Replay
 
@@ -72,8 +72,7 @@ class PPOConfig(FromDict):
     reward_scale: float = 1.0  # rewards are multiplied by this for learning (returns are reported unscaled)
 
     def __post_init__(self) -> None:
-        self._validate(positive=("actor_lr", "critic_lr", "clip_epsilon", "reward_scale"),
-                       at_least_one=("memory_size", "batch_size", "update_epochs"), unit=("gamma", "gae_lambda"),
+        self._validate(positive=("critic_lr", "clip_epsilon"), at_least_one=("memory_size",), unit=("gae_lambda",),
                        problems=((self.value_loss not in VALUE_LOSSES, f"value_loss must be one of {VALUE_LOSSES}"),
                                  (self.entropy_coef < 0, "entropy_coef must be >= 0")))
 
@@ -92,22 +91,15 @@ class Actor(nn.Module):
 
     def __init__(self, obs_dim: int, action_space: spaces.Space, config: PPOConfig) -> None:
         super().__init__()
-        self.discrete, self.action_shape, out_dim = action_kind(action_space)
+        self.discrete, self.action_shape, self.action_dim = action_kind(action_space)
         cfg = config
-        self.net = mlp(obs_dim, cfg.hidden_sizes, out_dim, cfg.activation, cfg.ortho_init, out_gain=0.01)
+        self.net = mlp(obs_dim, cfg.hidden_sizes, self.action_dim, cfg.activation, cfg.ortho_init, out_gain=0.01)
         if not self.discrete:
-            self.log_std = nn.Parameter(torch.full((out_dim,), float(config.log_std_init)))
+            self.log_std = nn.Parameter(torch.full((self.action_dim,), float(config.log_std_init)))
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        """Logits (Discrete) or the Gaussian mean (Box), shape (batch, out_dim)."""
+        """Logits (Discrete) or the Gaussian mean (Box), shape (batch, action_dim)."""
         return self.net(obs)
-
-    def distribution(self, obs: torch.Tensor) -> torch.distributions.Distribution:
-        out = self(obs)
-        if self.discrete:
-            return torch.distributions.Categorical(logits=out)
-        std = self.log_std.exp().expand_as(out)
-        return torch.distributions.Independent(torch.distributions.Normal(out, std), 1)
 
     def sample(self, obs: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
         """Draw actions with ``generator`` (torch.distributions' own sample() cannot take one)."""
@@ -124,7 +116,12 @@ class Actor(nn.Module):
 
     def log_prob_entropy(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """log pi_theta(a_t|s_t) and the policy entropy per sample."""
-        dist = self.distribution(obs)
+        out = self(obs)
+        if self.discrete:
+            dist: torch.distributions.Distribution = torch.distributions.Categorical(logits=out)
+        else:
+            normal = torch.distributions.Normal(out, self.log_std.exp().expand_as(out))
+            dist = torch.distributions.Independent(normal, 1)
         return dist.log_prob(actions), dist.entropy()
 
 
@@ -279,32 +276,14 @@ class PPOLearner(FederatedLearner):
     BATCH = Batch
     STEP = PPOStepGradients
     MEMORY = ("memory", "memory_size")
+    memory: Replay  # trajectory memory: (s_t, a_t, r_{t+1}, s_{t+1}, terminated, truncated), oldest first
 
-    def __init__(
-        self,
-        obs_space: spaces.Space,
-        action_space: spaces.Space,
-        config: PPOConfig | None = None,
-        seed: int = 0,
-        init_seed: int | None = None,
-    ) -> None:
-        self.config = config if config is not None else PPOConfig()
-        obs_dim = self._observations(obs_space, action_space)
-        with seeded(seed if init_seed is None else init_seed):
-            self.actor = Actor(obs_dim, action_space, self.config)
-            self.critic = Critic(obs_dim, self.config)
+    def _build(self, obs_dim: int, action_space: spaces.Space) -> None:
+        self.actor = Actor(obs_dim, action_space, self.config)
+        self.critic = Critic(obs_dim, self.config)
         self.obs_norm = RunningObsNorm(self.obs_shape)
         self.actor_optimizer = Adam(self.actor.parameters(), lr=self.config.actor_lr)
         self.critic_optimizer = Adam(self.critic.parameters(), lr=self.config.critic_lr)
-        self.generator = torch.Generator().manual_seed(seed + 1_000_003)
-        # trajectory memory: (s_t, a_t, r_{t+1}, s_{t+1}, terminated, truncated), oldest first
-        self.memory = Replay(self.config.memory_size, self._columns())
-
-    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
-        obs = (self.obs_shape, np.float32)
-        actions = ((), np.int64) if self.actor.discrete else (self.actor.action_shape, np.float32)
-        return {"obs": obs, "actions": actions, "rewards": ((), np.float64), "next_obs": obs,
-                "terminated": ((), bool), "truncated": ((), bool)}
 
     # -- acting --------------------------------------------------------------------------------------------
 
@@ -322,8 +301,9 @@ class PPOLearner(FederatedLearner):
     ) -> None:
         """Store <s_t, a_t, r_{t+1}, s_{t+1}> (plus the episode flags) in the FIFO trajectory memory."""
         obs_arr = np.asarray(obs, dtype=np.float32).reshape(self.obs_shape).copy()
-        self.memory.add(obs=obs_arr, actions=int(action) if self.actor.discrete else np.asarray(action, np.float32),
-                        rewards=float(reward), next_obs=np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape),
+        stored = int(action) if self.actor.discrete else np.asarray(action, np.float32).reshape(-1)
+        self.memory.add(obs=obs_arr, actions=stored, rewards=float(reward),
+                        next_obs=np.asarray(next_obs, dtype=np.float32).reshape(self.obs_shape),
                         terminated=bool(terminated), truncated=bool(truncated))
         if self.config.normalize_obs:
             self.obs_norm.update(torch.from_numpy(obs_arr))
@@ -335,8 +315,8 @@ class PPOLearner(FederatedLearner):
         and an actor step (Eq. 6-7). Also records the episode's actor gradient (see ``actor_gradient``)."""
         batch = self.prepare()
         steps = self._steps(batch, self.config.update_epochs)
-        means = self._means(steps, ("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction"))
-        return UpdateStats(**means, memory_size=batch.n, skipped_steps=self._skipped(steps))
+        means = ("actor_loss", "critic_loss", "entropy", "approx_kl", "clip_fraction")
+        return UpdateStats(**self._statistics(batch, steps, means))
 
     def prepare(self) -> Batch:
         """theta_old <- theta: the whole memory's inputs, log-probs under the current actor, GAE advantages and
@@ -348,7 +328,6 @@ class PPOLearner(FederatedLearner):
         m = self.memory.ordered()
         obs, next_obs = self._obs_tensor(m["obs"]), self._obs_tensor(m["next_obs"])
         actions = torch.from_numpy(m["actions"])
-        actions = actions if self.actor.discrete else actions.reshape(n, -1)
         terminated = m["terminated"]
         episode_end = terminated | m["truncated"]
         if n > 1:  # a gap between consecutive transitions (an episode cut short by the caller) also ends one
@@ -359,13 +338,11 @@ class PPOLearner(FederatedLearner):
             old_logp, _ = self.actor.log_prob_entropy(obs, actions)
             values = self.critic(obs).numpy()
             next_values = self.critic(next_obs).numpy()
-        rewards = m["rewards"] * cfg.reward_scale
-        adv_np, ret_np = compute_gae(
-            rewards, values, next_values, terminated, episode_end, cfg.gamma, cfg.gae_lambda
-        )
+        advantages, returns = compute_gae(m["rewards"] * cfg.reward_scale, values, next_values, terminated, episode_end,
+                                          cfg.gamma, cfg.gae_lambda)
         return Batch(n=n, obs=obs, actions=actions, old_logp=old_logp,
-                     advantages=torch.as_tensor(adv_np, dtype=torch.float32),
-                     returns=torch.as_tensor(ret_np, dtype=torch.float32))
+                     advantages=torch.as_tensor(advantages, dtype=torch.float32),
+                     returns=torch.as_tensor(returns, dtype=torch.float32))
 
     def minibatch_gradients(self, batch: Batch) -> PPOStepGradients:
         """One random mini-batch of U: the critic's gradient of L^V (Eq. 3) and the actor's of -L^CLIP (Eq. 6,

@@ -71,18 +71,11 @@ class Replay:
         n = len(state[next(iter(self.columns))]) if state else 0
         if n == 0:
             return
-        keep = slice(max(0, n - self.capacity), n)
-        m = keep.stop - keep.start
+        m = min(n, self.capacity)
         for name, (shape, _) in self.columns.items():
-            self.data[name][:m] = state[name][keep].numpy().reshape(m, *shape)
+            self.data[name][:m] = state[name][n - m:].numpy().reshape(m, *shape)
         self.size, self.pos = m, m % self.capacity
         self.pending = min(int(state.get("pending", 0)), m)
-
-    def resized(self, capacity: int) -> Replay:
-        """A replay of ``capacity`` with this one's newest transitions."""
-        other = Replay(capacity, self.columns)
-        other.load(self.state())
-        return other
 
 
 class FiniteTransitions:

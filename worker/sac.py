@@ -37,9 +37,9 @@ from gymnasium import spaces
 from torch import nn
 
 from worker.adam import Adam
-from worker.nets import FromDict, StepGradients, UpdateStats, action_kind, mlp, seeded
+from worker.nets import FromDict, StepGradients, UpdateStats, action_kind, mlp
 from worker.offpolicy import OffPolicyLearner, ReplayBatch
-from worker.replay import FiniteTransitions, Replay
+from worker.replay import FiniteTransitions
 
 #: Bounds of the Gaussian's log standard deviation (before the tanh squashing), as is usual for SAC.
 LOG_STD_MIN, LOG_STD_MAX = -5.0, 2.0
@@ -91,8 +91,8 @@ class SACConfig(FromDict):
 
     def __post_init__(self) -> None:
         self._validate(
-            positive=("actor_lr", "critic_lr", "alpha_lr", "init_alpha", "reward_scale", "utd_ratio"),
-            at_least_one=("replay_size", "batch_size", "update_epochs"), unit=("gamma", "target_entropy_ratio"),
+            positive=("critic_lr", "alpha_lr", "init_alpha", "utd_ratio"), at_least_one=("replay_size",),
+            unit=("target_entropy_ratio",),
             problems=((self.learning_starts < 0, "learning_starts must be >= 0"),
                       (not 0.0 < self.tau <= 1.0, "tau must be in (0, 1]"),
                       (self.target_entropy is not None and not math.isfinite(self.target_entropy),
@@ -299,42 +299,23 @@ class SACLearner(OffPolicyLearner):
     OPTIMIZERS: ClassVar[dict[str, str]] = {"actor_optimizer": "actor_lr", "critic_optimizer": "critic_lr",
                                             "alpha_optimizer": "alpha_lr"}
 
-    def __init__(
-        self,
-        obs_space: spaces.Space,
-        action_space: spaces.Space,
-        config: SACConfig | None = None,
-        seed: int = 0,
-        init_seed: int | None = None,
-    ) -> None:
-        self.config = cfg = config if config is not None else SACConfig()
-        obs_dim = self._observations(obs_space, action_space)
-        with seeded(seed if init_seed is None else init_seed):
-            self.actor = SACActor(obs_dim, action_space, cfg)
-            self.critic = TwinQ(obs_dim, self.actor.action_dim, self.actor.discrete, cfg)
-        self.target_critic = copy.deepcopy(self.critic)
-        self.target_critic.requires_grad_(False)
-        if not self.actor.discrete:
-            assert isinstance(action_space, spaces.Box)
+    def _build(self, obs_dim: int, action_space: spaces.Space) -> None:
+        cfg = self.config
+        self.actor = SACActor(obs_dim, action_space, cfg)
+        self.critic = TwinQ(obs_dim, self.actor.action_dim, self.actor.discrete, cfg)
+        self.target_critic = copy.deepcopy(self.critic).requires_grad_(False)
+        if isinstance(action_space, spaces.Box):
             low, high = action_space.low.astype(np.float64), action_space.high.astype(np.float64)
             self._action_center, self._action_half = (high + low) / 2.0, (high - low) / 2.0
         self.log_alpha = torch.tensor(math.log(cfg.init_alpha), dtype=torch.float32, requires_grad=True)
         self.actor_optimizer = Adam(self.actor.parameters(), lr=cfg.actor_lr)
         self.critic_optimizer = Adam(self.critic.parameters(), lr=cfg.critic_lr)
         self.alpha_optimizer = Adam([self.log_alpha], lr=cfg.alpha_lr)
-        self.generator = torch.Generator().manual_seed(seed + 1_000_003)
-        self.replay = Replay(cfg.replay_size, self._columns())
         # the latest mini-batch's mean log pi estimate, for the temperature step of apply_step
         self._alpha_term: torch.Tensor | None = None
         self._finite = FiniteTransitions("SAC")
         self._noise: torch.Tensor | None = None  # this episode's coloured noise, shape (dim(A), noise_horizon)
         self._noise_pos = 0
-
-    def _columns(self) -> dict[str, tuple[tuple[int, ...], Any]]:
-        obs = (self.obs_shape, np.float32)
-        actions = ((), np.int64) if self.actor.discrete else ((self.actor.action_dim,), np.float32)
-        return {"obs": obs, "next_obs": obs, "actions": actions, "rewards": ((), np.float64),
-                "terminated": ((), bool), "truncated": ((), bool)}
 
     @property
     def target_entropy(self) -> float:
@@ -403,16 +384,8 @@ class SACLearner(OffPolicyLearner):
         offpolicy.py), each: a twin soft Q critic step, an actor step, a temperature step and the Polyak update of the
         target critics. Also records the episode's actor gradient (see ``actor_gradient``)."""
         batch, steps = self._episode_steps()
-        means = self._means(steps, ("actor_loss", "critic_loss", "entropy"))
-        return SACUpdateStats(**means, memory_size=batch.n, skipped_steps=self._skipped(steps), alpha=self.alpha,
-                              gradient_steps=len(steps))
-
-    def _sample(self, n: int) -> tuple[torch.Tensor, ...]:
-        """A mini-batch of ``batch_size`` transitions from the replay's oldest ``n`` (worker/replay.py)."""
-        rows = self.replay.sample(n, self.config.batch_size, self.generator)
-        rewards = torch.from_numpy(rows["rewards"] * self.config.reward_scale).float()
-        return (self._obs_tensor(rows["obs"]), torch.from_numpy(rows["actions"]), rewards,
-                self._obs_tensor(rows["next_obs"]), torch.from_numpy(rows["terminated"]))
+        return SACUpdateStats(**self._statistics(batch, steps, ("actor_loss", "critic_loss", "entropy")),
+                              alpha=self.alpha, gradient_steps=len(steps))
 
     def minibatch_gradients(self, batch: ReplayBatch) -> StepGradients:
         """One random mini-batch from the replay: the critic's gradient of J_Q (both Q networks, against the soft Q
@@ -424,7 +397,10 @@ class SACLearner(OffPolicyLearner):
         if not self._learning(batch):  # no gradients yet: shared as zeros, and a step of zeros is none
             self._alpha_term = None
             return StepGradients(critic=None, actor=None, actor_loss=math.nan, critic_loss=math.nan, entropy=math.nan)
-        obs, actions, rewards, next_obs, terminated = self._sample(batch.n)
+        rows = self.replay.sample(batch.n, cfg.batch_size, self.generator)
+        obs, next_obs = self._obs_tensor(rows["obs"]), self._obs_tensor(rows["next_obs"])
+        actions, terminated = torch.from_numpy(rows["actions"]), torch.from_numpy(rows["terminated"])
+        rewards = torch.from_numpy(rows["rewards"] * cfg.reward_scale).float()
         alpha = self.log_alpha.detach().exp()
         discrete = self.actor.discrete
         with torch.no_grad():

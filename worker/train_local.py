@@ -43,8 +43,8 @@ def train(
     """
     spec = env_spec(env_id)
     env = make_env(env_id, seed, device_noise)
-    learner = learners.get(algo).build(env.observation_space, env.action_space, config or spec.learner_config(algo),
-                                       seed=seed)
+    learner = learners.get(algo).learner_class(env.observation_space, env.action_space,
+                                               config or spec.learner_config(algo), seed=seed)
     returns: list[float] = []
     try:
         for episode in range(1, max_episodes + 1):

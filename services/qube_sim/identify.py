@@ -58,7 +58,8 @@ _VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr
 GATED = ("Dr", "Dp", "coulomb_arm", "motor", "mr")
 #: Viscous damping this small is negligible for the swing-up and the hold: a damping's 1-sigma is gated relative to
 #: the larger of its value and this (lab's value), so that a pendulum damped 0.1x lab is known to be lightly damped
-#: rather than refused because the small number is known only to +-50 % (N m s/rad).
+#: rather than refused because the small number is known only to +-50 % (N m s/rad). A damping the fit runs down to
+#: nothing gets its 1-sigma from a step of this size (:func:`_negligible`).
 NEGLIGIBLE_DAMPING = {"Dr": QubeParams.Dr, "Dp": QubeParams.Dp}
 
 
@@ -326,6 +327,22 @@ def _sigmas(names: tuple[str, ...], values: dict[str, float], cov: np.ndarray) -
     return sigma
 
 
+def _negligible(problem: _Problem, x: np.ndarray, jac: np.ndarray, i: int, floor: float, train: Windows
+                ) -> tuple[float, float]:
+    """A damping the fit ran down to (next to) nothing, whose log coordinate the recording cannot see: its value (at
+    least the lowest FITTED allows) and its relative 1-sigma, from how the residuals change when it is raised by
+    ``floor`` (a damping acts linearly), so that the gate compares its absolute uncertainty with ``floor``."""
+    name = problem.names[i]
+    value = max(_from_z(name, float(x[i])), FITTED[name][0])
+    raised = x.copy()
+    raised[i] = _to_z(name, value + floor)
+    base = problem.residuals(x, train)
+    linear = jac.copy()
+    linear[:, i] = problem.residuals(raised, train) - base  # per ``floor`` of damping
+    var = _covariance(linear, base, len(train))[i, i]
+    return value, (math.sqrt(var) * floor / value if var >= 0 else math.inf)
+
+
 def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
         progress: Callable[[str], None] | None = None) -> Fit:
     """Fit ``rec`` from ``base``'s values (the starting point and everything not fitted). FitRefused when the
@@ -356,6 +373,10 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
     r_train = result.fun
     r_held = problem.residuals(result.x, held)
     sigma = _sigmas(names, values, _covariance(np.asarray(result.jac), r_train, len(train)))
+    for name, floor in NEGLIGIBLE_DAMPING.items():
+        if not math.isfinite(sigma[name]):  # run down to (next to) nothing: its log coordinate is out of sight
+            values[name], sigma[name] = _negligible(problem, result.x, np.asarray(result.jac), names.index(name),
+                                                    floor, train)
     values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
     return Fit(values=values, sigma=sigma,
                train_rms_deg=math.degrees(float(np.sqrt(np.mean(r_train**2)))),

@@ -136,6 +136,21 @@ def test_a_small_damping_is_gated_against_its_negligible_level(recordings: dict[
         check(replace(light, sigma={**result.sigma, "Dp": math.inf}))
 
 
+def test_a_pendulum_damping_run_down_to_nothing_is_known_to_be_negligible() -> None:
+    """Rig 601001 of pendulum damping 0.1x lab (bench.ood's sweep): the fit runs Dp down to nothing, where its log
+    coordinate is out of sight (an infinite 1-sigma: the rig was refused, and deploy.lab stopped on it). Raised by
+    lab's damping, the residuals do change: the fit keeps Dp at its least, known to a small part of lab's damping,
+    and the rig is trusted."""
+    from bench.ood import _control, family_profile
+    from services.qube_sim.identify import FITTED, NEGLIGIBLE_DAMPING, check, gated_sigma
+
+    result = fit(record_simulated(family_profile("Dp-x0.1"), 601001, _control(None)), LAB)
+    assert result.values["Dp"] == FITTED["Dp"][0] and math.isfinite(result.sigma["Dp"])
+    absolute = result.values["Dp"] * result.sigma["Dp"]
+    assert absolute < 0.25 * NEGLIGIBLE_DAMPING["Dp"] and gated_sigma(result, "Dp") < 0.25
+    check(result)
+
+
 def test_a_low_friction_arm_shaken_by_the_swinging_pendulum_is_centred_enough() -> None:
     """Rig 601001 of arm friction 0.5x lab (bench.ood's sweep): the arm stayed within the centring tolerance but
     never still, and the identification ended with 'the arm did not settle within 5 deg of 0 deg (at -0 deg)'."""

@@ -22,11 +22,26 @@ gives it, its own when it came back before it was found dead, else none until an
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 #: Seconds between an edge's ``online`` statuses.
 HEARTBEAT = 1.0
+#: What the root logs when it finds an edge dead (a launcher that restarts edges waits for it: chief.service,
+#: deploy.run_local); ``dead_edge_in`` reads it back.
+DEAD = "edge {} is dead"
+
+
+_DEAD_LINE = re.compile(re.escape(DEAD).replace(re.escape("{}"), r"(\S+)"))
+
+
+def dead_edge_in(line: str) -> str | None:
+    """The edge a root's log line says it found dead (``DEAD``), else None."""
+    found = _DEAD_LINE.search(line)
+    return found.group(1) if found else None
+
+
 #: Seconds an edge whose last will came may take to say ``online`` again before it is dead.
 WILL_GRACE = 2.0
 #: The most seconds of silence before an edge is dead (``silence_limit``).

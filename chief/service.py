@@ -480,11 +480,11 @@ class ChiefService:
         assert self.keeper is not None
         stand_ins = failover.fail_over(sorted(self.watch.found_dead), self.edge_of, self.stand_ins, self.watch)
         for edge in dead:
-            log.warning("edge %s is dead (its last will, or %.0f s of silence)", edge,
+            log.warning(failover.DEAD.format("%s") + " (its last will, or %.0f s of silence)", edge,
                         failover.silence_limit(self.cfg.round_timeout))
         for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) in dead}):
-            log.warning("round %d: no live edge of edge %s's site is left: its workers wait (lagging once the round "
-                        "times out)", self.keeper.round, group)
+            log.warning("round %d: no live edge of edge %s's site is left: its workers wait for it to be started "
+                        "again (lagging once the round times out)", self.keeper.round, group)
         if stand_ins != self.stand_ins:
             self._moved(stand_ins, now)
 

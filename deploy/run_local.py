@@ -28,6 +28,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import IO, Any
 
+from chief import failover
 from chief.claim import EXIT_CLAIMED
 from chief.service import EXIT_INTERRUPTED
 from chief.settings import ChiefSettings
@@ -67,6 +68,7 @@ class Fleet:
         self.log_dir = log_dir
         self.fork_workers = fork_workers
         self.procs: dict[str, subprocess.Popen | ForkedProcess] = {}
+        self.started: dict[str, tuple[str, Settings]] = {}  # name -> (module, settings): to start it again
         self._files: list[IO[bytes]] = []
 
     def start(self, name: str, module: str, settings: Settings, stream: bool = False) -> subprocess.Popen:
@@ -74,6 +76,7 @@ class Fleet:
         the terminal reaches the launcher only, which decides who hears of it). Logs are appended to: a resumed
         run keeps the first part's. With ``fork_workers``, a worker is forked from the fork server instead
         (deploy/forked.py)."""
+        self.started[name] = (module, settings)
         env = {**os.environ, **to_env(settings), "PYTHONUNBUFFERED": "1"}
         log = self.log_dir / f"{name}.log"
         if self.fork_workers and module == "worker" and not stream:
@@ -89,6 +92,11 @@ class Fleet:
                                 process_group=0)
         self.procs[name] = proc
         return proc
+
+    def start_again(self, name: str) -> subprocess.Popen:
+        """Start a child that ended again, as it was started (its log appended to)."""
+        module, settings = self.started[name]
+        return self.start(name, module, settings)
 
     def add(self, name: str, proc: subprocess.Popen | ForkedProcess) -> None:
         self.procs[name] = proc
@@ -373,17 +381,42 @@ def relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> int:
 def _relay(chief: subprocess.Popen, log_path: Path, fleet: Fleet) -> None:
     assert chief.stdout is not None
     reported: set[str] = set()
+    restarts: dict[str, int] = {}
     with log_path.open("ab") as log_file:
         for line in iter(chief.stdout.readline, b""):
             log_file.write(line)
             log_file.flush()
-            sys.stdout.write(line.decode(errors="replace"))
+            text = line.decode(errors="replace")
+            sys.stdout.write(text)
             sys.stdout.flush()
             for name, proc in fleet.procs.items():
                 code = proc.poll()
                 if code not in (None, 0, EXIT_INTERRUPTED) and name not in reported:  # 130: stopped with the run
                     reported.add(name)
                     print(f"!! {name} exited with code {code}; see {fleet.log_dir / (name + '.log')}", flush=True)
+            edge = failover.dead_edge_in(text)
+            if edge is not None:
+                _start_edge_again(fleet, f"edge-{edge}", restarts, reported)
+
+
+#: Times the launcher starts a dead edge chief again in one run (each once the root has found it dead).
+MAX_EDGE_RESTARTS = 3
+
+
+def _start_edge_again(fleet: Fleet, name: str, restarts: dict[str, int], reported: set[str]) -> None:
+    """Start an edge chief that died again, once the root has found it dead (its workers have gone to a stand-in
+    then, or wait for it where its site has no other edge): it rejoins at the root's open round (chief/failover.py)."""
+    proc = fleet.procs.get(name)
+    if proc is None or proc.poll() in (None, 0, EXIT_INTERRUPTED):
+        return  # not ours, alive (a silence, not a death: the root takes it back when it speaks), or ended with the run
+    if restarts.get(name, 0) >= MAX_EDGE_RESTARTS:
+        print(f"!! {name} died again: not started again (it was {MAX_EDGE_RESTARTS} times)", flush=True)
+        return
+    restarts[name] = restarts.get(name, 0) + 1
+    reported.discard(name)
+    fleet.start_again(name)
+    print(f"!! {name} started again ({restarts[name]} of {MAX_EDGE_RESTARTS}): it rejoins at the root's round",
+          flush=True)
 
 
 def this_python() -> str:

@@ -88,3 +88,12 @@ def test_a_root_sums_no_worker_twice_from_overlapping_partials_of_one_group() ->
     assert sorted(keeper.partials[1]) == [("e0", ("w0", "w2")), ("e1", ("w1",))]
     keeper.add_partial(1, "e0", one, ["w2", "w9"], {})
     assert sorted(keeper.partials[1]) == [("e0", ("w0", "w2")), ("e1", ("w1",))]
+
+
+def test_a_launcher_reads_which_edge_the_root_found_dead() -> None:
+    """deploy.run_local starts an edge again once the root's log says it is dead (``DEAD``, written and read here)."""
+    from chief.failover import DEAD, dead_edge_in
+
+    assert dead_edge_in(f"2026-12-05 05:10:17,660 chief WARNING {DEAD.format('e12')} (its last will)") == "e12"
+    assert dead_edge_in("chief WARNING round 9: the workers of edge e0 go through edge e1 from now on") is None
+    assert dead_edge_in("chief WARNING edge e0 is back: it rejoins at round 12") is None

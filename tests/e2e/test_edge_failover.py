@@ -1,15 +1,14 @@
 """An edge chief that dies mid-run, over MQTT (docs/explanation/tiered.md, "When an edge dies"): its workers go
 through another edge of their site within seconds (chief/failover.py), the run ends with the per-worker episodes of
 the same tiered federation without the death, and the audit passes with every root aggregate within the bound of the
-flat Eq. 9. A restarted edge rejoins at the root's open round, and takes the workers of the next edge to die."""
+flat Eq. 9. The launcher starts a dead edge again; it rejoins at the root's open round, and takes the workers of the
+next edge to die."""
 
 from __future__ import annotations
 
 import json
 import os
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -87,44 +86,37 @@ def test_a_dead_edges_workers_move_and_the_run_is_the_same(tmp_path: Path, refer
         ["--workers", str(WORKERS), "--edges", str(EDGES), "--witness", "--env", ENV, "--seed", str(SEED),
          "--max-episodes", str(EPISODES), "--dashboard-port", "off", *args], {"FEDRL_ROUND_TIMEOUT": ROUND_TIMEOUT},
         after_rounds=8, name=run)
-    assert "!! edge-e0 exited with code -9" in (tmp_path / f"{run}-launcher.log").read_text()
+    launcher = (tmp_path / f"{run}-launcher.log").read_text()
+    assert "!! edge-e0 exited with code -9" in launcher and "!! edge-e0 started again (1 of 3)" in launcher
     chief_log = (run_dir / "logs" / "chief.log").read_text()
     assert "edge e0 is dead" in chief_log and "the workers of edge e0 go through edge e1" in chief_log
     assert "edge e1: edge e0's (standing in) 2 workers (w0, w2)" in (run_dir / "logs" / "edge-e1.log").read_text()
     check_the_same(run_dir, reference)
 
 
-def test_a_restarted_edge_rejoins_at_the_roots_round(tmp_path: Path, reference: Path) -> None:
-    """Edge e0 is killed after round 6 and its workers move to e1; e0 is started again and rejoins at the root's
-    open round, serving nobody; then e1 is killed, and both edges' workers go through e0 from the root's round on.
-    The run is the one without a death."""
+def test_a_dead_edge_is_started_again_and_rejoins_at_the_roots_round(tmp_path: Path, reference: Path) -> None:
+    """Edge e0 is killed after round 6 and its workers move to e1; once the root has found it dead, the launcher
+    starts it again (deploy.run_local), and it rejoins at the root's open round, serving nobody; then e1 is killed,
+    and both edges' workers go through e0 from the root's round of that move on. The run is the one without a
+    death."""
     run = "rejoin"
     run_dir = tmp_path / run
-    chief_log, again = run_dir / "logs" / "chief.log", tmp_path / "edge-e0-again.log"
-    restarted: list[subprocess.Popen] = []
+    chief_log, e0_log = run_dir / "logs" / "chief.log", run_dir / "logs" / "edge-e0.log"
 
     def faults() -> None:
-        pid, env = edge_process(run, "e0")
-        os.kill(pid, signal.SIGKILL)
-        wait_for(chief_log, "the workers of edge e0 go through edge e1")
-        restarted.append(subprocess.Popen([sys.executable, "-m", "chief"], env=env, stdout=again.open("wb"),
-                                          stderr=subprocess.STDOUT))
+        os.kill(edge_process(run, "e0")[0], signal.SIGKILL)
         wait_for(chief_log, "edge e0 is back: it rejoins at round")
-        wait_for(again, "the run names no worker it serves")
+        wait_for(e0_log, "the run names no worker it serves")
         os.kill(edge_process(run, "e1")[0], signal.SIGKILL)
         wait_for(chief_log, "the workers of edge e1 go through edge e0")
 
-    try:
-        federate_through(tmp_path, faults, ["--workers", str(WORKERS), "--edges", str(EDGES), "--witness", "--env",
-                                            ENV, "--seed", str(SEED), "--max-episodes", str(EPISODES),
-                                            "--dashboard-port", "off"],
-                         {"FEDRL_ROUND_TIMEOUT": ROUND_TIMEOUT}, after_rounds=6, name=run)
-        assert restarted[0].wait(60) == 0, again.read_text()[-3000:]
-    finally:
-        for proc in restarted:
-            if proc.poll() is None:
-                proc.kill()
-    log = again.read_text()
+    federate_through(tmp_path, faults, ["--workers", str(WORKERS), "--edges", str(EDGES), "--witness", "--env", ENV,
+                                        "--seed", str(SEED), "--max-episodes", str(EPISODES), "--dashboard-port",
+                                        "off"],
+                     {"FEDRL_ROUND_TIMEOUT": ROUND_TIMEOUT}, after_rounds=6, name=run)
+    launcher = (tmp_path / f"{run}-launcher.log").read_text()
+    assert "!! edge-e0 started again (1 of 3)" in launcher and "!! edge-e1 started again (1 of 3)" in launcher
+    log = e0_log.read_text()
     rejoined = int(chief_log.read_text().split("edge e0 is back: it rejoins at round ")[1].split()[0])
     assert rejoined > 6
     moved = chief_log.read_text().split(": the workers of edge e1 go through edge e0")[0].rsplit("round ", 1)[1]
@@ -133,3 +125,25 @@ def test_a_restarted_edge_rejoins_at_the_roots_round(tmp_path: Path, reference: 
     # depends on how fast this machine is)
     assert len(took) == 2 and int(took[1].split(",")[0]) == int(moved) >= rejoined, log[-3000:]
     check_the_same(run_dir, reference)
+
+
+def test_a_lone_edge_is_started_again_and_takes_its_workers_back(tmp_path: Path) -> None:
+    """One edge (as a site with one edge chief: `--site-brokers`, Swarm, Kubernetes): killed after round 6, no edge
+    can stand in, so its workers wait; once the root has found it dead the launcher starts it again, it rejoins at the
+    root's open round with its own workers, they send their unanswered round again, and the run is the one without
+    a death."""
+    reference = tmp_path / "reference"
+    run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
+                                           max_episodes=EPISODES, run_dir=reference, edges=1),
+                   plot=False, tensorboard_files=False, models=False)
+    run = "lone"
+    chief_log = tmp_path / run / "logs" / "chief.log"
+    run_dir = federate_through(
+        tmp_path, lambda: os.kill(edge_process(run, "e0")[0], signal.SIGKILL),
+        ["--workers", str(WORKERS), "--edges", "1", "--witness", "--env", ENV, "--seed", str(SEED), "--max-episodes",
+         str(EPISODES), "--dashboard-port", "off"], {"FEDRL_ROUND_TIMEOUT": ROUND_TIMEOUT}, after_rounds=6, name=run)
+    assert "!! edge-e0 started again (1 of 3)" in (tmp_path / f"{run}-launcher.log").read_text()
+    log = chief_log.read_text()
+    assert "no live edge of edge e0's site is left" in log and "edge e0 is back: it rejoins at round" in log
+    check_the_same(run_dir, reference)
+

@@ -80,3 +80,30 @@ def test_the_swing_up_tables_are_their_results_files() -> None:
     assert block(page, "<!-- swingup:begin", "<!-- swingup:end") == swingup.markdown(study)
     heavy, ood = (json.loads((ROOT / p).read_text()) for p in (swingup.RESET_HEAVY, swingup.OOD_SWINGUP))
     assert block(page, "<!-- swingup-reset:begin", "<!-- swingup-reset:end") == swingup.reset_markdown(heavy, ood)
+
+
+def test_the_tier_pages_figures_are_their_results_files() -> None:
+    """docs/explanation/tiered.md quotes bench.savetime, bench.stragglers --edges and both make scale runs in prose:
+    each figure it quotes is the one in the file it names."""
+    page = (ROOT / "docs/explanation/tiered.md").read_text().replace("\n", " ")
+
+    def results(name: str) -> dict:
+        return json.loads((ROOT / "bench/results" / name).read_text())
+
+    save = results("savetime.json")
+    assert (f"{save['state_bytes_early']:,} bytes at round 10 and {save['state_bytes_last']:,} at round 500"
+            in page)
+    assert f"{save['save_ms_early']:.1f} ms at round 10 and {save['save_ms_last']:.1f} ms at round 500" in page
+    assert f"**{save['ratio']:.2f}x, target at most 1.5x, met**" in page
+    straggler = results("stragglers-edges.json")
+    pairs = [f"{p:.1f}" for p in straggler["pair_slowdowns_pct"]]
+    assert f"**{straggler['quorum_slowdown_pct']:.1f} %**" in page
+    assert f"(pairs {', '.join(pairs[:-1])} and {pairs[-1]} %;" in page
+    for name, run in (("scale.json", "first"), ("scale-load.json", "second")):
+        points = {(p["n"], p["edges"]): p for p in results(name)["points"]}
+        tiered, flat = points[(1024, 16)], points[(64, 0)]
+        assert f"{tiered['root_bytes_per_round']:,}" in page
+        assert f"{tiered['root_bytes_per_round'] / tiered['update_bytes']:.1f} updates' worth" in page
+        ratio = tiered["root_cpu_ms_per_round"] / flat["root_cpu_ms_per_round"]
+        assert (f"{tiered['root_cpu_ms_per_round']:.0f}" in page and f"{flat['root_cpu_ms_per_round']:.0f} ms in the "
+                f"{run} run ({ratio:.2f}x)" in page), run

@@ -327,19 +327,19 @@ def _sigmas(names: tuple[str, ...], values: dict[str, float], cov: np.ndarray) -
     return sigma
 
 
-def _negligible(problem: _Problem, x: np.ndarray, jac: np.ndarray, i: int, floor: float, train: Windows
-                ) -> tuple[float, float]:
-    """A damping the fit ran down to (next to) nothing, whose log coordinate the recording cannot see: its value (at
-    least the lowest FITTED allows) and its relative 1-sigma, from how the residuals change when it is raised by
-    ``floor`` (a damping acts linearly), so that the gate compares its absolute uncertainty with ``floor``."""
+def _negligible(problem: _Problem, x: np.ndarray, residuals: np.ndarray, jac: np.ndarray, i: int, floor: float,
+                train: Windows) -> tuple[float, float]:
+    """A damping the fit ran down to (next to) nothing, whose log coordinate the recording cannot see (``x`` the fit,
+    ``residuals`` and ``jac`` its training residuals and Jacobian): its value (at least the lowest FITTED allows) and
+    its relative 1-sigma, from how the residuals change when it is raised by ``floor`` (a damping acts linearly), so
+    that the gate compares its absolute uncertainty with ``floor``."""
     name = problem.names[i]
     value = max(_from_z(name, float(x[i])), FITTED[name][0])
     raised = x.copy()
     raised[i] = _to_z(name, value + floor)
-    base = problem.residuals(x, train)
     linear = jac.copy()
-    linear[:, i] = problem.residuals(raised, train) - base  # per ``floor`` of damping
-    var = _covariance(linear, base, len(train))[i, i]
+    linear[:, i] = problem.residuals(raised, train) - residuals  # per ``floor`` of damping
+    var = _covariance(linear, residuals, len(train))[i, i]
     return value, (math.sqrt(var) * floor / value if var >= 0 else math.inf)
 
 
@@ -375,8 +375,8 @@ def fit(rec: Recording, base: RigProfile, cfg: FitConfig | None = None,
     sigma = _sigmas(names, values, _covariance(np.asarray(result.jac), r_train, len(train)))
     for name, floor in NEGLIGIBLE_DAMPING.items():
         if not math.isfinite(sigma[name]):  # run down to (next to) nothing: its log coordinate is out of sight
-            values[name], sigma[name] = _negligible(problem, result.x, np.asarray(result.jac), names.index(name),
-                                                    floor, train)
+            values[name], sigma[name] = _negligible(problem, result.x, r_train, np.asarray(result.jac),
+                                                    names.index(name), floor, train)
     values["static_arm"] = values["coulomb_arm"] * values["static_ratio"]
     return Fit(values=values, sigma=sigma,
                train_rms_deg=math.degrees(float(np.sqrt(np.mean(r_train**2)))),

@@ -90,13 +90,13 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()[0]
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
+        kinds: dict[str, dict[str, Any]] = {"baseline": {"workers": n - 1},
+                                            "quorum": {"workers": n, "quorum": n - 1, "pace": {slow: args.slowdown}}}
         runs: list[dict[str, Any]] = []
         for i in range(args.repeat):  # pairs in ABBA order: a load that drifts weighs on both sides alike
             for name in ("baseline", "quorum") if i % 2 == 0 else ("quorum", "baseline"):
-                runs.append(measure(name, n - 1, args.episodes, args.seed, args.env, folder, edges=e, pair=i)
-                            if name == "baseline" else
-                            measure(name, n, args.episodes, args.seed, args.env, folder, quorum=n - 1,
-                                    pace={slow: args.slowdown}, edges=e, pair=i))
+                runs.append(measure(name, episodes=args.episodes, seed=args.seed, env=args.env, folder=folder,
+                                    edges=e, pair=i, **kinds[name]))
         if not args.no_unbounded:
             runs.append(measure("unbounded", n, args.episodes, args.seed, args.env, folder,
                                 pace={slow: args.slowdown}, edges=e))
@@ -116,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['rounds_without']} rounds closed without the straggler; audit: {r['audit']}")
     print(f"k-of-n: {result['quorum_slowdown_pct']:+.1f} % per round against {n - 1} workers without the straggler"
           + (f" (median of {args.repeat} pairs: {', '.join(f'{p:+.1f}' for p in per_pair)})" if args.repeat > 1 else "")
-          + (f"; waiting for it: {result['unbounded_slowdown_pct']:+.1f} %" if len(runs) > 2 else "")
+          + (f"; waiting for it: {result['unbounded_slowdown_pct']:+.1f} %" if not args.no_unbounded else "")
           + f"; {args.out}")
     return 0
 

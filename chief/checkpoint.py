@@ -19,7 +19,6 @@ written position). Behind an edge, the worker's edge sends its partial of that r
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -77,30 +76,34 @@ def _unoutcome(d: dict[str, Any]) -> RoundOutcome:
     return RoundOutcome(**{**d, **{k: _unarrays(d[k]) for k in TENSORS}})
 
 
-def keeper_state(k: RoundKeeper) -> KeeperState:
-    """Everything a RoundKeeper needs to go on, as plain data."""
-    names = [f.name for f in dataclasses.fields(WorkerRecord) if f.name not in _PAIRS]
-    # Built unchecked (model_construct): a WorkerRecord's fields have their types already, and checking each
-    # worker's every round again made this the largest part of a 1,024-worker root's round (load checks it all).
-    workers = [SavedWorker.model_construct(**{name: getattr(rec, name) for name in names},
-                                           returns=sorted(rec.returns.items()), pis=sorted(rec.pis.items()))
-               for rec in k.workers.values()]
+def keeper_state(k: RoundKeeper) -> dict[str, Any]:
+    """Everything a RoundKeeper needs to go on, as plain data: ``KeeperState(...).model_dump()``, built directly.
+    A 1,024-worker root saves every round, and building its workers' models and dumping them again was most of it;
+    their fields have their types already, ``load`` checks them all, and a test holds both ways to the same bytes."""
     last = sorted(k.answers)[-ANSWERS_SAVED:]
     # The counted rounds a resumed keeper needs: those whose answers it keeps (an older one sent again is refused as
     # stale instead of a duplicate: it counts nothing either way, and no answer of it is kept), and the open
     # episode's (a later step checks its step 0).
     since = min([k.round - k.shape.per_episode, *last[:1]])
     base, masks = counted_masks({(w, r) for w, r in k.counted if r >= since})
-    return KeeperState(
+    values = dict(
         policy=k.policy, env_id=k.task.env_id, max_episodes=k.max_episodes, round_timeout=k.round_timeout,
         actor_spec=_spec(k.actor_spec), critic_spec=_spec(k.critic_spec), rounds_per_episode=k.shape.per_episode,
-        max_staleness=k.max_staleness, quorum=k.quorum, round=k.round, workers=workers,
+        max_staleness=k.max_staleness, quorum=k.quorum, round=k.round,
+        workers=[saved_worker(rec) for rec in k.workers.values()],
         pending=[_submission(s) for s in k.pending.values()],
         ahead=[_submission(s) for subs in k.ahead.values() for s in subs.values()],
         counted=[], counted_from=base, counted_rounds=masks, answers=[_outcome(k.answers[e]) for e in last],
         done_reason=k.done_reason, aborted=k.aborted, interrupted=k.interrupted, tier=k.tier,
         partials=[_partial(r, e, held) for r, by_edge in sorted(k.partials.items())
                   for (e, _), held in sorted(by_edge.items())])
+    return {name: values[name] for name in KeeperState.model_fields}
+
+
+def saved_worker(rec: WorkerRecord) -> dict[str, Any]:
+    """A WorkerRecord as ``SavedWorker(...).model_dump()`` gives it: its fields in SavedWorker's order, its
+    per-episode maps as sorted pairs."""
+    return {name: sorted(getattr(rec, name).items()) if name in _PAIRS else getattr(rec, name) for name in _SAVED}
 
 
 def counted_masks(counted: set[tuple[str, int]]) -> tuple[int, dict[str, bytes]]:
@@ -139,6 +142,8 @@ def _unpartial(d: dict[str, Any]) -> HeldPartial:
 
 #: WorkerRecord's per-episode maps, saved as sorted (episode, value) pairs.
 _PAIRS = ("returns", "pis")
+#: SavedWorker's fields, in its order.
+_SAVED = tuple(SavedWorker.model_fields)
 
 
 def _spec(spec: dict[str, tuple[int, ...]] | None) -> dict[str, list[int]] | None:
@@ -186,8 +191,9 @@ def save(run_dir: Path, keeper: RoundKeeper, service: ServiceState | Mapping[str
 
 def encoded(keeper: RoundKeeper, service: ServiceState | Mapping[str, Any]) -> bytes:
     """The state file's bytes (``save`` writes them)."""
-    state = ChiefState(version=VERSION, keeper=keeper_state(keeper), service=ServiceState.model_validate(service))
-    return msgpack.packb(state.model_dump(), use_bin_type=True)
+    state = {"version": VERSION, "keeper": keeper_state(keeper),
+             "service": ServiceState.model_validate(service).model_dump()}  # ChiefState's fields, in its order
+    return msgpack.packb(state, use_bin_type=True)
 
 
 def load(run_dir: Path, task: TaskSpec) -> tuple[RoundKeeper, dict[str, Any]] | None:

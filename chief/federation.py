@@ -15,6 +15,7 @@ Which weights a round uses is the strategy's decision (chief/strategies/); ``wei
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -26,9 +27,10 @@ def progress(pi: float, tc: float, r_floor: float) -> float:
     """How far a worker is from the floor to the termination condition, in [0, 1]."""
     if not tc > r_floor:
         raise ValueError(f"termination condition {tc} must be above the return floor {r_floor}")
-    if not np.isfinite(pi):
+    if not math.isfinite(pi):
         raise ValueError(f"performance index must be finite, got {pi}")
-    return float(np.clip((pi - r_floor) / (tc - r_floor), 0.0, 1.0))
+    # Plain floats, not np.clip: a root calls this for each of 1,024 contributions a round (the same value).
+    return min(max((float(pi) - r_floor) / (tc - r_floor), 0.0), 1.0)
 
 
 def normalised(shares: Mapping[str, float]) -> dict[str, float]:

@@ -30,12 +30,22 @@ class PlayedTally:
     def add(self, record: AnyRecord) -> None:
         """Take one record of metrics.jsonl (the ones that carry no counts change nothing)."""
         if isinstance(record, EpisodeRecord):
-            episodes, steps = self.counted.get(record.worker, (0, 0))
-            self.counted[record.worker] = (episodes + 1, steps + record.steps)
-        if isinstance(record, (EpisodeRecord, RefusedRecord)) and record.played is not None:
-            lives = self.lives.setdefault(record.worker, {})
-            episodes, steps = lives.get(record.played.life, (0, 0))
-            lives[record.played.life] = (max(episodes, record.played.episodes), max(steps, record.played.steps))
+            self.count(record.worker, record.steps, record.played)
+        elif isinstance(record, RefusedRecord) and record.played is not None:
+            self.play(record.worker, record.played)
+
+    def count(self, worker: str, steps: int, played: Played | None) -> None:
+        """A counted episode of ``steps`` env steps, and what its worker said it played."""
+        episodes, total = self.counted.get(worker, (0, 0))
+        self.counted[worker] = (episodes + 1, total + steps)
+        if played is not None:
+            self.play(worker, played)
+
+    def play(self, worker: str, played: Played) -> None:
+        """What ``worker`` said it played, in the life it says."""
+        lives = self.lives.setdefault(worker, {})
+        episodes, steps = lives.get(played.life, (0, 0))
+        lives[played.life] = (max(episodes, played.episodes), max(steps, played.steps))
 
     def totals(self) -> dict[str, PlayedTotals]:
         """Each worker's totals (by worker id, in order of its first ``played`` counts); {} when none were sent."""

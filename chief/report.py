@@ -126,8 +126,15 @@ class MetricsLog:
 
     def _note(self, record: AnyRecord) -> None:
         if isinstance(record, EdgeRecord):
-            for sub in record.submissions():
-                self._note(sub)
+            if any(c.step or c.rig is not None for c in record.contributions):
+                for sub in record.submissions():  # rig time is summed from records (chief/rigtime.py)
+                    self._note(sub)
+                return
+            # Its counted episodes, noted as their records would be, without building them (a root notes 1,024 a
+            # round; tests/chief/test_report.py holds the two ways to the same curves and counts).
+            for c in record.contributions:
+                self._played.count(c.worker_id, c.steps, c.played)
+                self.curves.setdefault(c.worker_id, []).append((c.episode, c.pi))
             return
         self._played.add(record)
         if isinstance(record, EpisodeRecord):

@@ -119,3 +119,29 @@ def test_a_per_step_episode_longer_than_the_kept_answers_is_still_counted_step_b
                                    float(episode * 1000 + step))
                 assert verdict.status == "accepted", (episode, step, verdict.reason, verdict.detail)
     assert k.done
+
+
+def test_the_state_is_built_as_its_models_would_dump_it() -> None:
+    """``checkpoint.encoded`` builds the state's data without its models (a 1,024-worker root saves every round):
+    its bytes are what ChiefState validates and dumps again, field for field, for a flat keeper mid-run (pending,
+    held and finished workers, kept answers) and for a root holding an edge's partial of its open round."""
+    import msgpack
+
+    from chief import tiers
+    from chief.records import ChiefState
+
+    def fixed_point(k: RoundKeeper) -> None:
+        raw = checkpoint.encoded(k, SERVICE)
+        state = ChiefState.model_validate(msgpack.unpackb(raw, raw=False, strict_map_key=False))
+        assert msgpack.packb(state.model_dump(), use_bin_type=True) == raw
+
+    flat, fleet = RoundKeeper(WORKERS, "weighted", task("CartPole-v0"), 200, 1.0, actor_spec=SPEC), Fleet()
+    play(flat, fleet, range(1, 70))
+    for sub in fleet.submissions(70)[:2]:  # an open round with submissions pending
+        flat.submit(sub, 700.0)
+    assert flat.pending and flat.ids_in("finished")
+    fixed_point(flat)
+
+    root = RoundKeeper(WORKERS, "weighted", task("CartPole-v0"), 200, 1.0, actor_spec=SPEC, tier="root")
+    root.add_partial(1, "e0", tiers.Partial({"a": np.ones(3, np.float32)}, 2.0, 3), WORKERS[:3], {"w1": 0.5})
+    fixed_point(root)

@@ -116,6 +116,19 @@ def test_a_fit_that_does_not_converge_is_refused(recordings: dict[str, Path]) ->
         check(result)
 
 
+def test_a_fit_that_does_not_predict_the_held_out_block_is_fitted_again_in_finer_steps(
+        recordings: dict[str, Path]) -> None:
+    """A coarse fit whose held-out error exceeds the gate (here a gate of 0.1 deg) goes on from where it ended with
+    ``fine_substeps`` per tick, and predicts at least as well; one within the gate is left as it is."""
+    from services.qube_sim.identify import FitConfig
+
+    rec = Recording.load(recordings["lab"])
+    coarse = fit(rec, LAB, FitConfig(max_heldout_deg=90.0))
+    finer = fit(rec, LAB, FitConfig(max_heldout_deg=0.1, fine_substeps=3))
+    assert coarse.substeps == 2 and finer.substeps == 3
+    assert finer.iterations > coarse.iterations and finer.train_rms_deg <= coarse.train_rms_deg * 1.01
+
+
 def test_a_small_damping_is_gated_against_its_negligible_level(recordings: dict[str, Path]) -> None:
     """A pendulum damped 0.1x lab, known to +-56 %, is known to be lightly damped (it was refused, and the rig could
     not be identified); lab's damping known to +-56 % is still refused, and so is a damping the recording does not

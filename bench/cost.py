@@ -50,6 +50,7 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import BrokerAddress
+from protocol.routes import hello_wait
 from protocol.tasks import PI_WINDOW
 from protocol.tensors import digest, pack_arrays
 from protocol.transport import Transport, connector
@@ -171,14 +172,17 @@ class ScriptedFleet:
         return on_message
 
     def join(self, timeout: float = 60.0) -> None:
+        """Hellos, as a worker says them (protocol.routes.hello_wait apart), until a RunStart comes."""
         deadline = time.monotonic() + timeout
+        sent = 0
         while time.monotonic() < deadline:
             for w, conn in zip(self.ids, self.conns, strict=True):
                 hello = WorkerHello(worker_id=w, env_id="CartPole-v0", actor_spec=self.spec, edge=self.edge.get(w))
                 conn.publish(topics.worker(RUN, w, topics.HELLO), encode(hello))
+            sent += 1
             try:
                 while True:
-                    if isinstance(self.answers.get(timeout=1.0), RunStart):
+                    if isinstance(self.answers.get(timeout=hello_wait(sent)), RunStart):
                         return
             except queue.Empty:
                 continue

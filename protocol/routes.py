@@ -101,6 +101,18 @@ def _r(leaf: str) -> str:
     return f"{topics.QUBE}/<rig>/{leaf}"
 
 
+#: A worker says hello until a RunStart names it: HELLO_FIRST_S after its first hello, each wait doubled up to
+#: HELLO_MAX_S. Every chief and edge of the run gets every hello; at 1,024 workers saying hello every second, the
+#: broker, the root and 16 edges fell behind (bench.scale: the edges' heartbeats queued behind the hellos, the root
+#: took them for dead).
+HELLO_FIRST_S, HELLO_MAX_S = 1.0, 4.0
+
+
+def hello_wait(sent: int) -> float:
+    """Seconds from a worker's ``sent``-th hello (1 for the first) to its next one."""
+    return min(HELLO_MAX_S, HELLO_FIRST_S * 2.0 ** (sent - 1))
+
+
 M = MESSAGE_TYPES
 _FEDERATION = (CHIEF, EDGE, DASHBOARD)
 _WORKERS = (WORKER, EDGE, DASHBOARD)
@@ -108,7 +120,8 @@ _WORKERS = (WORKER, EDGE, DASHBOARD)
 _RELAYED = ((topics.START, "run_start"), (topics.AGGREGATE, "aggregate"), (topics.TRANSFER, "transfer"),
             (topics.ACK, "ack"), (topics.STOP, "run_stop"))
 ROUTES: tuple[Route, ...] = (
-    Route(_w(topics.HELLO), WORKER, _FEDERATION, (M["hello"],), 1, "every second until a RunStart names the worker"),
+    Route(_w(topics.HELLO), WORKER, _FEDERATION, (M["hello"],), 1,
+          "1 s after the first, then doubling to every 4 s (hello_wait), until a RunStart names the worker"),
     Route(_w(topics.STATUS), WORKER, _FEDERATION, (M["status"],), 1, "every change of its state", will=True),
     Route(_w(topics.UPDATE), WORKER, _FEDERATION, (M["update"], M["mature"]), 1,
           "one per episode; sent again after a reconnect or a chief restart until answered; MatureParams until a "

@@ -40,7 +40,7 @@ from protocol.messages import (
 from protocol.mqtt import Stopped
 from protocol.rigtime import SECONDS_LIMIT
 from protocol.rounds import PER_EPISODE, RoundShape
-from protocol.routes import qos_of
+from protocol.routes import hello_wait, qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
 from protocol.transport import Connect, Transport
@@ -204,7 +204,7 @@ class WorkerService:
         return submission
 
     def _join(self) -> RunStart | None:
-        """Say hello every second until the chief's RunStart names this worker."""
+        """Say hello until the chief's RunStart names this worker (protocol.routes.hello_wait apart)."""
         cfg = self.cfg
         _, probe = build_learner_and_env(cfg.env, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
                                          spec_only=True, algo=cfg.algo, env_options=cfg.env_options())
@@ -216,11 +216,12 @@ class WorkerService:
                             edge=cfg.edge)
         self.actor_spec = probe.actor_spec()
         deadline = time.monotonic() + cfg.start_timeout
-        next_hello = 0.0
+        next_hello, sent = 0.0, 0
         while time.monotonic() < deadline and not self._interrupt.is_set():
             if time.monotonic() >= next_hello:
                 self._send(topics.HELLO, self._signed(hello))
-                next_hello = time.monotonic() + 1.0
+                sent += 1
+                next_hello = time.monotonic() + hello_wait(sent)
             try:
                 topic, msg = self.inbox.get(timeout=0.2)
             except queue.Empty:

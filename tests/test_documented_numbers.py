@@ -58,6 +58,17 @@ def test_the_sim_to_real_tables_are_sim2real_json() -> None:
     source = Path("bench/results/sim2real.json")
     expected = sim2real.report(json.loads((ROOT / source).read_text()), str(source))
     assert block(ROOT / "docs/how-to/warm-start.md", sim2real.BEGIN, sim2real.END) == expected + "\n"
+    data = json.loads((ROOT / source).read_text())
+    page = " ".join((ROOT / "docs/how-to/warm-start.md").read_text().split())
+    episodes = data["pretrains"]["randomised"]["episodes"]
+    shots = {name: f"{z['balanced_to_end']} of {z['rigs']}" for name, z in data["zero_shot"].items()}
+    trials = data["disturbed_trials"]
+    assert f"whose pretrain of the same seed took {episodes} episodes" in page
+    assert f"now needs {episodes} episodes" in page
+    assert (f"still balances {shots['randomised']} held-out `lab` rigs zero-shot; the `ideal` one "
+            f"{shots['ideal']}") in page
+    assert f"{sum(t['balanced_to_end'] for t in trials)} of {len(trials)} fine-tuned controllers pass" in page
+    assert f"(also {data['reference_trials']['balanced_to_end']} of {data['reference_trials']['rigs']})" in page
 
 
 def test_the_out_of_distribution_tables_are_ood_json() -> None:

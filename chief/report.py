@@ -13,6 +13,7 @@ from typing import Any, Protocol, TextIO
 from chief.played import PlayedTally
 from chief.rigtime import last_rig, rig_times
 from chief.rounds import RoundKeeper, WorkerRecord
+from protocol.messages import Played
 from runtime.records import (
     METRICS,
     AnyRecord,
@@ -133,14 +134,19 @@ class MetricsLog:
             # Its counted episodes, noted as their records would be, without building them (a root notes 1,024 a
             # round; tests/chief/test_report.py holds the two ways to the same curves and counts).
             for c in record.contributions:
-                self._played.count(c.worker_id, c.steps, c.played)
-                self.curves.setdefault(c.worker_id, []).append((c.episode, c.pi))
+                self._counted(c.worker_id, c.episode, c.pi, c.steps, c.played)
             return
-        self._played.add(record)
         if isinstance(record, EpisodeRecord):
-            self.curves.setdefault(record.worker, []).append((record.episode, record.pi))
+            self._counted(record.worker, record.episode, record.pi, record.steps, record.played)
+        else:
+            self._played.add(record)
         if isinstance(record, StepRecord) or (isinstance(record, EpisodeRecord) and record.balance_steps is not None):
             self._timed.append(record)
+
+    def _counted(self, worker: str, episode: int, pi: float, steps: int, played: Played | None) -> None:
+        """A counted episode, from its record or an edge's contribution: its worker's counts, a point of its curve."""
+        self._played.count(worker, steps, played)
+        self.curves.setdefault(worker, []).append((episode, pi))
 
     def _write(self, record: AnyRecord) -> None:
         self._note(record)

@@ -310,7 +310,8 @@ def report(result: dict[str, Any], source: str) -> str:
                  if p.get("balance_min") is not None else "")
         made = (f"finished at episode {p['episodes']}, its last rig after {p['rig_min']:.1f} rig minutes{split} "
                 f"({p['wall_min']:.1f} wall minutes here)" if p["finished"] else "did not finish: no model")
-        zero = (f"zero-shot: balanced to the end on {shot['balanced_to_end']} of {shot['rigs']} held-out `lab` rigs"
+        zero = (f"zero-shot: balanced to the end on {shot['balanced_to_end']} of {shot['rigs']} unseen `lab` rigs "
+                "(in distribution)"
                 if shot else "no zero-shot test")
         lines.append(f"- `{name}` pretrain: {made}; {zero}.")
     for r in result.get("runs", []):
@@ -331,7 +332,7 @@ def report(result: dict[str, Any], source: str) -> str:
     trials = result["disturbed_trials"]
     if trials:
         pulses = sorted(t["largest_pulse_of_stall"] for t in trials if "largest_pulse_of_stall" in t)
-        lines.append(f"- Fine-tuned controllers (randomised warm start, one per report seed, each on its own held-out "
+        lines.append(f"- Fine-tuned controllers (randomised warm start, one per report seed, each on its own unseen "
                      f"rig) in the robustness trial (pulses up to the controller's authority, 15 % of stall): "
                      f"{sum(t['balanced_to_end'] for t in trials)} of {sum(t['rigs'] for t in trials)} balanced to "
                      "the end" + (f"; in the sweep on to 30 % of stall the median largest pulse survived was "
@@ -339,7 +340,7 @@ def report(result: dict[str, Any], source: str) -> str:
     ref = result.get("reference_trials")
     if ref:
         lines.append(f"- For comparison, the bridge's balance LQR restricted to the same three actions on the same "
-                     f"held-out rigs: {ref['balanced_to_end']} of {ref['rigs']} balanced to the end in the trial; "
+                     f"unseen rigs: {ref['balanced_to_end']} of {ref['rigs']} balanced to the end in the trial; "
                      f"median largest pulse survived in the sweep {ref['median_largest_pulse_of_stall']:.0%} of "
                      "stall.")
     return "\n".join(lines)
@@ -469,7 +470,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--policy", default=POLICY, help=f"the federation strategy (default {POLICY})")
     parser.add_argument("--max-episodes", type=int, help=f"episode cap of a fine-tuning run (default {DEFAULT_M})")
     parser.add_argument("--pretrain-episodes", type=int, help=f"episode cap of a pretrain (default {PRETRAIN_M})")
-    parser.add_argument("--held-out", type=int, help=f"held-out lab rigs for zero-shot (default {HELD_OUT_RIGS})")
+    parser.add_argument("--held-out", type=int, help="unseen lab rigs (new seeds, in the pretrain's distribution) for "
+                        f"zero-shot (default {HELD_OUT_RIGS})")
     parser.add_argument("--trials", type=int, help=f"disturbed trials (default {DISTURBED_TRIALS})")
     parser.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="runs at a time (default: cores)")
     parser.add_argument("--out", type=Path, default=Path("bench/results"), help="results folder")

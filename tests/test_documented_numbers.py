@@ -65,7 +65,7 @@ def test_the_sim_to_real_tables_are_sim2real_json() -> None:
     trials = data["disturbed_trials"]
     assert f"whose pretrain of the same seed took {episodes} episodes" in page
     assert f"now needs {episodes} episodes" in page
-    assert (f"still balances {shots['randomised']} held-out `lab` rigs zero-shot; the `ideal` one "
+    assert (f"still balances {shots['randomised']} unseen `lab` rigs zero-shot; the `ideal` one "
             f"{shots['ideal']}") in page
     assert f"{sum(t['balanced_to_end'] for t in trials)} of {len(trials)} fine-tuned controllers pass" in page
     assert f"(also {data['reference_trials']['balanced_to_end']} of {data['reference_trials']['rigs']})" in page

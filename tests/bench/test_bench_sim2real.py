@@ -60,12 +60,13 @@ def test_the_report_is_the_table_of_the_json_and_replaces_only_its_block(tmp_pat
     assert "| from scratch | 1/2 | not reached (1 of 2 runs unfinished) |" in text  # the unfinished run is worse
     assert "| warm start: randomised pretrain (`lab`, +-20%) | 2/2 | 13 [12.5 to 13.5] |" in text
     assert "episodes **missed**" in text and "balance_steps **missed**" in text  # 13 > 12 and 29,750 <= 30,000 met
-    assert "balanced to the end on 9 of 10 held-out" in text and "1 of 2 balanced to the end" in text
+    assert "balanced to the end on 9 of 10 unseen `lab` rigs (in distribution)" in text
+    assert "1 of 2 balanced to the end" in text
     assert "median largest pulse survived was 20% of stall" in text and "**Clock `lockstep`**" in text
     assert "`ideal` pretrain: did not finish: no model; no zero-shot test." in text
     assert ("`randomised` pretrain: finished at episode 147, its last rig after 20.0 rig minutes: 5.0 balancing, "
             "15.0 in swing-up resets (9.5 wall minutes here)") in text
-    assert "LQR restricted to the same three actions on the same held-out rigs: 1 of 2 balanced" in text
+    assert "LQR restricted to the same three actions on the same unseen rigs: 1 of 2 balanced" in text
     assert "sweep 18% of stall" in text
     assert ("seeds 101, 102): 1 of 2 finished; wall-clock over the slowest rig's rig time 1.16 (median; 1.16 to "
             "1.16); last rig per seed: 101: episode 19, 44,427 balance steps, 6.2 rig min, 0.9% of actions late; "

@@ -43,8 +43,8 @@ from typing import Any, TextIO
 
 from chief import failover, tiers
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
-from chief.service import submission_of
 from chief.settings import ChiefSettings
+from chief.wire import submission_of
 from protocol import topics
 from protocol.auth import WorkerKeys, admitted, chief_key_of, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode

@@ -18,6 +18,7 @@ from typing import Any
 
 from chief import checkpoint, failover, tensorboard
 from chief.claim import EXIT_CLAIMED, RunClaim
+from chief.edge import TAKE_TIMEOUT, RootStandIn
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
@@ -44,6 +45,7 @@ from protocol.messages import (
 from protocol.mqtt import Stopped
 from protocol.routes import CHIEF, chief_route, qos_of, received_by
 from protocol.tasks import task
+from protocol.topics import ROOT_EDGE
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
 from runtime.records import SUMMARY, EdgeRecord
@@ -119,6 +121,7 @@ class ChiefService:
         self.stand_ins: dict[str, str] = {}  # a root's dead edges -> the edge standing in (chief/failover.py)
         self.moves = 0  # how often the edges changed (RunStart ``moves``)
         self.watch = failover.EdgeWatch()  # a root's edges: when each was heard, which are dead
+        self.root_edge: RootStandIn | None = None  # the root standing in for a dead edge (chief/failover.py)
         self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
@@ -223,6 +226,8 @@ class ChiefService:
                 return EXIT_CLAIMED
             return self._finish()
         finally:
+            if self.root_edge is not None:
+                self.root_edge.stop()
             if self.metrics is not None:
                 self.metrics.close()
             self.conn.stop()
@@ -316,6 +321,7 @@ class ChiefService:
         return True
 
     def _announce(self) -> None:
+        """Tell every worker and edge the run (a RunStart); the root's own edge first, when it serves groups."""
         assert self.keeper is not None
         self._announced = time.monotonic()
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
@@ -327,7 +333,22 @@ class ChiefService:
                        max_staleness=self.keeper.max_staleness, quorum=self.keeper.quorum,
                        edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers},
                        round=self.keeper.round, stand_ins=self.stand_ins, moves=self.moves)
+        if failover.served_by_root(self.stand_ins):
+            self._root_takes(msg)
         self._send(msg)
+
+    def _root_takes(self, start: RunStart) -> None:
+        """Hand the root's own edge (started the first time: chief/edge.py RootStandIn) the RunStart about to go
+        out, so that it serves its groups before their workers read it and send their round again."""
+        assert self.keeper is not None
+        if self.root_edge is None:
+            spec = (dict(self.keeper.actor_spec or {}), dict(self.keeper.critic_spec or {}))
+            self.root_edge = RootStandIn(self.cfg, self.conn, dict.fromkeys(self.keeper.workers, spec))
+            log.warning("round %d: the root serves the workers of edge %s itself (as edge %s)", self.keeper.round,
+                        ", ".join(failover.served_by_root(self.stand_ins)), ROOT_EDGE)
+        if not self.root_edge.take(start):
+            log.warning("the root's own edge did not take its workers within %.0f s: they send their round again "
+                        "after their resend interval", TAKE_TIMEOUT)
 
     def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
         """Tag a message with the chief key and publish it on its topic, with its route's QoS."""
@@ -450,6 +471,8 @@ class ChiefService:
     def _edge_status(self, msg: EdgeStatus, now: float) -> None:
         """An edge's status: its heartbeat (a RunStart again if it holds none), or its last will. One that comes
         back (found dead, or restarted) rejoins at the open round (chief/failover.py)."""
+        if msg.edge_id == ROOT_EDGE:  # the root's own (it says nothing: only another that claims its name)
+            return
         online = msg.state == "online"
         back = self.watch.status(msg.edge_id, online, now, msg.started, msg.site)
         if not online:
@@ -479,9 +502,10 @@ class ChiefService:
         for edge in dead:
             log.warning(failover.DEAD.format("%s") + " (its last will, or %.0f s of silence)", edge,
                         failover.silence_limit(self.cfg.round_timeout))
-        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) in dead}):
-            log.warning("round %d: no live edge of edge %s's site is left: its workers wait for it to be started "
-                        "again (lagging once the round times out)", self.keeper.round, group)
+        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) == ROOT_EDGE}
+                            - set(failover.served_by_root(self.stand_ins))):
+            log.warning("round %d: no live edge of edge %s's site is left: the root serves its workers itself",
+                        self.keeper.round, group)
         if stand_ins != self.stand_ins:
             self._moved(stand_ins, now)
 

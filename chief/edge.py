@@ -43,8 +43,8 @@ from typing import Any, TextIO
 
 from chief import failover, tiers
 from chief.rounds import RoundKeeper, RoundOutcome, Verdict
-from chief.service import submission_of
 from chief.settings import ChiefSettings
+from chief.wire import submission_of
 from protocol import topics
 from protocol.auth import WorkerKeys, admitted, chief_key_of, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
@@ -66,7 +66,8 @@ from protocol.rounds import RoundShape
 from protocol.routes import WORKER, route_for
 from protocol.tasks import task
 from protocol.tensors import pack_arrays
-from protocol.transport import Connect, Transport
+from protocol.topics import ROOT_EDGE
+from protocol.transport import Connect, Handler, Published, Transport
 from runtime.records import EDGES, METRICS, line, parse_record, record_digest
 from runtime.storage import storage_errors
 
@@ -154,8 +155,9 @@ class EdgeService:
         run = self.cfg.run_id
         self.conn.start()
         try:
-            self.conn.subscribe(topics.chief(run, "+"), self._on_root, qos=1)
-            self.conn.subscribe(route_for(WORKER, "hello").filter(run=run), self._on_worker, qos=1)
+            if self.edge != ROOT_EDGE:  # the root hands its own edge its RunStarts, and knows its workers' shapes
+                self.conn.subscribe(topics.chief(run, "+"), self._on_root, qos=1)
+                self.conn.subscribe(route_for(WORKER, "hello").filter(run=run), self._on_worker, qos=1)
             log.info("edge %s of run %s: waiting for the root's RunStart", self.edge, run)
             deadline = time.monotonic() + self.cfg.start_timeout
             while not self._interrupt.is_set():
@@ -167,8 +169,11 @@ class EdgeService:
                         log.error("edge %s: no RunStart of the root within %.0f s", self.edge, self.cfg.start_timeout)
                         return EXIT_NOT_STARTED
                 else:
+                    if isinstance(msg, threading.Event):  # RootStandIn.take's mark: what came before it is handled
+                        msg.set()
+                        continue
                     if isinstance(msg, RunStop):
-                        self._relay(topics.STOP, payload)
+                        self._pass_on(topics.STOP, payload)
                         log.info("edge %s: the run is over (%s); %d partials sent", self.edge, msg.reason,
                                  self.partials)
                         return EXIT_OK
@@ -179,6 +184,9 @@ class EdgeService:
                         self.rejects.reject(topic, "handler_error", f"{type(exc).__name__}: {exc}")
                 for group, keeper in list(self.keepers.items()):
                     self._forward(group, keeper.tick(time.monotonic()))
+            if self.edge == ROOT_EDGE:
+                log.info("the root's own edge: stopped with the root after %d partials", self.partials)
+                return EXIT_INTERRUPTED
             log.warning("edge %s: interrupted after %d partials; the root goes on, and moves this edge's workers to "
                         "another edge", self.edge, self.partials)
             self.conn.publish(self._status_topic, self._offline, qos=1)  # a clean stop sends no will: say it
@@ -190,8 +198,9 @@ class EdgeService:
                     self.records.close()
 
     def _heartbeat(self, now: float) -> None:
-        """Say ``online`` every failover.HEARTBEAT seconds (the root finds a silent edge dead)."""
-        if now - self._beat < failover.HEARTBEAT:
+        """Say ``online`` every failover.HEARTBEAT seconds (the root finds a silent edge dead; standing in, the root
+        needs no word from itself)."""
+        if now - self._beat < failover.HEARTBEAT or self.edge == ROOT_EDGE:
             return
         self._beat = now
         status = EdgeStatus(edge_id=self.edge, state="online", started=self.start is not None, site=self.cfg.site)
@@ -206,19 +215,19 @@ class EdgeService:
             return
         if isinstance(msg, RunStart):
             self._adopt(msg)
-            self._relay(topics.START, payload)
+            self._pass_on(topics.START, payload)
             return
         if isinstance(msg, ChiefAck):
             if msg.worker_id in self.group_of:
                 self.acks = {k: v for k, v in self.acks.items() if k[1] > msg.round - ANSWERS_KEPT}
                 self.acks[(msg.worker_id, msg.round)] = payload
-                self._relay(topics.ACK, payload)
+                self._pass_on(topics.ACK, payload)
             return
         if isinstance(msg, ChiefAggregate | ChiefTransfer):
             leaf = topics.AGGREGATE if isinstance(msg, ChiefAggregate) else topics.TRANSFER
             self.answers[msg.round] = (leaf, payload)
             self.answers.pop(msg.round - ANSWERS_KEPT, None)
-            self._relay(leaf, payload)
+            self._pass_on(leaf, payload)
             return
         group = self.group_of.get(msg.worker_id)
         keeper = self.keepers.get(group) if group is not None else None
@@ -389,11 +398,103 @@ class EdgeService:
     def _publish_partial(self, payload: bytes) -> None:
         self.conn.publish(topics.edge(self.cfg.run_id, self.edge, topics.PARTIAL), payload, qos=1)
 
+    def _pass_on(self, leaf: str, payload: bytes) -> None:
+        """A root's message to this edge's workers, as it came (standing in, the root published it for them
+        itself)."""
+        if self.edge != ROOT_EDGE:
+            self._relay(leaf, payload)
+
     def _relay(self, leaf: str, payload: bytes) -> None:
         """A root's message (or an edge's refusal in the root's name) to this edge's workers, as it came."""
-        self.conn.publish(topics.relayed(self.cfg.run_id, self.edge, leaf), payload, qos=1)
+        self.conn.publish(topics.answers(self.cfg.run_id, self.edge, leaf), payload, qos=1)
 
 
 def records_path(run_dir: Path, edge: str) -> Path:
     """Where edge ``edge`` of a run in ``run_dir`` keeps its workers' records."""
     return run_dir / EDGES / edge / METRICS
+
+
+#: Seconds the root waits for its own edge to serve the groups of a RunStart before it announces it anyway.
+TAKE_TIMEOUT = 10.0
+
+
+class RootStandIn:
+    """The root itself as an edge (ROOT_EDGE, chief/failover.py): an EdgeService in a thread of the root's process,
+    started the first time a dead edge's group has no live edge of its site left (one edge per site: site brokers,
+    Swarm, Kubernetes). It serves those groups as their edge would have: a keeper per group from the root's open
+    round, the same partials (to the root over the broker, as any edge's), their records in RUN/edges/root/.
+
+    It talks over the root's own connection (``_Lent``: a secured broker allows one connection per login), hears
+    from the root only the RunStarts the root hands it (``take``, before publishing each), and says nothing of its
+    own life. The workers it serves read the root's own topics: it passes nothing on, and a worker that missed an
+    answer gets it from the root, to which the edge sends that round's partial again."""
+
+    def __init__(self, cfg: ChiefSettings, conn: Transport,
+                 specs: dict[str, tuple[dict[str, tuple[int, ...]], dict[str, tuple[int, ...]]]]) -> None:
+        """``conn``: the root's started connection; ``specs``: each worker's actor and critic shapes, as the root
+        knows them (its workers said hello long before this edge started)."""
+        def lend(client_id: str, will: tuple[str, bytes] | None = None,
+                 rejects: RejectCounter | None = None) -> Transport:
+            return _Lent(conn)  # no will: the root's own edge dies only with the root
+
+        self.edge = EdgeService(cfg.model_copy(update={"role": "edge", "edge_id": ROOT_EDGE, "edges": 0,
+                                                       "site": None}), lend)
+        self.edge.specs.update(specs)
+        self.exit: int | None = None
+        self._thread: threading.Thread | None = None
+
+    def _run(self) -> None:
+        try:
+            self.exit = self.edge.run()
+        except Exception:  # the root goes on; its groups' rounds time out, as a dead edge's would
+            log.exception("the root's own edge failed")
+
+    def take(self, start: RunStart, timeout: float = TAKE_TIMEOUT) -> bool:
+        """Hand the edge the RunStart the root is about to publish, and wait until it serves the groups it gives it
+        (subscribed to their workers, on the root's connection: before the RunStart that has them send their round
+        again); False if it did not within ``timeout``."""
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._run, name="root-stand-in", daemon=True)
+            self._thread.start()
+        done = threading.Event()
+        self.edge.events.put((topics.chief(self.edge.cfg.run_id, topics.START), start, b""))
+        self.edge.events.put(("", done, b""))
+        return done.wait(timeout)
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """End the edge with the root (its records closed)."""
+        if self._thread is not None:
+            self.edge.interrupt()
+            self._thread.join(timeout)
+
+
+class _Lent:
+    """The root's connection as its own edge uses it: subscribe and publish on it; connecting and disconnecting it
+    stay the root's."""
+
+    def __init__(self, conn: Transport) -> None:
+        self._conn = conn
+        self.connected, self.rejects = conn.connected, conn.rejects
+
+    @property
+    def connects(self) -> int:
+        return self._conn.connects
+
+    @connects.setter
+    def connects(self, value: int) -> None:
+        self._conn.connects = value
+
+    def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> _Lent:
+        return self
+
+    def stop(self) -> None:
+        return None
+
+    def subscribe(self, topic_filter: str, handler: Handler, qos: int = 1) -> None:
+        self._conn.subscribe(topic_filter, handler, qos)
+
+    def unsubscribe(self, topic_filter: str) -> None:
+        self._conn.unsubscribe(topic_filter)
+
+    def publish(self, topic: str, payload: bytes, qos: int = 1, retain: bool = False) -> Published:
+        return self._conn.publish(topic, payload, qos, retain)

@@ -14,10 +14,11 @@ at most ``SILENCE_LIMIT``: a hung edge, or a host gone without a TCP reset). Onl
 its RunStart, can be found dead. So a dead edge's workers move within ``WILL_GRACE`` of its will, and at most
 ``silence_limit(round_timeout)`` after its last word: within one round timeout.
 
-**Where its workers go**: the live edge of the same site serving the fewest workers (ties by name); a group stays
-where it is when no live edge of its site is left (its workers are then lagging, as before). A group never moves
-back: a restarted edge rejoins at the root's open round (RunStart ``round``) and serves the groups the RunStart
-gives it, its own when it came back before it was found dead, else none until another edge dies.
+**Where its workers go**: the live edge of the same site serving the fewest workers (ties by name); when no live edge
+of its site is left, the root itself (``ROOT_EDGE``: an edge chief in the root's process, chief/edge.py RootStandIn,
+whose workers read the root's own topics). A group never moves back: a restarted edge rejoins at the root's open
+round (RunStart ``round``) and serves the groups the RunStart gives it, its own when it came back before it was found
+dead, else none until another edge dies.
 """
 
 from __future__ import annotations
@@ -25,6 +26,8 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+
+from protocol.topics import ROOT_EDGE
 
 #: Seconds between an edge's ``online`` statuses.
 HEARTBEAT = 1.0
@@ -76,10 +79,11 @@ def groups_of(edge: str, edges: Mapping[str, str], stand_ins: Mapping[str, str])
 
 
 def stand_in(group_site: str | None, sites: Mapping[str, str | None], alive: set[str],
-             load: Mapping[str, int]) -> str | None:
-    """The live edge of ``group_site`` serving the fewest workers (``load``), ties by name; None when none is left."""
-    candidates = sorted((load.get(e, 0), e) for e in alive if sites.get(e) == group_site)
-    return candidates[0][1] if candidates else None
+             load: Mapping[str, int]) -> str:
+    """The live edge of ``group_site`` serving the fewest workers (``load``), ties by name; the root itself
+    (ROOT_EDGE) when none is left."""
+    candidates = sorted((load.get(e, 0), e) for e in alive if sites.get(e) == group_site and e != ROOT_EDGE)
+    return candidates[0][1] if candidates else ROOT_EDGE
 
 
 @dataclass
@@ -129,7 +133,7 @@ class EdgeWatch:
 def fail_over(dead_edges: list[str], edges: Mapping[str, str], stand_ins: Mapping[str, str], watch: EdgeWatch
               ) -> dict[str, str]:
     """The new stand-ins once ``dead_edges`` died: each group served by a dead edge goes to a live edge of its site
-    (``stand_in``; the group's site is its own edge's), or stays where it is when none is left."""
+    (``stand_in``; the group's site is its own edge's), or to the root when none is left."""
     out = dict(stand_ins)
     alive = watch.alive()
     for group in sorted(set(edges.values())):
@@ -137,9 +141,13 @@ def fail_over(dead_edges: list[str], edges: Mapping[str, str], stand_ins: Mappin
             continue
         load = {e: sum(len(ws) for ws in groups_of(e, edges, out).values()) for e in alive}
         chosen = stand_in(watch.sites.get(group), watch.sites, alive, load)
-        if chosen is not None:
-            if chosen == group:
-                out.pop(group, None)
-            else:
-                out[group] = chosen
+        if chosen == group:
+            out.pop(group, None)
+        else:
+            out[group] = chosen
     return out
+
+
+def served_by_root(stand_ins: Mapping[str, str]) -> list[str]:
+    """The groups the root itself serves (ROOT_EDGE)."""
+    return sorted(g for g, e in stand_ins.items() if e == ROOT_EDGE)

@@ -18,16 +18,16 @@ from typing import Any
 
 from chief import checkpoint, failover, tensorboard
 from chief.claim import EXIT_CLAIMED, RunClaim
+from chief.edge import TAKE_TIMEOUT, RootStandIn
 from chief.report import MetricsLog, plot_learning_curves, run_summary, write_summary
 from chief.roster import Roster
-from chief.rounds import Ack, RoundKeeper, RoundOutcome, Submission, Verdict
+from chief.rounds import RoundKeeper, RoundOutcome, Verdict
 from chief.settings import ChiefSettings
-from chief.tiers import Partial
+from chief.wire import ack_of, answer_of, contributed, partial_of, submission_of
 from protocol import topics
 from protocol.auth import WorkerKeys, chief_key_of, refusal, signed
 from protocol.codec import DecodeError, RejectCounter, decode, encode
 from protocol.messages import (
-    STAT_BOUNDS,
     ChiefAck,
     ChiefAggregate,
     ChiefClaim,
@@ -43,10 +43,9 @@ from protocol.messages import (
     WorkerUpdate,
 )
 from protocol.mqtt import Stopped
-from protocol.rigtime import RIG_FIELDS
 from protocol.routes import CHIEF, chief_route, qos_of, received_by
 from protocol.tasks import task
-from protocol.tensors import pack_arrays, unpack_arrays
+from protocol.topics import ROOT_EDGE
 from protocol.transport import Connect, Published, Transport
 from runtime.model_file import InitModel
 from runtime.records import SUMMARY, EdgeRecord
@@ -122,6 +121,7 @@ class ChiefService:
         self.stand_ins: dict[str, str] = {}  # a root's dead edges -> the edge standing in (chief/failover.py)
         self.moves = 0  # how often the edges changed (RunStart ``moves``)
         self.watch = failover.EdgeWatch()  # a root's edges: when each was heard, which are dead
+        self.root_edge: RootStandIn | None = None  # the root standing in for a dead edge (chief/failover.py)
         self._announced = -math.inf  # when the last RunStart went out (time.monotonic)
         self.epoch = 0  # how often this run's chief has restarted
         self._interrupt = threading.Event()  # set by ``interrupt`` (a signal handler, another thread)
@@ -226,6 +226,8 @@ class ChiefService:
                 return EXIT_CLAIMED
             return self._finish()
         finally:
+            if self.root_edge is not None:
+                self.root_edge.stop()
             if self.metrics is not None:
                 self.metrics.close()
             self.conn.stop()
@@ -319,6 +321,7 @@ class ChiefService:
         return True
 
     def _announce(self) -> None:
+        """Tell every worker and edge the run (a RunStart); the root's own edge first, when it serves groups."""
         assert self.keeper is not None
         self._announced = time.monotonic()
         msg = RunStart(run_id=self.cfg.run_id, env_id=self.cfg.env, policy=self.cfg.policy, seed=self.cfg.seed,
@@ -330,7 +333,22 @@ class ChiefService:
                        max_staleness=self.keeper.max_staleness, quorum=self.keeper.quorum,
                        edges={w: e for w, e in self.edge_of.items() if w in self.keeper.workers},
                        round=self.keeper.round, stand_ins=self.stand_ins, moves=self.moves)
+        if failover.served_by_root(self.stand_ins):
+            self._root_takes(msg)
         self._send(msg)
+
+    def _root_takes(self, start: RunStart) -> None:
+        """Hand the root's own edge (started the first time: chief/edge.py RootStandIn) the RunStart about to go
+        out, so that it serves its groups before their workers read it and send their round again."""
+        assert self.keeper is not None
+        if self.root_edge is None:
+            spec = (dict(self.keeper.actor_spec or {}), dict(self.keeper.critic_spec or {}))
+            self.root_edge = RootStandIn(self.cfg, self.conn, dict.fromkeys(self.keeper.workers, spec))
+            log.warning("round %d: the root serves the workers of edge %s itself (as edge %s)", self.keeper.round,
+                        ", ".join(failover.served_by_root(self.stand_ins)), ROOT_EDGE)
+        if not self.root_edge.take(start):
+            log.warning("the root's own edge did not take its workers within %.0f s: they send their round again "
+                        "after their resend interval", TAKE_TIMEOUT)
 
     def _send(self, msg: RunStart | RunStop | ChiefAggregate | ChiefTransfer | ChiefAck) -> Published:
         """Tag a message with the chief key and publish it on its topic, with its route's QoS."""
@@ -453,6 +471,8 @@ class ChiefService:
     def _edge_status(self, msg: EdgeStatus, now: float) -> None:
         """An edge's status: its heartbeat (a RunStart again if it holds none), or its last will. One that comes
         back (found dead, or restarted) rejoins at the open round (chief/failover.py)."""
+        if msg.edge_id == ROOT_EDGE:  # the root's own (it says nothing: only another that claims its name)
+            return
         online = msg.state == "online"
         back = self.watch.status(msg.edge_id, online, now, msg.started, msg.site)
         if not online:
@@ -482,9 +502,10 @@ class ChiefService:
         for edge in dead:
             log.warning(failover.DEAD.format("%s") + " (its last will, or %.0f s of silence)", edge,
                         failover.silence_limit(self.cfg.round_timeout))
-        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) in dead}):
-            log.warning("round %d: no live edge of edge %s's site is left: its workers wait for it to be started "
-                        "again (lagging once the round times out)", self.keeper.round, group)
+        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) == ROOT_EDGE}
+                            - set(failover.served_by_root(self.stand_ins))):
+            log.warning("round %d: no live edge of edge %s's site is left: the root serves its workers itself",
+                        self.keeper.round, group)
         if stand_ins != self.stand_ins:
             self._moved(stand_ins, now)
 
@@ -659,56 +680,3 @@ class ChiefService:
                            broker=str(self.broker), rejected_messages=self.rejects.as_dict(),
                            duplicates=self.duplicates, restarts=self.epoch, init_model=self._init_model(),
                            algo=self.roster.algo)
-
-
-# -- translation between the wire and the round state machine --------------------------------------------------
-
-
-def submission_of(msg: WorkerUpdate | MatureParams) -> Submission:
-    """A worker's message as the RoundKeeper takes it."""
-    mature = isinstance(msg, MatureParams)
-    arrays = unpack_arrays(msg.params if mature else msg.gradient)  # type: ignore[union-attr]
-    critic = None if mature or msg.critic_gradient is None else unpack_arrays(msg.critic_gradient)  # type: ignore[union-attr]
-    return Submission(msg.worker_id, msg.episode, msg.pi, msg.episode_return, recent_returns=tuple(msg.recent_returns),
-                      steps=msg.steps, gradient=None if mature else arrays, params=arrays if mature else None,
-                      receipt=msg.receipt.model_dump() if msg.receipt is not None else None,
-                      earlier_receipts=tuple(r.model_dump() for r in msg.earlier_receipts),
-                      step=0 if mature else msg.step, critic_gradient=critic,  # type: ignore[union-attr]
-                      stats=None if mature else {k: getattr(msg, k) for k in STAT_BOUNDS},
-                      rig=None if msg.balance_steps is None else {k: getattr(msg, k) for k in RIG_FIELDS},
-                      played=msg.played.model_dump() if msg.played is not None else None)
-
-
-def contributed(c: Contribution) -> Submission:
-    """An edge's Contribution as the root's RoundKeeper takes it: an update its edge checked, with no tensors and
-    its episode's return as its only recent return (chief/rounds.py: a root checks no edge-checked returns again)."""
-    return Submission(c.worker_id, c.episode, c.pi, c.episode_return, recent_returns=(c.episode_return,),
-                      steps=c.steps, gradient={}, step=c.step,
-                      rig=None if c.rig is None else dict(zip(RIG_FIELDS, c.rig, strict=True)),
-                      played=c.played.model_dump() if c.played is not None else None)
-
-
-def partial_of(msg: EdgePartial) -> Partial:
-    """An edge's partial as the root's RoundKeeper takes it."""
-    return Partial(None if msg.gradient is None else unpack_arrays(msg.gradient), msg.total, msg.count, msg.uniform,
-                   None if msg.critic_gradient is None else unpack_arrays(msg.critic_gradient))
-
-
-def answer_of(outcome: RoundOutcome, session: str) -> ChiefAggregate | ChiefTransfer:
-    """A closed round's answer to the workers, from the chief of ``session``."""
-    if outcome.kind == "transfer":
-        assert outcome.params is not None and outcome.source_worker is not None
-        return ChiefTransfer(round=outcome.round, episode=outcome.episode, source_worker=outcome.source_worker,
-                             source_pi=float(outcome.source_pi or 0), params=pack_arrays(outcome.params),
-                             keep_weights=outcome.keep_weights, finished=outcome.finished, session=session)
-    return ChiefAggregate(round=outcome.round, episode=outcome.episode, step=outcome.step,
-                          gradient=pack_arrays(outcome.gradient) if outcome.gradient is not None else None,
-                          critic_gradient=(pack_arrays(outcome.critic_gradient)
-                                           if outcome.critic_gradient is not None else None),
-                          weights=outcome.weights, contributors=outcome.contributors, session=session)
-
-
-def ack_of(ack: Ack, session: str) -> ChiefAck:
-    """An acknowledgement as the workers take it, from the chief of ``session``."""
-    return ChiefAck(worker_id=ack.worker_id, round=ack.round, episode=ack.episode, accepted=ack.accepted,
-                    reason=ack.reason, session=session)

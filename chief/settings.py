@@ -10,7 +10,7 @@ from pydantic import field_validator, model_validator
 from chief import strategies, tiers
 from protocol import learners
 from protocol.rounds import STALENESS_LIMIT
-from protocol.topics import check_id
+from protocol.topics import check_edge, check_id
 from runtime.model_file import ModelPath
 from runtime.settings import (
     LearnerName,
@@ -105,10 +105,15 @@ class ChiefSettings(RunMqttSettings, RunKeySettings, FederationSettings):
     site: str | None = setting(None, "--role edge: the site this edge runs at (unset: the run's one broker); a dead "
                                "edge's workers move to a live edge of its site (chief/failover.py)")
 
-    @field_validator("edge_id", "site")
+    @field_validator("edge_id")
     @classmethod
     def _edge_id(cls, value: str | None) -> str | None:
-        return None if value is None else check_id(value, "edge id")
+        return None if value is None else check_edge(value)
+
+    @field_validator("site")
+    @classmethod
+    def _site(cls, value: str | None) -> str | None:
+        return None if value is None else check_id(value, "site name")
 
     @model_validator(mode="after")
     def _role_fits(self) -> ChiefSettings:

@@ -40,6 +40,25 @@ def relayed(run: str, edge_id: str, leaf: str) -> str:
     return edge(run, edge_id, f"{CHIEF}/{leaf}")
 
 
+#: The edge id of the root chief itself, standing in for a dead edge whose site has no live edge left
+#: (chief/failover.py): no edge chief or worker may take it. The workers it serves read the root's own topics.
+ROOT_EDGE = "root"
+
+
+def check_edge(value: str) -> str:
+    """An edge id a worker or edge chief may be given: an id, and not ROOT_EDGE (the root's)."""
+    if check_id(value, "edge id") == ROOT_EDGE:
+        raise ValueError(f"edge id {ROOT_EDGE!r} is the root chief's own (it stands in for a dead edge): choose "
+                         "another")
+    return value
+
+
+def answers(run: str, edge_id: str, leaf: str) -> str:
+    """Where the workers an edge serves read the root chief's messages: the edge passes them on (``relayed``), or,
+    when the root itself serves them (ROOT_EDGE), they read the root's own topics."""
+    return chief(run, leaf) if edge_id == ROOT_EDGE else relayed(run, edge_id, leaf)
+
+
 def claim(run: str) -> str:
     """The topic of the run's claim by its chief (retained)."""
     return f"{FEDRL}/{check_id(run, 'run id')}/{CLAIM}"

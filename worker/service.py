@@ -161,11 +161,8 @@ class WorkerService:
             self.conn.start(stop=self._interrupt)
         except Stopped:
             return EXIT_INTERRUPTED  # not connected: nobody to tell
-        chief = topics.chief(cfg.run_id, "+") if cfg.edge is None else topics.relayed(cfg.run_id, cfg.edge, "+")
-        self.conn.subscribe(chief, self._on_chief, qos=qos_of(chief))
-        if cfg.edge is not None:  # the root's RunStart too: it names a stand-in while a dead edge says nothing
-            direct = topics.chief(cfg.run_id, topics.START)
-            self.conn.subscribe(direct, self._on_chief, qos=qos_of(direct))
+        for topic_filter in sorted(self._answer_filters(cfg.edge)):
+            self.conn.subscribe(topic_filter, self._on_chief, qos=qos_of(topic_filter))
         try:
             start = self._join()
             if start is None and self._interrupt.is_set():
@@ -450,6 +447,15 @@ class WorkerService:
             else:
                 self.replies[msg.round] = msg
 
+    def _answer_filters(self, via: str | None) -> set[str]:
+        """What a worker reads the root's answers on while its rounds go through edge ``via`` (None: a flat run's
+        chief; topics.ROOT_EDGE: the root itself): the root's own topics; else that edge's, and the root's
+        RunStart, which names a stand-in while a dead edge says nothing."""
+        run = self.cfg.run_id
+        if via is None or via == topics.ROOT_EDGE:
+            return {topics.chief(run, "+")}
+        return {topics.answers(run, via, "+"), topics.chief(run, topics.START)}
+
     def _route(self, topic: str, start: RunStart) -> None:
         """A tiered run's RunStart: listen to the edge that serves this worker now (a dead edge's stand-in,
         chief/failover.py), and send the unanswered round again when it changed, and when the serving edge passes on
@@ -460,12 +466,15 @@ class WorkerService:
         assert home is not None
         via = start.stand_ins.get(home, home)
         if via != self.via:
-            old, new = topics.relayed(run, self.via, "+"), topics.relayed(run, via, "+")
-            self.conn.unsubscribe(old)
-            self.conn.subscribe(new, self._on_chief, qos=qos_of(new))
-            log.warning("edge %s stands in for edge %s: this worker's rounds go through it", via, home)
-            self.via, self.restarted, self.why = via, True, f"edge {via} stands in for edge {home}"
-        if start.moves > self.moves and topic == topics.relayed(run, self.via, topics.START):
+            old, new = self._answer_filters(self.via), self._answer_filters(via)
+            for topic_filter in sorted(new - old):  # first: nothing is missed in between
+                self.conn.subscribe(topic_filter, self._on_chief, qos=qos_of(topic_filter))
+            for topic_filter in old - new:
+                self.conn.unsubscribe(topic_filter)
+            who = "the root" if via == topics.ROOT_EDGE else f"edge {via}"
+            log.warning("%s stands in for edge %s: this worker's rounds go through it", who, home)
+            self.via, self.restarted, self.why = via, True, f"{who} stands in for edge {home}"
+        if start.moves > self.moves and topic == topics.answers(run, self.via, topics.START):
             self.moves, self.restarted, self.why = start.moves, True, f"edge {self.via} took this worker"
 
     def _ignore(self, topic: str, answer: ChiefAggregate | ChiefTransfer) -> None:

@@ -12,7 +12,7 @@ from pydantic_settings import CliPositionalArg, CliSuppress
 from protocol import learners, qube
 from protocol.auth import chief_key, key_bytes, worker_key
 from protocol.rigtime import Clock
-from protocol.topics import check_id
+from protocol.topics import check_edge, check_id
 from runtime.model_file import ModelPath
 from runtime.settings import (
     LearnerName,
@@ -127,7 +127,9 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
     @field_validator("rig_id", "edge")
     @classmethod
     def _ids(cls, value: str | None, info: ValidationInfo) -> str | None:
-        return None if value is None else check_id(value, "rig id" if info.field_name == "rig_id" else "edge id")
+        if value is None:
+            return None
+        return check_id(value, "rig id") if info.field_name == "rig_id" else check_edge(value)
 
     @field_validator("rig_profile", "rig_model")
     @classmethod

@@ -59,6 +59,8 @@ done
 [[ "$RUN" == "+" || "$RUN" =~ ^[A-Za-z0-9_.:-]{1,64}$ ]] || { echo "bad run id: $RUN" >&2; exit 2; }
 # A prefix becomes part of user names, client ids and ACL topics: no MQTT wildcard (+ #), level (/), space or NUL.
 [[ -z "$EDGE" || "$EDGE" =~ ^[A-Za-z0-9_.:-]{1,59}$ ]] || { echo "bad edge id: $EDGE" >&2; exit 2; }
+# protocol/topics.py ROOT_EDGE: the root chief's own edge id (it stands in for a dead edge), no edge chief's.
+[[ "$EDGE" != "root" ]] || { echo "edge id root is the root chief's own: choose another" >&2; exit 2; }
 for p in "$WPREFIX" "$RPREFIX"; do
     [[ "$p" =~ ^[A-Za-z0-9_.:-]{1,32}$ ]] || {
         echo "bad prefix '$p': letters, digits and _ . : - only (no + # / or spaces)" >&2; exit 2; }
@@ -98,6 +100,9 @@ write_acl() {
         echo "# As the root of a tiered run: its edge chiefs' partial aggregates and statuses (chief/failover.py)."
         echo "topic read fedrl/$RUN/edge/+/partial"
         echo "topic read fedrl/$RUN/edge/+/status"
+        echo "# Standing in for a dead edge whose site has none left, as edge 'root' (chief/failover.py): its"
+        echo "# partials (the workers it serves read the chief's own topics)."
+        echo "topic write fedrl/$RUN/edge/root/#"
     fi
     if [ -n "$EDGE" ]; then
         echo

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from protocol.topics import ROOT_EDGE
 from runtime.cli import STOP_SIGNALS
 from runtime.settings import to_env
 from services.broker.settings import MAX_PACKET_SIZE, BrokerSettings
@@ -191,12 +192,14 @@ def run_acl(run_id: str, workers: list[str], rigs: dict[str, str], edges: dict[s
             ) -> dict[str, dict[str, list[str]]]:
     """Who may publish and subscribe where in one run: the chief on its topics, each worker on its own (and its
     rig's action and reset), each rig on its own, and a read-only observer (the dashboard). In a tiered run
-    (``edges``: worker -> its edge chief) each edge on its own topics, reading the chief's and the workers', and
-    each worker reads the edges' instead of the chief's (any edge's: a stand-in's, chief/failover.py), and the
-    chief's RunStart."""
+    (``edges``: worker -> its edge chief) each edge on its own topics, reading the chief's and the workers'; each
+    worker reads the edges' too (any edge's: a stand-in's, chief/failover.py); the chief publishes as its own edge
+    (ROOT_EDGE: standing in for a dead edge whose site has no live edge left, whose workers read the chief's
+    topics)."""
     run = f"fedrl/{run_id}"
     edges = edges or {}
-    publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#", f"{run}/claim"], "observer": []}
+    publish: dict[str, list[str]] = {"chief": [f"{run}/chief/#", f"{run}/claim", f"{run}/edge/{ROOT_EDGE}/#"],
+                                     "observer": []}
     subscribe: dict[str, list[str]] = {"chief": [f"{run}/worker/#", f"{run}/claim", f"{run}/edge/+/partial",
                                                  f"{run}/edge/+/status"],
                                        "observer": [f"{run}/#", "qube/#"]}
@@ -207,8 +210,8 @@ def run_acl(run_id: str, workers: list[str], rigs: dict[str, str], edges: dict[s
         rig = rigs.get(w)
         commands = [f"qube/{rig}/{leaf}" for leaf in ("action", "reset", "identify")] if rig else []
         publish[w] = [f"{run}/worker/{w}/#", *commands]
-        # Behind an edge: any edge's (a dead edge's stand-in passes the answers on), and the root's RunStart.
-        answers = [f"{run}/edge/+/chief/#", f"{run}/chief/start"] if w in edges else [f"{run}/chief/#"]
+        # Behind an edge: any edge's (a dead edge's stand-in passes the answers on), and the root's own.
+        answers = [f"{run}/edge/+/chief/#", f"{run}/chief/#"] if w in edges else [f"{run}/chief/#"]
         subscribe[w] = answers + ([f"qube/{rig}/#"] if rig else [])
     for rig in rigs.values():
         publish[rig] = [f"qube/{rig}/#"]

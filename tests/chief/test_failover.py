@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
+import subprocess
+from pathlib import Path
+
 import numpy as np
+import pytest
 
 from chief import failover
 from chief.failover import WILL_GRACE, EdgeWatch, dead, fail_over, groups_of, silence_limit, stand_in
@@ -10,6 +14,7 @@ from chief.rounds import RoundKeeper, Submission
 from chief.tiers import Partial
 from protocol.rounds import RoundShape
 from protocol.tasks import task
+from protocol.topics import ROOT_EDGE
 
 EDGES = {"w0": "e0", "w1": "e1", "w2": "e0", "w3": "e1", "w4": "e2"}
 
@@ -57,13 +62,22 @@ def test_a_dead_edges_group_goes_to_the_least_loaded_live_edge_of_its_site() -> 
     assert fail_over(["e1"], EDGES, {"e0": "e1", "e2": "e1"}, watch) == {"e1": "e0", "e2": "e0"}
 
 
-def test_no_live_edge_of_its_site_leaves_a_group_where_it_is() -> None:
+def test_no_live_edge_of_its_site_sends_a_group_to_the_root() -> None:
+    """A site with one edge (site brokers, Swarm, Kubernetes): its dead edge's workers go to the root itself, which
+    is never a regular stand-in (it is not in the watch), and they stay there when their edge comes back."""
     watch = EdgeWatch()
     watch.status("a", True, 0.0, site="a")
     watch.status("b", True, 0.0, site="b")
     watch.found_dead.add("a")
-    assert stand_in("a", watch.sites, watch.alive(), {}) is None
-    assert fail_over(["a"], {"w0": "a", "w1": "b"}, {}, watch) == {}
+    assert stand_in("a", watch.sites, watch.alive(), {}) == ROOT_EDGE
+    moved = fail_over(["a"], {"w0": "a", "w1": "b"}, {}, watch)
+    assert moved == {"a": ROOT_EDGE} and failover.served_by_root(moved) == ["a"]
+    assert groups_of(ROOT_EDGE, {"w0": "a", "w1": "b"}, moved) == {"a": ["w0"]}
+    watch.status("a", True, 5.0, started=False)  # back: the root keeps the group
+    assert fail_over([], {"w0": "a", "w1": "b"}, moved, watch) == moved
+    watch.status(ROOT_EDGE, True, 5.0, site="a")  # even were it heard, the root is no edge of a site
+    watch.found_dead.add("b")
+    assert fail_over(["b"], {"w0": "a", "w1": "b"}, moved, watch) == {"a": ROOT_EDGE, "b": ROOT_EDGE}
 
 
 def test_a_keeper_that_joins_mid_run_starts_at_the_roots_round() -> None:
@@ -97,3 +111,26 @@ def test_a_launcher_reads_which_edge_the_root_found_dead() -> None:
     assert dead_edge_in(f"2026-12-05 05:10:17,660 chief WARNING {DEAD.format('e12')} (its last will)") == "e12"
     assert dead_edge_in("chief WARNING round 9: the workers of edge e0 go through edge e1 from now on") is None
     assert dead_edge_in("chief WARNING edge e0 is back: it rejoins at round 12") is None
+
+
+def test_the_roots_edge_id_is_no_one_elses(tmp_path: Path) -> None:
+    """ROOT_EDGE names the root standing in: an edge chief, a worker's --edge, a site (whose edge is named after it)
+    and make-users.sh's --edge refuse it, with one clear line; the ACLs let the root publish as it, and let workers
+    behind edges read the root's own topics."""
+    from chief.settings import ChiefSettings
+    from deploy.sites import Site
+    from services.broker.embedded import run_acl
+    from tests.paths import ROOT
+    from worker.settings import WorkerSettings
+
+    for make in (lambda: ChiefSettings.given(run_id="r", role="edge", edge_id=ROOT_EDGE),
+                 lambda: WorkerSettings.given(run_id="r", worker_id="w0", edge=ROOT_EDGE),
+                 lambda: Site.parse(f"{ROOT_EDGE}=2")):
+        with pytest.raises(ValueError, match="root chief's"):
+            make()
+    done = subprocess.run([str(ROOT / "deploy" / "mosquitto" / "make-users.sh"), "--acl-only", "-o",
+                           str(tmp_path / "out"), "--edge", ROOT_EDGE], capture_output=True, text=True)
+    assert done.returncode == 2 and "root chief's own" in done.stderr and not (tmp_path / "out").exists()
+    acl = run_acl("r", ["w0"], {}, {"w0": "e0"})
+    assert "fedrl/r/edge/root/#" in acl["publish"]["chief"]
+    assert "fedrl/r/chief/#" in acl["subscribe"]["w0"]

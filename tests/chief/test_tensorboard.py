@@ -22,7 +22,7 @@ import pytest
 from chief import tensorboard
 from chief.audit import audit
 from chief.rounds import RoundKeeper
-from chief.service import submission_of
+from chief.wire import submission_of
 from deploy.inprocess import run_federation
 from deploy.settings import InprocessSettings
 from protocol.codec import decode, encode

@@ -284,6 +284,8 @@ ACL_CASES = [  # (user, access, topic, allowed)
     ("chief", "read", f"fedrl/{R}/worker/w0/update", True),
     ("chief", "write", f"fedrl/{R}/worker/w0/update", False),
     ("chief", "write", "qube/rig0/action", False),
+    ("chief", "write", f"fedrl/{R}/edge/root/partial", True),  # standing in for a dead edge (chief/failover.py)
+    ("chief", "write", f"fedrl/{R}/edge/e0/partial", False),
     ("w0", "write", f"fedrl/{R}/worker/w0/update", True),
     ("w0", "write", f"fedrl/{R}/worker/w0/status", True),
     ("w0", "read", f"fedrl/{R}/chief/aggregate", True),

@@ -127,11 +127,11 @@ def test_a_dead_edge_is_started_again_and_rejoins_at_the_roots_round(tmp_path: P
     check_the_same(run_dir, reference)
 
 
-def test_a_lone_edge_is_started_again_and_takes_its_workers_back(tmp_path: Path) -> None:
+def test_a_lone_edges_workers_go_to_the_root(tmp_path: Path) -> None:
     """One edge (as a site with one edge chief: `--site-brokers`, Swarm, Kubernetes): killed after round 6, no edge
-    can stand in, so its workers wait; once the root has found it dead the launcher starts it again, it rejoins at the
-    root's open round with its own workers, they send their unanswered round again, and the run is the one without
-    a death."""
+    of its site can stand in, so the root serves its workers itself (as edge ``root``, on its own connection); the
+    launcher starts the edge again, and it rejoins serving nobody. The run is the one without a death, and the
+    audit finds every contribution after the move in the root's own edge records."""
     reference = tmp_path / "reference"
     run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
                                            max_episodes=EPISODES, run_dir=reference, edges=1),
@@ -142,8 +142,11 @@ def test_a_lone_edge_is_started_again_and_takes_its_workers_back(tmp_path: Path)
         tmp_path, lambda: os.kill(edge_process(run, "e0")[0], signal.SIGKILL),
         ["--workers", str(WORKERS), "--edges", "1", "--witness", "--env", ENV, "--seed", str(SEED), "--max-episodes",
          str(EPISODES), "--dashboard-port", "off"], {"FEDRL_ROUND_TIMEOUT": ROUND_TIMEOUT}, after_rounds=6, name=run)
-    assert "!! edge-e0 started again (1 of 3)" in (tmp_path / f"{run}-launcher.log").read_text()
     log = chief_log.read_text()
-    assert "no live edge of edge e0's site is left" in log and "edge e0 is back: it rejoins at round" in log
+    assert "no live edge of edge e0's site is left: the root serves its workers itself" in log, log[-3000:]
+    assert "the workers of edge e0 go through edge root" in log
+    moved = int(log.split(": the workers of edge e0 go through edge root")[0].rsplit("round ", 1)[1])
+    served = [json.loads(line) for line in (run_dir / "edges" / "root" / "metrics.jsonl").read_text().splitlines()]
+    assert served and min(r["round"] for r in served) >= moved > 6
+    assert {r["worker"] for r in served} == {f"w{i}" for i in range(WORKERS)}  # none had finished by round 7
     check_the_same(run_dir, reference)
-

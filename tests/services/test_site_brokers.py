@@ -190,3 +190,32 @@ def partial_round(payload: bytes, edge: str) -> int | None:
 def answered(payload: bytes) -> bool:
     """Whether a message is one of the root's answers to a round."""
     return msgpack.unpackb(payload, raw=False).get("kind") in ("aggregate", "transfer")
+
+
+@pytest.mark.slow
+def test_a_sites_one_edge_dies_and_the_root_serves_its_worker_across_the_bridge(
+        tmp_path: Path, uninterrupted_tiered: list[tuple[str, int, int]]) -> None:
+    """The same tiered run at sites a and b, one edge each: edge chief e0 is killed (SIGKILL) after round 10. No
+    edge of site a is left, so the root serves w0 itself (chief/failover.py ROOT_EDGE): w0's updates cross site a's
+    bridge to the core as they always do, and the root's answers cross back on its own topics. The launcher starts
+    e0 again and it rejoins serving nobody. The run ends as the uninterrupted tiered one, audited."""
+    import os
+    import signal
+
+    from tests.e2e.test_edge_failover import edge_process
+
+    run = "lone-site"
+    with LoopbackSites(tmp_path / "brokers", ["a", "b"]) as sites:
+        run_dir = federate_through(
+            tmp_path, lambda: os.kill(edge_process(run, "e0")[0], signal.SIGKILL),
+            ["--workers", str(WORKERS), "--edges", str(EDGES), "--witness", "--seed", str(SEED), "--max-episodes",
+             str(EPISODES), "--broker", sites.url(CORE), "--site-brokers", f"{sites.url('a')},{sites.url('b')}",
+             "--dashboard-port", "off"], {}, name=run)
+    assert per_worker(run_dir) == uninterrupted_tiered
+    log = (run_dir / "logs" / "chief.log").read_text()
+    assert "no live edge of edge e0's site is left: the root serves its workers itself" in log, log[-3000:]
+    served = (run_dir / "edges" / "root" / "metrics.jsonl").read_text().splitlines()
+    assert served and all('"worker":"w0"' in line for line in served)
+    report = audit(run_dir)
+    assert report.rounds == report.tiered == EPISODES and report.submissions == WORKERS * EPISODES
+    assert json.loads((run_dir / "summary.json").read_text())["end_reason"] != "aborted"

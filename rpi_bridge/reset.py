@@ -23,10 +23,14 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    (``hard_after_turns`` times: a rig damped more than its model), is pumped bang-bang at full voltage along
    alpha_dot*cos(alpha), pulled to the middle by ``hard_centre`` of the full voltage per rad of arm angle and kept
    inside ``hard_soft_limit``: the pump family that ``python -m bench.swingup`` found to reach the top at 10x
-   ``lab``'s Dp. If even that brings the pendulum no nearer than ``hopeless_angle`` to upright in ``hopeless_turns``
-   turnarounds, the attempt fails at once with one line saying this pump falls short, with the model's damping
-   (``bench.swingup`` finds no swing-up within 10 V at the course files' damping, but one at 10x ``lab``'s Dp:
-   docs/how-to/ood.md).
+   ``lab``'s Dp. It acts on the state ``hard_prediction_ticks`` ahead (fewer than the gentle pump's: predicting
+   the arm further out pulls it in and stops it early, which costs travel) and plans its braking at
+   ``hard_brake_accel``, what full voltage gives with the pendulum near horizontal. In the bridge's loop it still
+   falls short on a third to half of the rigs at 10x ``lab``'s Dp: the arm's travel limits the energy it puts in
+   (docs/how-to/ood.md). If even that brings the pendulum no nearer than ``hopeless_angle`` to upright in
+   ``hopeless_turns`` turnarounds, the attempt fails at once with one line saying this pump falls short, with the
+   model's damping (``bench.swingup`` finds no swing-up within 10 V at the course files' damping, but one at 10x
+   ``lab``'s Dp).
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum
@@ -97,8 +101,9 @@ class ResetConfig:
     hard_swing_accel: float = 400.0  # arm acceleration asked for (more than 10 V gives: full voltage)
     hard_energy: float = 2.0  # E0 while pumping hard (lowered, as ever, by passes over the top)
     hard_soft_limit: float = math.radians(70.0)  # no push outwards past it
-    hard_brake_accel: float = 200.0  # braking planned at this (the pull to the middle does most of the stopping)
+    hard_brake_accel: float = 150.0  # braking planned at this (full voltage gives 130-310: see brake_accel)
     hard_brake_delay_ticks: float = 1.3
+    hard_prediction_ticks: float = 1.0  # the hard pump acts on the state predicted this many ticks ahead
     hard_centre: float = 2.5  # per rad of arm angle: the pull to the middle, a fraction of the full pump
     hopeless_turns: int = 20  # pumping hard, this many turnarounds none of which came within ``hopeless_angle``
     hopeless_angle: float = math.radians(60.0)  # of upright: the pendulum cannot be swung up (fail at once)
@@ -135,6 +140,8 @@ class ResetConfig:
             raise ValueError(f"arm_soft_limit must be in (0, pi), got {self.arm_soft_limit}")
         if not 0 < self.hard_soft_limit < math.pi or self.hopeless_turns < 1:
             raise ValueError("need 0 < hard_soft_limit < pi and hopeless_turns >= 1")
+        if not 0 <= self.prediction_ticks <= 5 or not 0 <= self.hard_prediction_ticks <= 5:
+            raise ValueError("prediction_ticks and hard_prediction_ticks must be in [0, 5]")
         for name in ("hold_time_s", "timeout_s", "swing_accel", "brake_accel", "catch_abandon", "period_s",
                      "hard_swing_accel", "hard_brake_accel"):
             if not getattr(self, name) > 0:
@@ -412,7 +419,7 @@ class ResetController:
             if brake:  # full voltage against the outward motion (+command drives theta negative)
                 command = brake * cfg.max_command
             else:
-                h = cfg.prediction_ticks * dt
+                h = (cfg.hard_prediction_ticks if self.hard else cfg.prediction_ticks) * dt
                 command = self.swing_command(theta + theta_dot * h, alpha + alpha_dot * h, theta_dot, alpha_dot)
         self._last_alpha, self._last_alpha_dot = alpha, alpha_dot
 

@@ -261,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--runs-dir", type=Path, default=Path("runs/bench-lab"))
     p.add_argument("--jobs", type=int, default=1, help="labs at a time (each runs 3-4 processes)")
     p.add_argument("--out", type=Path, default=None, help="the results file (default bench/results/lab.json for "
-                   "the paper's actions, lab-<set>.json for another set)")
+                   "the paper's actions, lab-<set>.json for another set: the file the README and the lab page show; "
+                   "another --out, for tuning seeds say, leaves the pages alone)")
     p.add_argument("--collect", action="store_true", help="run nothing: measure the labs an earlier invocation left "
                    "in --runs-dir (an unfinished lab counts as unfinished, a seed without a folder as not run)")
     p.add_argument("--note", default="", help="a sentence the table shows after its header (with --collect: the "
@@ -294,7 +295,12 @@ def main(argv: list[str] | None = None) -> int:
         "collected": args.collect, "note": args.note, "not_run": not_run, "targets": TARGETS, "table": table,
         "results": results})
     print(json.dumps(table, indent=1))
-    write_pages(args.out)
+    shown = results_file(args.qube_actions)
+    if args.out.resolve() == shown.resolve():
+        write_pages(args.out)
+    else:  # a tuning run, or one kept apart: the pages show the report seeds' file only
+        print(f"the pages show {shown}, not {args.out}: python -m bench.lab --report --out {args.out} puts this "
+              "table on them", file=sys.stderr)
     return 0
 
 

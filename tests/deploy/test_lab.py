@@ -128,3 +128,21 @@ def test_each_action_set_keeps_its_own_results_file_and_table(tmp_path: Path) ->
     with pytest.raises(SystemExit):
         lab.main(["--qube-actions", "levels", "--out", str(paper), "--runs-dir", str(tmp_path / "runs")])
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_run_kept_apart_leaves_the_pages_alone(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """bench.lab --out elsewhere (tuning seeds, a trial) writes its file and says how to show it, but never puts its
+    table on the README or the lab page, which show the report seeds' results file; the default --out does."""
+    from bench import lab
+
+    monkeypatch.setattr(lab, "run_seed", lambda seed, family, args, runs: {"seed": seed, "not_run": True})
+    written: list[Path] = []
+    monkeypatch.setattr(lab, "write_pages", lambda source, pages=None: written.append(source))
+    out = tmp_path / "tuning.json"
+    assert lab.main(["--seeds", "521-522", "--out", str(out), "--runs-dir", str(tmp_path / "runs")]) == 0
+    assert json.loads(out.read_text())["not_run"] == [521, 522] and written == []
+    assert f"python -m bench.lab --report --out {out}" in capsys.readouterr().err
+    monkeypatch.setattr(lab, "results_file", lambda actions: out)  # the default file: its table goes on the pages
+    assert lab.main(["--seeds", "521-522", "--runs-dir", str(tmp_path / "runs")]) == 0
+    assert written == [out]

@@ -459,7 +459,11 @@ class RootStandIn:
         done = threading.Event()
         self.edge.events.put((topics.chief(self.edge.cfg.run_id, topics.START), start, b""))
         self.edge.events.put(("", done, b""))
-        return done.wait(timeout)
+        deadline = time.monotonic() + timeout
+        while not done.wait(0.05):
+            if not self._thread.is_alive() or time.monotonic() > deadline:  # ended (logged): the root goes on
+                return False
+        return True
 
     def stop(self, timeout: float = 5.0) -> None:
         """End the edge with the root (its records closed)."""

@@ -502,8 +502,7 @@ class ChiefService:
         for edge in dead:
             log.warning(failover.DEAD.format("%s") + " (its last will, or %.0f s of silence)", edge,
                         failover.silence_limit(self.cfg.round_timeout))
-        for group in sorted({g for g in self.edge_of.values() if failover.serving(g, stand_ins) == ROOT_EDGE}
-                            - set(failover.served_by_root(self.stand_ins))):
+        for group in sorted(set(failover.served_by_root(stand_ins)) - set(failover.served_by_root(self.stand_ins))):
             log.warning("round %d: no live edge of edge %s's site is left: the root serves its workers itself",
                         self.keeper.round, group)
         if stand_ins != self.stand_ins:

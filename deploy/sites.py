@@ -31,7 +31,7 @@ from typing import Literal
 
 from deploy.mosquitto_conf import render
 from protocol.routes import BRIDGE, CHIEF, DASHBOARD, EDGE, ROUTES, WORKER, Route
-from protocol.topics import ROOT_EDGE, check_id
+from protocol.topics import check_edge, check_id
 from services.broker import mosquitto
 from services.broker.embedded import free_port, stop_process
 from worker.settings import handed_keys
@@ -204,10 +204,11 @@ class Site:
         workers, _, rigs = counts.partition(":")
         if not (workers.isdigit() and (rigs == "" or rigs.isdigit())):
             raise ValueError(f"site {text!r}: give NAME=WORKERS or NAME=WORKERS:RIGS")
-        if name == ROOT_EDGE:
-            raise ValueError(f"site {text!r}: a site's edge chief is named after it, and {ROOT_EDGE!r} is the root "
-                             "chief's own edge id: choose another name")
         site = cls(check_id(name, "site name"), int(workers), int(rigs or 0))
+        try:  # its edge chief is named after it (edge_id)
+            check_edge(site.edge_id)
+        except ValueError as err:
+            raise ValueError(f"site {text!r}: its edge chief is named after it, and {err}") from None
         if site.rigs > site.workers:
             raise ValueError(f"site {text!r}: more rigs than workers (worker i drives rig i)")
         return site

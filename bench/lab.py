@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 from bench.output import write_block, write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
+from deploy.lab import LabSettings
 from protocol.qube import MAX_RETURN
 from runtime.records import SUMMARY, RunSummary
 
@@ -103,7 +104,7 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
            "FEDRL_RIG_PROFILE": str(truth_file(family, runs)), "PYTHONUNBUFFERED": "1"}
     command = [sys.executable, "-m", "deploy.lab", "--env", args.env, "--workers", str(args.workers), "--seed",
                str(seed), "--run-dir", str(folder), "--max-episodes", str(args.max_episodes), "--pretrain-episodes",
-               str(args.pretrain_episodes), "--qube-actions", args.qube_actions]
+               str(args.pretrain_episodes), "--qube-actions", args.qube_actions, "--warm-lr", str(args.warm_lr)]
     began = time.monotonic()
     code: int | None = None
     if args.collect:  # what an earlier invocation left in the folder
@@ -258,6 +259,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-episodes", type=int, default=150)
     p.add_argument("--pretrain-episodes", type=int, default=600)
     p.add_argument("--qube-actions", default="paper")
+    p.add_argument("--warm-lr", type=float, default=LabSettings.model_fields["warm_lr"].default,
+                   help="the fine-tune's learning-rate factor while a rig's episodes meet TC (deploy.lab --warm-lr; "
+                   "default %(default)s)")
     p.add_argument("--runs-dir", type=Path, default=Path("runs/bench-lab"))
     p.add_argument("--jobs", type=int, default=1, help="labs at a time (each runs 3-4 processes)")
     p.add_argument("--out", type=Path, default=None, help="the results file (default bench/results/lab.json for "
@@ -290,6 +294,7 @@ def main(argv: list[str] | None = None) -> int:
     table = aggregate(results)
     write_report(args.out, "bench.lab", argv, {
         "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
+        "warm_lr": args.warm_lr,
         "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
         "wall_s": round(time.monotonic() - began, 1),
         "collected": args.collect, "note": args.note, "not_run": not_run, "targets": TARGETS, "table": table,

@@ -46,6 +46,7 @@ from runtime.settings import (
     qube_actions_setting,
     returns_code,
     setting,
+    warm_lr_setting,
 )
 
 #: The stages, in order.
@@ -75,6 +76,7 @@ class LabSettings(LearnerTaskSettings):
         "or delayed)")
     broker: str | None = setting(None, "--env qube: the broker of real rigs (unset: the pipeline starts an embedded "
                                  "broker and simulated rigs)")
+    warm_lr: float = warm_lr_setting(0.1)
     init_model: Path | None = setting(None, "skip the pretrain: fine-tune from this model (a models/<id>.pt, or a run "
                                       "folder: its first worker to solve), e.g. an earlier pipeline's pretrain/",
                                       metavar="PATH")
@@ -219,8 +221,8 @@ def finetune_command(s: LabSettings, folder: Path) -> list[str]:
     command = [sys.executable, "-m", "deploy.run_local", "--env", s.env, "--workers", str(s.workers), "--seed",
                str(s.seed), "--policy", s.policy, "--algo", s.algo, "--max-episodes", str(s.max_episodes),
                "--run-id", f"lab-s{s.seed}", "--run-dir", str(folder / "finetune"), "--init-model",
-               str(pretrained(s, folder)), "--rig-model", str(folder / "identified"), "--qube-actions",
-               s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off"]
+               str(pretrained(s, folder)), "--warm-lr", str(s.warm_lr), "--rig-model", str(folder / "identified"),
+               "--qube-actions", s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off"]
     return command + (["--broker", s.broker, "--no-simulate-rigs"] if s.broker else [])
 
 

@@ -19,7 +19,7 @@ from chief.settings import FederationSettings, quorum_problem
 from deploy import sites
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
-from runtime.settings import Counts, Port, Settings, Words, setting
+from runtime.settings import Counts, Port, Settings, Words, setting, warm_lr_problem, warm_lr_setting
 from services.qube_sim.profile import load_profile
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
@@ -40,6 +40,14 @@ class WarmStartSettings(Settings):
 
     init_model: Path | None = setting(None, "warm start every worker from this model (a models/<id>.pt, or a run "
                                       "folder: its first worker to solve); unset: from scratch", metavar="PATH")
+    warm_lr: float = warm_lr_setting()
+
+    @model_validator(mode="after")
+    def _warm(self) -> WarmStartSettings:
+        problem = warm_lr_problem(self.warm_lr, self.init_model)
+        if problem is not None:
+            raise ValueError(problem)
+        return self
 
 
 #: The tasks whose rigs are simulated (their profile, randomisation and clock are the launcher's settings).

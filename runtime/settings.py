@@ -130,6 +130,20 @@ def qube_actions_setting() -> Any:
                    "DQN); docs/explanation/qube-actions.md")
 
 
+def warm_lr_setting(default: float = 1.0) -> Any:
+    """The ``warm_lr`` setting, the same in the worker and in every launcher that warm-starts one."""
+    return setting(default, "with --init-model: the learning rates' factor while every episode meets TC (the rates "
+                   "return to the learner's own at the first episode that does not; worker/federated.py warm_factor, "
+                   "docs/how-to/lab.md); 1: the learner's rates throughout", gt=0, le=1)
+
+
+def warm_lr_problem(warm_lr: float, init_model: object) -> str | None:
+    """Why ``warm_lr`` cannot be given (for the settings' validators): it is a setting of a warm start."""
+    if warm_lr != 1.0 and init_model is None:
+        return "--warm-lr (FEDRL_WARM_LR) is a setting of a warm start: give --init-model too"
+    return None
+
+
 def fits_task(algo: str, env: str, qube_actions: str | None = None) -> None:
     """A ValueError when learner ``algo`` cannot act in task ``env``'s action space (for the settings' validators:
     refused with one line before a process starts, not by a worker that dies while its chief waits)."""

@@ -14,10 +14,12 @@ that starts at a later episode without one (new networks) says so in its first r
 
 Once the chief has accepted the mature actor (``accepted``), the worker has finished: it submits no mature actor
 again, and goes on sharing only when the strategy lets finishers help.
- Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protocol/rounds.py) the learner's K mini-batch
+Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protocol/rounds.py) the learner's K mini-batch
 steps are K rounds: each step's actor and critic gradients are submitted, and the chief's mean of them is what the
-worker's
-optimizers apply.
+worker's optimizers apply.
+
+A warm-started worker may learn gently (``warm_lr``, ``warm_factor``): at a fraction of its learner's rates while every
+episode it played met TC, at its learner's own from its first episode short of TC on.
 
     submission = algo.play()                 # the episode, then its first submission
     while submission is not None:
@@ -70,13 +72,20 @@ from worker.nets import StepGradients
 log = logging.getLogger("worker")
 
 
+def warm_factor(returns: list[float], tc: float, warm_lr: float) -> float:
+    """The factor of a warm-started learner's rates after ``returns``: ``warm_lr`` while every episode met TC (the
+    model it started from still does the task, and full-rate updates would only un-learn it: docs/how-to/lab.md),
+    1 from the first episode short of TC on (the rig needs learning)."""
+    return warm_lr if all(r >= tc for r in returns) else 1.0
+
+
 class Algorithm2:
     """One worker's side of every round, from ``first_episode`` on. ``life`` names this worker's life in the run
     (protocol.messages.Played; drawn at random when not given)."""
 
     def __init__(self, worker_id: str, env: gym.Env, learner: Learner, tc: float, seed: int,
                  first_episode: int = 1, shape: RoundShape = PER_EPISODE, life: str | None = None,
-                 max_staleness: int = 0) -> None:
+                 max_staleness: int = 0, warm_lr: float = 1.0) -> None:
         if shape.per_episode not in (1, learner.config.update_epochs):
             raise ValueError(f"the chief runs {shape.per_episode} rounds per episode, but this worker's learner takes "
                              f"{learner.config.update_epochs} steps per episode")
@@ -98,6 +107,7 @@ class Algorithm2:
         self._noted: list[Receipt] = []  # the answers applied since the last submission, oldest first
         self._sent: tuple[int, list[Receipt]] = (0, [])  # the round of the last submission and the receipts it carried
         self.max_staleness = max_staleness
+        self.warm_lr = warm_lr
         self.owed: list[int] = []  # rounds submitted whose answer is not applied yet, oldest first (per-episode)
         if first_episode > 1:  # a worker that starts at a later episode holds no answer before it, and says so
             self.receipt = Receipt(round=shape.number(first_episode) - 1, applied="restarted")
@@ -150,6 +160,8 @@ class Algorithm2:
         self.total_steps += steps
         self._last = (ret, steps)
         self._rig = _rig_fields(self.env)
+        if self.warm_lr != 1.0:  # before this episode's update
+            self.learner.scale_learning_rates(warm_factor(self.returns, self.tc, self.warm_lr))
         if not self._finished and solved(self.returns, self.tc):
             return MatureParams(worker_id=self.worker_id, episode=self.episode, episode_return=ret, pi=self.pi,
                                 recent_returns=self.returns[-PI_WINDOW:], steps=steps,

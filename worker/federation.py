@@ -298,6 +298,13 @@ class FederatedLearner:
                 for group in optimizer.param_groups:
                     group["lr"] = getattr(self.config, lr)
 
+    def scale_learning_rates(self, factor: float) -> None:
+        """Every optimizer's learning rate at ``factor`` times its configured one (``OPTIMIZERS``); the Adam moments
+        are kept (a warm start's gentle rates, worker/federated.py ``warm_factor``)."""
+        for name, lr in self.OPTIMIZERS.items():
+            for group in getattr(self, name).param_groups:
+                group["lr"] = factor * getattr(self.config, lr)
+
     def _own_state(self) -> dict[str, Any]:
         """What ``state_dict`` saves beyond the declared names."""
         return {}

@@ -6,7 +6,8 @@ worker/federation.py's ``FederatedLearner`` (``Learner``) and so has the seams e
 - per-episode strategies: ``update()`` after an episode, then ``actor_gradient()`` goes to the chief, whose answer is
   ``apply_gradient`` (Eq. 9) or ``blend_actor`` (Eq. 11);
 - per-step strategies: ``prepare()``, then K times ``minibatch_gradients`` and ``apply_step`` with the chief's mean;
-- persistence: ``state_dict``/``load_state_dict``, ``memory_state``/``load_memory``, ``warm_start``, ``save``.
+- persistence: ``state_dict``/``load_state_dict``, ``memory_state``/``load_memory``, ``warm_start``, ``save``;
+- ``scale_learning_rates``: a warm start's gentle rates (worker/federated.py ``warm_factor``).
 
 ``python -m worker.learners`` lists them.
 """

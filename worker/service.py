@@ -249,7 +249,8 @@ class WorkerService:
             log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])
         self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
-                          shape=start.shape, max_staleness=start.max_staleness)
+                          shape=start.shape, max_staleness=start.max_staleness,
+                          warm_lr=cfg.warm_lr if self.init_model is not None else 1.0)
         try:
             pending = self._take_up(algo, start)  # a submission the chief has not answered yet, sent first
             log.info("worker %s (index %d, seed %d) learning %s under policy %s from episode %d", cfg.worker_id,

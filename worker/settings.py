@@ -26,6 +26,8 @@ from runtime.settings import (
     TaskName,
     qube_actions_setting,
     setting,
+    warm_lr_problem,
+    warm_lr_setting,
 )
 
 
@@ -80,6 +82,7 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
     init_model: ModelPath | None = setting(
         None, "warm start: begin from this model (a models/<id>.pt, or a run folder: its first worker to solve); "
         "unset: from scratch", metavar="PATH")
+    warm_lr: float = warm_lr_setting()
     worker_key: CliSuppress[str | None] = setting(None, "this worker's own key (a variable only; give "
                                                   "FEDRL_CHIEF_KEY with it): it tags everything the worker sends, "
                                                   "and no other worker holds it. The launcher derives it from the run "
@@ -103,6 +106,13 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
                              "and checks the chief with the chief key")
         if self.worker_key is not None and self.worker_id == "auto":
             raise ValueError("FEDRL_WORKER_KEY is the key of one worker id: give that id (--id, FEDRL_WORKER_ID)")
+        return self
+
+    @model_validator(mode="after")
+    def _warm(self) -> WorkerSettings:
+        problem = warm_lr_problem(self.warm_lr, self.init_model)
+        if problem is not None:
+            raise ValueError(problem)
         return self
 
     def own_key(self, worker_id: str) -> bytes | None:

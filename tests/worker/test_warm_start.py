@@ -150,3 +150,39 @@ def test_evaluate_takes_the_task_from_the_model(pretrained: Path, capsys: pytest
     assert evaluate_main([str(model), "--env", "Acrobot-v1"]) == 2
     err = capsys.readouterr().err
     assert "was made for CartPole-v0, not Acrobot-v1" in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_warm_rates_stay_gentle_until_the_first_episode_short_of_tc() -> None:
+    """``warm_lr``: every optimizer at 0.1x its rate while each episode met TC, at its own from the first that did
+    not (before that episode's update), and never gentle again."""
+    from worker.episode import build_learner_and_env
+    from worker.federated import Algorithm2, warm_factor
+
+    env, learner = build_learner_and_env("CartPole-v0", seed=3, device_noise=0.0)
+    algo = Algorithm2("w0", env, learner, 15.0, 3, warm_lr=0.1)  # seed 3's episodes: 5 of at least 15, then 13
+    rates = []
+    for _ in range(6):
+        algo.play()
+        rates.append((learner.actor_optimizer.param_groups[0]["lr"], learner.critic_optimizer.param_groups[0]["lr"]))
+    config = learner.config
+    short = next(i for i, r in enumerate(algo.returns) if r < 15.0)
+    assert 0 < short < 6, algo.returns  # both phases were played
+    for i, (actor, critic) in enumerate(rates):
+        factor = 0.1 if i < short else 1.0
+        assert (actor, critic) == pytest.approx((factor * config.actor_lr, factor * config.critic_lr)), (i, rates)
+    assert warm_factor([20.0, 10.0, 20.0], 15.0, 0.1) == 1.0 and warm_factor([], 15.0, 0.1) == 0.1
+
+
+def test_warm_rates_are_a_setting_of_a_warm_start(pretrained: Path, tmp_path: Path) -> None:
+    from worker.settings import WorkerSettings
+
+    given = {"env": "CartPole-v0", "run_dir": tmp_path}
+    with pytest.raises(ValueError, match=r"--warm-lr .* is a setting of a warm start"):
+        InprocessSettings.given(**given, warm_lr=0.1)
+    with pytest.raises(ValueError, match=r"--warm-lr .* is a setting of a warm start"):
+        WorkerSettings.given(env="CartPole-v0", warm_lr=0.1)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError):
+            InprocessSettings.given(**given, init_model=pretrained, warm_lr=bad)
+    worker = InprocessSettings.given(**given, init_model=pretrained, warm_lr=0.1).child(WorkerSettings)
+    assert worker.warm_lr == 0.1  # what a launcher's workers are given

@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 from bench.output import write_block, write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
-from deploy.lab import LabSettings
+from deploy.lab import LabSettings, pretrain_dir, pretrain_met
 from protocol.qube import MAX_RETURN
 from runtime.records import SUMMARY, RunSummary
 
@@ -127,7 +127,7 @@ def zero_shot(folder: Path, truth: Path, seed: int, workers: int) -> list[float]
     from worker.evaluate import evaluate
 
     try:
-        model = InitModel.open(folder / "pretrain").file
+        model = InitModel.open(pretrain_dir(folder)).file
     except ValueError:
         return None
     return [evaluate(model, "qube-local", episodes=1, seed=worker_seed(seed, i), rig_profile=str(truth),
@@ -140,9 +140,11 @@ def measure(folder: Path) -> dict[str, Any]:
     rows = progress.get("rigs", [])
     finetune = folder / "finetune"
     summary = RunSummary.read(finetune) if (finetune / SUMMARY).exists() else None
-    pre = RunSummary.read(folder / "pretrain") if (folder / "pretrain" / SUMMARY).exists() else None
+    pre_dir = pretrain_dir(folder)
+    pre = RunSummary.read(pre_dir) if (pre_dir / SUMMARY).exists() else None
     out: dict[str, Any] = {"stages_done": progress.get("done", []), "lab_wall_s": progress.get("wall_s"),
-                           "pretrain_episodes": pre.episodes_to_all_solved if pre else None}
+                           "pretrain_episodes": pre.episodes_to_all_solved if pre else None,
+                           "pretrain_met_at_attempt": pretrain_met(folder)}
     if summary is None or not rows:
         return {**out, "finished": False}
     first: dict[str, float] = {}

@@ -6,7 +6,8 @@ as identified, then warm-start and fine-tune the rigs federated.
    simulated by ``python -m services.qube_sim --identify`` with the bridge's own control code; ``--env qube``: each
    rig is asked over MQTT (``python -m worker.identify``), a real bridge or a simulated one.
 2. **pretrain**: a federation in process on simulated rigs randomised around the identified ones
-   (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``.
+   (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``; when none of its workers met TC,
+   again with another seed into ``pretrain-2/`` and so on (``--pretrain-attempts``).
 3. **finetune**: the rigs themselves, every worker warm-started from the pretrain, federated by
    ``python -m deploy.run_local`` into ``finetune/``; each rig's resets use its identified model.
 
@@ -51,6 +52,8 @@ from runtime.settings import (
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
+#: The most pretrain attempts (--pretrain-attempts).
+MAX_ATTEMPTS = 10
 #: Variables that carry the true physics of simulated rigs: the pretrain's simulator must not see them.
 TRUTH = ("FEDRL_RIG_PROFILE", "FEDRL_RANDOMIZE")
 
@@ -68,6 +71,8 @@ class LabSettings(LearnerTaskSettings):
     max_episodes: int = setting(150, "M of the fine-tune: the most episodes per rig", ge=1)
     pretrain_episodes: int = setting(600, "M of the pretrain", ge=1)
     pretrain_workers: int = setting(3, "workers of the pretrain (simulated rigs)", ge=1, le=32)
+    pretrain_attempts: int = setting(2, "pretrains to try until one has a controller that meets TC, each with its "
+                                     "own seed (a pretrain costs this host's time, no rig time)", ge=1, le=MAX_ATTEMPTS)
     policy: PolicyName = setting("plain", "federation strategy of the pretrain and the fine-tune")
     algo: LearnerName = setting(learners.DEFAULT, "learner")
     qube_actions: QubeActions = qube_actions_setting()
@@ -180,41 +185,96 @@ def identify(s: LabSettings, folder: Path) -> None:
 # -- stage 2: pretrain --------------------------------------------------------------------------------------------
 
 
+#: Attempt k > 1 of the pretrain runs with seed ``seed + PRETRAIN_SEED_STEP * (k - 1)``, into ``pretrain-<k>/``.
+PRETRAIN_SEED_STEP = 10_000
+
+
+def profile_file(folder: Path) -> Path:
+    """The profile the pretrain's simulated rigs are randomised around (the identified rigs')."""
+    return folder / "pretrain-profile.json"
+
+
+def attempt_dir(folder: Path, attempt: int) -> Path:
+    """The run folder of pretrain attempt ``attempt`` (1: ``pretrain/``)."""
+    return folder / ("pretrain" if attempt == 1 else f"pretrain-{attempt}")
+
+
+def attempt_seed(s: LabSettings, attempt: int) -> int:
+    return s.seed + PRETRAIN_SEED_STEP * (attempt - 1)
+
+
+def ended_without_tc(run_dir: Path) -> str | None:
+    """Why a finished pretrain has no controller that meets TC (None: it has one, or it did not finish)."""
+    summary = read_summary(run_dir)
+    if summary is None or summary.end_reason == "interrupted" or any(w.solved for w in summary.workers):
+        return None
+    return summary.end_reason
+
+
 def pretrain(s: LabSettings, folder: Path) -> None:
-    """A federation in process on rigs randomised around the identified ones, until every worker meets TC."""
+    """A federation in process on rigs randomised around the identified ones, until every worker meets TC; again
+    with another seed (``--pretrain-attempts``) when none of its workers did. Attempts that ended are kept: a resumed
+    pipeline goes on at the first attempt that did not."""
     from services.qube_sim.pretrain import around
     from services.qube_sim.profile import load_profile
 
     rigs = [load_profile(path) for path in identified_files(s, folder)]
     profile = around(rigs, name=f"around-{len(rigs)}-identified")
-    profile_path = folder / "pretrain-profile.json"
+    profile_path = profile_file(folder)
     profile_path.write_text(profile.to_json())
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in profile.ranges.items())
     say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}")
-    run_dir = folder / "pretrain"
-    command = [sys.executable, "-m", "deploy.inprocess", "--env", "qube-local", "--workers", str(s.pretrain_workers),
-               "--seed", str(s.seed), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
-               str(s.pretrain_episodes), "--run-dir", str(run_dir), "--rig-profile", str(profile_path),
-               "--rig-model", str(profile_path), "--qube-actions", s.qube_actions]
-    env = {k: v for k, v in os.environ.items() if k not in TRUTH}
-    code = run_child("pretrain", command, {**env, "PYTHONUNBUFFERED": "1"})
-    summary = read_summary(run_dir)
-    if summary is None or not any(w.solved for w in summary.workers):
-        why = summary.end_reason if summary is not None else f"exit code {code}"
-        raise StageFailed(f"the pretrain ended without a controller that meets TC ({why}); try --pretrain-episodes "
-                          "or another --seed")
-    solved = [w.id for w in summary.workers if w.solved]
-    if len(solved) < len(summary.workers):  # a controller that met TC exists: the fine-tune starts from it
-        say("pretrain", f"{len(solved)} of {len(summary.workers)} workers met TC ({summary.end_reason}); the "
-            "fine-tune starts from the first of them to solve")
+    env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
+    why = ""
+    for attempt in range(1, s.pretrain_attempts + 1):
+        run_dir = attempt_dir(folder, attempt)
+        failed = ended_without_tc(run_dir)
+        if failed is None:
+            if attempt > 1:
+                say("pretrain", f"attempt {attempt} of {s.pretrain_attempts}, seed {attempt_seed(s, attempt)}")
+            code = run_child("pretrain", pretrain_command(s, folder, attempt), env)
+            summary = read_summary(run_dir)
+            if summary is not None and any(w.solved for w in summary.workers):
+                solved = sum(w.solved for w in summary.workers)
+                if solved < len(summary.workers):  # a controller that met TC exists: the fine-tune starts from it
+                    say("pretrain", f"{solved} of {len(summary.workers)} workers met TC ({summary.end_reason}); the "
+                        "fine-tune starts from the first of them to solve")
+                return
+            failed = summary.end_reason if summary is not None else f"exit code {code}"
+        why = f"attempt {attempt}: {failed}"
+        say("pretrain", f"no controller met TC ({why})")
+    raise StageFailed(f"no pretrain ended with a controller that meets TC ({s.pretrain_attempts} attempts, last "
+                      f"{why}); try more --pretrain-episodes or --pretrain-attempts, or another --seed")
+
+
+def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
+    profile_path = profile_file(folder)
+    return [sys.executable, "-m", "deploy.inprocess", "--env", "qube-local", "--workers", str(s.pretrain_workers),
+            "--seed", str(attempt_seed(s, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
+            str(s.pretrain_episodes), "--run-dir", str(attempt_dir(folder, attempt)),
+            "--rig-profile", str(profile_path), "--rig-model", str(profile_path), "--qube-actions", s.qube_actions]
 
 
 # -- stage 3: fine-tune -------------------------------------------------------------------------------------------
 
 
 def pretrained(s: LabSettings, folder: Path) -> Path:
-    """The model the fine-tune starts from: ``--init-model``, else the pretrain's run folder."""
-    return s.init_model if s.init_model is not None else folder / "pretrain"
+    """The model the fine-tune starts from: ``--init-model``, else the run folder of the pretrain that met TC."""
+    return s.init_model if s.init_model is not None else pretrain_dir(folder)
+
+
+def pretrain_dir(folder: Path) -> Path:
+    """The run folder of a pipeline's pretrain: its first attempt with a worker that met TC (else ``pretrain/``)."""
+    return attempt_dir(folder, pretrain_met(folder) or 1)
+
+
+def pretrain_met(folder: Path) -> int | None:
+    """The first pretrain attempt with a worker that met TC (None: none has one)."""
+    for attempt in range(1, MAX_ATTEMPTS + 1):
+        summary = read_summary(attempt_dir(folder, attempt))
+        if summary is not None and any(w.solved for w in summary.workers):
+            return attempt
+    return None
 
 
 def finetune_command(s: LabSettings, folder: Path) -> list[str]:

@@ -98,17 +98,21 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
             "--pretrain-workers", "1"]
     proc = lab(args, truth)
     assert proc.returncode == 1, proc.stdout[-3000:] + proc.stderr
-    assert "the pretrain ended without a controller that meets TC" in proc.stderr
+    assert "no pretrain ended with a controller that meets TC (2 attempts" in proc.stderr
     assert "the same command resumes at this stage" in proc.stderr
+    assert "attempt 2 of 2, seed 10008" in proc.stdout  # a pretrain without TC is tried again with its own seed
     assert json.loads((folder / "lab.json").read_text())["done"] == ["identify"]
     rig = load_profile(folder / "identified" / "rig0.json")
     expected = around([rig], name="around-1-identified")
     assert load_profile(folder / "pretrain-profile.json") == expected
-    summary = json.loads((folder / "pretrain" / "summary.json").read_text())
-    assert summary["env_options"]["rig_profile"] == str(folder / "pretrain-profile.json")  # never the truth
+    for run_dir, seed in (("pretrain", 8), ("pretrain-2", 10008)):
+        summary = json.loads((folder / run_dir / "summary.json").read_text())
+        assert summary["env_options"]["rig_profile"] == str(folder / "pretrain-profile.json")  # never the truth
+        assert summary["seed"] == seed and summary["max_episodes"] == 1
 
-    again = lab(args, truth)  # resumes at the pretrain: the rig is not identified again
+    again = lab([*args, "--pretrain-attempts", "3"], truth)  # resumes at the pretrain's third attempt
     assert again.returncode == 1 and "[lab identify] done before: skipped" in again.stdout
+    assert "attempt 3 of 3, seed 20008" in again.stdout and again.stdout.count("$ ") == 1, again.stdout[-2000:]
 
 
 def test_each_action_set_keeps_its_own_results_file_and_table(tmp_path: Path) -> None:
@@ -146,3 +150,23 @@ def test_a_run_kept_apart_leaves_the_pages_alone(tmp_path: Path, monkeypatch: py
     monkeypatch.setattr(lab, "results_file", lambda actions: out)  # the default file: its table goes on the pages
     assert lab.main(["--seeds", "521-522", "--runs-dir", str(tmp_path / "runs")]) == 0
     assert written == [out]
+
+
+def test_the_fine_tune_starts_from_the_first_pretrain_that_met_tc(tmp_path: Path) -> None:
+    from deploy.lab import attempt_dir, pretrain_dir, pretrain_met, pretrained
+    from runtime.records import RunSummary, WorkerSummary
+
+    def ended(attempt: int, solved: bool) -> None:
+        worker = WorkerSummary(id="w0", index=0, solved=solved, episodes=5, steps=50, state="finished" if solved else
+                               "active")
+        summary = RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=5, workers=[worker],
+                             total_steps=50, rounds=5, end_reason="all workers solved" if solved else "max episodes")
+        attempt_dir(tmp_path, attempt).mkdir()
+        summary.write(attempt_dir(tmp_path, attempt))
+
+    assert pretrain_met(tmp_path) is None and pretrain_dir(tmp_path) == tmp_path / "pretrain"
+    ended(1, solved=False)
+    ended(2, solved=True)
+    assert pretrain_met(tmp_path) == 2 and pretrain_dir(tmp_path) == tmp_path / "pretrain-2"
+    assert pretrained(LabSettings.given(), tmp_path) == tmp_path / "pretrain-2"
+    assert pretrained(LabSettings.given(init_model=tmp_path / "m.pt"), tmp_path) == tmp_path / "m.pt"

@@ -132,9 +132,9 @@ def qube_actions_setting() -> Any:
 
 def warm_lr_setting(default: float = 1.0) -> Any:
     """The ``warm_lr`` setting, the same in the worker and in every launcher that warm-starts one."""
-    return setting(default, "with --init-model: the learning rates' factor while every episode meets TC (the rates "
-                   "return to the learner's own at the first episode that does not; worker/federated.py warm_factor, "
-                   "docs/how-to/lab.md); 1: the learner's rates throughout", gt=0, le=1)
+    return setting(default, "with --init-model: the learning rates' factor, except after 3 episodes in a row short "
+                   "of TC, which take the learner's own (worker/federated.py warm_factor, docs/how-to/lab.md); 1: the "
+                   "learner's rates throughout", gt=0, le=1)
 
 
 def warm_lr_problem(warm_lr: float, init_model: object) -> str | None:

@@ -18,8 +18,8 @@ Under a per-step strategy (a ``RoundShape`` of K > 1 rounds per episode, protoco
 steps are K rounds: each step's actor and critic gradients are submitted, and the chief's mean of them is what the
 worker's optimizers apply.
 
-A warm-started worker may learn gently (``warm_lr``, ``warm_factor``): at a fraction of its learner's rates while every
-episode it played met TC, at its learner's own from its first episode short of TC on.
+A warm-started worker may learn gently (``warm_lr``, ``warm_factor``): at a fraction of its learner's rates, and at
+its learner's own only while its last few episodes all fell short of TC.
 
     submission = algo.play()                 # the episode, then its first submission
     while submission is not None:
@@ -72,11 +72,17 @@ from worker.nets import StepGradients
 log = logging.getLogger("worker")
 
 
+#: Episodes in a row short of TC after which a warm-started learner takes its full rates (``warm_factor``).
+WARM_PATIENCE = 3
+
+
 def warm_factor(returns: list[float], tc: float, warm_lr: float) -> float:
-    """The factor of a warm-started learner's rates after ``returns``: ``warm_lr`` while every episode met TC (the
-    model it started from still does the task, and full-rate updates would only un-learn it: docs/how-to/lab.md),
-    1 from the first episode short of TC on (the rig needs learning)."""
-    return warm_lr if all(r >= tc for r in returns) else 1.0
+    """The factor of a warm-started learner's rates after ``returns``: 1 once its last ``WARM_PATIENCE`` episodes all
+    fell short of TC (the model it started from does not do this device's task: it must learn), ``warm_lr`` otherwise
+    (it does; a fall is the sampled policy's, and a full-rate update after it would un-learn the model:
+    docs/how-to/lab.md)."""
+    recent = returns[-WARM_PATIENCE:]
+    return 1.0 if len(recent) == WARM_PATIENCE and all(r < tc for r in recent) else warm_lr
 
 
 class Algorithm2:

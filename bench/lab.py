@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import time
@@ -27,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from bench.output import write_block, write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
-from deploy.lab import LabSettings, pretrain_dir, pretrain_met
+from deploy.lab import LabSettings, pretrain_dir, pretrain_met, profile_file
 from protocol.qube import MAX_RETURN
 from runtime.records import SUMMARY, RunSummary
 
@@ -97,14 +98,21 @@ def truth_file(family: str, folder: Path) -> Path:
     return path
 
 
+def lab_name(family: str, actions: str, seed: int) -> str:
+    """The folder of seed ``seed``'s lab in a runs folder."""
+    return f"{family}-{actions}-s{seed}"
+
+
 def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> dict[str, Any]:
     """One lab: deploy.lab to its end (or as far as it gets), then what its records say."""
-    folder = runs / f"{family}-{args.qube_actions}-s{seed}"
+    folder = runs / lab_name(family, args.qube_actions, seed)
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("FEDRL_")},
            "FEDRL_RIG_PROFILE": str(truth_file(family, runs)), "PYTHONUNBUFFERED": "1"}
     command = [sys.executable, "-m", "deploy.lab", "--env", args.env, "--workers", str(args.workers), "--seed",
                str(seed), "--run-dir", str(folder), "--max-episodes", str(args.max_episodes), "--pretrain-episodes",
                str(args.pretrain_episodes), "--qube-actions", args.qube_actions, "--warm-lr", str(args.warm_lr)]
+    if args.reuse is not None and not args.collect and not (folder / "lab.json").exists():
+        reuse(args.reuse / folder.name, folder)
     began = time.monotonic()
     code: int | None = None
     if args.collect:  # what an earlier invocation left in the folder
@@ -117,6 +125,28 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
     print(f"seed {seed}: exit code {code}, {wall / 60:.1f} wall minutes ({folder})", flush=True)
     return {"seed": seed, "exit_code": code, "wall_s": None if args.collect else round(wall, 1), **measure(folder),
             "zero_shot_returns": zero_shot(folder, truth_file(family, runs), seed, args.workers)}
+
+
+def reuse(source: Path, folder: Path) -> None:
+    """Start a lab from another runs folder's lab of the same seed: its identified rigs and pretrain attempts, so that
+    deploy.lab runs the fine-tune stage alone (a ValueError when that lab did not get so far)."""
+    problem = not_reusable(source)
+    if problem is not None:
+        raise ValueError(problem)
+    folder.mkdir(parents=True)
+    for part in source.iterdir():
+        if part.name in ("identified", profile_file(source).name) or part.name.startswith("pretrain"):
+            copy = shutil.copytree if part.is_dir() else shutil.copy2
+            copy(part, folder / part.name)
+    (folder / "lab.json").write_text(json.dumps({"done": ["identify", "pretrain"], "reused": str(source)}) + "\n")
+
+
+def not_reusable(source: Path) -> str | None:
+    """Why ``source`` has no identified rigs and pretrain to reuse (None: it has)."""
+    progress = json.loads((source / "lab.json").read_text()) if (source / "lab.json").exists() else {}
+    if not {"identify", "pretrain"} <= set(progress.get("done", [])):
+        return f"{source}: no identified rigs and pretrain to reuse (its lab.json does not list both as done)"
+    return None
 
 
 def zero_shot(folder: Path, truth: Path, seed: int, workers: int) -> list[float] | None:
@@ -269,6 +299,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None, help="the results file (default bench/results/lab.json for "
                    "the paper's actions, lab-<set>.json for another set: the file the README and the lab page show; "
                    "another --out, for tuning seeds say, leaves the pages alone)")
+    p.add_argument("--reuse", type=Path, default=None, metavar="RUNS_DIR", help="take each lab's identified rigs "
+                   "and pretrain from this earlier --runs-dir and run its fine-tune alone (to compare fine-tune "
+                   "settings on the same pretrains)")
     p.add_argument("--collect", action="store_true", help="run nothing: measure the labs an earlier invocation left "
                    "in --runs-dir (an unfinished lab counts as unfinished, a seed without a folder as not run)")
     p.add_argument("--note", default="", help="a sentence the table shows after its header (with --collect: the "
@@ -286,6 +319,12 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as err:
         p.error(str(err))
     runs = args.runs_dir
+    if args.reuse is not None and not args.collect:
+        for seed in seeds_of(args.seeds):
+            name = lab_name(args.family, args.qube_actions, seed)
+            problem = None if (runs / name / "lab.json").exists() else not_reusable(args.reuse / name)
+            if problem is not None:
+                p.error(problem)
     runs.mkdir(parents=True, exist_ok=True)
     began = time.monotonic()
     load = os.getloadavg()[0]
@@ -299,7 +338,8 @@ def main(argv: list[str] | None = None) -> int:
         "warm_lr": args.warm_lr,
         "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
         "wall_s": round(time.monotonic() - began, 1),
-        "collected": args.collect, "note": args.note, "not_run": not_run, "targets": TARGETS, "table": table,
+        "collected": args.collect, "reused": str(args.reuse) if args.reuse else None, "note": args.note,
+        "not_run": not_run, "targets": TARGETS, "table": table,
         "results": results})
     print(json.dumps(table, indent=1))
     shown = results_file(args.qube_actions)

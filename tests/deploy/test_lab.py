@@ -170,3 +170,23 @@ def test_the_fine_tune_starts_from_the_first_pretrain_that_met_tc(tmp_path: Path
     assert pretrain_met(tmp_path) == 2 and pretrain_dir(tmp_path) == tmp_path / "pretrain-2"
     assert pretrained(LabSettings.given(), tmp_path) == tmp_path / "pretrain-2"
     assert pretrained(LabSettings.given(init_model=tmp_path / "m.pt"), tmp_path) == tmp_path / "m.pt"
+
+
+def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_runs_the_fine_tune_alone(tmp_path: Path) -> None:
+    from bench.lab import not_reusable, reuse
+
+    source, folder = tmp_path / "before" / "combined-paper-s7", tmp_path / "after" / "combined-paper-s7"
+    for part in ("identified", "pretrain", "pretrain-2", "finetune"):
+        (source / part).mkdir(parents=True)
+        (source / part / "x.json").write_text(part)
+    (source / "pretrain-profile.json").write_text("{}")
+    (source / "lab.json").write_text(json.dumps({"done": ["identify"]}))
+    assert "no identified rigs and pretrain to reuse" in (not_reusable(source) or "")
+    with pytest.raises(ValueError, match="no identified rigs and pretrain"):
+        reuse(source, folder)
+    (source / "lab.json").write_text(json.dumps({"done": ["identify", "pretrain", "finetune"]}))
+    reuse(source, folder)
+    assert sorted(p.name for p in folder.iterdir()) == ["identified", "lab.json", "pretrain", "pretrain-2",
+                                                        "pretrain-profile.json"]  # never the fine-tune
+    assert json.loads((folder / "lab.json").read_text())["done"] == ["identify", "pretrain"]
+    assert (folder / "pretrain-2" / "x.json").read_text() == "pretrain-2"

@@ -19,13 +19,13 @@ HOST = "127.0.0.1"
 # Hermetic settings: no developer's ./.env (docker compose reads one too) reaches the processes the tests start.
 os.environ["FEDRL_ENV_FILE"] = os.devnull
 
-#: The longest tests and groups, longest first (seconds of one test process in ``make test``'s pytest on the busy
-#: 2-core machine, 2026-12-04: the e2e group about 600, the SAC equivalence 400 before it was shortened, test_lab
-#: 141 + 106 + 71, the root's resume 60, test_interrupt 62 + 58 + 2 x 24, test_edge_failover 55 + 54 + 47 + 34,
-#: the printed resume line 53, the byzantine median 51, the other equivalences 48 and less). Under ``--dist
-#: loadgroup`` a test process is handed the tests (a group as one) in the order of collection as it frees up, so a
-#: long one collected late ran alone at the end; they run first, then the other slow ones, then the rest (short
-#: ones last even out the ends). Only the order changes.
+#: The longest tests and groups, longest first (seconds of one test process in ``make test``'s pytest on the 2-core
+#: machine under other load, 2026-12-05: the e2e group about 600, the SAC equivalence 186 (400 before it was
+#: shortened), test_lab 141 + 106 + 71, the root's resume 60, test_interrupt 62 + 58 + 2 x 24, test_edge_failover
+#: 55 + 54 + 47 + 34, the printed resume line 53, the byzantine median 51, the other equivalences 48 and less).
+#: Under ``--dist loadgroup`` a test process is handed the tests (a group as one) in the order of collection as it
+#: frees up, so a long one collected late ran alone at the end; they run first, then the other slow ones, then the
+#: rest (short ones last even out the ends). Only the order changes.
 LONGEST_FIRST = (
     "tests/e2e/test_end_to_end.py::",  # with the rest of the xdist group "e2e", which runs where its first test does
     "tests/e2e/test_inprocess_equivalence.py::test_off_policy_learners_in_process_and_over_mqtt_give_the_same_"

@@ -108,6 +108,7 @@ KNOWN = frozenset({
     'FEDRL_TIERED',
     'FEDRL_TORCH_INDEX_URL',
     'FEDRL_UID',
+    'FEDRL_WARM_LR',
     'FEDRL_WITNESS',
     'FEDRL_WORKERS',
     'FEDRL_WORKER_ID',

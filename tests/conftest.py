@@ -19,6 +19,45 @@ HOST = "127.0.0.1"
 # Hermetic settings: no developer's ./.env (docker compose reads one too) reaches the processes the tests start.
 os.environ["FEDRL_ENV_FILE"] = os.devnull
 
+#: The longest tests and groups, longest first (seconds of one test process in ``make test``'s pytest on the 2-core
+#: machine under other load, 2026-12-05: the e2e group about 600, the SAC equivalence 186 (400 before it was
+#: shortened), test_lab 141 + 106 + 71, the root's resume 60, test_interrupt 62 + 58 + 2 x 24, test_edge_failover
+#: 55 + 54 + 47 + 34, the printed resume line 53, the byzantine median 51, the other equivalences 48 and less).
+#: Under ``--dist loadgroup`` a test process is handed the tests (a group as one) in the order of collection as it
+#: frees up, so a long one collected late ran alone at the end; they run first, then the other slow ones, then the
+#: rest (short ones last even out the ends). Only the order changes.
+LONGEST_FIRST = (
+    "tests/e2e/test_end_to_end.py::",  # with the rest of the xdist group "e2e", which runs where its first test does
+    "tests/e2e/test_inprocess_equivalence.py::test_off_policy_learners_in_process_and_over_mqtt_give_the_same_"
+    "federation[sac-",
+    "tests/deploy/test_lab.py::",
+    "tests/chief/test_chief_resume.py::",
+    "tests/deploy/test_interrupt.py::",
+    "tests/e2e/test_edge_failover.py::",
+    "tests/deploy/test_printed_commands.py::",
+    "tests/e2e/test_byzantine.py::",
+    "tests/e2e/test_inprocess_equivalence.py::",
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """xdist's loadgroup would hand out the groups with the most tests first (--loadscope-reorder); this order
+    (pytest_collection_modifyitems) is by length instead."""
+    if hasattr(config.option, "loadscopereorder"):
+        config.option.loadscopereorder = False
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """LONGEST_FIRST first, in its order; then the other slow tests; then the rest (each in collection order)."""
+
+    def rank(item: pytest.Item) -> int:
+        for i, prefix in enumerate(LONGEST_FIRST):
+            if item.nodeid.startswith(prefix):
+                return i
+        return len(LONGEST_FIRST) + (item.get_closest_marker("slow") is None)
+
+    items.sort(key=rank)
+
 
 @pytest.fixture
 def amqtt_broker(tmp_path: Path) -> Iterator[str]:

@@ -14,9 +14,11 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
+
+import psutil  # a dependency of amqtt (the broker extra)
 
 SEED = 3
 WORKERS = 4
@@ -29,15 +31,60 @@ def federate(tmp_path: Path, name: str, policy: str, broker: str | None = None, 
     """One federation through the launcher, to the end; its run folder (asserted: exit 0, all workers solved, or
     ended by ``max_episodes`` when that is given)."""
     run_dir = tmp_path / name
-    argv = [sys.executable, "-m", "deploy.run_local", "--workers", str(WORKERS), "--env", ENV, "--policy", policy,
-            "--seed", str(SEED), "--max-episodes", str(max_episodes), "--run-dir", str(run_dir), "--run-id", name]
+    argv = ["--workers", str(WORKERS), "--env", ENV, "--policy", policy, "--seed", str(SEED), "--max-episodes",
+            str(max_episodes), "--run-dir", str(run_dir), "--run-id", name]
     if broker:
         argv += ["--broker", broker]
-    proc = subprocess.run(argv, capture_output=True, text=True, timeout=600)
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    log = tmp_path / f"{name}-launcher.log"
+    with launched(argv, log) as launcher:
+        code = launcher.wait(timeout=600)
+    out = log.read_text()
+    assert code == 0, out[-3000:]
     assert ("all workers solved" if max_episodes == MAX_EPISODES else
-            f"reached the maximum of {max_episodes} episodes") in proc.stdout, proc.stdout[-3000:]
+            f"reached the maximum of {max_episodes} episodes") in out, out[-3000:]
     return run_dir
+
+
+@contextmanager
+def launched(argv: Sequence[str], log: Path, env: dict[str, str] | None = None) -> Iterator[subprocess.Popen]:
+    """``python -m deploy.run_local`` with ``argv``, its output (stdout and stderr) into ``log``; on the way out (the
+    test failed, a wait timed out) whatever is left of it is stopped (``stop_launcher``)."""
+    with log.open("wb") as out:
+        launcher = subprocess.Popen([sys.executable, "-m", "deploy.run_local", *argv], stdout=out,
+                                    stderr=subprocess.STDOUT, env={**os.environ, **(env or {})})
+    try:
+        yield launcher
+    finally:
+        stop_launcher(launcher)
+
+
+def stop_launcher(launcher: subprocess.Popen, grace: float = 30.0) -> None:
+    """End a launcher that is still running, and every process it started: SIGTERM, which it takes as a Ctrl-C (it
+    stops its broker, chief and workers), then SIGKILL to whatever of its process tree is left after ``grace``
+    seconds. Its children each lead a process group of their own (deploy.run_local.Fleet.start), so neither a
+    SIGKILL to the launcher alone nor one to its process group would reach them: they are found in the tree."""
+    if launcher.poll() is not None:
+        return
+    tree = _children(launcher.pid)
+    launcher.terminate()
+    try:
+        launcher.wait(grace)
+    except subprocess.TimeoutExpired:
+        tree += _children(launcher.pid)  # and those started since (an edge started again)
+        launcher.kill()
+        launcher.wait()
+    for proc in tree:  # psutil.Process knows its start time: a pid used again since is not killed
+        with suppress(psutil.NoSuchProcess):
+            proc.kill()
+    psutil.wait_procs(tree, timeout=10)
+
+
+def _children(pid: int) -> list[psutil.Process]:
+    """Every descendant of process ``pid``, none if it has ended."""
+    try:
+        return list(psutil.Process(pid).children(recursive=True))
+    except psutil.NoSuchProcess:
+        return []
 
 
 def warnings_of(run_dir: Path, limit: int = 40) -> str:
@@ -78,10 +125,7 @@ def federate_through(tmp_path: Path, fault: Callable[[], None], argv: Sequence[s
     ``after_rounds`` rounds have closed, to its end (asserted: exit 0); its run folder."""
     run_dir = tmp_path / name
     log = tmp_path / f"{name}-launcher.log"
-    launcher = subprocess.Popen(
-        [sys.executable, "-m", "deploy.run_local", *argv, "--run-dir", str(run_dir), "--run-id", name],
-        stdout=log.open("wb"), stderr=subprocess.STDOUT, env={**os.environ, **env})
-    try:
+    with launched([*argv, "--run-dir", str(run_dir), "--run-id", name], log, env) as launcher:
         metrics = run_dir / "metrics.jsonl"
         deadline = time.monotonic() + 300
         while not metrics.exists() or metrics.read_text().count('"type":"round"') < after_rounds:
@@ -89,9 +133,6 @@ def federate_through(tmp_path: Path, fault: Callable[[], None], argv: Sequence[s
             time.sleep(0.05)
         fault()
         assert launcher.wait(timeout=400) == 0, log.read_text()[-3000:]
-    finally:
-        if launcher.poll() is None:
-            launcher.kill()
     return run_dir
 
 

@@ -32,6 +32,7 @@ import sys
 import tempfile
 import threading
 import time
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -45,7 +46,6 @@ from protocol.messages import (
     ChiefTransfer,
     MatureParams,
     Receipt,
-    RunStart,
     WorkerHello,
     WorkerUpdate,
 )
@@ -144,6 +144,7 @@ class ScriptedFleet:
         self.grads = {w: pack_arrays({k: rng.normal(0, 1e-3, v.shape).astype(np.float32) for k, v in arrays.items()})
                       for w in self.ids}
         self.arrivals: dict[int, dict[str, float]] = {}
+        self.started: set[str] = set()  # the workers that have read the RunStart (from their edge, when behind one)
         self.answers: queue.Queue[Any] = queue.Queue()
         self.lock = threading.Lock()
         self.conns: list[Transport] = []
@@ -167,26 +168,33 @@ class ScriptedFleet:
                     episode = -1
                 with self.lock:
                     self.arrivals.setdefault(episode, {})[wid] = now
-            elif leaf == "start" and wid == self.ids[0]:
-                self.answers.put(decode(payload, RunStart))
+            elif leaf == "start":
+                with self.lock:
+                    self.started.add(wid)
+                self.answers.put(topics.START)  # wakes join up
         return on_message
 
     def join(self, timeout: float = 60.0) -> None:
-        """Hellos, as a worker says them (protocol.routes.hello_wait apart), until a RunStart comes."""
+        """Hellos, as a worker says them (protocol.routes.hello_wait apart), until every worker has read a RunStart:
+        a worker behind an edge reads it from its edge, which may start after the root did (and so after the
+        workers of another edge could start); an update sent before its edge serves it would be lost."""
         deadline = time.monotonic() + timeout
         sent = 0
         while time.monotonic() < deadline:
-            for w, conn in zip(self.ids, self.conns, strict=True):
+            with self.lock:
+                waiting = [(w, conn) for w, conn in zip(self.ids, self.conns, strict=True) if w not in self.started]
+            if not waiting:
+                return
+            for w, conn in waiting:
                 hello = WorkerHello(worker_id=w, env_id="CartPole-v0", actor_spec=self.spec, edge=self.edge.get(w))
                 conn.publish(topics.worker(RUN, w, topics.HELLO), encode(hello))
             sent += 1
-            try:
-                while True:
-                    if isinstance(self.answers.get(timeout=hello_wait(sent)), RunStart):
-                        return
-            except queue.Empty:
-                continue
-        raise TimeoutError("the chief never started the run")
+            with suppress(queue.Empty):
+                while len(self.started) < len(self.ids):
+                    self.answers.get(timeout=hello_wait(sent))
+        with self.lock:
+            missing = sorted(set(self.ids) - self.started)
+        raise TimeoutError(f"the chief never started the run for {', '.join(missing)}")
 
     def round(self, episode: int, previous: ChiefAggregate | None, timeout: float = 120.0) -> dict[str, float]:
         """One round: every worker publishes its update; returns the seconds until the first and the last worker

@@ -98,3 +98,25 @@ def test_the_scale_table_says_what_the_rigs_saw() -> None:
     assert "own process" in _rig_header([old, new])
     assert _rig_header([old]).endswith("(deadline misses, states answered)")
     assert _rig_cell({"n": 4}) == "-"
+
+
+def test_scripted_devices_wait_until_every_edge_has_passed_the_run_start_on(mosquitto_broker: str) -> None:
+    """A device behind an edge that starts late reads the RunStart later than the others: the fleet starts its rounds
+    only when every device has read it (an update sent before its edge serves it is lost, and the round hangs)."""
+    from bench.cost import RUN, ScriptedFleet
+    from protocol import topics
+    from protocol.mqtt import BrokerAddress
+    from protocol.transport import connector
+
+    fleet = ScriptedFleet(mosquitto_broker, 2, {"w": np.zeros((2, 2), np.float32)}, edges=2)
+    relay = connector(BrokerAddress.parse(mosquitto_broker))(f"{RUN}-relay").start(10.0)
+    try:
+        relay.publish(topics.relayed(RUN, "e0", topics.START), b"start", qos=1)  # e0 passed it on; e1 not yet
+        with pytest.raises(TimeoutError, match=r"never started the run for w1$"):
+            fleet.join(timeout=3)
+        relay.publish(topics.relayed(RUN, "e1", topics.START), b"start", qos=1)
+        fleet.join(timeout=30)
+        assert fleet.started == {"w0", "w1"}
+    finally:
+        relay.stop()
+        fleet.stop()

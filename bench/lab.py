@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from bench.output import write_block, write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
-from deploy.lab import LabSettings, pretrain_dir, pretrain_met, profile_file
+from deploy.lab import LabSettings, attempt_dir, pretrain_dir, pretrain_met, profile_file
 from protocol.qube import MAX_RETURN
 from runtime.records import SUMMARY, RunSummary
 
@@ -170,11 +170,12 @@ def measure(folder: Path) -> dict[str, Any]:
     rows = progress.get("rigs", [])
     finetune = folder / "finetune"
     summary = RunSummary.read(finetune) if (finetune / SUMMARY).exists() else None
-    pre_dir = pretrain_dir(folder)
+    met = pretrain_met(folder)
+    pre_dir = attempt_dir(folder, met or 1)  # pretrain_dir's folder, without reading the attempts again
     pre = RunSummary.read(pre_dir) if (pre_dir / SUMMARY).exists() else None
     out: dict[str, Any] = {"stages_done": progress.get("done", []), "lab_wall_s": progress.get("wall_s"),
                            "pretrain_episodes": pre.episodes_to_all_solved if pre else None,
-                           "pretrain_met_at_attempt": pretrain_met(folder)}
+                           "pretrain_met_at_attempt": met}
     if summary is None or not rows:
         return {**out, "finished": False}
     first: dict[str, float] = {}
@@ -292,8 +293,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pretrain-episodes", type=int, default=600)
     p.add_argument("--qube-actions", default="paper")
     p.add_argument("--warm-lr", type=float, default=LabSettings.model_fields["warm_lr"].default,
-                   help="the fine-tune's learning-rate factor while a rig's episodes meet TC (deploy.lab --warm-lr; "
-                   "default %(default)s)")
+                   help="the fine-tune's learning-rate factor, full rates only after 3 episodes in a row short "
+                   "of TC (deploy.lab --warm-lr; default %(default)s)")
     p.add_argument("--runs-dir", type=Path, default=Path("runs/bench-lab"))
     p.add_argument("--jobs", type=int, default=1, help="labs at a time (each runs 3-4 processes)")
     p.add_argument("--out", type=Path, default=None, help="the results file (default bench/results/lab.json for "

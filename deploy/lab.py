@@ -203,12 +203,9 @@ def attempt_seed(s: LabSettings, attempt: int) -> int:
     return s.seed + PRETRAIN_SEED_STEP * (attempt - 1)
 
 
-def ended_without_tc(run_dir: Path) -> str | None:
-    """Why a finished pretrain has no controller that meets TC (None: it has one, or it did not finish)."""
-    summary = read_summary(run_dir)
-    if summary is None or summary.end_reason == "interrupted" or any(w.solved for w in summary.workers):
-        return None
-    return summary.end_reason
+def met_tc(summary: RunSummary | None) -> bool:
+    """Whether a pretrain's summary has a worker whose controller met TC."""
+    return summary is not None and any(w.solved for w in summary.workers)
 
 
 def pretrain(s: LabSettings, folder: Path) -> None:
@@ -228,20 +225,19 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     why = ""
     for attempt in range(1, s.pretrain_attempts + 1):
         run_dir = attempt_dir(folder, attempt)
-        failed = ended_without_tc(run_dir)
-        if failed is None:
+        summary, code = read_summary(run_dir), None
+        if summary is None or summary.end_reason == "interrupted":  # not run yet, or to run again
             if attempt > 1:
                 say("pretrain", f"attempt {attempt} of {s.pretrain_attempts}, seed {attempt_seed(s, attempt)}")
             code = run_child("pretrain", pretrain_command(s, folder, attempt), env)
             summary = read_summary(run_dir)
-            if summary is not None and any(w.solved for w in summary.workers):
-                solved = sum(w.solved for w in summary.workers)
-                if solved < len(summary.workers):  # a controller that met TC exists: the fine-tune starts from it
-                    say("pretrain", f"{solved} of {len(summary.workers)} workers met TC ({summary.end_reason}); the "
-                        "fine-tune starts from the first of them to solve")
-                return
-            failed = summary.end_reason if summary is not None else f"exit code {code}"
-        why = f"attempt {attempt}: {failed}"
+        if summary is not None and met_tc(summary):
+            solved = sum(w.solved for w in summary.workers)
+            if solved < len(summary.workers):  # a controller that met TC exists: the fine-tune starts from it
+                say("pretrain", f"{solved} of {len(summary.workers)} workers met TC ({summary.end_reason}); the "
+                    "fine-tune starts from the first of them to solve")
+            return
+        why = f"attempt {attempt}: {summary.end_reason if summary is not None else f'exit code {code}'}"
         say("pretrain", f"no controller met TC ({why})")
     raise StageFailed(f"no pretrain ended with a controller that meets TC ({s.pretrain_attempts} attempts, last "
                       f"{why}); try more --pretrain-episodes or --pretrain-attempts, or another --seed")
@@ -271,8 +267,7 @@ def pretrain_dir(folder: Path) -> Path:
 def pretrain_met(folder: Path) -> int | None:
     """The first pretrain attempt with a worker that met TC (None: none has one)."""
     for attempt in range(1, MAX_ATTEMPTS + 1):
-        summary = read_summary(attempt_dir(folder, attempt))
-        if summary is not None and any(w.solved for w in summary.workers):
+        if met_tc(read_summary(attempt_dir(folder, attempt))):
             return attempt
     return None
 

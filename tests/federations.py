@@ -122,7 +122,8 @@ def per_worker(run_dir: Path) -> list[tuple[str, int, int]]:
 def federate_through(tmp_path: Path, fault: Callable[[], None], argv: Sequence[str], env: dict[str, str],
                      after_rounds: int = 10, name: str = "run") -> Path:
     """A federation through the launcher (``python -m deploy.run_local`` with ``argv``), disturbed by ``fault`` once
-    ``after_rounds`` rounds have closed, to its end (asserted: exit 0); its run folder."""
+    ``after_rounds`` rounds have closed, to its end (asserted: exit 0, and rounds closed after the fault); its run
+    folder."""
     run_dir = tmp_path / name
     log = tmp_path / f"{name}-launcher.log"
     with launched([*argv, "--run-dir", str(run_dir), "--run-id", name], log, env) as launcher:
@@ -132,7 +133,10 @@ def federate_through(tmp_path: Path, fault: Callable[[], None], argv: Sequence[s
             assert time.monotonic() < deadline and launcher.poll() is None, log.read_text()
             time.sleep(0.05)
         fault()
+        at_fault = metrics.read_text().count('"type":"round"')
         assert launcher.wait(timeout=400) == 0, log.read_text()[-3000:]
+    # the fault's premise: it struck a running federation (not one that had ended meanwhile on a busy machine)
+    assert metrics.read_text().count('"type":"round"') > at_fault, f"the run had ended by round {at_fault}"
     return run_dir
 
 

@@ -124,8 +124,10 @@ class Store:
         self.config: dict[str, Any] = data.get("config", {})
 
     def done(self, unit: Unit) -> bool:
+        """Measured with the same params, and the file it wrote (an identified profile) still there."""
         entry = self.entries.get(unit.key)
-        return entry is not None and entry.get("params") == unit.params
+        return (entry is not None and entry.get("params") == unit.params
+                and ("file" not in entry or Path(entry["file"]).exists()))
 
     def put(self, unit: Unit, result: dict[str, Any]) -> None:
         self.entries[unit.key] = {**result, "params": unit.params}
@@ -341,7 +343,8 @@ def prerequisites(args: argparse.Namespace, store: Store) -> list[Unit]:
                 for i in range(RIGS):
                     out = identified_file(args.runs_dir, setting, seed, i)
                     units.append(Unit(f"identify/{setting}/s{seed}/rig{i}", identify,
-                                      {"setting": setting, "seed": rig_seed(seed, i), "out": str(out)}))
+                                      {"setting": setting, "seed": rig_seed(seed, i), "out": str(out)},
+                                      {"out": str(out)}))  # another --runs-dir identifies again
     return [u for u in units if not store.done(u)]
 
 

@@ -60,6 +60,21 @@ def test_identifications_are_planned_for_the_identified_variant_and_skipped_once
     assert units["selftest/combined/nominal/s601"].kwargs["models"] == [None] * 3
 
 
+def test_identifications_are_made_again_in_another_runs_folder_or_when_their_profile_is_gone(tmp_path: Path) -> None:
+    a = args(tmp_path, "--measures", "selftest", "--settings", "combined", "--seeds", "601")
+    store = ood.Store(a.out)
+    for u in ood.prerequisites(a, store):
+        Path(u.kwargs["out"]).parent.mkdir(parents=True, exist_ok=True)
+        Path(u.kwargs["out"]).write_text("{}")
+        store.put(u, {"ok": True, "file": u.kwargs["out"], "rig_s": 110.0})
+    gone = ood.identified_file(a.runs_dir, "combined", 601, 1)
+    gone.unlink()  # a runs folder cleaned up since: rig1's profile is no longer there
+    assert [u.key for u in ood.prerequisites(a, store)] == ["identify/combined/s601/rig1"]
+    elsewhere = args(tmp_path, "--measures", "selftest", "--settings", "combined", "--seeds", "601",
+                     "--runs-dir", str(tmp_path / "other-runs"))
+    assert len(ood.prerequisites(elsewhere, store)) == 3  # not the profiles of another folder
+
+
 def test_a_unit_is_measured_again_when_its_parameters_change(tmp_path: Path) -> None:
     a = args(tmp_path, "--measures", "reset", "--settings", "lab", "--seeds", "601", "--variants", "nominal",
              "--resets", "4")

@@ -12,6 +12,7 @@ and per family the median |relative error| of each parameter. Seeds 501-510 are 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import statistics
 import sys
@@ -22,6 +23,7 @@ from typing import Any
 
 from bench.output import write_report
 from rpi_bridge.control import ControlConfig
+from rpi_bridge.identify import IdentifyConfig
 from rpi_bridge.selftest import SelfTestConfig
 from services.qube_sim import families
 from services.qube_sim.identify import FitRefused, check, fit, record_simulated
@@ -51,12 +53,38 @@ def rigs(families_: list[str], seeds: dict[str, list[int]]) -> list[tuple[str, R
     return out
 
 
-def one(family: str, profile: RigProfile, seed: int) -> dict[str, Any]:
+def protocol(text: str) -> dict[str, float]:
+    """``--protocol``: comma-separated NAME=NUMBER overrides of rpi_bridge.identify.IdentifyConfig's scalar fields."""
+    scalars = {f.name: f.type for f in dataclasses.fields(IdentifyConfig) if f.type in ("float", "int")}
+    out: dict[str, float] = {}
+    for item in filter(None, text.split(",")):
+        name, _, value = item.partition("=")
+        if name.strip() not in scalars:
+            raise argparse.ArgumentTypeError(f"{name.strip()!r} is not one of {', '.join(sorted(scalars))}")
+        try:
+            number = float(value)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name.strip()}={value!r}: not a number") from None
+        out[name.strip()] = int(number) if scalars[name.strip()] == "int" else number
+    IdentifyConfig(**out)  # type: ignore[arg-type]  # its own checks: one clear line for an impossible protocol
+    return out
+
+
+def control(overrides: dict[str, float] | None = None) -> ControlConfig:
+    """CONTROL, with the identification protocol's defaults changed by ``overrides`` (``--protocol``)."""
+    if not overrides:
+        return CONTROL
+    return dataclasses.replace(CONTROL, identify=IdentifyConfig(
+        period_s=CONTROL.period_s, max_command=CONTROL.max_command, arm_soft_limit=CONTROL.reset.arm_soft_limit,
+        brake_accel=CONTROL.reset.brake_accel, **overrides))  # type: ignore[arg-type]  # scalars only
+
+
+def one(family: str, profile: RigProfile, seed: int, overrides: dict[str, float] | None = None) -> dict[str, Any]:
     truth = profile.rig_params(seed)
     began = time.perf_counter()
     row: dict[str, Any] = {"family": family, "profile": profile.name, "seed": seed}
     try:
-        rec = record_simulated(profile, seed, CONTROL)
+        rec = record_simulated(profile, seed, control(overrides))
     except Exception as err:  # the protocol could not finish on this rig: that is a result
         return {**row, "outcome": f"protocol failed: {err}"}
     row["rig_seconds"] = round(rec.rig_seconds, 1)
@@ -123,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--course-seeds", type=seed_list, default=seed_list("501-505"), metavar="A-B|A,B,..")
     parser.add_argument("--sweep-seeds", type=seed_list, default=seed_list("501"), metavar="A-B|A,B,..")
     parser.add_argument("--jobs", type=int, default=1, help="rigs in parallel (processes)")
+    parser.add_argument("--protocol", type=protocol, default={}, metavar="NAME=X,..",
+                        help="change the protocol's defaults (rpi_bridge/identify.py IdentifyConfig), e.g. "
+                             "decay_s=12,prbs_s=35,breakaway_repeats=1")
     parser.add_argument("--out", type=Path, default=RESULTS / "identify.json")
     args = parser.parse_args(argv)
     todo = rigs(args.families, {"combined": args.combined_seeds, "course": args.course_seeds,
@@ -130,15 +161,15 @@ def main(argv: list[str] | None = None) -> int:
     began = time.perf_counter()
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for row in pool.map(one, *zip(*todo, strict=True)):
+        for row in pool.map(one, *zip(*todo, strict=True), [args.protocol] * len(todo)):
             brief = {k: row.get(k) for k in ("family", "profile", "seed", "outcome", "heldout_rms_deg", "fit_wall_s")}
             if "parameters" in row:
                 brief.update({k: round(row["parameters"][k]["error"], 3) for k in ("Dp", "Dr", "coulomb_arm", "motor")})
             print(json.dumps(brief), flush=True)
             rows.append(row)
     write_report(args.out, "bench.identify", argv,
-                 {"base": "lab", "wall_s": round(time.perf_counter() - began, 1), "medians": medians(rows),
-                  "results": rows})
+                 {"base": "lab", "protocol": args.protocol, "wall_s": round(time.perf_counter() - began, 1),
+                  "medians": medians(rows), "results": rows})
     return 0
 
 

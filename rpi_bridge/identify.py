@@ -1,4 +1,4 @@
-"""The identification protocol: about two minutes of rig time that excite every parameter which decides control, as
+"""The identification protocol: about 80 s of rig time that excite every parameter which decides control, as
 pure code, and the :class:`Recording` it leaves for the host's fit (services/qube_sim/identify.py).
 
 :class:`Identification` is a tick-by-tick state machine in the style of rpi_bridge/selftest.py: :meth:`step` takes
@@ -15,8 +15,8 @@ write. The amplifier stays on throughout; commands in SPI counts (a positive one
    off: its back-EMF would otherwise let the arm drift): long enough for viscous (exponential) and Coulomb (linear)
    decay to differ.
 4. ``breakaway+`` / ``breakaway-``: from rest at the centre, the voltage rises by ``stair_volts`` every
-   ``stair_s`` until the arm has moved ``breakaway_move`` (deadzone + static friction), then zero; twice in each
-   direction, each followed by a return to the centre (``return``).
+   ``stair_s`` until the arm has moved ``breakaway_move`` (deadzone + static friction), then zero;
+   ``breakaway_repeats`` times in each direction, each followed by a return to the centre (``return``).
 5. ``step``: from ``step_start`` on one side, a short step of ``step_volts`` towards the other (inertia, motor
    gain, arm damping), cut short at ``step_travel`` past the centre, then a return to the centre.
 6. ``prbs``: ``prbs_s`` of a seeded pseudo-random multi-level voltage (levels ``prbs_volts``, held 3-25 ticks)
@@ -76,17 +76,17 @@ class IdentifyConfig:
     excite_volts: float = 2.5
     excite_amplitude: float = math.radians(30.0)
     excite_timeout_s: float = 10.0
-    decay_s: float = 25.0
+    decay_s: float = 12.0
     stair_volts: float = 0.1
     stair_s: float = 0.1
     stair_max_volts: float = 4.0
     breakaway_move: float = math.radians(3.0)
-    breakaway_repeats: int = 2  # per direction
+    breakaway_repeats: int = 1  # per direction
     step_volts: tuple[float, ...] = (1.5, 3.0, 5.0)
     step_start: float = math.radians(30.0)
     step_s: float = 0.3
     step_travel: float = math.radians(30.0)  # past the centre
-    prbs_s: float = 60.0
+    prbs_s: float = 35.0  # (25 s of decay, two breakaways per direction and 60 s here fitted no better: docs)
     prbs_volts: tuple[float, ...] = (1.0, 2.0, 3.5)
     prbs_hold_ticks: tuple[int, int] = (3, 25)
     prbs_travel: float = math.radians(45.0)

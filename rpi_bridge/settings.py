@@ -98,7 +98,7 @@ class BridgeSettings(MqttSettings, LoopSettings):
     spi_device: int = setting(0, "SPI chip select (0 = CE0)", ge=0)
     spi_mode: int = setting(2, "SPI mode (the data sheet requires 2)", ge=0, le=3)
     spi_speed_hz: int = setting(1_000_000, "SPI clock", gt=0)
-    identify: Path | None = setting(None, "run the start-up checks and the identification protocol (about 2 minutes "
+    identify: Path | None = setting(None, "run the start-up checks and the identification protocol (about 80 s "
                                     "of rig time; docs/how-to/identify.md), write its recording to OUT (.json or "
                                     ".json.gz) and exit, without MQTT", env=False, metavar="OUT")
 

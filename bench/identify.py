@@ -136,6 +136,60 @@ def medians(rows: list[dict[str, Any]]) -> dict[str, Any]:
     return out
 
 
+#: The four values the issue's identification target names (each within 20 % of the truth).
+TARGET = ("Dp", "Dr", "coulomb_arm", "motor")
+#: The protocol-length comparison on tuning rigs (``--protocols-markdown``): the protocol of each file.
+PROTOCOLS = {
+    "120 s (25 s decay, 2 breakaways per direction, 60 s PRBS: the protocol before)":
+        RESULTS / "identify-protocol-120s.json",
+    "90 s (as 120 s, 30 s PRBS)": RESULTS / "identify-protocol-90s.json",
+    "80 s (12 s decay, 1 breakaway per direction, 35 s PRBS: the default)": RESULTS / "identify-protocol-80s.json",
+}
+
+
+def _pct(x: float) -> str:
+    return f"{100 * x:.1f}%"
+
+
+def markdown(data: dict[str, Any]) -> str:
+    """The benchmark's table for the docs (``--markdown``): per family, the median |relative error| of each fitted
+    value (the median stated 1-sigma in brackets), the median held-out error, rig and fit seconds; then how many rigs
+    had each of the target's values within 20 %."""
+    head = f"Generated from `{RESULTS / 'identify.json'}`, made by `{data['command']}` ({data['wall_s']:.0f} s).\n\n"
+    names = list(TRUTH)
+    rows = ["| family | rigs | trusted | " + " | ".join(f"`{n}`" for n in names) + " | held-out RMS | rig s | fit s |",
+            "| --- " * (len(names) + 6) + "|"]
+    for family, m in data["medians"].items():
+        cells = [f"{_pct(m[n]['median_abs_error'])} ({_pct(m[n]['median_sigma'])})" if n in m else "-" for n in names]
+        rows.append(f"| {family} | {m['rigs']} | {m['trusted']} | " + " | ".join(cells)
+                    + f" | {m['median_heldout_rms_deg']:.2f} deg | {m['median_rig_seconds']:.0f} | "
+                    f"{m['median_fit_wall_s']:.0f} |")
+    fitted = [r for r in data["results"] if "parameters" in r]
+    within = ", ".join(f"{n} {sum(abs(r['parameters'][n]['error']) <= 0.2 for r in fitted)}" for n in TARGET)
+    tail = (f"\nTrusted: {sum(r['outcome'] == 'trusted' for r in data['results'])} of {len(data['results'])} rigs. "
+            f"Within 20 % of the truth, of {len(fitted)} fitted rigs: {within}.\n")
+    return head + "\n".join(rows) + "\n" + tail
+
+
+def protocols_markdown(files: dict[str, Path], root: Path = Path(".")) -> str:
+    """The protocol lengths compared on the same tuning rigs (``--protocols-markdown``): one row per file (under
+    ``root``)."""
+    rows = ["| protocol | rigs | trusted | rig s, median | " + " | ".join(f"`{n}`: median, within 20 %" for n in TARGET)
+            + " | held-out RMS |", "| --- " * (len(TARGET) + 5) + "|"]
+    commands = []
+    for label, path in files.items():
+        data = json.loads((root / path).read_text())
+        commands.append(f"`{data['command']}`")
+        fitted = [r for r in data["results"] if "parameters" in r]
+        cells = [f"{_pct(statistics.median(abs(r['parameters'][n]['error']) for r in fitted))}, "
+                 f"{sum(abs(r['parameters'][n]['error']) <= 0.2 for r in fitted)}" for n in TARGET]
+        rows.append(f"| {label} | {len(data['results'])} | {sum(r['outcome'] == 'trusted' for r in data['results'])} | "
+                    f"{statistics.median(r['rig_seconds'] for r in fitted):.0f} | " + " | ".join(cells)
+                    + f" | {statistics.median(r['heldout_rms_deg'] for r in fitted):.2f} deg |")
+    head = "Generated from " + ", ".join(f"`{p}`" for p in files.values()) + ", made by " + "; ".join(commands)
+    return head + ".\n\n" + "\n".join(rows) + "\n"
+
+
 def seed_list(text: str) -> list[int]:
     if "-" in text:
         a, b = text.split("-")
@@ -155,7 +209,14 @@ def main(argv: list[str] | None = None) -> int:
                         help="change the protocol's defaults (rpi_bridge/identify.py IdentifyConfig), e.g. "
                              "decay_s=12,prbs_s=35,breakaway_repeats=1")
     parser.add_argument("--out", type=Path, default=RESULTS / "identify.json")
+    parser.add_argument("--markdown", action="store_true", help="only print --out's table for the docs")
+    parser.add_argument("--protocols-markdown", action="store_true",
+                        help="only print the protocol lengths' comparison for the docs (bench/results/"
+                             "identify-protocol-*.json)")
     args = parser.parse_args(argv)
+    if args.markdown or args.protocols_markdown:
+        print(markdown(json.loads(args.out.read_text())) if args.markdown else protocols_markdown(PROTOCOLS), end="")
+        return 0
     todo = rigs(args.families, {"combined": args.combined_seeds, "course": args.course_seeds,
                                 "sweep": args.sweep_seeds})
     began = time.perf_counter()

@@ -83,6 +83,16 @@ def test_the_out_of_distribution_tables_are_ood_json() -> None:
     assert block(ROOT / ood.DOCS, ood.BEGIN, ood.END) == ood.render_docs(data, str(source))
 
 
+def test_the_identification_tables_are_their_results_files() -> None:
+    from bench import identify
+
+    page = ROOT / "docs/how-to/identify.md"
+    data = json.loads((ROOT / identify.RESULTS / "identify.json").read_text())
+    assert block(page, "<!-- identify:begin", "<!-- identify:end") == identify.markdown(data)
+    assert (block(page, "<!-- identify-protocols:begin", "<!-- identify-protocols:end")
+            == identify.protocols_markdown(identify.PROTOCOLS, ROOT))
+
+
 def test_the_swing_up_tables_are_their_results_files() -> None:
     from bench import swingup
 

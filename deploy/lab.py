@@ -244,11 +244,15 @@ def pretrain(s: LabSettings, folder: Path) -> None:
 
 
 def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
+    """The pretrain's launcher: simulated rigs randomised around the identified ones, each reset computed from the
+    drawn plant (as every rig's bridge from its identified profile in the fine-tune)."""
+    from services.qube_sim.profile import DRAWN_MODEL
+
     profile_path = profile_file(folder)
     return [sys.executable, "-m", "deploy.inprocess", "--env", "qube-local", "--workers", str(s.pretrain_workers),
             "--seed", str(attempt_seed(s, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
             str(s.pretrain_episodes), "--run-dir", str(attempt_dir(folder, attempt)),
-            "--rig-profile", str(profile_path), "--rig-model", str(profile_path), "--qube-actions", s.qube_actions]
+            "--rig-profile", str(profile_path), "--rig-model", DRAWN_MODEL, "--qube-actions", s.qube_actions]
 
 
 # -- stage 3: fine-tune -------------------------------------------------------------------------------------------

@@ -11,6 +11,7 @@ from pydantic import (
     NonNegativeInt,
     PlainSerializer,
     PositiveInt,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -20,7 +21,7 @@ from deploy import sites
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
 from runtime.settings import Counts, Port, Settings, Words, setting, warm_lr_problem, warm_lr_setting
-from services.qube_sim.profile import load_profile
+from services.qube_sim.profile import DRAWN_MODEL, check_model_source, load_profile
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
 
@@ -63,7 +64,9 @@ class SimulatedRigSettings(FederationSettings):
                                       "unset: ideal", metavar="NAME|FILE|DIR")
     rig_model: str | None = setting(None, "--env qube or qube-local: the rigs' identified profiles (a file, or a "
                                     "folder with one per rig, as deploy.lab writes them), from which each rig's "
-                                    "reset and self-test are computed (unset: the nominal rig)", metavar="FILE|DIR")
+                                    "reset and self-test are computed; qube-local also takes drawn: each rig's own "
+                                    "plant, and each one domain randomisation draws, as if identified exactly (a "
+                                    "pretrain's); unset: the nominal rig", metavar="FILE|DIR|drawn")
     randomize: float | None = setting(None, "--env qube or qube-local: domain randomisation, draw each rig's "
                                       "parameters at each reset from +-FRACTION of the profile's values (unset: the "
                                       "profile's)", ge=0, le=0.5, metavar="FRACTION")
@@ -73,9 +76,9 @@ class SimulatedRigSettings(FederationSettings):
 
     @field_validator("rig_profile", "rig_model")
     @classmethod
-    def _profile(cls, value: str | None) -> str | None:
-        if value is not None:
-            load_profile(value)  # a missing or bad file: one line before anything starts
+    def _profile(cls, value: str | None, info: ValidationInfo) -> str | None:
+        if value is not None:  # a missing or bad file: one line before anything starts
+            check_model_source(value) if info.field_name == "rig_model" else load_profile(value)
         return value
 
     @model_validator(mode="after")
@@ -85,6 +88,9 @@ class SimulatedRigSettings(FederationSettings):
                 if getattr(self, name) is not None:
                     raise ValueError(f"--{name.replace('_', '-')} (FEDRL_{name.upper()}) is a setting of --env qube "
                                      f"or qube-local, not of {self.env}")
+        if self.rig_model == DRAWN_MODEL and self.env != "qube-local":
+            raise ValueError("--rig-model drawn is for the simulated rigs of --env qube-local (a rig over MQTT has its "
+                             "own model: python -m rpi_bridge --rig-model, python -m services.qube_sim --rig-model)")
         return self
 
 

@@ -220,6 +220,15 @@ class ControlCore:
             self.events.append((self.phase, request_id, f"identification {request_id} waits for the start-up checks"))
         self._pending_identify = request_id
 
+    def use_model(self, model: PlantModel) -> None:
+        """Compute the resets (and a self-test still to come) from ``model`` from the next reset on: the rig's model
+        changed (a simulated rig whose physics were drawn again). Not while a reset or an identification is under way
+        (an episode may be: the reset that ends it takes the new model)."""
+        if self.phase in ("resetting", "identifying"):
+            raise RuntimeError(f"the bridge's model cannot change while {self.phase}")
+        self.cfg = with_model(self.cfg, model)
+        self._reset_ctl.base_config = self.cfg.reset
+
     @property
     def identify_pending(self) -> bool:
         """An identification request waits to be served at the next tick."""

@@ -258,13 +258,15 @@ class QubeLocalEnv(_QubeTask):
 
     def __init__(self, seed: int = 0, variation: float = 0.05, reset_ticks: int = 20_000, profile: Any = None,
                  randomize: float | None = None, timing: InjectedTiming | None = None,
-                 actions: ActionSet | None = None, control: ControlConfig | None = None) -> None:
+                 actions: ActionSet | None = None, control: ControlConfig | None = None,
+                 drawn_model: bool = False) -> None:
         """``profile`` (a services.qube_sim.profile.RigProfile) gives the rig's physics and non-ideal effects, spread
         by ``seed``; without one, the nominal plant spread by ``variation``. ``randomize`` (or the profile's) draws
         the physics again at every reset. ``timing``: the real loop's timing (the ``delayed`` clock): each action
         reaches the motor a random delay after its state's read, or is lost to the safe action; None: at the read
         (``lockstep``). ``actions``: the action set (default the paper's); ``control``: the bridge's configuration
-        (default: the nominal rig's, at the task's period)."""
+        (default: the nominal rig's, at the task's period); ``drawn_model``: its reset and self-test computed from the
+        rig's own plant, and from each drawn one (``--rig-model drawn``: services/qube_sim/profile.py DRAWN_MODEL)."""
         super().__init__(actions)
         from services.qube_sim.clock import VirtualClock
         from services.qube_sim.dynamics import QubeParams
@@ -278,12 +280,21 @@ class QubeLocalEnv(_QubeTask):
         self.clock = VirtualClock()
         self.device = SimulatedQube(params, seed=seed, period_s=0, clock=self.clock, **options)
         self.core = ControlCore(self.device, control or ControlConfig(period_s=PERIOD_S), clock=self.clock)
+        self.drawn_model = drawn_model
+        if drawn_model:
+            self._use_plant(params)
         self.reset_ticks = reset_ticks
         self.timing = timing
         self.failed_resets = 0
         self.redrawn = 0  # randomised plants replaced because they could not be swung up
         self._requests = itertools.count(1)
         self._episodes = itertools.count(1)
+
+    def _use_plant(self, params: Any) -> None:
+        """The bridge's model is this plant (``drawn_model``)."""
+        from services.qube_sim.profile import params_model
+
+        self.core.use_model(params_model(params))
 
     def _sense(self) -> Sensed:
         self.clock.advance(PERIOD_S)
@@ -308,6 +319,8 @@ class QubeLocalEnv(_QubeTask):
                                                                                   self.randomize, draw=draw)
             if params is not None:  # domain randomisation: this episode's physics
                 self.device.set_params(params)
+                if self.drawn_model:
+                    self._use_plant(params)
             try:
                 return self._attempts()
             except ResetFailed:
@@ -389,11 +402,12 @@ def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, r
     ``rig_profile`` (a name, a JSON file or a RigProfile; default ``ideal``), on the simulated clock ``qube_clock``:
     ``lockstep``, or ``delayed`` (the profile's ``loop_delay_ms`` and ``loop_miss_rate``, as ``python -m
     services.qube_sim --clock delayed`` applies them). ``rig_model``: the bridge's model of the rig (an identified
-    profile, a file or a folder with one per worker; as ``--rig-model`` of the bridge), else the nominal one."""
+    profile, a file or a folder with one per worker; as ``--rig-model`` of the bridge; ``drawn``: the rig's own plant,
+    each drawn one under randomisation), else the nominal one."""
     actions = action_set(qube_actions)
     if probe:
         return _QubeTask(actions)
-    from services.qube_sim.profile import RigProfile, load_profile
+    from services.qube_sim.profile import DRAWN_MODEL, RigProfile, load_profile
 
     if qube_clock not in LOCAL_CLOCKS:
         raise ValueError(f"qube-local runs on a simulated clock ({' or '.join(LOCAL_CLOCKS)}), not {qube_clock!r}")
@@ -403,8 +417,9 @@ def make_qube_local_env(spec: Any, seed: int, noise: Any, probe: bool = False, r
         lo, hi = profile.loop_delay_ms
         timing = InjectedTiming((lo / 1e3, hi / 1e3), profile.loop_miss_rate, seed=seed)
     control = None
-    if rig_model is not None:
+    drawn = rig_model == DRAWN_MODEL
+    if rig_model is not None and not drawn:
         model = (rig_model if isinstance(rig_model, RigProfile) else load_profile(rig_model, seed)).plant_model()
         control = with_model(ControlConfig(period_s=PERIOD_S), model)
     return QubeLocalEnv(seed=seed, profile=profile, randomize=randomize, timing=timing, actions=actions,
-                        control=control)
+                        control=control, drawn_model=drawn)

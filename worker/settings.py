@@ -73,9 +73,10 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
                                       "a JSON file or a folder of them, one per worker (worker i takes its i-th "
                                       "file; default ideal; a qube_sim rig has its own)", metavar="NAME|FILE|DIR")
     rig_model: str | None = setting(None, "--env qube-local: the bridge's model of the simulated rig for its resets "
-                                    "(an identified profile, or a folder with one per worker; unset: the nominal "
-                                    "rig); a rig over MQTT has its own (python -m rpi_bridge --rig-model)",
-                                    metavar="FILE|DIR")
+                                    "(an identified profile, or a folder with one per worker; drawn: the rig's own "
+                                    "plant, and each one domain randomisation draws, as if identified exactly; unset: "
+                                    "the nominal rig); a rig over MQTT has its own (python -m rpi_bridge --rig-model)",
+                                    metavar="FILE|DIR|drawn")
     randomize: float | None = setting(None, "--env qube-local: domain randomisation, draw the rig's parameters at "
                                       "each reset from +-FRACTION of the profile's values (unset: the profile's)",
                                       ge=0, le=0.5, metavar="FRACTION")
@@ -143,11 +144,11 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
 
     @field_validator("rig_profile", "rig_model")
     @classmethod
-    def _profile(cls, value: str | None) -> str | None:
+    def _profile(cls, value: str | None, info: ValidationInfo) -> str | None:
         if value is not None:
-            from services.qube_sim.profile import load_profile  # pydantic only
+            from services.qube_sim.profile import check_model_source, load_profile  # pydantic only
 
-            load_profile(value)
+            check_model_source(value) if info.field_name == "rig_model" else load_profile(value)
         return value
 
     def states(self) -> Path | None:

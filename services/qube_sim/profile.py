@@ -216,6 +216,25 @@ LAB = RigProfile(
 BUILTIN: dict[str, RigProfile] = {"ideal": IDEAL, "lab": LAB}
 
 
+#: ``--rig-model drawn`` (qube-local): the bridge of a simulated rig takes the rig's own plant as its model, and under
+#: domain randomisation each drawn plant, as if every rig were identified exactly: a real rig's bridge is given its
+#: identified profile (deploy.lab's fine-tune), so a pretrain's resets hand over as the rigs' will.
+DRAWN_MODEL = "drawn"
+
+
+def params_model(p: QubeParams) -> PlantModel:
+    """The bridge's model of one simulated plant, as if identified exactly (``--rig-model drawn``)."""
+    return PlantModel(Rm=p.Rm, km=p.km, kt=p.kt, mr=p.mr, Lr=p.Lr, mp=p.mp, Lp=p.Lp, Dr=p.Dr, Dp=p.Dp, g=p.g,
+                      coulomb_arm=p.Cr, static_arm=p.Sr, deadzone_v=p.deadzone)
+
+
+def check_model_source(source: str) -> str:
+    """A ``--rig-model`` value: ``drawn``, or a profile :func:`load_profile` reads (ProfileError otherwise)."""
+    if source != DRAWN_MODEL:
+        load_profile(source)
+    return source
+
+
 def load_profile(source: str | Path, seed: int | None = None) -> RigProfile:
     """A built-in profile by name, a JSON file of one, or a folder of them, one per rig: its ``*.json`` files in name
     order, the rig of seed S taking file ``worker_index(S)`` (rig i of a run, whose seed is ``worker_seed(base, i)``:

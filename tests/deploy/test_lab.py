@@ -108,6 +108,7 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
     for run_dir, seed in (("pretrain", 8), ("pretrain-2", 10008)):
         summary = json.loads((folder / run_dir / "summary.json").read_text())
         assert summary["env_options"]["rig_profile"] == str(folder / "pretrain-profile.json")  # never the truth
+        assert summary["env_options"]["rig_model"] == "drawn"  # each draw's resets as its identified rig's would be
         assert summary["seed"] == seed and summary["max_episodes"] == 1
 
     again = lab([*args, "--pretrain-attempts", "3"], truth)  # resumes at the pretrain's third attempt

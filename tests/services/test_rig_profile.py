@@ -100,6 +100,39 @@ def test_qube_local_randomises_each_episode_and_is_reproducible() -> None:
     assert first == physics(5) and first[0] != first[1]
 
 
+def test_rig_model_drawn_gives_the_bridge_each_drawn_plant_as_its_model() -> None:
+    """``--rig-model drawn``: the bridge's resets are computed from the rig's own plant, and under randomisation from
+    each drawn one (as every real rig's bridge from its identified profile); the draws themselves are unchanged."""
+    from rpi_bridge.plant import PlantModel
+    from services.qube_sim.profile import DRAWN_MODEL, params_model
+
+    randomised = LAB.model_copy(update={"randomize": 0.2})
+    env = make_env("qube-local", 5, rig_profile=randomised, rig_model=DRAWN_MODEL)
+    plain = make_env("qube-local", 5, rig_profile=randomised)
+    models = []
+    for _ in range(2):
+        env.reset()
+        plain.reset()
+        assert env.device.params == plain.device.params  # type: ignore[attr-defined]
+        models.append(env.core.cfg.reset.model)  # type: ignore[attr-defined]
+        assert models[-1] == params_model(env.device.params)  # type: ignore[attr-defined]
+    assert models[0] != models[1] and plain.core.cfg.reset.model == PlantModel()  # type: ignore[attr-defined]
+    fixed = make_env("qube-local", 5, rig_profile=LAB, rig_model=DRAWN_MODEL)
+    assert fixed.core.cfg.reset.model == params_model(LAB.rig_params(5))  # type: ignore[attr-defined]
+
+
+def test_rig_model_drawn_is_a_setting_of_simulated_rigs_only() -> None:
+    from deploy.settings import InprocessSettings, LocalRunSettings
+    from worker.settings import WorkerSettings
+
+    assert WorkerSettings.given(env="qube-local", rig_model="drawn").rig_model == "drawn"
+    assert InprocessSettings.given(env="qube-local", rig_model="drawn", run_dir=Path("x")).rig_model == "drawn"
+    with pytest.raises(ValueError, match="--rig-model drawn is for the simulated rigs"):
+        LocalRunSettings.given(env="qube", rig_model="drawn")
+    with pytest.raises(ValueError, match="neither a built-in"):
+        WorkerSettings.given(env="qube-local", rig_model="drawnn")
+
+
 def test_ideal_qube_local_trajectories_match_the_nominal_construction() -> None:
     """The profile path builds exactly the rig the old code built: same trajectory, bit for bit."""
     from worker.qube_env import QubeLocalEnv

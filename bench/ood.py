@@ -391,7 +391,7 @@ def model_of(store: Store, args: argparse.Namespace, actions: str, around: str |
 
 
 def measures(args: argparse.Namespace, store: Store) -> list[Unit]:
-    """Every measure unit not yet in ``store`` whose prerequisites are there."""
+    """Every measure unit not yet in ``store`` (or all of them: ``--again``) whose prerequisites are there."""
     units: list[Unit] = []
     for setting in args.settings:
         truth = str(truth_file(setting, args.runs_dir / "truth"))
@@ -399,7 +399,7 @@ def measures(args: argparse.Namespace, store: Store) -> list[Unit]:
             for seed in args.seeds:
                 units += _rig_units(args, store, setting, variant, seed)
                 units += _controller_units(args, store, setting, variant, seed, truth)
-    return [u for u in units if not store.done(u)]
+    return [u for u in units if getattr(args, "again", False) or not store.done(u)]
 
 
 def _rig_units(args: argparse.Namespace, store: Store, setting: str, variant: str, seed: int) -> list[Unit]:
@@ -718,6 +718,8 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--jobs", type=int, default=1, help="units at a time (processes)")
     p.add_argument("--runs-dir", type=Path, default=RUNS)
     p.add_argument("--out", type=Path, default=OUT)
+    p.add_argument("--again", action="store_true", help="measure the selected units again even where --out holds "
+                   "them with the same parameters (the code changed since); identifications are not made again")
     p.add_argument("--report", action="store_true", help="only write the tables of --out into README.md and "
                    f"{DOCS} (runs nothing)")
     args = p.parse_args(argv)

@@ -87,6 +87,9 @@ def test_a_unit_is_measured_again_when_its_parameters_change(tmp_path: Path) -> 
     more = args(tmp_path, "--measures", "reset", "--settings", "lab", "--seeds", "601", "--variants", "nominal",
                 "--resets", "5")
     assert [u.key for u in ood.measures(more, store)] == [unit.key]
+    again = args(tmp_path, "--measures", "reset", "--settings", "lab", "--seeds", "601", "--variants", "nominal",
+                 "--resets", "4", "--again")
+    assert [u.key for u in ood.measures(again, store)] == [unit.key]  # stored with the same parameters: measured again
 
 
 def test_controller_units_wait_for_a_model_and_a_refused_rig_ends_the_lab(tmp_path: Path) -> None:

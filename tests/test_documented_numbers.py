@@ -130,16 +130,9 @@ def test_the_tier_pages_figures_are_their_results_files() -> None:
                 f"{run} run ({ratio:.2f}x)" in page), run
 
 
-def test_the_refitted_rigs_figures_are_ood_json() -> None:
-    """docs/how-to/ood.md quotes the identified rigs of Dp-x0.1 and arm_friction-x3 measured again: from ood.json."""
+def test_the_identifications_of_the_ood_table_are_ood_json() -> None:
+    """docs/how-to/ood.md counts the rigs identified for the table's self-test and reset columns: from ood.json."""
     page = (ROOT / "docs/how-to/ood.md").read_text().replace("\n", " ")
     entries = json.loads((ROOT / "bench/results/ood.json").read_text())["entries"]
-    mine = {k: v for k, v in entries.items() if k.split("/")[1] in ("Dp-x0.1", "arm_friction-x3")
-            and (k.startswith("identify") or k.split("/")[2] == "identified")}
-    ident = [v for k, v in mine.items() if k.startswith("identify/")]
-    tests = [v for k, v in mine.items() if k.startswith("selftest/")]
-    resets = [v for k, v in mine.items() if k.startswith("reset/")]
-    ok, passed, ready = sum(v["ok"] for v in ident), sum(v["passed"] for v in tests), sum(v["ready"] for v in resets)
-    assert (f"all {len(ident)} rigs identified and trusted, {passed} of {sum(v['rigs'] for v in tests)} self-tests, "
-            f"{ready} of {sum(v['resets'] for v in resets)} resets") in page
-    assert ok == len(ident)
+    ident = [v for k, v in entries.items() if k.startswith("identify/")]
+    assert f"Of the {len(ident)} rigs identified, {sum(v['ok'] for v in ident)} were trusted" in page

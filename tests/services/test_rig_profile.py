@@ -286,8 +286,9 @@ class _UndampableSecondDraw:
         return replace(p, km=p.km / 50, kt=p.kt / 50) if (episode, draw) == (2, 0) else p
 
 
-def test_a_randomised_plant_that_cannot_be_swung_up_is_drawn_again() -> None:
-    env = QubeLocalEnv(seed=3, profile=_UndampableSecondDraw(), randomize=0.05)
+@pytest.mark.parametrize("drawn_model", [False, True])
+def test_a_randomised_plant_that_cannot_be_swung_up_is_drawn_again(drawn_model: bool) -> None:
+    env = QubeLocalEnv(seed=3, profile=_UndampableSecondDraw(), randomize=0.05, drawn_model=drawn_model)
     env.reset()
     assert (env.redrawn, env.failed_resets) == (0, 0)
     env.reset()  # five failed swing-ups of the bad draw, then a fresh draw that resets

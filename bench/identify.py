@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from bench.output import write_report
-from rpi_bridge.control import ControlConfig
+from rpi_bridge.control import ControlConfig, identify_config
 from rpi_bridge.identify import IdentifyConfig
 from rpi_bridge.selftest import SelfTestConfig
 from services.qube_sim import families
@@ -74,9 +74,8 @@ def control(overrides: dict[str, float] | None = None) -> ControlConfig:
     """CONTROL, with the identification protocol's defaults changed by ``overrides`` (``--protocol``)."""
     if not overrides:
         return CONTROL
-    return dataclasses.replace(CONTROL, identify=IdentifyConfig(
-        period_s=CONTROL.period_s, max_command=CONTROL.max_command, arm_soft_limit=CONTROL.reset.arm_soft_limit,
-        brake_accel=CONTROL.reset.brake_accel, **overrides))  # type: ignore[arg-type]  # scalars only
+    changed = dataclasses.replace(identify_config(CONTROL), **overrides)  # type: ignore[arg-type]  # scalars only
+    return dataclasses.replace(CONTROL, identify=changed)
 
 
 def one(family: str, profile: RigProfile, seed: int, overrides: dict[str, float] | None = None) -> dict[str, Any]:
@@ -151,6 +150,11 @@ def _pct(x: float) -> str:
     return f"{100 * x:.1f}%"
 
 
+def _within(fitted: list[dict[str, Any]], name: str) -> int:
+    """How many fitted rigs have ``name`` within 20 % of the truth."""
+    return sum(abs(r["parameters"][name]["error"]) <= 0.2 for r in fitted)
+
+
 def markdown(data: dict[str, Any]) -> str:
     """The benchmark's table for the docs (``--markdown``): per family, the median |relative error| of each fitted
     value (the median stated 1-sigma in brackets), the median held-out error, rig and fit seconds; then how many rigs
@@ -165,7 +169,7 @@ def markdown(data: dict[str, Any]) -> str:
                     + f" | {m['median_heldout_rms_deg']:.2f} deg | {m['median_rig_seconds']:.0f} | "
                     f"{m['median_fit_wall_s']:.0f} |")
     fitted = [r for r in data["results"] if "parameters" in r]
-    within = ", ".join(f"{n} {sum(abs(r['parameters'][n]['error']) <= 0.2 for r in fitted)}" for n in TARGET)
+    within = ", ".join(f"{n} {_within(fitted, n)}" for n in TARGET)
     tail = (f"\nTrusted: {sum(r['outcome'] == 'trusted' for r in data['results'])} of {len(data['results'])} rigs. "
             f"Within 20 % of the truth, of {len(fitted)} fitted rigs: {within}.\n")
     return head + "\n".join(rows) + "\n" + tail
@@ -182,7 +186,7 @@ def protocols_markdown(files: dict[str, Path], root: Path = Path(".")) -> str:
         commands.append(f"`{data['command']}`")
         fitted = [r for r in data["results"] if "parameters" in r]
         cells = [f"{_pct(statistics.median(abs(r['parameters'][n]['error']) for r in fitted))}, "
-                 f"{sum(abs(r['parameters'][n]['error']) <= 0.2 for r in fitted)}" for n in TARGET]
+                 f"{_within(fitted, n)}" for n in TARGET]
         rows.append(f"| {label} | {len(data['results'])} | {sum(r['outcome'] == 'trusted' for r in data['results'])} | "
                     f"{statistics.median(r['rig_seconds'] for r in fitted):.0f} | " + " | ".join(cells)
                     + f" | {statistics.median(r['heldout_rms_deg'] for r in fitted):.2f} deg |")

@@ -399,7 +399,7 @@ def measures(args: argparse.Namespace, store: Store) -> list[Unit]:
             for seed in args.seeds:
                 units += _rig_units(args, store, setting, variant, seed)
                 units += _controller_units(args, store, setting, variant, seed, truth)
-    return [u for u in units if getattr(args, "again", False) or not store.done(u)]
+    return [u for u in units if args.again or not store.done(u)]
 
 
 def _rig_units(args: argparse.Namespace, store: Store, setting: str, variant: str, seed: int) -> list[Unit]:

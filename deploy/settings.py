@@ -77,8 +77,12 @@ class SimulatedRigSettings(FederationSettings):
     @field_validator("rig_profile", "rig_model")
     @classmethod
     def _profile(cls, value: str | None, info: ValidationInfo) -> str | None:
-        if value is not None:  # a missing or bad file: one line before anything starts
-            check_model_source(value) if info.field_name == "rig_model" else load_profile(value)
+        if value is None:
+            return None
+        if info.field_name == "rig_model":  # a missing or bad file: one line before anything starts
+            check_model_source(value)
+        else:
+            load_profile(value)
         return value
 
     @model_validator(mode="after")

@@ -109,6 +109,14 @@ class ControlConfig:
             raise ValueError("still_counts and hang_tolerance_counts must be >= 0")
 
 
+def identify_config(config: ControlConfig) -> IdentifyConfig:
+    """The identification protocol a bridge of ``config`` runs: its own, else the protocol's defaults at its period,
+    command cap, soft limit and braking."""
+    return config.identify or IdentifyConfig(period_s=config.period_s, max_command=config.max_command,
+                                             arm_soft_limit=config.reset.arm_soft_limit,
+                                             brake_accel=config.reset.brake_accel)
+
+
 def with_model(config: ControlConfig, model: PlantModel) -> ControlConfig:
     """``config`` for a rig of ``model`` (an identified one; rpi_bridge/plant.py): the reset's swing-up, hold gains
     and friction compensation and the self-test's first pulse come from it."""
@@ -455,10 +463,7 @@ class ControlCore:
             why = f"the bridge refuses to run: {self.refusal}" if self.refusal else "the start-up checks did not pass"
             self._answer_identify(request, None, f"identification {request} refused: {why}")
             return
-        cfg = self.cfg
-        config = cfg.identify or IdentifyConfig(period_s=cfg.period_s, max_command=cfg.max_command,
-                                                arm_soft_limit=cfg.reset.arm_soft_limit,
-                                                brake_accel=cfg.reset.brake_accel)
+        config = identify_config(self.cfg)
         self.request_id = request
         self.fault_reason = ""
         self.phase = "identifying"

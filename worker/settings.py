@@ -148,7 +148,10 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
         if value is not None:
             from services.qube_sim.profile import check_model_source, load_profile  # pydantic only
 
-            check_model_source(value) if info.field_name == "rig_model" else load_profile(value)
+            if info.field_name == "rig_model":
+                check_model_source(value)
+            else:
+                load_profile(value)
         return value
 
     def states(self) -> Path | None:

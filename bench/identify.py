@@ -23,7 +23,7 @@ from typing import Any
 
 from bench.output import write_report
 from rpi_bridge.control import ControlConfig, identify_config
-from rpi_bridge.identify import IdentifyConfig
+from rpi_bridge.identify import IDENTIFY_ATTEMPTS, IdentifyConfig
 from rpi_bridge.selftest import SelfTestConfig
 from services.qube_sim import families
 from services.qube_sim.identify import FitRefused, check, fit, record_simulated
@@ -78,25 +78,35 @@ def control(overrides: dict[str, float] | None = None) -> ControlConfig:
     return dataclasses.replace(CONTROL, identify=changed)
 
 
-def one(family: str, profile: RigProfile, seed: int, overrides: dict[str, float] | None = None) -> dict[str, Any]:
+def one(family: str, profile: RigProfile, seed: int, overrides: dict[str, float] | None = None,
+        attempts: int = IDENTIFY_ATTEMPTS) -> dict[str, Any]:
+    """Identify rig ``seed`` of ``profile`` as the pipeline does (a refused fit recorded again, up to ``attempts``
+    recordings) and compare the last fit with the rig's truth."""
     truth = profile.rig_params(seed)
-    began = time.perf_counter()
     row: dict[str, Any] = {"family": family, "profile": profile.name, "seed": seed}
-    try:
-        rec = record_simulated(profile, seed, control(overrides))
-    except Exception as err:  # the protocol could not finish on this rig: that is a result
-        return {**row, "outcome": f"protocol failed: {err}"}
-    row["rig_seconds"] = round(rec.rig_seconds, 1)
-    row["record_wall_s"] = round(time.perf_counter() - began, 1)
-    try:
-        result = fit(rec, LAB)
-    except FitRefused as err:
-        return {**row, "outcome": f"refused: {err}"}
-    try:
-        check(result)
-        row["outcome"] = "trusted"
-    except FitRefused as err:
-        row["outcome"] = f"refused: {err}"
+    spent, result = 0.0, None
+    for attempt in range(attempts):
+        began = time.perf_counter()
+        try:
+            rec = record_simulated(profile, seed, control(overrides), attempt=attempt)
+        except Exception as err:  # the protocol could not finish on this rig: that is a result
+            return {**row, "outcome": f"protocol failed: {err}"}
+        spent += rec.rig_seconds
+        row.update(rig_seconds=round(spent, 1), attempts=attempt + 1,
+                   record_wall_s=round(time.perf_counter() - began, 1))
+        try:
+            result = fit(rec, LAB)
+        except FitRefused as err:  # no fit at all (the recording cannot be cut into windows)
+            result, row["outcome"] = None, f"refused: {err}"
+            continue
+        try:
+            check(result)
+            row["outcome"] = "trusted"
+            break
+        except FitRefused as err:
+            row["outcome"] = f"refused: {err}"
+    if result is None:
+        return row
     row["fit_wall_s"] = round(result.wall_s, 1)
     row["evaluations"] = result.iterations
     row["train_rms_deg"] = round(result.train_rms_deg, 3)

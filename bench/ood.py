@@ -155,20 +155,29 @@ def _control(model_file: str | None) -> Any:
 
 
 def identify(setting: str, seed: int, out: str) -> dict[str, Any]:
-    """Identify rig ``seed`` of ``setting`` as deploy.lab does (record through the bridge's core, fit over ``lab``);
-    the profile is written to ``out`` only if the fit is trusted."""
-    from rpi_bridge.identify import IdentifyFailed
-    from services.qube_sim.identify import FitRefused, fit_and_write, record_simulated
+    """Identify rig ``seed`` of ``setting`` as deploy.lab does (record through the bridge's core, fit over ``lab``,
+    a refused fit recorded again); the profile is written to ``out`` only if a fit is trusted."""
+    from rpi_bridge.identify import IdentifyFailed, Recording
+    from services.qube_sim.identify import IdentifyRefused, identify_and_write, record_simulated
     from services.qube_sim.profile import LAB
 
     t0 = time.process_time()
     Path(out).parent.mkdir(parents=True, exist_ok=True)
+    truth, control, tried = family_profile(setting), _control(None), []
+
+    def record(attempt: int) -> Recording:
+        tried.append(attempt)
+        return record_simulated(truth, seed, control, attempt=attempt)
+
     try:
-        rec = record_simulated(family_profile(setting), seed, _control(None))
-        fit_and_write(rec, LAB, Path(out), f"bench.ood rig {seed} of {setting}")
-    except (IdentifyFailed, FitRefused) as err:
-        return {"ok": False, "detail": str(err), "cpu_s": round(time.process_time() - t0, 1)}
-    return {"ok": True, "rig_s": round(rec.rig_seconds, 1), "file": out, "cpu_s": round(time.process_time() - t0, 1)}
+        _, profile, _ = identify_and_write(record, LAB, Path(out), f"bench.ood rig {seed} of {setting}")
+    except (IdentifyRefused, IdentifyFailed) as err:
+        spent = {"rig_s": round(err.rig_seconds, 1)} if isinstance(err, IdentifyRefused) else {}
+        return {"ok": False, "detail": str(err), **spent, "attempts": len(tried),
+                "cpu_s": round(time.process_time() - t0, 1)}
+    assert profile.identified is not None
+    return {"ok": True, "rig_s": round(profile.identified.rig_seconds, 1), "attempts": len(tried), "file": out,
+            "cpu_s": round(time.process_time() - t0, 1)}
 
 
 def selftest(setting: str, seeds: list[int], models: list[str | None]) -> dict[str, Any]:
@@ -345,7 +354,12 @@ def prerequisites(args: argparse.Namespace, store: Store) -> list[Unit]:
                     units.append(Unit(f"identify/{setting}/s{seed}/rig{i}", identify,
                                       {"setting": setting, "seed": rig_seed(seed, i), "out": str(out)},
                                       {"out": str(out)}))  # another --runs-dir identifies again
-    return [u for u in units if not store.done(u)]
+    return [u for u in units if not store.done(u) or _refused_before_retries(store.entries[u.key])]
+
+
+def _refused_before_retries(entry: dict[str, Any]) -> bool:
+    """An identification that failed before a refused fit was recorded again (no ``attempts``): identified again."""
+    return not entry.get("ok") and "attempts" not in entry
 
 
 def around_pretrains(args: argparse.Namespace, store: Store) -> list[Unit]:

@@ -460,12 +460,19 @@ class QubeReset(Message):
     request_id: int = Field(ge=0)
 
 
+#: The most identification attempts a host may ask a rig for (QubeIdentify.attempt is below it).
+IDENTIFY_ATTEMPTS_LIMIT: Final = 10
+
+
 class QubeIdentify(Message):
-    """Ask a rig to run the identification protocol (rpi_bridge/identify.py) and send back what it recorded."""
+    """Ask a rig to run the identification protocol (rpi_bridge/identify.py) and send back what it recorded.
+    ``attempt``: 0 the protocol's own excitation; n > 0 its n-th other PRBS sequence (the host asks again so when it
+    refused the fit of a recording)."""
 
     kind: Literal["qube_identify"] = "qube_identify"
     rig_id: Ident
     request_id: int = Field(ge=0)
+    attempt: int = Field(default=0, ge=0, lt=IDENTIFY_ATTEMPTS_LIMIT)
 
 
 #: The largest recording a rig sends (gzip JSON): a 3-minute protocol at 7 ms compresses to about 0.3 MB.

@@ -76,7 +76,8 @@ def identify(device: QubeDevice, s: BridgeSettings) -> int:
             next_tick = time.perf_counter()  # late: no burst of ticks to catch up
 
     try:
-        recording = drive(core, wait, progress=lambda seg: print(f"identify: {seg}", flush=True))
+        recording = drive(core, wait, progress=lambda seg: print(f"identify: {seg}", flush=True),
+                          attempt=s.identify_attempt)
     except IdentifyFailed as err:
         print(f"rpi_bridge: identification failed: {err}", file=sys.stderr)
         return 1

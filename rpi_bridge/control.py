@@ -109,12 +109,13 @@ class ControlConfig:
             raise ValueError("still_counts and hang_tolerance_counts must be >= 0")
 
 
-def identify_config(config: ControlConfig) -> IdentifyConfig:
+def identify_config(config: ControlConfig, attempt: int = 0) -> IdentifyConfig:
     """The identification protocol a bridge of ``config`` runs: its own, else the protocol's defaults at its period,
-    command cap, soft limit and braking."""
-    return config.identify or IdentifyConfig(period_s=config.period_s, max_command=config.max_command,
-                                             arm_soft_limit=config.reset.arm_soft_limit,
-                                             brake_accel=config.reset.brake_accel)
+    command cap, soft limit and braking; ``attempt`` n > 0: with the n-th other PRBS sequence."""
+    own = config.identify or IdentifyConfig(period_s=config.period_s, max_command=config.max_command,
+                                            arm_soft_limit=config.reset.arm_soft_limit,
+                                            brake_accel=config.reset.brake_accel)
+    return replace(own, seed=own.seed + attempt) if attempt else own
 
 
 def with_model(config: ControlConfig, model: PlantModel) -> ControlConfig:
@@ -199,6 +200,7 @@ class ControlCore:
         self._theta_dot = 0.0
         self._return_limit = 0.0  # a reset that starts past the arm limit may bring the arm back from there
         self._pending_identify: int | None = None
+        self._identify_attempt = 0  # the pending identification's attempt (its PRBS sequence)
         self.identification: Identification | None = None  # the last identification run (its recording, failure)
         #: Answers to identification requests for the runner to send: (request id, the finished run or None, its
         #: outcome: "complete" or the one-line reason it has no recording).
@@ -218,15 +220,17 @@ class ControlCore:
             self.events.append((self.phase, request_id, f"reset {request_id} waits for the start-up checks"))
         self._pending_reset = request_id
 
-    def request_identify(self, request_id: int) -> None:
+    def request_identify(self, request_id: int, attempt: int = 0) -> None:
         """Run the identification protocol once the start-up checks have passed (from idle, fallen or a cleared
-        fault, as a reset); its recording is :attr:`identification` once the phase is back to idle. A repeat of the
-        request last served is ignored."""
+        fault, as a reset); its recording is :attr:`identification` once the phase is back to idle. ``attempt``
+        n > 0: with the n-th other PRBS sequence (:func:`identify_config`). A repeat of the request last served is
+        ignored."""
         if request_id == self.request_id or request_id == self._pending_identify:
             return
         if self.phase in ("calibrating", "self_test"):
             self.events.append((self.phase, request_id, f"identification {request_id} waits for the start-up checks"))
         self._pending_identify = request_id
+        self._identify_attempt = attempt
 
     def use_model(self, model: PlantModel) -> None:
         """Compute the resets (and a self-test still to come) from ``model`` from the next reset on: the rig's model
@@ -463,7 +467,7 @@ class ControlCore:
             why = f"the bridge refuses to run: {self.refusal}" if self.refusal else "the start-up checks did not pass"
             self._answer_identify(request, None, f"identification {request} refused: {why}")
             return
-        config = identify_config(self.cfg)
+        config = identify_config(self.cfg, self._identify_attempt)
         self.request_id = request
         self.fault_reason = ""
         self.phase = "identifying"

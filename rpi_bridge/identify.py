@@ -51,6 +51,11 @@ if TYPE_CHECKING:
 State = tuple[float, float, float, float]
 
 
+#: Recordings a host makes of one rig before it gives up: a refused fit is recorded again once, with the next PRBS
+#: sequence (services/qube_sim/identify.py). The rig time of every recording counts.
+IDENTIFY_ATTEMPTS = 2
+
+
 class RecordingError(ValueError):
     """A recording file that cannot be read or is not a valid recording (one line)."""
 
@@ -396,11 +401,11 @@ class IdentifyFailed(RuntimeError):
 
 
 def drive(core: ControlCore, wait: Callable[[], None], request_id: int = 1,
-          progress: Callable[[str], None] | None = None, startup_s: float = 60.0) -> Recording:
+          progress: Callable[[str], None] | None = None, startup_s: float = 60.0, attempt: int = 0) -> Recording:
     """Run the start-up checks and the protocol on ``core``, one tick per ``wait()`` (real time: sleep to the next
     period; a simulated rig: advance its clock), and return the complete recording; IdentifyFailed with the reason
-    otherwise. ``progress`` gets each segment's label as it begins."""
-    core.request_identify(request_id)
+    otherwise. ``progress`` gets each segment's label as it begins; ``attempt``: ControlCore.request_identify's."""
+    core.request_identify(request_id, attempt)
     period = core.cfg.period_s
     limit = round(startup_s / period)
     ticks, segment = 0, ""

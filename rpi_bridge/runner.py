@@ -208,8 +208,8 @@ class BridgeRunner:
         self.slot.cancel()
         self._requested.set()
 
-    def on_identify(self, request_id: int) -> None:
-        self.core.request_identify(request_id)
+    def on_identify(self, request_id: int, attempt: int = 0) -> None:
+        self.core.request_identify(request_id, attempt)
         self.slot.cancel()
         self._requested.set()
 

@@ -82,8 +82,8 @@ class BridgeService:
         msg = self._decode(topic, payload, QubeIdentify)
         if msg is None:
             return
-        log.info("rig %s: identification %d requested", self.rig_id, msg.request_id)
-        self.runner.on_identify(msg.request_id)
+        log.info("rig %s: identification %d requested (attempt %d)", self.rig_id, msg.request_id, msg.attempt)
+        self.runner.on_identify(msg.request_id, msg.attempt)
 
     def _on_reset(self, topic: str, payload: bytes) -> None:
         msg = self._decode(topic, payload, QubeReset)

@@ -10,6 +10,7 @@ from typing import Annotated, ClassVar
 
 from pydantic import AfterValidator, ValidationInfo, field_validator, model_validator
 
+from protocol.messages import IDENTIFY_ATTEMPTS_LIMIT
 from protocol.topics import check_id
 from rpi_bridge.control import ControlConfig, check_max_command, with_model
 from rpi_bridge.frame import MAX_COMMAND, VOLTS_PER_COUNT
@@ -101,6 +102,9 @@ class BridgeSettings(MqttSettings, LoopSettings):
     identify: Path | None = setting(None, "run the start-up checks and the identification protocol (about 80 s "
                                     "of rig time; docs/how-to/identify.md), write its recording to OUT (.json or "
                                     ".json.gz) and exit, without MQTT", env=False, metavar="OUT")
+    identify_attempt: int = setting(0, "with --identify: 0 the protocol's own PRBS sequence; n another one (record "
+                                    "again so when the fit of a recording was refused)", env=False, ge=0,
+                                    lt=IDENTIFY_ATTEMPTS_LIMIT)
 
     def _loaded(self) -> None:
         if self.identify is None:  # --identify never connects

@@ -22,10 +22,16 @@ from pydantic import ValidationError, field_validator
 
 from protocol import topics
 from protocol.codec import DecodeError, RejectCounter, decode, encode
-from protocol.messages import MAX_RECORDING_BYTES, QubeIdentify, QubeRecording, QubeStatus
+from protocol.messages import (
+    IDENTIFY_ATTEMPTS_LIMIT,
+    MAX_RECORDING_BYTES,
+    QubeIdentify,
+    QubeRecording,
+    QubeStatus,
+)
 from protocol.routes import qos_of
 from protocol.transport import Transport
-from rpi_bridge.identify import IdentifyFailed, Recording
+from rpi_bridge.identify import IDENTIFY_ATTEMPTS, IdentifyFailed, Recording
 from runtime.cli import setup_logging
 from runtime.settings import LogLevel, MqttSettings, returns_code, setting
 
@@ -43,8 +49,10 @@ class IdentifySettings(MqttSettings):
     base: str = setting("lab", "profile of every value the fit does not set (built-in name or file)",
                         metavar="NAME|FILE")
     recording_out: Path | None = setting(None, "also keep the rig's recording here (JSON)", env=False)
-    identify_timeout: float = setting(900.0, "seconds to wait for the rig's recording (the protocol takes about 3 "
-                                      "minutes of rig time, after the rig's start-up checks)", gt=0)
+    identify_timeout: float = setting(900.0, "seconds to wait for each of the rig's recordings (the protocol takes "
+                                      "about 80 s of rig time, after the rig's start-up checks)", gt=0)
+    identify_attempts: int = setting(IDENTIFY_ATTEMPTS, "recordings before giving up (a refused fit is recorded "
+                                     "again with the next PRBS sequence)", ge=1, le=IDENTIFY_ATTEMPTS_LIMIT)
     log_level: LogLevel = setting("INFO", "DEBUG, INFO, WARNING or ERROR")
 
     @field_validator("base")
@@ -74,9 +82,10 @@ def unpack(msg: QubeRecording) -> Recording:
 
 def request_recording(conn: Transport, rig_id: str, timeout_s: float,
                       progress: Callable[[str], None] = print, clock: Callable[[], float] = time.monotonic,
-                      request_id: int | None = None) -> Recording:
-    """Ask rig ``rig_id`` to identify itself (repeated every second until it acknowledges) and return its complete
-    recording; IdentifyFailed with the rig's reason, or TimeoutError when nothing comes within ``timeout_s``."""
+                      request_id: int | None = None, attempt: int = 0) -> Recording:
+    """Ask rig ``rig_id`` to identify itself (repeated every second until it acknowledges; ``attempt``: its PRBS
+    sequence, QubeIdentify's) and return its complete recording; IdentifyFailed with the rig's reason, or
+    TimeoutError when nothing comes within ``timeout_s``."""
     inbox: queue.Queue[QubeRecording | QubeStatus] = queue.Queue()
     rejects = RejectCounter(log)
 
@@ -90,7 +99,7 @@ def request_recording(conn: Transport, rig_id: str, timeout_s: float,
         topic = topics.rig(rig_id, leaf)
         conn.subscribe(topic, on_message, qos=qos_of(topic))
     request = request_id if request_id is not None else int(time.time() * 1000) % 1_000_000_000
-    ask = encode(QubeIdentify(rig_id=rig_id, request_id=request))
+    ask = encode(QubeIdentify(rig_id=rig_id, request_id=request, attempt=attempt))
     ask_topic = topics.rig(rig_id, topics.IDENTIFY)
     deadline, next_ask, acknowledged = clock() + timeout_s, 0.0, False
     while clock() < deadline:
@@ -117,23 +126,34 @@ def request_recording(conn: Transport, rig_id: str, timeout_s: float,
 def main(argv: list[str] | None = None) -> int:
     s = IdentifySettings.load(argv, prog="python -m worker.identify", description=__doc__.splitlines()[0])
     setup_logging(s.log_level, f"identify[{s.rig_id}]")
-    from services.qube_sim.identify import fit_to_file
+    from services.qube_sim.identify import identify_to_file
     from services.qube_sim.profile import load_profile
 
     conn = s.connector()(f"identify-{s.rig_id}")
+
+    def record(attempt: int) -> Recording:
+        """One recording of the rig (the connection stays up while the host fits: a refusal asks again)."""
+        print(f"rig {s.rig_id}: identification requested over {s.address()}"
+              + (f" (attempt {attempt + 1} of {s.identify_attempts})" if attempt else ""), flush=True)
+        try:
+            recording = request_recording(conn, s.rig_id, s.identify_timeout, attempt=attempt)
+        except (TimeoutError, ConnectionError) as err:
+            raise IdentifyFailed(str(err)) from None
+        if s.recording_out is not None:
+            recording.save(s.recording_out)
+        print(f"rig {s.rig_id}: {recording.rig_seconds:.0f} s recorded; fitting", flush=True)
+        return recording
+
     try:
         conn.start(timeout=30.0)
-        print(f"rig {s.rig_id}: identification requested over {s.address()}", flush=True)
-        recording = request_recording(conn, s.rig_id, s.identify_timeout)
-    except (IdentifyFailed, TimeoutError, ConnectionError) as err:
+    except ConnectionError as err:
         print(f"python -m worker.identify: {err}", file=sys.stderr)
         return 1
+    try:
+        return identify_to_file(record, load_profile(s.base), s.out, f"rig {s.rig_id} over MQTT",
+                                "python -m worker.identify", s.identify_attempts)
     finally:
         conn.stop()
-    if s.recording_out is not None:
-        recording.save(s.recording_out)
-    print(f"rig {s.rig_id}: {recording.rig_seconds:.0f} s recorded; fitting", flush=True)
-    return fit_to_file(recording, load_profile(s.base), s.out, f"rig {s.rig_id} over MQTT", "python -m worker.identify")
 
 
 if __name__ == "__main__":

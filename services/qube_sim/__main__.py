@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
 
         fault = s.qube_wiring_fault.replace("-", "_")
         return identify_simulated(s.profile(), s.seed, s.control(), load_profile(s.identify_base), s.identify,
-                                  faults={fault: True} if fault != "none" else None)
+                                  faults={fault: True} if fault != "none" else None, attempts=s.identify_attempts)
     setup_logging(s.log_level, f"qube-sim[{s.rig_id}]")
 
     def build() -> BridgeService:

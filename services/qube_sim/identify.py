@@ -15,6 +15,10 @@ relative 1-sigma (the sandwich covariance in log space, clustered by window: :fu
 segment, contiguous in time, never fitted) is at most ``max_heldout_deg`` and at most ``max_heldout_ratio`` times the
 training RMS.
 
+A refused fit is recorded again with the protocol's next PRBS sequence (:func:`identify_to_file`; up to
+``attempts`` recordings, 2 by default): a short held-out block can be unlucky. The profile counts the rig time of
+every recording.
+
 ``python -m services.qube_sim.identify RECORDING --out PROFILE.json [--base lab]``.
 """
 
@@ -36,7 +40,7 @@ from scipy.signal import savgol_filter
 
 from rpi_bridge.control import ControlConfig, ControlCore
 from rpi_bridge.frame import VOLTS_PER_COUNT
-from rpi_bridge.identify import IdentifyFailed, Recording, RecordingError, drive
+from rpi_bridge.identify import IDENTIFY_ATTEMPTS, IdentifyConfig, IdentifyFailed, Recording, RecordingError, drive
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.dynamics import QubeParams, derivatives_array, motor_torque_array
 from services.qube_sim.profile import Identified, ProfileError, RigProfile, load_profile
@@ -434,15 +438,18 @@ def check(result: Fit, cfg: FitConfig | None = None) -> None:
                          f"{cfg.max_heldout_ratio:g}x the training error ({result.train_rms_deg:.2f} deg): overfitted")
 
 
-def to_profile(result: Fit, base: RigProfile, rec: Recording, source: str, name: str | None = None) -> RigProfile:
-    """``base`` with the fitted values, no spread (it is one rig), and what it was fitted from."""
+def to_profile(result: Fit, base: RigProfile, rec: Recording, source: str, name: str | None = None,
+               refused: tuple[float, ...] = ()) -> RigProfile:
+    """``base`` with the fitted values, no spread (it is one rig), and what it was fitted from; ``refused``: the rig
+    seconds of recordings made before ``rec`` whose fits were refused (counted in the rig time)."""
     v = result.values
     delay = max(0.0, min(7.0 - base.action_jitter_ms,
                          v["delay_ms"] - base.sensing_latency_ms - base.action_jitter_ms / 2))
     identified = Identified(
         fitted={k: v[k] for k in (*FITTED, "static_arm") if k != "static_ratio"},
         sigma={k: result.sigma[k] for k in (*FITTED, "static_arm") if k != "static_ratio"},
-        train_rms_deg=result.train_rms_deg, heldout_rms_deg=result.heldout_rms_deg, rig_seconds=rec.rig_seconds,
+        train_rms_deg=result.train_rms_deg, heldout_rms_deg=result.heldout_rms_deg,
+        rig_seconds=rec.rig_seconds + sum(refused), attempts=1 + len(refused),
         fitted_at=datetime.now(UTC).isoformat(timespec="seconds"), source=source, base=base.name,
         rig=rec.rig, fit_wall_s=result.wall_s)
     data = {**base.model_dump(), "name": name or f"{rec.rig or base.name}-identified",
@@ -472,59 +479,100 @@ def summary(result: Fit) -> str:
 def fit_and_write(rec: Recording, base: RigProfile, out: Path, source: str, cfg: FitConfig | None = None,
                   progress: Callable[[str], None] | None = None) -> tuple[Fit, RigProfile]:
     """Fit, check and write the profile (only a trusted one); FitRefused otherwise."""
-    result = fit(rec, base, cfg, progress)
-    if progress is not None:
-        progress(summary(result))
-    check(result, cfg)
-    profile = to_profile(result, base, rec, source)
-    out.write_text(profile.to_json())
+    result, profile, _ = identify_and_write(lambda _: rec, base, out, source, 1, cfg, progress)
     return result, profile
+
+
+class IdentifyRefused(FitRefused):
+    """Every recording's fit was refused: the last refusal, and the rig seconds of all the recordings."""
+
+    def __init__(self, reason: str, rig_seconds: float) -> None:
+        super().__init__(reason)
+        self.rig_seconds = rig_seconds
+
+
+def identify_and_write(record: Callable[[int], Recording], base: RigProfile, out: Path, source: str,
+                       attempts: int = IDENTIFY_ATTEMPTS, cfg: FitConfig | None = None,
+                       progress: Callable[[str], None] | None = None) -> tuple[Fit, RigProfile, Recording]:
+    """Record (``record(attempt)``, IdentifyFailed when the protocol does not finish), fit, and write the profile
+    only if trusted; a refused fit is recorded again with the next PRBS sequence, up to ``attempts`` recordings.
+    The trusted fit, its profile (with every recording's rig time) and its recording; IdentifyRefused otherwise."""
+    refused: list[float] = []
+    while True:
+        rec = record(len(refused))
+        try:
+            result = fit(rec, base, cfg, progress)
+            if progress is not None:
+                progress(summary(result))
+            check(result, cfg)
+        except FitRefused as err:
+            refused.append(rec.rig_seconds)
+            if len(refused) >= attempts:
+                tried = f" ({len(refused)} recordings, each refused)" if len(refused) > 1 else ""
+                raise IdentifyRefused(f"{err}{tried}", sum(refused)) from None
+            if progress is not None:
+                progress(f"refused: {err}; recording again with PRBS sequence {len(refused)} "
+                         f"(attempt {len(refused) + 1} of {attempts})")
+            continue
+        profile = to_profile(result, base, rec, source, refused=tuple(refused))
+        out.write_text(profile.to_json())
+        return result, profile, rec
 
 
 def record_simulated(truth: RigProfile, seed: int, control: ControlConfig | None = None,
                      progress: Callable[[str], None] | None = None, rig: str = "",
-                     faults: dict[str, bool] | None = None) -> Recording:
+                     faults: dict[str, bool] | None = None, attempt: int = 0) -> Recording:
     """The identification recording of simulated rig ``seed`` of ``truth``: the bridge's ControlCore (start-up checks
-    and the protocol) over a SimulatedQube on a virtual clock, lockstep. ``faults``: SimulatedQube's wiring faults.
-    IdentifyFailed when it does not finish."""
+    and the protocol; ``attempt``: its PRBS sequence) over a SimulatedQube on a virtual clock, lockstep. ``faults``:
+    SimulatedQube's wiring faults. IdentifyFailed when it does not finish."""
     clock = VirtualClock()
     options: dict[str, Any] = {**truth.device_options(), **(faults or {})}
     device = SimulatedQube(truth.rig_params(seed), seed=seed, period_s=0, clock=clock, **options)
     core = ControlCore(device, control or ControlConfig(), clock=clock)
-    recording = drive(core, lambda: clock.advance(core.cfg.period_s), progress=progress)
+    recording = drive(core, lambda: clock.advance(core.cfg.period_s), progress=progress, attempt=attempt)
     return recording.model_copy(update={"rig": rig or f"{truth.name}-seed{seed}"})
 
 
-def fit_to_file(rec: Recording, base: RigProfile, out: Path, source: str, prog: str) -> int:
-    """The host's end of every identification command: fit ``rec`` over ``base`` with progress, write the profile to
-    ``out`` only if trusted; 0 with the line that says so, or 1 with one line naming ``prog`` (refused, unwritable)."""
+def identify_to_file(record: Callable[[int], Recording], base: RigProfile, out: Path, source: str, prog: str,
+                     attempts: int = IDENTIFY_ATTEMPTS, hint: str = "") -> int:
+    """The host's end of every identification command: :func:`identify_and_write` with progress; 0 with the line
+    that says what was written, or 1 with one line naming ``prog`` (the protocol failed, every fit refused: then
+    ``hint``, the file unwritable)."""
     try:
-        result, profile = fit_and_write(rec, base, out, source, progress=lambda line: print(line, flush=True))
+        result, profile, _ = identify_and_write(record, base, out, source, attempts,
+                                                progress=lambda line: print(line, flush=True))
+    except IdentifyFailed as err:
+        print(f"{prog}: identification failed: {err}", file=sys.stderr)
+        return 1
     except FitRefused as err:
-        print(f"{prog}: refused: {err}", file=sys.stderr)
+        print(f"{prog}: refused: {err}{hint}", file=sys.stderr)
         return 1
     except OSError as err:
         print(f"{prog}: cannot write {out}: {err}", file=sys.stderr)
         return 1
-    print(f"identify: wrote {out}: profile {profile.name!r} from {rec.rig_seconds:.1f} s of rig time, fit "
-          f"{result.wall_s:.1f} s")
+    ident = profile.identified
+    assert ident is not None
+    tried = f" in {ident.attempts} recordings" if ident.attempts > 1 else ""
+    print(f"identify: wrote {out}: profile {profile.name!r} from {ident.rig_seconds:.1f} s of rig time{tried}, "
+          f"fit {result.wall_s:.1f} s")
     return 0
 
 
 def identify_simulated(truth: RigProfile, seed: int, control: ControlConfig, base: RigProfile, out: Path,
-                       faults: dict[str, bool] | None = None) -> int:
+                       faults: dict[str, bool] | None = None, attempts: int = IDENTIFY_ATTEMPTS) -> int:
     """``python -m services.qube_sim --identify OUT``: record simulated rig ``seed`` of ``truth`` (its truth only
-    simulates), fit over ``base``, write a trusted profile to ``out``. 0, or 1 with one line."""
-    began = time.perf_counter()
-    try:
+    simulates), fit over ``base``, write a trusted profile to ``out`` (recorded again on a refusal, up to
+    ``attempts`` recordings). 0, or 1 with one line."""
+
+    def record(attempt: int) -> Recording:
+        began = time.perf_counter()
         rec = record_simulated(truth, seed, control, progress=lambda seg: print(f"identify: segment {seg}", flush=True),
-                               faults=faults)
-    except IdentifyFailed as err:
-        print(f"qube_sim: identification failed: {err}", file=sys.stderr)
-        return 1
-    print(f"identify: recorded {rec.rig_seconds:.1f} s of rig time ({len(rec.t)} ticks) in "
-          f"{time.perf_counter() - began:.1f} s; fitting over {base.name}", flush=True)
-    return fit_to_file(rec, base, out, f"simulated rig {rec.rig}", "qube_sim")
+                               faults=faults, attempt=attempt)
+        print(f"identify: recorded {rec.rig_seconds:.1f} s of rig time ({len(rec.t)} ticks) in "
+              f"{time.perf_counter() - began:.1f} s; fitting over {base.name}", flush=True)
+        return rec
+
+    return identify_to_file(record, base, out, f"simulated rig {truth.name}-seed{seed}", "qube_sim", attempts)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -541,7 +589,10 @@ def main(argv: list[str] | None = None) -> int:
     except (ProfileError, RecordingError) as err:
         print(f"identify: {err}", file=sys.stderr)
         return 2
-    return fit_to_file(rec, base, args.out, str(args.recording), "identify")
+    following = int(rec.config.get("seed", IdentifyConfig.seed))  # attempt n records PRBS sequence seed + n
+    hint = (f"; record the rig again with another PRBS sequence (python -m rpi_bridge --identify OUT "
+            f"--identify-attempt {following}) and fit that")
+    return identify_to_file(lambda _: rec, base, args.out, str(args.recording), "identify", 1, hint)
 
 
 if __name__ == "__main__":

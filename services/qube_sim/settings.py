@@ -7,7 +7,9 @@ from typing import Literal
 
 from pydantic import field_validator, model_validator
 
+from protocol.messages import IDENTIFY_ATTEMPTS_LIMIT
 from protocol.rigtime import Clock
+from rpi_bridge.identify import IDENTIFY_ATTEMPTS
 from rpi_bridge.runner import InjectedTiming
 from rpi_bridge.settings import LoopSettings
 from runtime.settings import MqttSettings, setting
@@ -50,6 +52,9 @@ class SimRigSettings(MqttSettings, LoopSettings):
                                     "docs/how-to/identify.md)", env=False, metavar="OUT")
     identify_base: str = setting("lab", "--identify: the profile of every value the fit does not fit (its start)",
                                  env=False, metavar="NAME|FILE")
+    identify_attempts: int = setting(IDENTIFY_ATTEMPTS, "--identify: recordings before giving up (a refused fit is "
+                                     "recorded again with the next PRBS sequence)", env=False, ge=1,
+                                     le=IDENTIFY_ATTEMPTS_LIMIT)
 
     @field_validator("qube_delay_ms")
     @classmethod

@@ -51,8 +51,12 @@ def test_identifications_are_planned_for_the_identified_variant_and_skipped_once
     for u in first:
         Path(u.kwargs["out"]).parent.mkdir(parents=True, exist_ok=True)
         Path(u.kwargs["out"]).write_text("{}")
-        store.put(u, {"ok": u.key.endswith(("rig0", "rig1")), "file": u.kwargs["out"], "rig_s": 110.0})
+        store.put(u, {"ok": u.key.endswith(("rig0", "rig1")), "file": u.kwargs["out"], "rig_s": 110.0,
+                      "attempts": 1 if u.key.endswith(("rig0", "rig1")) else 2})
     assert ood.prerequisites(a, ood.Store(a.out)) == []  # read back from the file: resumable
+    store.put(first[2], {"ok": False, "detail": "overfitted"})  # refused before a refusal was recorded again
+    assert [u.key for u in ood.prerequisites(a, store)] == ["identify/combined/s601/rig2"]
+    store.put(first[2], {"ok": False, "detail": "overfitted", "attempts": 2})
     units = {u.key: u for u in ood.measures(a, store)}
     assert set(units) == {"selftest/combined/nominal/s601", "selftest/combined/identified/s601"}
     models = units["selftest/combined/identified/s601"].kwargs["models"]

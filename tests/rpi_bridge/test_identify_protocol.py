@@ -133,3 +133,40 @@ def test_a_recording_round_trips_and_a_corrupt_file_is_refused_with_one_line(tmp
         with pytest.raises(RecordingError, match=expected) as err:
             Recording.load(tmp_path / name)
         assert "\n" not in str(err.value)
+
+
+def test_another_attempt_excites_with_the_next_prbs_sequence_also_when_asked_over_mqtt(amqtt_broker: str) -> None:
+    """A host that refused a recording's fit asks again with ``attempt`` 1 (QubeIdentify): the bridge runs the
+    protocol with the next PRBS sequence. In process, its PRBS commands differ from attempt 0's; over a real broker,
+    the rig's recording says which sequence it ran."""
+    import threading
+
+    from protocol.mqtt import BrokerAddress, MqttConnection
+    from protocol.transport import connector
+    from rpi_bridge.service import BridgeService
+    from worker.identify import request_recording
+
+    def prbs(rec: Recording) -> list[int]:
+        (a, b), = [(a, b) for label, a, b in rec.segments if label == "prbs"]
+        return rec.command[a:b]
+
+    recorded = []
+    for attempt in (0, 1):
+        core, _, clock = rig(LAB)
+        recorded.append(drive(core, lambda core=core, clock=clock: clock.advance(core.cfg.period_s), attempt=attempt))
+    assert [r.config["seed"] for r in recorded] == [1, 2] and prbs(recorded[0]) != prbs(recorded[1])
+
+    clock = VirtualClock()
+    device = SimulatedQube(LAB.rig_params(1), seed=1, period_s=0, clock=clock)
+    service = BridgeService(device, "rigA", connector(BrokerAddress.parse(amqtt_broker)), ControlConfig(identify=SHORT),
+                            lockstep=True, advance=clock.advance, clock=clock, client_prefix="identify-attempt")
+    loop = threading.Thread(target=service.run, daemon=True)
+    loop.start()
+    conn = MqttConnection(BrokerAddress.parse(amqtt_broker), client_id="identify-attempt-host").start()
+    try:
+        rec = request_recording(conn, "rigA", 120.0, progress=lambda line: None, attempt=1)
+    finally:
+        conn.stop()
+        service.stop_event.set()
+        loop.join(10)
+    assert rec.complete and rec.config["seed"] == 2 and 40 < rec.rig_seconds < 80

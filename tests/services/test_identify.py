@@ -2,7 +2,8 @@
 recovers Dp, Dr, the arm's Coulomb friction and the motor gain within 20 % (the issue's target) from simulated rigs
 without spread on ``lab`` (from the ``course`` profile's damping, 5.6x and 10x off, as its start) and on the combined
 family (over ``lab``, through ``python -m services.qube_sim.identify``); a recording of a rig that did not move is
-refused and writes nothing; ``python -m services.qube_sim --identify`` exits 1 with one line on a rig whose start-up
+refused and writes nothing, and a refused recording is made again; ``python -m services.qube_sim --identify`` exits
+1 with one line on a rig whose start-up
 checks fail and 2 on a bad base profile. Recordings: one shortened protocol per rig, made once for the module."""
 
 from __future__ import annotations
@@ -72,11 +73,40 @@ def errors(values: dict[str, float], truth: QubeParams) -> dict[str, float]:
     return {name: values[name] / getattr(truth, field) - 1 for name, field in TARGET.items()}
 
 
-def test_the_fit_recovers_lab_from_a_start_far_off(recordings: dict[str, Path]) -> None:
-    result = fit(Recording.load(recordings["lab"]), families.course())  # Dr 5.6x, Dp 10x lab's
+def still(moved: Recording) -> Recording:
+    """``moved`` as if the rig had not moved (its fit is refused at once)."""
+    return moved.model_copy(update={"theta": [0.0] * len(moved.t), "alpha": [math.pi - 1e-3] * len(moved.t)})
+
+
+def test_a_refused_recording_is_made_again_and_the_fit_recovers_lab_from_a_start_far_off(
+        recordings: dict[str, Path], tmp_path: Path) -> None:
+    """The first recording's fit is refused: the rig is recorded again with the next PRBS sequence (attempt 1), and
+    the profile counts both recordings' rig time. That fit starts from the course files' damping (Dr 5.6x, Dp 10x
+    lab's) and recovers lab's. With one attempt, the refusal is final: IdentifyRefused with the rig time spent."""
+    from services.qube_sim.identify import IdentifyRefused, identify_and_write
+
+    lab = Recording.load(recordings["lab"])
+    asked: list[int] = []
+
+    def record(attempt: int) -> Recording:
+        asked.append(attempt)
+        return still(lab) if attempt == 0 else lab
+
+    said: list[str] = []
+    out = tmp_path / "p.json"
+    result, profile, rec = identify_and_write(record, families.course(), out, "test", progress=said.append)
+    assert asked == [0, 1] and rec is lab and any("recording again with PRBS sequence 1" in s for s in said)
     off = errors(result.values, LAB.params())
     assert result.converged and all(abs(e) < 0.2 for e in off.values()), off
     assert result.heldout_rms_deg < 1.0
+    assert profile.identified is not None and profile.identified.attempts == 2
+    assert profile.identified.rig_seconds == pytest.approx(2 * lab.rig_seconds)
+    assert load_profile(out) == profile
+
+    asked.clear()
+    with pytest.raises(IdentifyRefused, match=r"the arm moved 0\.0 deg") as refused:
+        identify_and_write(record, LAB, tmp_path / "q.json", "test", attempts=1)
+    assert asked == [0] and refused.value.rig_seconds == lab.rig_seconds and not (tmp_path / "q.json").exists()
 
 
 def test_the_command_line_fit_recovers_the_combined_family(recordings: dict[str, Path], tmp_path: Path) -> None:
@@ -95,17 +125,17 @@ def test_the_command_line_fit_recovers_the_combined_family(recordings: dict[str,
 
 def test_a_rig_that_did_not_move_is_refused_and_nothing_is_written(recordings: dict[str, Path],
                                                                    tmp_path: Path) -> None:
-    moved = Recording.load(recordings["lab"])
-    still = moved.model_copy(update={"theta": [0.0] * len(moved.t), "alpha": [math.pi - 1e-3] * len(moved.t)})
+    rec = still(Recording.load(recordings["lab"]))
     out = tmp_path / "p.json"
     with pytest.raises(FitRefused, match=r"the arm moved 0\.0 deg"):
-        fit_and_write(still, LAB, out, "still")
+        fit_and_write(rec, LAB, out, "still")
     assert not out.exists()
     path = tmp_path / "still.json"
-    still.save(path)
+    rec.save(path)
     done = subprocess.run([sys.executable, "-m", "services.qube_sim.identify", str(path), "--out", str(out)],
                           capture_output=True, text=True, cwd=ROOT, timeout=60)
     assert done.returncode == 1 and done.stderr.count("\n") == 1 and "refused" in done.stderr
+    assert "--identify-attempt 1" in done.stderr  # a recording of PRBS sequence 1: record sequence 2 next
     assert not out.exists()
 
 

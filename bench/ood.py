@@ -292,16 +292,28 @@ def last_rig(summary: RunSummary, identify_s: list[float]) -> dict[str, Any]:
 
 
 def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int = PRETRAIN_SEED,
-             identified: list[str] | None = None) -> dict[str, Any]:
+             identified: list[str] | None = None, attempts: int = 1) -> dict[str, Any]:
     """A pretrain of ``actions``: a federation of RIGS rigs on lockstep, reused when finished. Without
     ``identified``, the ``lab``-randomised one (bench.sim2real's ``randomised``: each rig's physics drawn afresh within
     +-RANDOMIZE at every reset); with the identified profiles of a lab's rigs, deploy.lab's, randomised around them
-    (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model."""
+    (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model, and as deploy.lab tried
+    again with its next seed (up to ``attempts``, into ``<run_dir>-<k>``) while no worker met TC."""
+    from deploy.lab import PRETRAIN_SEED_STEP
+
     t0 = time.process_time()
-    summary = reused(Path(run_dir), lambda folder: _pretrain(folder, seed, actions, max_episodes, algo, identified))
-    solved = any(w.solved for w in summary.workers)
-    return {"finished": solved, "model": run_dir if solved else None, "end_reason": summary.end_reason,
-            "episodes": summary.episodes_to_all_solved, "cpu_s": round(time.process_time() - t0, 1)}
+    for attempt in range(1, attempts + 1):
+        folder = Path(run_dir if attempt == 1 else f"{run_dir}-{attempt}")
+        attempt_seed = seed + PRETRAIN_SEED_STEP * (attempt - 1)
+
+        def run(into: Path, attempt_seed: int = attempt_seed) -> RunSummary:
+            return _pretrain(into, attempt_seed, actions, max_episodes, algo, identified)
+
+        summary = reused(folder, run)
+        solved = any(w.solved for w in summary.workers)
+        if solved:
+            break
+    return {"finished": solved, "model": str(folder) if solved else None, "end_reason": summary.end_reason,
+            "episodes": summary.episodes_to_all_solved, "attempt": attempt, "cpu_s": round(time.process_time() - t0, 1)}
 
 
 def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: str,
@@ -339,7 +351,7 @@ def identified_file(runs: Path, setting: str, seed: int, i: int) -> Path:
 def prerequisites(args: argparse.Namespace, store: Store) -> list[Unit]:
     """The pretrains (one per action set without ``--model``) and identifications the measures need."""
     units = []
-    if {"zeroshot", "finetune"} & set(args.measures):
+    if {"zeroshot", "finetune"} & set(args.measures) and {"nominal", "identified"} & set(args.variants):
         for actions in args.actions:
             if actions not in args.model:
                 units.append(Unit(f"pretrain/{actions}", pretrain,
@@ -367,6 +379,8 @@ def around_pretrains(args: argparse.Namespace, store: Store) -> list[Unit]:
     rig of the lab is identified)."""
     if "around" not in args.variants or not {"zeroshot", "finetune"} & set(args.measures):
         return []
+    from deploy.lab import PRETRAIN_ATTEMPTS  # tried as often as deploy.lab does by default
+
     units = []
     for setting in args.settings:
         for seed in args.seeds:
@@ -378,8 +392,9 @@ def around_pretrains(args: argparse.Namespace, store: Store) -> list[Unit]:
                                   {"actions": actions, "run_dir": str(args.runs_dir / "pretrain-around" / setting
                                                                       / actions / f"s{seed}"),
                                    "max_episodes": args.pretrain_episodes, "algo": args.algo, "seed": seed,
-                                   "identified": files},
-                                  {"max_episodes": args.pretrain_episodes, "algo": args.algo}))
+                                   "identified": files, "attempts": PRETRAIN_ATTEMPTS},
+                                  {"max_episodes": args.pretrain_episodes, "algo": args.algo,
+                                   "attempts": PRETRAIN_ATTEMPTS}))
     return [u for u in units if not store.done(u)]
 
 
@@ -440,7 +455,11 @@ def _controller_units(args: argparse.Namespace, store: Store, setting: str, vari
     rigs = [rig_seed(seed, i) for i in range(RIGS)]
     units = []
     for actions in args.actions:
-        model = model_of(store, args, actions, f"{setting}/s{seed}" if variant == "around" else None)
+        around = f"{setting}/s{seed}" if variant == "around" else None
+        model = model_of(store, args, actions, around)
+        if model is None and around is not None and f"pretrain/{actions}/around/{around}" in store.entries:
+            units += _without_controller(args, setting, actions, seed, rigs)  # the lab stops there, as deploy.lab
+            continue
         if model is None or not {"zeroshot", "finetune"} & set(args.measures):
             continue
         params = {"model": model, "clock": args.clock, "models": models}
@@ -464,9 +483,31 @@ def _controller_units(args: argparse.Namespace, store: Store, setting: str, vari
     return units
 
 
-def _not_identified() -> dict[str, Any]:
-    return {"finished": False, "episodes": None, "rig_min": None, "stopped": 0,
-            "end_reason": "a rig was not identified", "cpu_s": 0.0}
+def _not_identified(why: str = "a rig was not identified") -> dict[str, Any]:
+    return {"finished": False, "episodes": None, "rig_min": None, "stopped": 0, "end_reason": why, "cpu_s": 0.0}
+
+
+#: What deploy.lab does when no pretrain met TC, for variant ``around``'s zero-shot and fine-tune.
+NO_CONTROLLER = "no pretrain around the lab's identified rigs met TC"
+
+
+def _without_controller(args: argparse.Namespace, setting: str, actions: str, seed: int,
+                        rigs: list[int]) -> list[Unit]:
+    """A lab of variant ``around`` whose pretrains met no TC: none of its rigs balanced zero-shot, its fine-tune
+    unfinished (deploy.lab stops before it)."""
+    params = {"no_controller": True}
+    units = []
+    if "zeroshot" in args.measures:
+        units.append(Unit(f"zeroshot/{setting}/{actions}/around/s{seed}", _no_zeroshot, {"rigs": rigs}, params))
+    if "finetune" in args.measures:
+        units.append(Unit(f"finetune/{setting}/{actions}/around/s{seed}", _not_identified, {"why": NO_CONTROLLER},
+                          params))
+    return units
+
+
+def _no_zeroshot(rigs: list[int]) -> dict[str, Any]:
+    return {"rigs": len(rigs), "balanced": 0, "returns": [None] * len(rigs),
+            "failures": [f"rig {r}: {NO_CONTROLLER}" for r in rigs], "cpu_s": 0.0}
 
 
 def run_units(units: list[Unit], store: Store, jobs: int,

@@ -52,6 +52,8 @@ from runtime.settings import (
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
+#: Pretrains tried (each with its own seed) until one has a controller that meets TC, by default.
+PRETRAIN_ATTEMPTS = 2
 #: The most pretrain attempts (--pretrain-attempts).
 MAX_ATTEMPTS = 10
 #: Variables that carry the true physics of simulated rigs: the pretrain's simulator must not see them.
@@ -71,8 +73,9 @@ class LabSettings(LearnerTaskSettings):
     max_episodes: int = setting(150, "M of the fine-tune: the most episodes per rig", ge=1)
     pretrain_episodes: int = setting(600, "M of the pretrain", ge=1)
     pretrain_workers: int = setting(3, "workers of the pretrain (simulated rigs)", ge=1, le=32)
-    pretrain_attempts: int = setting(2, "pretrains to try until one has a controller that meets TC, each with its "
-                                     "own seed (a pretrain costs this host's time, no rig time)", ge=1, le=MAX_ATTEMPTS)
+    pretrain_attempts: int = setting(PRETRAIN_ATTEMPTS, "pretrains to try until one has a controller that meets "
+                                     "TC, each with its own seed (a pretrain costs this host's time, no rig time)",
+                                     ge=1, le=MAX_ATTEMPTS)
     policy: PolicyName = setting("plain", "federation strategy of the pretrain and the fine-tune")
     algo: LearnerName = setting(learners.DEFAULT, "learner")
     qube_actions: QubeActions = qube_actions_setting()

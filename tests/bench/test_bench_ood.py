@@ -206,6 +206,35 @@ def test_the_around_variant_pretrains_per_lab_once_its_rigs_are_identified(tmp_p
     store.put(unit, {"finished": True, "model": "runs/around"})
     [shot] = ood.measures(a, store)
     assert shot.key == "zeroshot/combined/paper/around/s601" and shot.kwargs["model"] == "runs/around"
+    # no attempt met TC: deploy.lab would stop, so none of the lab's rigs balanced zero-shot (counted, not left out)
+    store.put(unit, {"finished": False, "model": None})
+    [none] = ood.measures(a, store)
+    assert none.key == shot.key and none.run(**none.kwargs)["balanced"] == 0
+    store.put(none, none.run(**none.kwargs))
+    assert ood.summary_rows(store.entries)["combined/around"]["zeroshot-paper"] == (0, 3)
+    # only the around variant: no lab-randomised pretrain is made for it
+    alone = args(tmp_path, "--measures", "zeroshot", "--settings", "combined", "--seeds", "601", "--actions",
+                 "paper", "--variants", "around")
+    assert not [u for u in ood.prerequisites(alone, ood.Store(alone.out)) if u.key.startswith("pretrain/")]
+
+
+def test_an_around_pretrain_that_met_no_tc_is_tried_again_with_deploy_labs_next_seed(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from types import SimpleNamespace
+
+    from deploy.lab import PRETRAIN_SEED_STEP
+
+    ran: list[tuple[str, int]] = []
+
+    def fake(folder: Path, seed: int, *rest: object) -> SimpleNamespace:
+        ran.append((folder.name, seed))
+        return SimpleNamespace(workers=[SimpleNamespace(solved=len(ran) == 2)], end_reason="x",
+                               episodes_to_all_solved=None)
+
+    monkeypatch.setattr(ood, "_pretrain", fake)
+    result = ood.pretrain("paper", str(tmp_path / "s601"), 10, "ppo", seed=601, identified=["a"], attempts=2)
+    assert ran == [("s601", 601), ("s601-2", 601 + PRETRAIN_SEED_STEP)]
+    assert result["finished"] and result["model"] == str(tmp_path / "s601-2") and result["attempt"] == 2
 
 
 def test_bench_sim2real_ood_is_this_command(capsys: pytest.CaptureFixture[str]) -> None:

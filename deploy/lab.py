@@ -37,8 +37,10 @@ from pydantic import field_validator, model_validator
 
 from chief.settings import PolicyName
 from protocol import learners
+from protocol.messages import IDENTIFY_ATTEMPTS_LIMIT
 from protocol.mqtt import BrokerAddress
 from protocol.tasks import worker_seed
+from rpi_bridge.identify import IDENTIFY_ATTEMPTS
 from runtime.records import SUMMARY, RunSummary
 from runtime.settings import (
     LearnerName,
@@ -71,6 +73,9 @@ class LabSettings(LearnerTaskSettings):
     run_dir: Path | None = setting(None, "the pipeline's folder (unset: runs/<time>-lab-<env>-s<seed>); give the same "
                                    "one again to resume")
     max_episodes: int = setting(150, "M of the fine-tune: the most episodes per rig", ge=1)
+    identify_attempts: int = setting(IDENTIFY_ATTEMPTS, "recordings of a rig before its identification gives up (a "
+                                     "refused fit is recorded again with the next PRBS sequence; each costs about "
+                                     "80 s of rig time)", ge=1, le=IDENTIFY_ATTEMPTS_LIMIT)
     pretrain_episodes: int = setting(600, "M of the pretrain", ge=1)
     pretrain_workers: int = setting(3, "workers of the pretrain (simulated rigs)", ge=1, le=32)
     pretrain_attempts: int = setting(PRETRAIN_ATTEMPTS, "pretrains to try until one has a controller that meets "
@@ -179,7 +184,8 @@ def identify(s: LabSettings, folder: Path) -> None:
         return
     for i in todo:
         command = [sys.executable, "-m", "services.qube_sim", "--rig-id", f"rig{i}", "--seed",
-                   str(worker_seed(s.seed, i)), "--identify", str(out / f"rig{i}.json")]
+                   str(worker_seed(s.seed, i)), "--identify", str(out / f"rig{i}.json"), "--identify-attempts",
+                   str(s.identify_attempts)]
         code = run_child("identify", command, env)
         if code != 0:
             raise StageFailed(f"rig{i} could not be identified (exit code {code}); see the lines above")

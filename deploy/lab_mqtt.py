@@ -54,7 +54,8 @@ def identify_over_mqtt(s: LabSettings, out: Path, todo: list[int], env: dict[str
             print(f"[lab identify] embedded broker on {broker}; simulated rigs {', '.join(f'rig{i}' for i in todo)}")
         for i in todo:
             command = [sys.executable, "-m", "worker.identify", "--rig-id", f"rig{i}", "--broker", broker, "--out",
-                       str(out / f"rig{i}.json"), "--recording-out", str(out / f"rig{i}.recording.json.gz")]
+                       str(out / f"rig{i}.json"), "--recording-out", str(out / f"rig{i}.recording.json.gz"),
+                       "--identify-attempts", str(s.identify_attempts)]
             code = run_child("identify", command, {**env, **logins.get(f"w{i}", {})})
             if code != 0:
                 raise StageFailed(f"rig{i} could not be identified over MQTT (exit code {code}); see the lines above")

@@ -52,7 +52,8 @@ def truth(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_settings_are_checked_before_anything_starts(tmp_path: Path, truth: Path) -> None:
     for args, expected in ((["--algo", "dqn", "--qube-actions", "voltage"], "needs discrete actions"),
                            (["--qube-clock", "realtime"], "runs on a simulated clock"),
-                           (["--broker", "mqtt://127.0.0.1:1"], "--broker is for --env qube")):
+                           (["--broker", "mqtt://127.0.0.1:1"], "--broker is for --env qube"),
+                           (["--identify-attempts", "0"], "identify-attempts")):
         proc = lab([*args, "--run-dir", str(tmp_path / "x")], truth, timeout=120)
         assert proc.returncode == 2 and expected in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
     assert not (tmp_path / "x").exists()

@@ -3,8 +3,8 @@ recovers Dp, Dr, the arm's Coulomb friction and the motor gain within 20 % (the 
 without spread on ``lab`` (from the ``course`` profile's damping, 5.6x and 10x off, as its start) and on the combined
 family (over ``lab``, through ``python -m services.qube_sim.identify``); a recording of a rig that did not move is
 refused and writes nothing, and a refused recording is made again; ``python -m services.qube_sim --identify`` exits
-1 with one line on a rig whose start-up
-checks fail and 2 on a bad base profile. Recordings: one shortened protocol per rig, made once for the module."""
+1 with one line on a rig whose start-up checks fail and 2 on a bad base profile. Recordings: one shortened protocol
+per rig, made once for the module."""
 
 from __future__ import annotations
 

@@ -199,14 +199,16 @@ def measure(folder: Path) -> dict[str, Any]:
             "stopped": sum(r["stopped"] for r in per_rig)}
 
 
-def aggregate(results: list[dict[str, Any]]) -> dict[str, Any]:
+def aggregate(results: list[dict[str, Any]], workers: int) -> dict[str, Any]:
+    """The table over the labs run: the last rig's numbers (unfinished counted as worse) and zero-shot, where a lab
+    that ended without a pretrained controller counts its ``workers`` rigs as not balanced."""
     done = [r for r in results if r.get("finished")]
 
     def of(key: str) -> list[float | None]:
         return [r["last"][key] if r.get("finished") else None for r in results]
 
-    shots = [ret for r in results for ret in (r.get("zero_shot_returns") or [])]
-    zero = sum(ret >= MAX_RETURN for ret in shots)
+    shots = [ret for r in results for ret in (r.get("zero_shot_returns") or [None] * workers)]
+    zero = sum(ret is not None and ret >= MAX_RETURN for ret in shots)
     table = {"seeds": len(results), "finished": len(done), "episodes": spread_censored(of("episodes")),
              "balance_steps": spread_censored(of("balance_steps")), "rig_min": spread_censored(of("rig_min")),
              "zero_shot": f"{zero} of {len(shots)} rigs", "stopped_workers": sum(r.get("stopped", 0) for r in results)}
@@ -233,8 +235,9 @@ def _lab_minutes(report: dict[str, Any]) -> str:
 
 
 def render(report: dict[str, Any], source: str) -> str:
-    """The markdown of one lab.json: the last rig per seed, median [IQR], and the targets."""
-    t = report["table"]
+    """The markdown of one lab.json: the last rig per seed, median [IQR], and the targets (the table computed again
+    from its results)."""
+    t = aggregate(report["results"], report["workers"])
     partial = bool(report.get("not_run"))  # the targets are over every lab: with labs not run, none is judged
     met = lambda ok: "not judged (labs not run)" if partial else "met" if ok else "**missed**"  # noqa: E731
     lines = [
@@ -333,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
         results = list(pool.map(lambda seed: run_seed(seed, args.family, args, runs), seeds_of(args.seeds)))
     not_run = [r["seed"] for r in results if r.get("not_run")]
     results = [r for r in results if not r.get("not_run")]
-    table = aggregate(results)
+    table = aggregate(results, args.workers)
     write_report(args.out, "bench.lab", argv, {
         "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
         "warm_lr": args.warm_lr,

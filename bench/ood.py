@@ -611,13 +611,15 @@ def render_docs(data: dict[str, Any], source: str) -> str:
         lines.append(f"| `{name}` | " + " | ".join(_frac(r["selftest"]) for r in rows) + " | "
                      + " | ".join(_frac(r["reset"]) for r in rows) + " |")
     for actions in [a for a in _present(entries, 2) if a in _action_sets()]:
+        measured = [v for v in variants if any(k.split("/")[0] in ("zeroshot", "finetune")
+                                               and k.split("/")[2:4] == [actions, v] for k in entries)]
         lines += ["", f"**Actions `{actions}`**: zero-shot (rigs balanced to the end), fine-tune runs finished, the "
                   "last rig's episodes and rig minutes, median [IQR] over the seeds (unfinished counted as worse).", "",
                   "| setting | " + " | ".join(f"{m} ({v})" for m in ("zero-shot", "finished", "episodes", "rig min")
-                                              for v in variants) + " |",
-                  "| --- |" + " --- |" * (4 * len(variants))]
+                                              for v in measured) + " |",
+                  "| --- |" + " --- |" * (4 * len(measured))]
         for name in names:
-            rows = [controller_row(entries, name, actions, v) for v in variants]
+            rows = [controller_row(entries, name, actions, v) for v in measured]
             lines.append(f"| `{name}` | " + " | ".join(
                 [_frac(r["zeroshot"]) for r in rows] + [_frac(r["finished"]) for r in rows]
                 + [_med(r["episodes"]) for r in rows] + [_med(r["rig_min"], 1) for r in rows]) + " |")

@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import os
 import subprocess
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import field_validator, model_validator
 
@@ -39,7 +40,9 @@ from chief.settings import PolicyName
 from protocol import learners
 from protocol.messages import IDENTIFY_ATTEMPTS_LIMIT
 from protocol.mqtt import BrokerAddress
+from protocol.qube import ACTION_SETS, action_set
 from protocol.tasks import worker_seed
+from rpi_bridge.frame import VOLTS_PER_COUNT
 from rpi_bridge.identify import IDENTIFY_ATTEMPTS
 from runtime.records import SUMMARY, RunSummary
 from runtime.settings import (
@@ -51,6 +54,9 @@ from runtime.settings import (
     setting,
     warm_lr_setting,
 )
+
+if TYPE_CHECKING:
+    from services.qube_sim.profile import RigProfile
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
@@ -181,14 +187,44 @@ def identify(s: LabSettings, folder: Path) -> None:
         from deploy.lab_mqtt import identify_over_mqtt
 
         identify_over_mqtt(s, out, todo, env)
-        return
-    for i in todo:
-        command = [sys.executable, "-m", "services.qube_sim", "--rig-id", f"rig{i}", "--seed",
-                   str(worker_seed(s.seed, i)), "--identify", str(out / f"rig{i}.json"), "--identify-attempts",
-                   str(s.identify_attempts)]
-        code = run_child("identify", command, env)
-        if code != 0:
-            raise StageFailed(f"rig{i} could not be identified (exit code {code}); see the lines above")
+    else:
+        for i in todo:
+            command = [sys.executable, "-m", "services.qube_sim", "--rig-id", f"rig{i}", "--seed",
+                       str(worker_seed(s.seed, i)), "--identify", str(out / f"rig{i}.json"), "--identify-attempts",
+                       str(s.identify_attempts)]
+            code = run_child("identify", command, env)
+            if code != 0:
+                raise StageFailed(f"rig{i} could not be identified (exit code {code}); see the lines above")
+    for i, path in enumerate(identified_files(s, folder)):
+        share, torque = breakaway_share(load_profile(path), s.qube_actions)
+        say("identify", f"rig{i}: arm breakaway {share * torque * 1e3:.1f} mN m, {share:.0%} of the "
+            f"{torque * 1e3:.1f} mN m the `{s.qube_actions}` actions give at standstill")
+
+
+def breakaway_share(profile: RigProfile, actions: str) -> tuple[float, float]:
+    """The arm's breakaway torque (its static dry friction) as a share of the largest torque ``actions`` give at
+    standstill on this rig (deadzone and offset included), and that torque (N m). What is left over the share is the
+    balancing controller's authority: the paper's three actions have little of it on a sticky arm."""
+    from services.qube_sim.dynamics import motor_torque
+
+    p = profile.params()
+    torque = abs(motor_torque(p, action_set(actions).limit * VOLTS_PER_COUNT, 0.0))
+    return (p.Sr / torque if torque > 0 else math.inf), torque
+
+
+def authority_hint(s: LabSettings, folder: Path) -> str:
+    """For a failed pretrain: the rig with the least authority left under ``--qube-actions``, and what the action
+    set with the largest commands would give it (empty when that is the set in use)."""
+    from services.qube_sim.profile import load_profile
+
+    strongest = max(ACTION_SETS.values(), key=lambda a: a.limit).name
+    if action_set(s.qube_actions).limit >= action_set(strongest).limit:
+        return ""
+    shares = [breakaway_share(load_profile(path), s.qube_actions)[0] for path in identified_files(s, folder)]
+    worst = max(range(len(shares)), key=shares.__getitem__)
+    stronger = breakaway_share(load_profile(identified_files(s, folder)[worst]), strongest)[0]
+    return (f"; rig{worst}'s arm breakaway takes {shares[worst]:.0%} of the `{s.qube_actions}` actions' torque "
+            f"(`--qube-actions {strongest}`: {stronger:.0%})")
 
 
 # -- stage 2: pretrain --------------------------------------------------------------------------------------------
@@ -249,7 +285,8 @@ def pretrain(s: LabSettings, folder: Path) -> None:
         why = f"attempt {attempt}: {summary.end_reason if summary is not None else f'exit code {code}'}"
         say("pretrain", f"no controller met TC ({why})")
     raise StageFailed(f"no pretrain ended with a controller that meets TC ({s.pretrain_attempts} attempts, last "
-                      f"{why}); try more --pretrain-episodes or --pretrain-attempts, or another --seed")
+                      f"{why}); try more --pretrain-episodes or --pretrain-attempts, or another --seed"
+                      + authority_hint(s, folder))
 
 
 def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:

@@ -77,6 +77,7 @@ def test_the_pipeline_identifies_every_rig_and_fine_tunes_them(env: str, tmp_pat
         # the rig's own physics is the family's spread by its seed: the fit lands near it, not on lab's values
         assert abs(profile.Dp / true.Dp - 1) < 0.6 and abs(profile.km / true.km - 1) < 0.2, profile
     assert "stage 1 of 3" in proc.stdout and "[lab pretrain] skipped" in proc.stdout
+    assert proc.stdout.count("mN m the `paper` actions give at standstill") == 2  # each rig's authority
     progress = json.loads((folder / "lab.json").read_text())
     assert progress["done"] == ["identify", "finetune"]
     summary = json.loads((folder / "finetune" / "summary.json").read_text())
@@ -192,3 +193,21 @@ def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_runs_the_fine_tune_alone(
                                                         "pretrain-profile.json"]  # never the fine-tune
     assert json.loads((folder / "lab.json").read_text())["done"] == ["identify", "pretrain"]
     assert (folder / "pretrain-2" / "x.json").read_text() == "pretrain-2"
+
+
+def test_a_failed_pretrain_names_the_rig_with_the_least_authority_left(tmp_path: Path) -> None:
+    """The arm's breakaway torque against what the action set gives at standstill (deploy.lab.breakaway_share): a
+    rig stickier than the paper's actions can overcome with much to spare is named, with the stronger set's share."""
+    from deploy.lab import authority_hint, breakaway_share, identified_files
+    from services.qube_sim.profile import LAB
+
+    s = LabSettings.given(workers=2)
+    for path, static in zip(identified_files(s, tmp_path), (LAB.static_arm, 5.5e-3), strict=True):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(LAB.model_copy(update={"static_arm": static}).to_json())
+    share, torque = breakaway_share(LAB, "paper")
+    assert 6e-3 < torque < 8e-3 and share == pytest.approx(LAB.static_arm / torque)
+    assert breakaway_share(LAB, "levels")[0] == pytest.approx(share * 60 / 150, rel=0.05)
+    hint = authority_hint(s, tmp_path)
+    assert hint.startswith("; rig1's arm breakaway takes 7") and "`--qube-actions levels`: 3" in hint, hint
+    assert authority_hint(LabSettings.given(workers=2, qube_actions="levels"), tmp_path) == ""

@@ -262,7 +262,7 @@ class Settings(BaseSettings):
         source: CliSettingsSource[Any] = CliSettingsSource(
             cls, root_parser=parser, cli_kebab_case=True, cli_implicit_flags=True, cli_avoid_json=True,
             cli_hide_none_type=True, cli_show_env_vars=True, cli_shortcuts=shortcuts, _env_settings_source=_Env(cls),
-            add_argument_method=_add_argument)
+            add_argument_method=lambda parser, *names, **kwargs: _add_argument(cls, parser, *names, **kwargs))
         return parser, source
 
     @classmethod
@@ -451,10 +451,18 @@ def program(default: str) -> str:
     return name if name.startswith("fedrl-") else default
 
 
-def _add_argument(parser: Any, *names: str, **kwargs: Any) -> Any:
-    """pydantic-settings' add_argument, except that a ``CliSuppress`` field (help suppressed) gets no flag at all."""
+def _add_argument(cls: type[Settings], parser: Any, *names: str, **kwargs: Any) -> Any:
+    """pydantic-settings' add_argument, except that a ``CliSuppress`` field (help suppressed) gets no flag at all, and
+    a field's help names the variable only where it reads one and shows its own ``metavar`` (see :func:`setting`)."""
     if kwargs.get("help") == argparse.SUPPRESS:
         return None
+    field = cls.model_fields.get(kwargs.get("dest", ""))
+    if field is not None:
+        meta = _meta(field)
+        if not meta["env"] and isinstance(kwargs.get("help"), str):
+            kwargs["help"] = re.sub(r" \[env: [A-Z0-9_]+\]$", "", kwargs["help"])
+        if meta["metavar"]:
+            kwargs["metavar"] = meta["metavar"]
     return parser.add_argument(*names, **kwargs)
 
 

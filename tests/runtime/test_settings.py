@@ -237,3 +237,27 @@ def test_settings_import_no_torch() -> None:
             "bad = [m for m in ('torch', 'gymnasium', 'docker') if m in sys.modules]; print(bad); sys.exit(bool(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def _commands() -> list[type[Settings]]:
+    from deploy.lab import LabSettings
+    from worker.identify import IdentifySettings
+
+    return [cls for _, _, cls in PROCESSES] + [LabSettings, IdentifySettings]
+
+
+@pytest.mark.parametrize("cls", _commands(), ids=lambda cls: cls.__name__)
+def test_help_names_a_variable_only_for_a_setting_that_reads_one(cls: type[Settings]) -> None:
+    """``--help`` says ``[env: FEDRL_X]`` exactly for the settings a variable sets (a flag-only one, such as
+    ``python -m rpi_bridge --identify OUT``, used to advertise a variable that was ignored with a warning), and shows
+    a setting's own metavar (``OUT``, ``NAME|FILE``)."""
+    parser, _ = cls.parser("x")
+    shown = {a.dest: a for a in parser._actions}
+    for name, field in cls.model_fields.items():
+        action = shown.get(name)
+        if action is None or action.help is None:
+            continue
+        extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
+        assert ("[env: " in action.help) == bool(extra.get("env", True)), (name, action.help)
+        if extra.get("metavar"):
+            assert action.metavar == extra["metavar"], name

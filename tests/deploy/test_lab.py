@@ -90,8 +90,9 @@ def test_the_pipeline_identifies_every_rig_and_fine_tunes_them(env: str, tmp_pat
     if env == "qube":  # the recordings came over MQTT and are kept beside the profiles
         assert (folder / "identified" / "rig0.recording.json.gz").stat().st_size > 10_000
 
-    again = lab(args, truth)  # a finished pipeline: every stage is kept, the report is made again
-    assert again.returncode == 0 and again.stdout.count("done before: skipped") == 2, again.stdout[-2000:]
+    if env == "qube-local":  # a finished pipeline (whatever its rigs): every stage is kept, the report made again
+        again = lab(args, truth)
+        assert again.returncode == 0 and again.stdout.count("done before: skipped") == 2, again.stdout[-2000:]
 
 
 def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tmp_path: Path, truth: Path) -> None:
@@ -102,6 +103,7 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
     assert proc.returncode == 1, proc.stdout[-3000:] + proc.stderr
     assert "no pretrain ended with a controller that meets TC (2 attempts" in proc.stderr
     assert "the same command resumes at this stage" in proc.stderr
+    assert "rig0's arm breakaway takes" in proc.stderr and "(`--qube-actions levels`: " in proc.stderr  # its authority
     assert "attempt 2 of 2, seed 10008" in proc.stdout  # a pretrain without TC is tried again with its own seed
     assert json.loads((folder / "lab.json").read_text())["done"] == ["identify"]
     rig = load_profile(folder / "identified" / "rig0.json")

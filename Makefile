@@ -40,9 +40,11 @@ $(RUN_STAMP): pyproject.toml constraints.txt
 	$(PIP) -e ".[learn,broker,tb]"
 	touch $(RUN_STAMP)
 
-$(STAMP): $(RUN_STAMP)
+# The full set includes the run's: one install (one resolution) for both stamps.
+$(STAMP): pyproject.toml constraints.txt
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(PIP) -e ".[learn,broker,tb,dev,deploy,video,bench,docs]"
-	touch $(STAMP)
+	touch $(RUN_STAMP) $(STAMP)
 
 run: $(RUN_STAMP)
 	$(BIN)/python -m deploy.run_local

@@ -23,10 +23,10 @@ from typing import Any
 
 from bench.output import write_report
 from rpi_bridge.control import ControlConfig, identify_config
-from rpi_bridge.identify import IDENTIFY_ATTEMPTS, IdentifyConfig
+from rpi_bridge.identify import IDENTIFY_ATTEMPTS, IdentifyConfig, Recording
 from rpi_bridge.selftest import SelfTestConfig
 from services.qube_sim import families
-from services.qube_sim.identify import FitRefused, check, fit, record_simulated
+from services.qube_sim.identify import fit_attempts, record_simulated
 from services.qube_sim.profile import LAB, RigProfile
 
 RESULTS = Path("bench/results")
@@ -78,33 +78,36 @@ def control(overrides: dict[str, float] | None = None) -> ControlConfig:
     return dataclasses.replace(CONTROL, identify=changed)
 
 
+class _ProtocolFailed(Exception):
+    """The protocol could not finish on a rig (a result of bench.identify, not an error of it)."""
+
+
 def one(family: str, profile: RigProfile, seed: int, overrides: dict[str, float] | None = None,
         attempts: int = IDENTIFY_ATTEMPTS) -> dict[str, Any]:
     """Identify rig ``seed`` of ``profile`` as the pipeline does (a refused fit recorded again, up to ``attempts``
     recordings) and compare the last fit with the rig's truth."""
     truth = profile.rig_params(seed)
     row: dict[str, Any] = {"family": family, "profile": profile.name, "seed": seed}
-    spent, result = 0.0, None
-    for attempt in range(attempts):
+    walls: list[float] = []
+
+    def record(attempt: int) -> Recording:
         began = time.perf_counter()
         try:
             rec = record_simulated(profile, seed, control(overrides), attempt=attempt)
         except Exception as err:  # the protocol could not finish on this rig: that is a result
-            return {**row, "outcome": f"protocol failed: {err}"}
-        spent += rec.rig_seconds
-        row.update(rig_seconds=round(spent, 1), attempts=attempt + 1,
-                   record_wall_s=round(time.perf_counter() - began, 1))
-        try:
-            result = fit(rec, LAB)
-        except FitRefused as err:  # no fit at all (the recording cannot be cut into windows)
-            result, row["outcome"] = None, f"refused: {err}"
-            continue
-        try:
-            check(result)
-            row["outcome"] = "trusted"
-            break
-        except FitRefused as err:
-            row["outcome"] = f"refused: {err}"
+            raise _ProtocolFailed(str(err)) from err
+        walls.append(time.perf_counter() - began)
+        return rec
+
+    spent, result = 0.0, None
+    try:
+        for attempt, (rec, fitted, refusal) in enumerate(fit_attempts(record, LAB, attempts)):
+            result = fitted  # the last recording's fit is the one compared with the truth
+            spent += rec.rig_seconds
+            row.update(rig_seconds=round(spent, 1), attempts=attempt + 1, record_wall_s=round(walls[-1], 1),
+                       outcome="trusted" if refusal is None else f"refused: {refusal}")
+    except _ProtocolFailed as err:
+        return {**row, "outcome": f"protocol failed: {err}"}
     if result is None:
         return row
     row["fit_wall_s"] = round(result.wall_s, 1)

@@ -28,7 +28,7 @@ import argparse
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from datetime import UTC, datetime
 from pathlib import Path
@@ -498,25 +498,43 @@ def identify_and_write(record: Callable[[int], Recording], base: RigProfile, out
     only if trusted; a refused fit is recorded again with the next PRBS sequence, up to ``attempts`` recordings.
     The trusted fit, its profile (with every recording's rig time) and its recording; IdentifyRefused otherwise."""
     refused: list[float] = []
-    while True:
-        rec = record(len(refused))
+    last = FitRefused("no recording")
+    for rec, result, refusal in fit_attempts(record, base, attempts, cfg, progress):
+        if refusal is None and result is not None:
+            profile = to_profile(result, base, rec, source, refused=tuple(refused))
+            out.write_text(profile.to_json())
+            return result, profile, rec
+        last = refusal or last
+        refused.append(rec.rig_seconds)
+        if len(refused) < attempts and progress is not None:
+            progress(f"refused: {last}; recording again with PRBS sequence {len(refused)} "
+                     f"(attempt {len(refused) + 1} of {attempts})")
+    tried = f" ({len(refused)} recordings, each refused)" if len(refused) > 1 else ""
+    raise IdentifyRefused(f"{last}{tried}", sum(refused))
+
+
+def fit_attempts(record: Callable[[int], Recording], base: RigProfile, attempts: int, cfg: FitConfig | None = None,
+                 progress: Callable[[str], None] | None = None,
+                 ) -> Iterator[tuple[Recording, Fit | None, FitRefused | None]]:
+    """The retry policy of every identification: record (``record(attempt)``) and fit until a fit is trusted or
+    ``attempts`` recordings are made; each recording with its fit (None: none could be made) and its refusal (None:
+    trusted, the last one yielded)."""
+    for attempt in range(attempts):
+        rec = record(attempt)
         try:
             result = fit(rec, base, cfg, progress)
-            if progress is not None:
-                progress(summary(result))
+        except FitRefused as err:
+            yield rec, None, err
+            continue
+        if progress is not None:
+            progress(summary(result))
+        try:
             check(result, cfg)
         except FitRefused as err:
-            refused.append(rec.rig_seconds)
-            if len(refused) >= attempts:
-                tried = f" ({len(refused)} recordings, each refused)" if len(refused) > 1 else ""
-                raise IdentifyRefused(f"{err}{tried}", sum(refused)) from None
-            if progress is not None:
-                progress(f"refused: {err}; recording again with PRBS sequence {len(refused)} "
-                         f"(attempt {len(refused) + 1} of {attempts})")
+            yield rec, result, err
             continue
-        profile = to_profile(result, base, rec, source, refused=tuple(refused))
-        out.write_text(profile.to_json())
-        return result, profile, rec
+        yield rec, result, None
+        return
 
 
 def record_simulated(truth: RigProfile, seed: int, control: ControlConfig | None = None,

@@ -23,6 +23,8 @@ os.environ["FEDRL_ENV_FILE"] = os.devnull
 #: machine under other load, 2026-12-05: the e2e group about 600, the SAC equivalence 186 (400 before it was
 #: shortened), test_lab 141 + 106 + 71, the root's resume 60, test_interrupt 62 + 58 + 2 x 24, test_edge_failover
 #: 55 + 54 + 47 + 34, the printed resume line 53, the byzantine median 51, the other equivalences 48 and less).
+#: A module whose module-scoped fixture is a federation or a recording keeps its tests in one xdist group, so that
+#: the fixture is made once (test_edge_failover's reference was made in each of three test processes).
 #: Under ``--dist loadgroup`` a test process is handed the tests (a group as one) in the order of collection as it
 #: frees up, so a long one collected late ran alone at the end; they run first, then the other slow ones, then the
 #: rest (short ones last even out the ends). Only the order changes.
@@ -37,6 +39,8 @@ LONGEST_FIRST = (
     "tests/deploy/test_printed_commands.py::",
     "tests/e2e/test_byzantine.py::",
     "tests/e2e/test_inprocess_equivalence.py::",
+    "tests/services/test_site_brokers.py::",  # xdist groups of a module fixture, 130 s and 110 s in all
+    "tests/services/test_identify.py::",
 )
 
 

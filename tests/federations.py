@@ -209,9 +209,19 @@ def _spin(stop: multiprocessing.synchronize.Event) -> None:
         x += 1
 
 
+def busy_loops_wanted(cores: int | None = None, load: float | None = None) -> int:
+    """Busy loops that, with the machine's own load (1-minute average), keep every core busy: one at least, and one per
+    core left idle (both cores of a quiet 2-core machine; one under ``make test``, whose other test processes already
+    load the cores: a second loop there only takes CPU from them)."""
+    cores = (os.cpu_count() or 2) if cores is None else cores
+    load = os.getloadavg()[0] if load is None else load
+    return max(1, min(cores, cores - int(load)))
+
+
 @contextmanager
-def cpu_load(processes: int = 2) -> Iterator[None]:
-    """Busy processes competing with the federation for both cores."""
+def cpu_load(processes: int | None = None) -> Iterator[None]:
+    """Busy processes competing with the federation for the cores (default :func:`busy_loops_wanted`)."""
+    processes = busy_loops_wanted() if processes is None else processes
     stop = multiprocessing.Event()
     procs = [multiprocessing.Process(target=_spin, args=(stop,), daemon=True) for _ in range(processes)]
     for p in procs:

@@ -31,3 +31,12 @@ def test_a_failed_federation_leaves_no_process_of_it_behind(tmp_path: Path) -> N
     assert sum(c.endswith("-m chief") for c in commands) == 1, commands
     _, alive = psutil.wait_procs(started, timeout=30)
     assert not alive, alive
+
+
+def test_the_cpu_load_keeps_every_core_busy_with_one_busy_loop_at_least() -> None:
+    from tests.federations import busy_loops_wanted
+
+    assert busy_loops_wanted(cores=2, load=0.1) == 2  # a quiet machine: both cores
+    assert busy_loops_wanted(cores=2, load=1.6) == 1
+    assert busy_loops_wanted(cores=2, load=4.7) == 1  # make test's own processes load it already: one more
+    assert busy_loops_wanted(cores=8, load=3.0) == 5

@@ -31,6 +31,7 @@ from worker.settings import WorkerSettings
 
 KEY = "k" * 32
 LOG = logging.getLogger("test")
+pytestmark = pytest.mark.xdist_group("test_chief_trust")  # its module fixture is made once, in one test process
 ENV, SEED, WORKERS, EPISODES = "CartPole-v0", 101, 2, 15
 
 

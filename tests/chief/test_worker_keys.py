@@ -31,6 +31,7 @@ from worker.settings import WorkerSettings, handed_keys
 KEY = "r" * 32
 RAW = KEY.encode()
 LOG = logging.getLogger("test")
+pytestmark = pytest.mark.xdist_group("test_worker_keys")  # its module fixture is made once, in one test process
 ENV, SEED, WORKERS, EPISODES = "CartPole-v0", 103, 2, 12
 
 

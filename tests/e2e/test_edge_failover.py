@@ -19,7 +19,7 @@ from deploy.inprocess import run_federation
 from deploy.settings import InprocessSettings
 from tests.federations import federate_through, per_worker, warnings_of
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("test_edge_failover")]  # the reference is made once
 
 ENV, SEED, WORKERS, EDGES, EPISODES = "CartPole-v0", 3, 4, 2, 25  # w0 (edge e0) finishes at episode 22
 #: Long enough that no round times out while a dead edge's workers move (a few seconds), on a busy machine.

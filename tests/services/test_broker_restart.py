@@ -17,7 +17,7 @@ from services.broker.embedded import free_port, start_broker_process, stop_proce
 from tests.conftest import HOST, mosquitto_available, start_mosquitto
 from tests.federations import federate_through, per_worker
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("test_broker_restart")]  # the reference is made once
 
 SEED, WORKERS = 2, 2
 

@@ -37,6 +37,7 @@ from tests.paths import ROOT
 #: The bridge's protocol (about 80 s of rig time).
 CONFIG = IdentifyConfig()
 TARGET = {"Dp": "Dp", "Dr": "Dr", "coulomb_arm": "Cr", "motor": "km"}
+pytestmark = pytest.mark.xdist_group("test_identify")  # its module fixture is made once, in one test process
 
 
 def exact(profile: RigProfile) -> RigProfile:

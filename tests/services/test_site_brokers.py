@@ -24,8 +24,9 @@ from protocol.mqtt import BrokerAddress, MqttConnection
 from tests.conftest import mosquitto_available
 from tests.federations import federate_through, per_worker
 
-pytestmark = pytest.mark.skipif(not mosquitto_available(),
-                                reason="mosquitto is not installed (apt-get install mosquitto)")
+pytestmark = [pytest.mark.skipif(not mosquitto_available(),
+                                 reason="mosquitto is not installed (apt-get install mosquitto)"),
+              pytest.mark.xdist_group("test_site_brokers")]  # its module fixtures are made once, in one test process
 
 SEED, WORKERS, EPISODES = 2, 2, 25
 UPDATE, ANSWER = "fedrl/r/worker/w0/update", "fedrl/r/chief/aggregate"

@@ -40,7 +40,7 @@ from rpi_bridge.device import QubeDevice
 from rpi_bridge.frame import MAX_COMMAND, build_command, clamp_command, parse_reply
 from rpi_bridge.identify import Identification, IdentifyConfig
 from rpi_bridge.plant import PlantModel
-from rpi_bridge.reset import ResetConfig, ResetController
+from rpi_bridge.reset import STRATEGIES, ResetConfig, ResetController, strategy
 from rpi_bridge.selftest import SelfTest, SelfTestConfig
 from rpi_bridge.velocity import VelocityFilter
 
@@ -99,9 +99,10 @@ class ControlConfig:
             raise ValueError(f"arm_limit must be in (0, pi) rad, got {self.arm_limit}")
         if not 0 < self.fall_limit < math.pi:
             raise ValueError(f"fall_limit must be in (0, pi) rad, got {self.fall_limit}")
-        if max(self.reset.arm_soft_limit, self.reset.hard_soft_limit) >= self.arm_limit:
-            raise ValueError(f"the reset's soft arm limit ({math.degrees(self.reset.arm_soft_limit):.0f} deg) must be "
-                             f"inside the arm limit ({math.degrees(self.arm_limit):.0f} deg)")
+        soft = max(strategy(self.reset, n)[1].widest_soft_limit() for n in range(len(STRATEGIES)))
+        if soft >= self.arm_limit:  # every retry strategy's, every pump variant's
+            raise ValueError(f"the reset's soft arm limit ({math.degrees(soft):.0f} deg) must be inside the arm limit "
+                             f"({math.degrees(self.arm_limit):.0f} deg)")
         for name in ("action_timeout_s", "ready_timeout_s", "stall_timeout_s", "calibration_window_s"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")

@@ -27,10 +27,10 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    the arm further out pulls it in and stops it early, which costs travel) and plans its braking at
    ``hard_brake_accel``, what full voltage gives with the pendulum near horizontal. In the bridge's loop it still
    falls short on a third to half of the rigs at 10x ``lab``'s Dp: the arm's travel limits the energy it puts in
-   (docs/how-to/ood.md). If even that brings the pendulum no nearer than ``hopeless_angle`` to upright in
-   ``hopeless_turns`` turnarounds, the attempt fails at once with one line saying this pump falls short, with the
-   model's damping (``bench.swingup`` finds no swing-up within 10 V at the course files' damping, but one at 10x
-   ``lab``'s Dp).
+   (docs/how-to/ood.md); each retry pumps with its own values of these four (6.). If even that brings the
+   pendulum no nearer than ``hopeless_angle`` to upright in ``hopeless_turns`` turnarounds, the attempt fails at
+   once with one line saying this pump falls short, with the model's damping (``bench.swingup`` finds no swing-up
+   within 10 V at the course files' damping, but one at 10x ``lab``'s Dp).
 3. **the arm's travel**: the swing-up never accelerates the arm outwards past ``arm_soft_limit``, and whenever
    the arm could no longer stop inside it with ``brake_accel`` (after ``brake_delay_ticks`` of latency) it brakes
    at full voltage. Full voltage stops the arm at 130-310 rad/s^2 in simulation (the least with the pendulum
@@ -45,7 +45,9 @@ Every command is capped at ``max_command`` (at most 416 counts = 10 V, the manua
    (command 0, latched until :meth:`ResetController.reset`) when ``timeout_s`` passes without reaching ready (an
    arm still moving fast or a pendulum still swinging is first calmed, for at most ``wind_down_s``).
 6. **retries**: :meth:`ResetController.reset` takes the number of attempts that failed in a row on this rig (the
-   control core counts them) and picks the attempt's strategy from :data:`STRATEGIES`; a failure names it.
+   control core counts them) and picks the attempt's strategy from :data:`STRATEGIES`; a failure names it. Each
+   retry pumps hard in its own way (prediction, pull to the middle, soft limit, braking): the cycle a heavily damped
+   pendulum settles into short of the top depends on the rig and the pump, so the same pump would mostly repeat it.
 
 The controller estimates alpha_dot itself from the angles (a 50s/(s+50)-type filter with a faster 100 rad/s
 cutoff): the 7 ms tick plus a 20 ms filter lag cost too much phase for the catch. The gains were tuned on
@@ -151,6 +153,10 @@ class ResetConfig:
         if not 0 <= self.friction_compensation <= 1.5 or self.integral_limit < 0 or self.integral_weight < 0:
             raise ValueError("need 0 <= friction_compensation <= 1.5, integral_limit >= 0 and integral_weight >= 0")
 
+    def widest_soft_limit(self) -> float:
+        """The largest soft arm limit any phase of an attempt may use (the bridge's fault limit must lie beyond)."""
+        return max(self.arm_soft_limit, self.hard_soft_limit)
+
     def hold_gains(self) -> tuple[float, float, float, float, float, float]:
         """(k_theta, k_alpha, k_theta_dot, k_alpha_dot, k_u_prev, k_integral): ``gains``, or designed from the
         model."""
@@ -165,17 +171,24 @@ class ResetConfig:
 #: as heavy and 3x as sticky as the model (the deviations that defeat the hold of a nominal model: the sweep of
 #: services/qube_sim/families.py); "wide" catches earlier and starts with energy to spare; "patient" gives a heavily
 #: damped pendulum time, adapts faster and assumes an arm 2x off; "strong" pumps harder and compensates all of the
-#: model's friction.
+#: model's friction. Each retry also pumps hard (a heavily damped pendulum) with its own prediction, pull to the
+#: middle, soft limit and braking: where the hard pump falls short, its swing settles into a cycle that depends on
+#: the rig and on these, so a retry with the same pump mostly falls short again (docs/how-to/ood.md). "heavy" pulls
+#: less to the middle, "wide" acts on the state now, "patient" does both over 76 deg of travel, "strong" pulls less
+#: and plans its braking at 220 rad/s^2 inside 62 deg; on rigs of 10x ``lab``'s Dp each reached the top from a calm
+#: start on 55-65 % of the tuning rigs (the standard pump 30-45 %), with the arm inside 93 deg.
 STRATEGIES: tuple[tuple[str, dict[str, object]], ...] = (
     ("standard", {}),
-    ("heavy", {"settle_first": True, "timeout_factor": 4 / 3,
+    ("heavy", {"settle_first": True, "timeout_factor": 4 / 3, "hard_centre": 1.5,
                "model_factors": {"mr": 3.0, "coulomb_arm": 3.0, "static_arm": 3.0}}),
     ("wide", {"settle_first": True, "catch_angle": math.radians(26.0), "boost_min_angle": math.radians(30.0),
-              "initial_energy": 0.15, "timeout_factor": 4 / 3}),
+              "initial_energy": 0.15, "timeout_factor": 4 / 3, "hard_prediction_ticks": 0.0}),
     ("patient", {"settle_first": True, "timeout_factor": 2.0, "boost_gain": 0.9, "low_boost_gain": 0.25,
-                 "boost_max": 1.2, "model_factors": {"mr": 2.0, "coulomb_arm": 2.0, "static_arm": 2.0}}),
+                 "boost_max": 1.2, "model_factors": {"mr": 2.0, "coulomb_arm": 2.0, "static_arm": 2.0},
+                 "hard_prediction_ticks": 0.0, "hard_centre": 1.5, "hard_soft_limit": math.radians(76.0)}),
     ("strong", {"settle_first": True, "timeout_factor": 2.0, "swing_accel": 110.0, "initial_energy": 0.3,
-                "boost_max": 1.2, "friction_compensation": 1.0}),
+                "boost_max": 1.2, "friction_compensation": 1.0, "hard_centre": 1.5,
+                "hard_soft_limit": math.radians(62.0), "hard_brake_accel": 220.0}),
 )
 
 

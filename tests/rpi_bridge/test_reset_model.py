@@ -13,7 +13,7 @@ from protocol import qube
 from rpi_bridge.control import ControlConfig, ControlCore, with_model
 from rpi_bridge.frame import build_command, parse_reply
 from rpi_bridge.plant import PlantModel, delayed, lqr_gains, zoh
-from rpi_bridge.reset import LQR_GAINS, STRATEGIES, ResetConfig, ResetController
+from rpi_bridge.reset import LQR_GAINS, STRATEGIES, ResetConfig, ResetController, strategy
 from rpi_bridge.velocity import VelocityFilter
 from services.qube_sim import families
 from services.qube_sim.clock import VirtualClock
@@ -125,6 +125,28 @@ def test_the_hard_pump_switches_on_its_own_prediction_horizon() -> None:
     for ticks in (-0.5, 6.0):
         with pytest.raises(ValueError, match="prediction_ticks"):
             ResetConfig(hard_prediction_ticks=ticks)
+
+
+def test_each_retry_pumps_hard_in_its_own_way_inside_the_arm_limit() -> None:
+    """The cycle a heavily damped pendulum settles into short of the top depends on the hard pump, so each retry
+    pumps differently: no two strategies share prediction, pull, soft limit and braking, and a retry acting on the
+    state now flips the standard pump's push where the pendulum's 1-tick prediction crosses horizontal. Every
+    strategy's soft limit lies inside the bridge's arm limit, which ControlConfig checks for each."""
+    pumps = {(c.hard_prediction_ticks, c.hard_centre, c.hard_soft_limit, c.hard_brake_accel)
+             for c in (strategy(ResetConfig(), n)[1] for n in range(len(STRATEGIES)))}
+    assert len(pumps) == len(STRATEGIES)
+    assert all(limit < ControlConfig().arm_limit - math.radians(30) for _, _, limit, _ in pumps)
+    ctl = ResetController(ResetConfig(model=PlantModel(Dp=5e-4), velocity_cutoff=None, settle_max_s=0.0))
+    state = (0.0, 1.575, 0.0, -3.0)  # arm at rest in the middle, pendulum just past horizontal, rising
+    commands = {}
+    for failures in range(len(STRATEGIES)):
+        ctl.reset(failures)  # pumping hard from the start (the model's damping); a retry's settling ends at once
+        commands[ctl.strategy] = ctl.step(state, TICK)[0]
+        assert ctl.hard and ctl.phase == "swing_up"
+    assert commands["standard"] == -commands["wide"] and abs(commands["wide"]) == ResetConfig().max_command
+    narrow = ResetConfig(arm_soft_limit=math.radians(60), hard_soft_limit=math.radians(60))
+    with pytest.raises(ValueError, match=r"soft arm limit \(76 deg\)"):  # "patient" pumps inside 76 deg
+        ControlConfig(arm_limit=math.radians(75), reset=narrow)
 
 
 def test_course_damping_fails_early_with_one_line_naming_the_cause() -> None:

@@ -136,3 +136,11 @@ def test_the_identifications_of_the_ood_table_are_ood_json() -> None:
     entries = json.loads((ROOT / "bench/results/ood.json").read_text())["entries"]
     ident = [v for k, v in entries.items() if k.startswith("identify/")]
     assert f"Of the {len(ident)} rigs identified, {sum(v['ok'] for v in ident)} were trusted" in page
+
+
+def test_the_bridge_page_reset_table_is_reset_json() -> None:
+    from bench import reset
+
+    data = json.loads((ROOT / "bench/results/reset.json").read_text())
+    expected = reset.markdown({**data, "out": "bench/results/reset.json"})
+    assert block(ROOT / reset.PAGE, reset.BEGIN, reset.END) == expected

@@ -215,7 +215,7 @@ def busy_loops_wanted(cores: int | None = None, load: float | None = None) -> in
     load the cores: a second loop there only takes CPU from them)."""
     cores = (os.cpu_count() or 2) if cores is None else cores
     load = os.getloadavg()[0] if load is None else load
-    return max(1, min(cores, cores - int(load)))
+    return max(1, cores - int(load))  # a load is never negative: at most one loop per core
 
 
 @contextmanager

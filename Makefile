@@ -10,6 +10,9 @@ RUN_STAMP := $(VENV)/.installed-run
 # end-to-end runs keep together (xdist_group "e2e"). PYTEST_JOBS= runs them in one process.
 PYTEST_JOBS ?= -n 3 --dist loadgroup
 PIP    := $(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt
+MKVENV := test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+RUN_EXTRAS := learn,broker,tb
+ALL_EXTRAS := $(RUN_EXTRAS),dev,deploy,video,bench,docs
 
 .PHONY: run test test-fast lint venv bench bench-quick soak clean help test-docker docker-dev docs docs-build tensorboard \
 	k8s-check swarm-test scale scale-quick
@@ -36,14 +39,14 @@ help:
 venv: $(STAMP)
 
 $(RUN_STAMP): pyproject.toml constraints.txt
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(PIP) -e ".[learn,broker,tb]"
+	$(MKVENV)
+	$(PIP) -e ".[$(RUN_EXTRAS)]"
 	touch $(RUN_STAMP)
 
 # The full set includes the run's: one install (one resolution) for both stamps.
 $(STAMP): pyproject.toml constraints.txt
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(PIP) -e ".[learn,broker,tb,dev,deploy,video,bench,docs]"
+	$(MKVENV)
+	$(PIP) -e ".[$(ALL_EXTRAS)]"
 	touch $(RUN_STAMP) $(STAMP)
 
 run: $(RUN_STAMP)

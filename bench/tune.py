@@ -23,7 +23,7 @@ from typing import Any
 from bench import output
 from bench.paper import TUNING_SEEDS
 from chief import strategies
-from protocol import learners
+from protocol import learners, qube
 
 
 def tuned(task: str, algo: str, overrides: dict[str, Any]) -> Any:
@@ -41,8 +41,9 @@ def tuned(task: str, algo: str, overrides: dict[str, Any]) -> Any:
 
 
 def run(task: str, strategy: str, algo: str, seed: int, workers: int, max_episodes: int,
-        overrides: dict[str, Any]) -> dict[str, Any]:
-    """One tuning federation; its line of the log."""
+        overrides: dict[str, Any], qube_actions: str = qube.DEFAULT_ACTIONS) -> dict[str, Any]:
+    """One tuning federation; its line of the log (``qube_actions``: the QUBE tasks' action set, named in the line
+    when it is not the paper's)."""
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
 
@@ -53,12 +54,14 @@ def run(task: str, strategy: str, algo: str, seed: int, workers: int, max_episod
     t0 = time.monotonic()
     try:
         summary = run_federation(InprocessSettings.given(env=task, policy=strategy, seed=seed, workers=workers,
-                                 max_episodes=max_episodes, run_dir=run_dir / "run", algo=algo), plot=False,
+                                 max_episodes=max_episodes, run_dir=run_dir / "run", algo=algo,
+                                 qube_actions=qube_actions), plot=False,
                                  tensorboard_files=False, models=False)
     finally:
         shutil.rmtree(run_dir, ignore_errors=True)
-    return {"task": task, "strategy": strategy, "algo": algo, "set": overrides, "seed": seed, "workers": workers,
-            "max_episodes": max_episodes, "last_worker_episodes": summary.episodes_to_all_solved,
+    actions = {} if qube_actions == qube.DEFAULT_ACTIONS else {"qube_actions": qube_actions}
+    return {"task": task, "strategy": strategy, "algo": algo, **actions, "set": overrides, "seed": seed,
+            "workers": workers, "max_episodes": max_episodes, "last_worker_episodes": summary.episodes_to_all_solved,
             "last_worker_steps": summary.steps_of_last_worker,
             "per_worker": [[w.id, w.episodes, w.solved] for w in summary.workers],
             "wall_s": round(time.monotonic() - t0, 1), "load_average": [round(x, 2) for x in os.getloadavg()]}
@@ -74,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", nargs="+", type=int, default=[1], help="tuning seeds only (1-12)")
     parser.add_argument("--workers", type=int, default=4)
     parser.add_argument("--max-episodes", type=int, default=60)
+    parser.add_argument("--qube-actions", choices=list(qube.ACTION_SETS), default=qube.DEFAULT_ACTIONS,
+                        help="the QUBE tasks' action set (docs/explanation/qube-actions.md)")
     parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="KEY=VALUE")
     parser.add_argument("--out", type=Path, default=Path("bench/results/tuning.jsonl"))
     args = parser.parse_args(argv)
@@ -81,7 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     if bad := [s for s in args.seeds if s not in TUNING_SEEDS]:
         parser.error(f"not tuning seeds: {bad} (the report seeds stay unseen)")
     for seed in args.seeds:
-        line = run(args.task, args.strategy, args.algo, seed, args.workers, args.max_episodes, overrides)
+        line = run(args.task, args.strategy, args.algo, seed, args.workers, args.max_episodes, overrides,
+                   args.qube_actions)
         output.append_line(args.out, line)
     return 0
 

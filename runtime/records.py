@@ -1,5 +1,5 @@
 """The run folder's records as types: each line of ``metrics.jsonl``, ``summary.json`` and the keys of
-``gradients.npz``.
+``gradients.npz`` (with the witness's gaps).
 
 They live in runtime, below the chief that writes them and every reader (chief/audit.py, chief/tensorboard.py,
 runtime/model_file.py, deploy/, bench/): one writer (chief/report.py) and every reader go through these models, so a
@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import hashlib
 import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
+import numpy as np
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, TypeAdapter
 
 from protocol.messages import Contribution, Played, Receipt
@@ -26,9 +29,17 @@ METRICS = "metrics.jsonl"
 SUMMARY = "summary.json"
 #: Where a tiered run's edges keep their workers' records: RUN/edges/<edge>/metrics.jsonl (chief/edge.py).
 EDGES = "edges"
-#: A tiered run's witness (written by an observer of the wire, deploy/inprocess.py --edges): every worker's actor
-#: gradient and every aggregate the root sent, so the audit can check the root's Eq. 9 against the flat one.
+#: A tiered run's witness (written by an observer of the wire, deploy/witness.py): every worker's actor gradient and
+#: every aggregate the root sent, so the audit can check the root's Eq. 9 against the flat one, keyed by
+#: ``gradient_key``; and under WITNESS_GAPS the rounds whose messages the witness may have missed (WitnessGap).
 GRADIENTS = "gradients.npz"
+#: The key in GRADIENTS of the witness's gaps: an integer array with one row per WitnessGap, the episode and step of
+#: its start and of its end (-1 -1 for an open end); no rows when the witness missed nothing. No tensor's key can be
+#: it (theirs have a '/'). A GRADIENTS from before witnesses recorded gaps has no such key: read as no gaps.
+WITNESS_GAPS = "witness_gaps"
+
+#: A round's place in the run: (episode, step).
+Place = tuple[int, int]
 
 
 def gradient_key(episode: int, step: int, who: str, name: str) -> str:
@@ -38,6 +49,44 @@ def gradient_key(episode: int, step: int, who: str, name: str) -> str:
 
 #: Whose tensor in GRADIENTS is the root's aggregate (no worker id can be it: '@' is no id character).
 ROOT = "@root"
+
+
+@dataclass(frozen=True)
+class WitnessGap:
+    """Rounds whose messages the witness may have missed: its connection came back without the broker holding its
+    session (a broker that restarted empty), so what was published before it subscribed again never reached it.
+    ``start``: the place of the last message it witnessed before (None: from the beginning); ``end``: the place of
+    the first it witnessed after (None: to the end); both rounds included."""
+
+    start: Place | None
+    end: Place | None
+
+    def covers(self, place: Place) -> bool:
+        """Whether the round at ``place`` lies in this gap (its bounds included)."""
+        return (self.start is None or self.start <= place) and (self.end is None or place <= self.end)
+
+
+def write_gradients(path: Path, tensors: Mapping[str, np.ndarray], gaps: Sequence[WitnessGap]) -> Path:
+    """Save a witness as GRADIENTS: its tensors and its gaps (WITNESS_GAPS)."""
+    rows = [[*(g.start or (-1, -1)), *(g.end or (-1, -1))] for g in gaps]
+    arrays = {**tensors, WITNESS_GAPS: np.array(rows, np.int64).reshape(len(rows), 4)}
+    np.savez_compressed(path, **arrays)  # type: ignore[arg-type]
+    return path
+
+
+def read_gradients(path: Path) -> tuple[dict[str, np.ndarray], list[WitnessGap]]:
+    """A witness's tensors by key and its gaps (none in a file from before gaps were recorded); OSError or
+    ValueError when unreadable."""
+    with np.load(path) as data:
+        tensors = {k: data[k] for k in data.files}
+    rows = tensors.pop(WITNESS_GAPS, np.zeros((0, 4), np.int64))
+    if rows.ndim != 2 or rows.shape[1] != 4:
+        raise ValueError(f"{path.name}: {WITNESS_GAPS} has shape {rows.shape}, not (gaps, 4)")
+
+    def place(episode: int, step: int) -> Place | None:
+        return None if episode < 0 else (episode, step)
+
+    return tensors, [WitnessGap(place(*row[:2]), place(*row[2:])) for row in rows.tolist()]
 
 WorkerState = Literal["active", "lagging", "offline", "finished"]
 #: A worker's state in summary.json: the keeper's, or ``stopped`` when an offline worker said so itself.

@@ -15,20 +15,23 @@ import numpy as np
 import pytest
 
 from chief import strategies
-from chief.audit import CHECKS, AuditFailure, audit
+from chief.audit import CHECKS, AuditFailure, audit, main
 from chief.report import MetricsLog, run_summary, write_summary
 from chief.rounds import RoundKeeper, Submission
 from protocol.tasks import PI_WINDOW, performance_index, task
+from runtime.records import GRADIENTS, ROOT, WitnessGap, gradient_key, write_gradients
 
 SOLVE_AT = {"w0": 12, "w1": 15, "w2": 21}  # episodes at which each simulated worker hands over its actor
 #: w2 also played an episode of this many env steps whose submission never arrived: played, never counted.
 LOST_STEPS = 17
 
 
-def simulate(run_dir: Path, policy: str = "weighted", restart: tuple[str, int] | None = None) -> None:
+def simulate(run_dir: Path, policy: str = "weighted", restart: tuple[str, int] | None = None,
+             witness: dict[str, np.ndarray] | None = None) -> None:
     """Drive the real RoundKeeper with three honest workers and write the run folder the chief would write (three
     rounds per episode under a per-step strategy). ``restart``: that worker is started again at that episode with
-    new networks and no resumable state (worker/resume.py), as worker/federated.py's Algorithm2 then reports it."""
+    new networks and no resumable state (worker/resume.py), as worker/federated.py's Algorithm2 then reports it.
+    ``witness``: filled with every worker's actor gradient and every aggregate, keyed as in GRADIENTS."""
     shape = strategies.get(policy).rounds(3)
     per_step = shape.per_episode
     keeper = RoundKeeper(sorted(SOLVE_AT), policy, task("CartPole-v0"), max_episodes=100, round_timeout=30.0,
@@ -61,7 +64,11 @@ def simulate(run_dir: Path, policy: str = "weighted", restart: tuple[str, int] |
                     now=float(episode))
                 assert verdict.status == "accepted", verdict.detail
                 metrics.episode(verdict.record(float(episode)))
+                if witness is not None and not mature:
+                    witness[gradient_key(episode, step, w, "g")] = tensors["g"]
                 for outcome in verdict.outcomes:
+                    if witness is not None and outcome.gradient is not None:
+                        witness[gradient_key(outcome.episode, outcome.step, ROOT, "g")] = outcome.gradient["g"]
                     metrics.round({**outcome.record(), "t": float(episode)})
                     for r in SOLVE_AT:  # what each worker applies, as worker/service.py reports it
                         receipts[r] = {"round": outcome.round, "applied": outcome.kind, "digest": outcome.digest,
@@ -388,3 +395,68 @@ def test_a_helper_that_did_not_catch_up_fails_delivery(tmp_path: Path) -> None:
     rewrite(tmp_path / "sync", lines)
     with pytest.raises(AuditFailure, match=r"delivery: w0 finished in round .* without confirming"):
         audit(tmp_path / "sync")
+
+
+@pytest.fixture(scope="module")
+def tiered(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict[str, np.ndarray]]:
+    """The honest run as a tiered root records it (every round's contributors behind edge e0, so ``tiered-exact``
+    checks each aggregate) and its witness's tensors, not yet saved."""
+    run_dir = tmp_path_factory.mktemp("audit") / "tiered"
+    witness: dict[str, np.ndarray] = {}
+    simulate(run_dir, witness=witness)
+    lines = records(run_dir)
+    for x in lines:
+        if x["type"] == "round":
+            x["edges"] = {"e0": x["contributors"]}
+    rewrite(run_dir, lines)
+    return run_dir, witness
+
+
+def witnessed(tiered: tuple[Path, dict[str, np.ndarray]], tmp_path: Path, gaps: list[WitnessGap] | None,
+              missing: tuple[int, int] | None = None) -> Path:
+    """A copy of the tiered run with its witness saved, without the root's aggregate of round (episode, step)
+    ``missing``; with ``gaps``, or as a witness from before gaps were recorded (None: no such key)."""
+    run_dir = tmp_path / "run"
+    shutil.copytree(tiered[0], run_dir)
+    tensors = {k: v for k, v in tiered[1].items() if missing is None or k != gradient_key(*missing, ROOT, "g")}
+    if gaps is None:
+        np.savez_compressed(run_dir / GRADIENTS, **tensors)  # type: ignore[arg-type]
+    else:
+        write_gradients(run_dir / GRADIENTS, tensors, gaps)
+    return run_dir
+
+
+#: Round 7's place (episode 7, step 0): its aggregate is the one the witness misses below.
+MISSED = (7, 0)
+AGGREGATES = 21 - 3  # the honest run's rounds less its two transfers and its last (w2 finished: nothing shared)
+
+
+@pytest.mark.parametrize("gaps", [None, [], [WitnessGap((2, 0), (5, 0))]], ids=["older-file", "no-gap", "elsewhere"])
+def test_a_root_aggregate_the_witness_lacks_outside_its_gaps_fails(
+        tiered: tuple[Path, dict[str, np.ndarray]], tmp_path: Path, gaps: list[WitnessGap] | None) -> None:
+    """Every aggregate the witness holds is checked; one it lacks where it recorded no gap fails ``tiered-exact``,
+    in a GRADIENTS without gaps (an older run's) as before."""
+    report = audit(witnessed(tiered, tmp_path / "whole", gaps))
+    assert (report.tiered, report.unwitnessed) == (AGGREGATES, 0)
+    with pytest.raises(AuditFailure, match=r"tiered-exact: round 7: the witness lacks the root's aggregate"):
+        audit(witnessed(tiered, tmp_path / "lacking", gaps, missing=MISSED))
+
+
+@pytest.mark.parametrize("gap", [WitnessGap((6, 0), (8, 0)), WitnessGap((7, 0), (7, 0)), WitnessGap(None, (7, 0)),
+                                 WitnessGap((7, 0), None)], ids=["between", "bounds", "from-start", "to-end"])
+def test_a_root_aggregate_missing_inside_a_witness_gap_is_counted_unwitnessed(
+        tiered: tuple[Path, dict[str, np.ndarray]], tmp_path: Path, gap: WitnessGap) -> None:
+    """A round the witness lacks inside a gap it recorded (its bounds included, an open end from the beginning or to
+    the end) is counted as unwitnessed and not checked; the audit's output says how many."""
+    run_dir = witnessed(tiered, tmp_path, [WitnessGap((1, 0), (1, 0)), gap], missing=MISSED)
+    report = audit(run_dir)
+    assert (report.tiered, report.unwitnessed) == (AGGREGATES - 1, 1)
+    assert "1 root aggregate not witnessed" in str(report)
+
+
+def test_the_command_prints_the_unwitnessed_rounds(tiered: tuple[Path, dict[str, np.ndarray]], tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    assert main([str(witnessed(tiered, tmp_path, [WitnessGap((6, 0), (8, 0))], missing=MISSED))]) == 0
+    out = capsys.readouterr().out
+    assert (f"{AGGREGATES - 1} tiered aggregates within the bound" in out
+            and "1 root aggregate not witnessed (inside the witness's gaps" in out), out

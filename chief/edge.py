@@ -488,6 +488,10 @@ class _Lent:
     def connects(self, value: int) -> None:
         self._conn.connects = value
 
+    @property
+    def session_present(self) -> bool:
+        return self._conn.session_present
+
     def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> _Lent:
         return self
 

@@ -41,6 +41,11 @@ class Transport(Protocol):
     #: Where dropped messages (retained, bad chunks) are counted.
     rejects: RejectCounter
 
+    @property
+    def session_present(self) -> bool:
+        """Whether the broker still held this connection's session at its last connect (False: what was published
+        for it while it was away is gone; a transport without sessions says False)."""
+
     def start(self, timeout: float = 10.0, stop: threading.Event | None = None) -> Transport:
         """Connect within ``timeout`` s (ConnectionError), or give up once ``stop`` is set (protocol.mqtt.Stopped)."""
 

@@ -104,5 +104,6 @@ def test_both_connections_are_transports() -> None:
         return conn
 
     for conn in (Hub().connect("a"), MqttConnection(BrokerAddress.parse("mqtt://127.0.0.1:9"), "a")):
-        for member in ("start", "stop", "subscribe", "unsubscribe", "publish", "connected", "connects", "rejects"):
+        for member in ("start", "stop", "subscribe", "unsubscribe", "publish", "connected", "connects",
+                       "session_present", "rejects"):
             assert hasattr(takes(conn), member)

@@ -88,6 +88,7 @@ def read_gradients(path: Path) -> tuple[dict[str, np.ndarray], list[WitnessGap]]
 
     return tensors, [WitnessGap(place(*row[:2]), place(*row[2:])) for row in rows.tolist()]
 
+
 WorkerState = Literal["active", "lagging", "offline", "finished"]
 #: A worker's state in summary.json: the keeper's, or ``stopped`` when an offline worker said so itself.
 SummaryState = Literal["active", "lagging", "offline", "finished", "stopped"]

@@ -41,6 +41,7 @@ from typing import Any
 
 from bench import stats
 from bench.runs import process_pool
+from protocol.qube import ACTION_SETS, DEFAULT_ACTIONS
 from runtime.records import SUMMARY, EpisodeRecord, RoundRecord, RunSummary, read_metrics
 
 TASK = "qube-local"
@@ -71,12 +72,30 @@ PRETRAINS: dict[str, dict[str, Any]] = {
 QUICK: dict[str, Any] = {"seeds": (101,), "max_episodes": 6, "pretrain_episodes": 6, "held_out": 2, "trials": 1}
 
 
+#: The settings compared, in the table's order: from scratch, then each pretrain's warm start.
+SETTINGS = ("scratch", *PRETRAINS)
+
+
 @dataclass(frozen=True)
 class Setup:
-    """What every federation of one invocation shares: the learner and the federation strategy."""
+    """What every federation of one invocation shares: the learner, the federation strategy and the QUBE's action
+    set (protocol/qube.py ACTION_SETS)."""
 
     algo: str = ALGO
     policy: str = POLICY
+    qube_actions: str = DEFAULT_ACTIONS
+
+    @property
+    def paper_actions(self) -> bool:
+        """Whether the rigs act with the paper's three actions, the only set the robustness trials test
+        (worker/evaluate.py)."""
+        return self.qube_actions == DEFAULT_ACTIONS
+
+    def results_name(self, quick: bool) -> str:
+        """The results file of this setup: sim2real.json for the default (PPO, plain, the paper's actions), else
+        named by what differs, so that a run with another learner or action set never overwrites the table's."""
+        parts = [] if self == Setup() else [self.algo, self.policy, self.qube_actions]
+        return "-".join(["sim2real", *parts] + (["quick"] if quick else [])) + ".json"
 
 
 def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str, Any],
@@ -90,7 +109,8 @@ def federate(run_dir: Path, seed: int, max_episodes: int, env_options: dict[str,
     run_dir.mkdir(parents=True, exist_ok=True)
     return run_federation(InprocessSettings.given(env=TASK, policy=setup.policy, seed=seed, workers=RIGS,
                           max_episodes=max_episodes, run_dir=run_dir, **env_options, init_model=init_model,
-                          algo=setup.algo), plot=False, tensorboard_files=False, tolerate_failures=True)
+                          algo=setup.algo, qube_actions=setup.qube_actions), plot=False, tensorboard_files=False,
+                          tolerate_failures=True)
 
 
 def last_rig(summary: RunSummary, run_dir: Path) -> dict[str, Any]:
@@ -212,6 +232,7 @@ def realtime(seed: int, model: str, runs_dir: Path, max_episodes: int, setup: Se
     if not (run_dir / SUMMARY).exists():
         command = [sys.executable, "-m", "deploy.run_local", "--env", "qube", "--qube-clock", "realtime",
                    "--workers", str(RIGS), "--seed", str(seed), "--policy", setup.policy, "--algo", setup.algo,
+                   "--qube-actions", setup.qube_actions,
                    "--max-episodes", str(max_episodes), "--init-model", model, "--run-dir", str(run_dir),
                    "--dashboard-port", "off"]
         print(" ".join(command), flush=True)
@@ -291,7 +312,9 @@ def report(result: dict[str, Any], source: str) -> str:
     """The sim-to-real tables (markdown) of a sim2real.json: per clock and setting, the last of 3 lab rigs, median
     [IQR]."""
     cfg = result["config"]
-    lines = [f"Last of {cfg['rigs']} `lab` rigs per run, learner `{cfg.get('algo', 'ppo')}`, `{cfg['policy']}`, "
+    actions = cfg.get("qube_actions", DEFAULT_ACTIONS)
+    named = "" if actions == DEFAULT_ACTIONS else f", action set `{actions}`"
+    lines = [f"Last of {cfg['rigs']} `lab` rigs per run, learner `{cfg.get('algo', 'ppo')}`, `{cfg['policy']}`{named}, "
              f"report seeds {cfg['seeds'][0]}-{cfg['seeds'][-1]} ({len(cfg['seeds'])} runs per setting), median [IQR], "
              f"unfinished runs counted as worse; pretrains on tuning seed {cfg['pretrain_seed']}; rig time from the "
              f"simulated clock; generated from `{source}` ({cfg['date']}, {cfg['cores']} cores, load average "
@@ -404,22 +427,28 @@ def main(argv: list[str] | None = None) -> int:
         write_report(args.out / "sim2real.json", [Path("docs/how-to/warm-start.md")])
         return 0
     start = time.monotonic()
-    setup = Setup(args.algo, args.policy)
-    pre = {name: pretrain(name, args.runs_dir, args.pretrain_episodes, setup) for name in PRETRAINS}
-    models: dict[str, str | None] = {"scratch": None}
+    setup = Setup(args.algo, args.policy, args.qube_actions)
+    pre = {name: pretrain(name, args.runs_dir, args.pretrain_episodes, setup)
+           for name in PRETRAINS if name in args.settings}
+    models: dict[str, str | None] = {"scratch": None} if "scratch" in args.settings else {}
     for name, p in pre.items():
         if p["finished"]:
             models[name] = p["run_dir"]  # a run folder: the model of its first rig to solve
         else:
             print(f"!! the {name} pretrain did not finish within {args.pretrain_episodes} episodes: no model",
                   flush=True)
+    trials = setup.paper_actions  # the robustness trials test the paper's actions only
+    if not trials:
+        print(f"the zero-shot and disturbed trials test the paper's actions only: none with {setup.qube_actions}",
+              flush=True)
     shots = {name: zero_shot(Path(p["run_dir"]) / "models" / _first(p), args.held_out, disturbed=False)
-             for name, p in pre.items() if p["finished"]}
+             for name, p in pre.items() if p["finished"] and trials}
     runs = fine_tune(models, args.seeds, args.clocks, args.runs_dir, args.max_episodes, args.jobs, setup)
     tuned = [r for r in runs if r["setting"] == "randomised" and r["clock"] == args.clocks[0] and r["finished"]]
     disturbed = [zero_shot(Path(r["run_dir"]) / "models" / _first_of(r["run_dir"]), 1, disturbed=True,
-                           seed=HELD_OUT_SEED + HELD_OUT_RIGS + i) for i, r in enumerate(tuned[:args.trials])]
-    reference = reference_trials(len(disturbed) or args.trials)
+                           seed=HELD_OUT_SEED + HELD_OUT_RIGS + i)
+                 for i, r in enumerate(tuned[:args.trials] if trials else [])]
+    reference = reference_trials(len(disturbed) or args.trials) if trials else None
     tables = {clock: table([r for r in runs if r["clock"] == clock]) for clock in args.clocks}
     warm = models.get("randomised")
     live = [realtime(seed, warm, args.runs_dir, args.max_episodes, setup) for seed in args.realtime] if warm else []
@@ -427,7 +456,7 @@ def main(argv: list[str] | None = None) -> int:
               "disturbed_trials": disturbed, "reference_trials": reference, "realtime": live,
               "wall_s": round(time.monotonic() - start, 1)}
     args.out.mkdir(parents=True, exist_ok=True)
-    path = args.out / ("sim2real-quick.json" if args.quick else "sim2real.json")
+    path = args.out / setup.results_name(args.quick)
     path.write_text(json.dumps(result, indent=2) + "\n")
     print(f"results in {path}")
     return 0
@@ -444,7 +473,8 @@ def _first_of(run_dir: str) -> str:
 
 
 def config(args: argparse.Namespace) -> dict[str, Any]:
-    return {"task": TASK, "policy": args.policy, "algo": args.algo, "clocks": args.clocks, "rigs": RIGS,
+    return {"task": TASK, "policy": args.policy, "algo": args.algo, "qube_actions": args.qube_actions,
+            "settings": args.settings, "clocks": args.clocks, "rigs": RIGS,
             "seeds": args.seeds, "max_episodes": args.max_episodes,
             "pretrain_seed": PRETRAIN_SEED, "pretrain_episodes": args.pretrain_episodes, "randomize": RANDOMIZE,
             "held_out_rigs": args.held_out, "quick": args.quick, "jobs": args.jobs,
@@ -468,6 +498,11 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
                         "a time, where the wall-clock is measured (minutes each; best on a quiet machine)")
     parser.add_argument("--algo", default=ALGO, help=f"the learner of every federation (default {ALGO})")
     parser.add_argument("--policy", default=POLICY, help=f"the federation strategy (default {POLICY})")
+    parser.add_argument("--qube-actions", choices=list(ACTION_SETS), default=DEFAULT_ACTIONS,
+                        help="the QUBE's action set of every federation (docs/explanation/qube-actions.md; default "
+                        f"{DEFAULT_ACTIONS}); another set's results go to their own file, without robustness trials")
+    parser.add_argument("--settings", nargs="+", choices=SETTINGS, default=list(SETTINGS),
+                        help="the settings to run (default all; a warm start runs its pretrain)")
     parser.add_argument("--max-episodes", type=int, help=f"episode cap of a fine-tuning run (default {DEFAULT_M})")
     parser.add_argument("--pretrain-episodes", type=int, help=f"episode cap of a pretrain (default {PRETRAIN_M})")
     parser.add_argument("--held-out", type=int, help="unseen lab rigs (new seeds, in the pretrain's distribution) for "
@@ -483,8 +518,9 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     args.pretrain_episodes = args.pretrain_episodes or (QUICK["pretrain_episodes"] if q else PRETRAIN_M)
     args.held_out = args.held_out or (QUICK["held_out"] if q else HELD_OUT_RIGS)
     args.trials = args.trials or (QUICK["trials"] if q else DISTURBED_TRIALS)
+    named = [] if args.qube_actions == DEFAULT_ACTIONS else [args.qube_actions]
     args.runs_dir = args.runs_dir or (Path("bench/results/runs") / ("sim2real-quick" if q else "sim2real")
-                                      / f"{args.algo}-{args.policy}")
+                                      / "-".join([args.algo, args.policy, *named]))
     if any(v < 1 for v in (args.max_episodes, args.pretrain_episodes, args.held_out, args.trials, args.jobs)):
         parser.error("the caps, --held-out, --trials and --jobs must be at least 1")
     return args

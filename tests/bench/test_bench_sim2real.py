@@ -93,3 +93,17 @@ def test_the_reference_controller_is_the_bridges_lqr_as_bang_bang() -> None:
         u = ResetController().hold_command(obs[2], obs[0], obs[3], obs[1])
         assert ACTIONS[sim2real.lqr_action(obs)] == (60 if u > 0 else -60 if u < 0 else 0)
     assert ACTIONS[sim2real.lqr_action([0.05, 0.0, 0.0, 0.0])] != ACTIONS[sim2real.lqr_action([-0.05, 0.0, 0.0, 0.0])]
+
+
+def test_another_learner_or_action_set_writes_its_own_file_and_runs_only_the_settings_asked() -> None:
+    assert sim2real.Setup().results_name(quick=False) == "sim2real.json"  # the table's, as before
+    assert sim2real.Setup().results_name(quick=True) == "sim2real-quick.json"
+    assert sim2real.Setup("sac", "sync", "voltage").results_name(quick=False) == "sim2real-sac-sync-voltage.json"
+    assert sim2real.Setup(qube_actions="levels").results_name(quick=True) == "sim2real-ppo-plain-levels-quick.json"
+    assert sim2real.Setup().paper_actions and not sim2real.Setup(qube_actions="voltage").paper_actions
+    args = sim2real.parse(["--algo", "sac", "--policy", "sync", "--qube-actions", "voltage", "--settings", "scratch"])
+    assert args.settings == ["scratch"] and args.runs_dir.name == "sac-sync-voltage"
+    assert sim2real.parse([]).settings == list(sim2real.SETTINGS) == ["scratch", "ideal", "randomised"]
+    assert sim2real.parse([]).runs_dir.name == "ppo-plain"
+    with pytest.raises(SystemExit):
+        sim2real.parse(["--settings", "nowhere"])

@@ -22,6 +22,13 @@ as runtime/records.py types them):
   except the learners the round records as offline (and only a finishing round's learners can be);
 - ``eq8-weights``: every aggregate's weights are the strategy's (Eq. 8 for ``weighted``) of that round's PIs and
   sum to 1;
+- ``tiered-edges``: in a tiered run each round's contributors are exactly the disjoint union of those its edges'
+  partials summed, and a worker stays behind one edge;
+- ``tiered-exact``: every root aggregate the run's witness saw (GRADIENTS) is the flat Eq. 9 of the same submissions
+  within chief/tiers.py's derived bound; a round the witness lacks fails, unless it lies in one of the witness's
+  recorded gaps, where it is counted as unwitnessed;
+- ``quorum``: a round closed without some of the workers it waited for only with at least the run's quorum k of
+  contributors, none of them late, and every submission refused as late was for such a round;
 - ``delivery``: each worker that took part in a round confirms that it applied the round's answer (same tensor
   digest, same keep weight) with its next submission, or under a bounded staleness S (summary.json
   ``max_staleness``) with one of its next S + 1, by the one for the round S + 1 later if it made that one, or says

@@ -5,10 +5,11 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 # What a run needs (make run); the full set (tests, lint, docs, benchmarks, Docker SDK) goes on top of it.
 RUN_STAMP := $(VENV)/.installed-run
-# Three test processes on two cores (pytest-xdist): a third of the suite's time waits on brokers and timeouts (at
-# -n 2 it used 1.2 cores; pytest 12 min 14 s there, 10 min 31 s at -n 3, 2026-12-03). Tests that share the
-# end-to-end runs keep together (xdist_group "e2e"). PYTEST_JOBS= runs them in one process.
-PYTEST_JOBS ?= -n 3 --dist loadgroup
+# Four test processes on two cores (pytest-xdist): much of the suite's time waits on brokers and timeouts (at
+# -n 2 it used 1.2 cores; pytest 12 min 14 s there, 10 min 31 s at -n 3, 2026-12-03; on 2026-12-06's VM 11 min 9 s
+# to 11 min 16 s at -n 3 and 10 min 11 s at -n 4, 1149 tests). Tests that share the end-to-end runs keep together
+# (xdist_group "e2e"). PYTEST_JOBS= runs them in one process.
+PYTEST_JOBS ?= -n 4 --dist loadgroup
 PIP    := $(BIN)/python -m pip install --quiet --disable-pip-version-check -c constraints.txt
 MKVENV := test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 RUN_EXTRAS := learn,broker,tb

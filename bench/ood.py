@@ -321,11 +321,11 @@ def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: st
     """Run the pretrain :func:`pretrain` describes into ``folder``; its summary."""
     options: dict[str, Any] = {"rig_profile": "lab", "randomize": RANDOMIZE, "qube_actions": actions}
     if identified is not None:
-        from services.qube_sim.pretrain import around
+        from services.qube_sim.pretrain import for_lab
         from services.qube_sim.profile import DRAWN_MODEL, load_profile
 
         profile = folder.parent / f"{folder.name}-profile.json"
-        profile.write_text(around([load_profile(f) for f in identified], name="around-identified").to_json())
+        profile.write_text(for_lab([load_profile(f) for f in identified], actions, name="around-identified").to_json())
         options = {"rig_profile": str(profile), "rig_model": DRAWN_MODEL, "qube_actions": actions}  # as deploy.lab
     return federation(seed, RIGS, max_episodes, folder, options, algo)
 

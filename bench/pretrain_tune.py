@@ -78,13 +78,13 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
     from bench.tune import tuned
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
-    from services.qube_sim.pretrain import around
+    from services.qube_sim.pretrain import for_lab
     from services.qube_sim.profile import load_profile
 
     folder = identified(seed, runs)
     profile = folder.parent / "pretrain-profile.json"
-    profile.write_text(around([load_profile(folder / f"rig{i}.json") for i in range(RIGS)],
-                              name=f"around-{RIGS}-identified").to_json())
+    profile.write_text(for_lab([load_profile(folder / f"rig{i}.json") for i in range(RIGS)], actions,
+                               name=f"around-{RIGS}-identified").to_json())
     run_dir = runs / (f"s{seed}-{actions}" + "".join(f"-{k}={v}" for k, v in overrides.items()))
     tuned("qube-local", "ppo", overrides)
     run_federation(InprocessSettings.given(env="qube-local", policy="plain", seed=seed, workers=RIGS,

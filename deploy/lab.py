@@ -25,14 +25,13 @@ from __future__ import annotations
 
 import datetime as dt
 import json
-import math
 import os
 import subprocess
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 from pydantic import field_validator, model_validator
 
@@ -42,7 +41,6 @@ from protocol.messages import IDENTIFY_ATTEMPTS_LIMIT
 from protocol.mqtt import BrokerAddress
 from protocol.qube import ACTION_SETS, action_set
 from protocol.tasks import worker_seed
-from rpi_bridge.frame import VOLTS_PER_COUNT
 from rpi_bridge.identify import IDENTIFY_ATTEMPTS
 from runtime.records import SUMMARY, RunSummary
 from runtime.settings import (
@@ -54,9 +52,7 @@ from runtime.settings import (
     setting,
     warm_lr_setting,
 )
-
-if TYPE_CHECKING:
-    from services.qube_sim.profile import RigProfile
+from services.qube_sim.pretrain import AUTHORITY
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
@@ -84,6 +80,11 @@ class LabSettings(LearnerTaskSettings):
                                      "80 s of rig time)", ge=1, le=IDENTIFY_ATTEMPTS_LIMIT)
     pretrain_episodes: int = setting(600, "M of the pretrain", ge=1)
     pretrain_workers: int = setting(3, "workers of the pretrain (simulated rigs)", ge=1, le=32)
+    pretrain_authority: float = setting(
+        AUTHORITY, "the largest share of the actions' standstill torque (on the median identified rig) that a "
+        "pretrain rig's arm breakaway may take: drawn arm friction above it is cut there (a rig whose arm the actions "
+        "barely move teaches nothing and keeps the pretrain from meeting TC); 10 leaves the ranges as identified",
+        gt=0, le=10)
     pretrain_attempts: int = setting(PRETRAIN_ATTEMPTS, "pretrains to try until one has a controller that meets "
                                      "TC, each with its own seed (a pretrain costs this host's time, no rig time)",
                                      ge=1, le=MAX_ATTEMPTS)
@@ -195,26 +196,18 @@ def identify(s: LabSettings, folder: Path) -> None:
             code = run_child("identify", command, env)
             if code != 0:
                 raise StageFailed(f"rig{i} could not be identified (exit code {code}); see the lines above")
+    from services.qube_sim.pretrain import breakaway_share
+
     for i, path in enumerate(identified_files(s, folder)):
         share, torque = breakaway_share(load_profile(path), s.qube_actions)
         say("identify", f"rig{i}: arm breakaway {share * torque * 1e3:.1f} mN m, {share:.0%} of the "
             f"{torque * 1e3:.1f} mN m the `{s.qube_actions}` actions give at standstill")
 
 
-def breakaway_share(profile: RigProfile, actions: str) -> tuple[float, float]:
-    """The arm's breakaway torque (its static dry friction) as a share of the largest torque ``actions`` give at
-    standstill on this rig (deadzone and offset included), and that torque (N m). What is left over the share is the
-    balancing controller's authority: the paper's three actions have little of it on a sticky arm."""
-    from services.qube_sim.dynamics import motor_torque
-
-    p = profile.params()
-    torque = abs(motor_torque(p, action_set(actions).limit * VOLTS_PER_COUNT, 0.0))
-    return (p.Sr / torque if torque > 0 else math.inf), torque
-
-
 def authority_hint(s: LabSettings, folder: Path) -> str:
     """For a failed pretrain: the rig with the least authority left under ``--qube-actions``, and what the action
     set with the largest commands would give it (empty when that is the set in use)."""
+    from services.qube_sim.pretrain import breakaway_share
     from services.qube_sim.profile import load_profile
 
     strongest = max(ACTION_SETS.values(), key=lambda a: a.limit).name
@@ -257,15 +250,17 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     """A federation in process on rigs randomised around the identified ones, until every worker meets TC; again
     with another seed (``--pretrain-attempts``) when none of its workers did. Attempts that ended are kept: a resumed
     pipeline goes on at the first attempt that did not."""
-    from services.qube_sim.pretrain import around
+    from services.qube_sim.pretrain import for_lab
     from services.qube_sim.profile import load_profile
 
     rigs = [load_profile(path) for path in identified_files(s, folder)]
-    profile = around(rigs, name=f"around-{len(rigs)}-identified")
+    profile = for_lab(rigs, s.qube_actions, name=f"around-{len(rigs)}-identified", authority=s.pretrain_authority)
     profile_path = profile_file(folder)
     profile_path.write_text(profile.to_json())
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in profile.ranges.items())
-    say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}")
+    say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}; "
+        f"arm friction at most {profile.ranges['static_arm'][1] * 1e3:.2f} mN m ({s.pretrain_authority:.0%} of what "
+        f"the `{s.qube_actions}` actions give the median rig at standstill)")
     env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
     why = ""
     for attempt in range(1, s.pretrain_attempts + 1):

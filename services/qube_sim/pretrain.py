@@ -11,9 +11,12 @@ from a few minutes of one rig's motion and a rig drifts (warm-up, wear).
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections.abc import Sequence
 
+from protocol.qube import action_set
+from rpi_bridge.frame import VOLTS_PER_COUNT
 from services.qube_sim.profile import RigProfile
 
 #: Identified name (Identified.fitted) -> the profile field of its value and the ``ranges`` key it is drawn under.
@@ -34,6 +37,11 @@ INERTIAL = frozenset({"mr", "Lr", "Lp", "motor"})
 SIGMAS = 3.0
 #: Every randomisable parameter not identified is drawn from ± this fraction of the nominal value.
 REST = 0.2
+#: The largest share of the actions' standstill torque (on the median identified rig) that a pretrain rig's arm
+#: breakaway may take. Above it the arm barely moves under the actions, no controller balances the rig, and such draws
+#: among the others keep the mean of the last 10 returns below TC: the pretrain never meets it. A tail that reaches
+#: past it (a sticky lab rig's 1.3x) is cut there.
+AUTHORITY = 0.9
 
 
 def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIGMAS, rest: float = REST,
@@ -71,3 +79,40 @@ def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIG
             "description": f"randomised around {len(rigs)} identified rigs ({names})"[:2000],
             "spread": 0.0, "spread_nonideal": 0.0, "randomize": rest, "ranges": ranges}
     return RigProfile.model_validate(data)
+
+
+def breakaway_share(profile: RigProfile, actions: str | None) -> tuple[float, float]:
+    """The arm's breakaway torque (its static dry friction) as a share of the largest torque the action set
+    ``actions`` gives at standstill on ``profile``'s nominal rig (deadzone and offset included), and that torque
+    (N m). What is left over the share is the balancing controller's authority: the paper's three actions have little
+    of it on a sticky arm."""
+    from services.qube_sim.dynamics import motor_torque
+
+    p = profile.params()
+    torque = abs(motor_torque(p, action_set(actions).limit * VOLTS_PER_COUNT, 0.0))
+    return (p.Sr / torque if torque > 0 else math.inf), torque
+
+
+def for_lab(rigs: Sequence[RigProfile], actions: str | None, name: str = "identified-rigs",
+            authority: float = AUTHORITY) -> RigProfile:
+    """The pretrain profile of a lab's identified ``rigs`` under the action set ``actions``: :func:`around` them, its
+    arm friction capped at ``authority`` x the actions' standstill torque on the median rig (:func:`cap_breakaway`)."""
+    profile = around(rigs, name=name)
+    return cap_breakaway(profile, authority * breakaway_share(profile, actions)[1])
+
+
+def cap_breakaway(profile: RigProfile, most: float) -> RigProfile:
+    """``profile`` with the arm's dry friction (static and Coulomb) drawn no higher than ``most`` (N m), nor its
+    nominal values: a pretrain rig whose arm the actions cannot break away teaches nothing (no controller balances
+    it) and, drawn at random among the others, keeps the mean of the last 10 returns below TC. A ValueError for a cap
+    that is not positive."""
+    if not most > 0:
+        raise ValueError(f"the arm's breakaway cap must be positive, not {most}")
+    ranges = dict(profile.ranges)
+    for key in ("static_arm", "coulomb_arm"):
+        lo, hi = ranges.get(key, (getattr(profile, key) * (1 - profile.randomize),
+                                  getattr(profile, key) * (1 + profile.randomize)))
+        ranges[key] = (min(lo, most), min(hi, most))
+    return RigProfile.model_validate({**profile.model_dump(), "ranges": ranges,
+                                      "static_arm": min(profile.static_arm, most),
+                                      "coulomb_arm": min(profile.coulomb_arm, most)})

@@ -17,7 +17,7 @@ from bench.lab import measure
 from chief.audit import audit
 from deploy.lab import LabSettings
 from services.qube_sim import families
-from services.qube_sim.pretrain import around
+from services.qube_sim.pretrain import for_lab
 from services.qube_sim.profile import load_profile
 from tests.paths import ROOT
 
@@ -107,7 +107,9 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
     assert "attempt 2 of 2, seed 10008" in proc.stdout  # a pretrain without TC is tried again with its own seed
     assert json.loads((folder / "lab.json").read_text())["done"] == ["identify"]
     rig = load_profile(folder / "identified" / "rig0.json")
-    expected = around([rig], name="around-1-identified")
+    expected = for_lab([rig], "paper", name="around-1-identified")
+    assert "arm friction at most" in proc.stdout
+    assert "(90% of what the `paper` actions give the median rig at standstill)" in proc.stdout
     assert load_profile(folder / "pretrain-profile.json") == expected
     for run_dir, seed in (("pretrain", 8), ("pretrain-2", 10008)):
         summary = json.loads((folder / run_dir / "summary.json").read_text())
@@ -198,9 +200,10 @@ def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_runs_the_fine_tune_alone(
 
 
 def test_a_failed_pretrain_names_the_rig_with_the_least_authority_left(tmp_path: Path) -> None:
-    """The arm's breakaway torque against what the action set gives at standstill (deploy.lab.breakaway_share): a
-    rig stickier than the paper's actions can overcome with much to spare is named, with the stronger set's share."""
-    from deploy.lab import authority_hint, breakaway_share, identified_files
+    """The arm's breakaway torque against what the action set gives at standstill (breakaway_share): a rig stickier
+    than the paper's actions can overcome with much to spare is named, with the stronger set's share."""
+    from deploy.lab import authority_hint, identified_files
+    from services.qube_sim.pretrain import breakaway_share
     from services.qube_sim.profile import LAB
 
     s = LabSettings.given(workers=2)

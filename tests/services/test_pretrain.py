@@ -6,7 +6,17 @@ from __future__ import annotations
 import pytest
 
 from services.qube_sim import families
-from services.qube_sim.pretrain import FLOOR, FLOOR_INERTIAL, INERTIAL, RANDOMISED, around
+from services.qube_sim.pretrain import (
+    AUTHORITY,
+    FLOOR,
+    FLOOR_INERTIAL,
+    INERTIAL,
+    RANDOMISED,
+    around,
+    breakaway_share,
+    cap_breakaway,
+    for_lab,
+)
 from services.qube_sim.profile import LAB, Identified, RigProfile
 
 
@@ -41,3 +51,34 @@ def test_only_identified_rigs_are_taken() -> None:
         around([])
     with pytest.raises(ValueError, match=r"not identified .*: lab"):
         around([LAB])
+
+
+def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> None:
+    """A sticky lab rig's 1.3x tail reaches past the paper's actions' standstill torque: cut at AUTHORITY of it, for
+    the nominal values and the ranges (the rest of the profile as :func:`around` made it); the stronger action set
+    leaves the same rigs' ranges alone."""
+    sticky = identified(LAB, static_arm=5.5e-3, coulomb_arm=4.5e-3)
+    rigs = [identified(LAB), sticky]
+    plain = around(rigs)
+    torque = breakaway_share(plain, "paper")[1]
+    assert plain.ranges["static_arm"][1] == pytest.approx(5.5e-3 * (1 + FLOOR))  # the tail: above the torque
+    assert plain.ranges["static_arm"][1] > torque
+    capped = for_lab(rigs, "paper")
+    most = AUTHORITY * torque
+    assert capped.ranges["static_arm"] == (plain.ranges["static_arm"][0], pytest.approx(most))
+    assert capped.ranges["coulomb_arm"] == (plain.ranges["coulomb_arm"][0],
+                                            pytest.approx(min(most, plain.ranges["coulomb_arm"][1])))
+    assert capped.model_dump(exclude={"ranges"}) == plain.model_dump(exclude={"ranges"})
+    assert {k: v for k, v in capped.ranges.items() if not k.endswith("_arm")} == {
+        k: v for k, v in plain.ranges.items() if not k.endswith("_arm")}
+    drawn = [capped.episode_params(1, episode) for episode in range(200)]
+    assert all(d is not None and d.Sr <= most and d.Cr <= most for d in drawn)
+    assert for_lab(rigs, "levels") == plain  # 150 counts: the same tail is far below the torque
+
+
+def test_the_cap_holds_nominal_values_too_and_is_positive() -> None:
+    profile = cap_breakaway(LAB, 1e-3)  # below lab's own friction: nominal values cut as well, ranges degenerate
+    assert (profile.static_arm, profile.coulomb_arm) == (1e-3, 1e-3)
+    assert profile.ranges["static_arm"] == (1e-3, 1e-3)
+    with pytest.raises(ValueError, match="must be positive"):
+        cap_breakaway(LAB, 0.0)

@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 from bench.output import write_block, write_report
 from bench.runs import read_records
 from bench.stats import spread_censored
-from deploy.lab import LabSettings, attempt_dir, pretrain_dir, pretrain_met, profile_file
+from deploy.lab import LabSettings, attempt_dir, chosen, pretrain_dir, pretrain_met, profile_file
 from protocol.qube import MAX_RETURN
 from runtime.records import SUMMARY, RunSummary
 
@@ -150,16 +150,19 @@ def not_reusable(source: Path) -> str | None:
 
 
 def zero_shot(folder: Path, truth: Path, seed: int, workers: int) -> list[float] | None:
-    """The pretrained controller, greedily, one episode on each of the lab's rigs (their true physics, their
-    identified model for the resets) before any fine-tuning; None without a pretrained controller."""
+    """The pretrained controller the fine-tune started from, greedily, one episode on each of the lab's rigs (their
+    true physics, their identified model for the resets) before any fine-tuning; None without a pretrained
+    controller."""
     from protocol.tasks import worker_seed
     from runtime.model_file import InitModel
     from worker.evaluate import evaluate
 
-    try:
-        model = InitModel.open(pretrain_dir(folder)).file
-    except ValueError:
-        return None
+    model = chosen(folder)  # the pipeline's warm start; a lab from before it chose: the first worker to meet TC
+    if model is None:
+        try:
+            model = InitModel.open(pretrain_dir(folder)).file
+        except ValueError:
+            return None
     return [evaluate(model, "qube-local", episodes=1, seed=worker_seed(seed, i), rig_profile=str(truth),
                      rig_model=str(folder / "identified" / f"rig{i}.json")).returns[0] for i in range(workers)]
 

@@ -9,7 +9,9 @@ as identified, then warm-start and fine-tune the rigs federated.
    (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``; when none of its workers met TC,
    again with another seed into ``pretrain-2/`` and so on (``--pretrain-attempts``).
 3. **finetune**: the rigs themselves, every worker warm-started from the pretrain, federated by
-   ``python -m deploy.run_local`` into ``finetune/``; each rig's resets use its identified model.
+   ``python -m deploy.run_local`` into ``finetune/``; each rig's resets use its identified model. The warm start is
+   the pretrain worker's controller (of those that met TC) that balances the most identified rigs in simulation
+   (``warm_start``, kept in ``warm-start.json``).
 
 Simulated rigs take their true physics from ``FEDRL_RIG_PROFILE`` (a profile, or a folder with one per rig). The
 pipeline never reads it: it passes the environment on to the simulators of stages 1 and 3 and learns the rigs only by
@@ -39,7 +41,7 @@ from chief.settings import PolicyName
 from protocol import learners
 from protocol.messages import IDENTIFY_ATTEMPTS_LIMIT
 from protocol.mqtt import BrokerAddress
-from protocol.qube import ACTION_SETS, action_set
+from protocol.qube import ACTION_SETS, MAX_RETURN, action_set
 from protocol.tasks import worker_seed
 from rpi_bridge.identify import IDENTIFY_ATTEMPTS
 from runtime.records import SUMMARY, RunSummary
@@ -300,8 +302,83 @@ def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
 
 
 def pretrained(s: LabSettings, folder: Path) -> Path:
-    """The model the fine-tune starts from: ``--init-model``, else the run folder of the pretrain that met TC."""
-    return s.init_model if s.init_model is not None else pretrain_dir(folder)
+    """The model the fine-tune starts from: ``--init-model``, else the one :func:`warm_start` chose among the
+    pretrain's workers that met TC."""
+    return s.init_model if s.init_model is not None else warm_start(s, folder)
+
+
+# -- between the pretrain and the fine-tune: which controller the rigs start from -------------------------------------
+
+
+#: Identified rig i's validation episode runs with seed ``worker_seed(seed, i) + VALIDATION_SEED``: never the seed of a
+#: rig of this lab (< 1000 of them) nor of another lab's.
+VALIDATION_SEED = 500
+
+
+def choose(returns: Sequence[Sequence[float]]) -> int:
+    """The candidate to start from, given each one's greedy return on each identified rig (rows in the order the
+    workers met TC): the one that balances the most rigs to the end, then the largest sum of returns, then the
+    first to meet TC."""
+    if not returns:
+        raise ValueError("no candidate controllers to choose from")
+    return min(range(len(returns)),
+               key=lambda k: (-sum(r >= MAX_RETURN for r in returns[k]), -sum(returns[k]), k))
+
+
+def choice_file(folder: Path) -> Path:
+    """Where the pipeline keeps the warm start it chose and why (``warm_start``)."""
+    return folder / "warm-start.json"
+
+
+def chosen(folder: Path) -> Path | None:
+    """The model a pipeline chose to start its fine-tune from (None: it has not chosen, or started from a given
+    model)."""
+    path = choice_file(folder)
+    return Path(json.loads(path.read_text())["model"]) if path.exists() else None
+
+
+def warm_start(s: LabSettings, folder: Path) -> Path:
+    """The pretrain's controller the rigs start from. Every worker of the pretrain that met TC has one; each plays one
+    greedy episode on each identified rig, simulated with the rig's identified profile (never its truth), and the one
+    :func:`choose` takes wins. The first to meet TC (the run folder's model) may have met it on a lucky streak of
+    draws. Chosen once: ``warm-start.json`` keeps the candidates, their returns and the choice."""
+    import torch
+
+    from protocol.tasks import worker_seed
+    from runtime.model_file import ModelFileError, resolve
+    from worker.evaluate import evaluate
+
+    torch.set_num_threads(1)  # one thread, as every training process
+    kept = chosen(folder)
+    if kept is not None:
+        return kept
+    run = pretrain_dir(folder)
+    summary = read_summary(run)
+    order = sorted((w.episodes, w.id) for w in (summary.workers if summary is not None else []) if w.solved)
+    models = [run / "models" / f"{name}.pt" for _, name in order if (run / "models" / f"{name}.pt").is_file()]
+    if not models:
+        try:
+            return resolve(run)  # no model to compare: the run folder's own answer (or its error)
+        except ModelFileError as err:
+            raise StageFailed(str(err)) from None
+    rigs = identified_files(s, folder)
+    say("finetune", f"choosing the warm start: {len(models)} pretrain controllers that met TC, one greedy episode on "
+        f"each of the {len(rigs)} identified rigs (simulated)")
+    returns: list[list[float]] = []
+    for model in models:
+        returns.append([evaluate(model, "qube-local", episodes=1, seed=worker_seed(s.seed, i) + VALIDATION_SEED,
+                                 rig_profile=str(rig), rig_model=str(rig)).returns[0] for i, rig in enumerate(rigs)])
+        balanced = sum(r >= MAX_RETURN for r in returns[-1])
+        say("finetune", f"{model.stem}: balanced {balanced} of {len(rigs)} identified rigs to the end (returns "
+            f"{', '.join(f'{r:.0f}' for r in returns[-1])})")
+    best = choose(returns)
+    say("finetune", f"the rigs start from {models[best].stem}" + ("" if best == 0 else f" (the first to meet TC was "
+                                                                   f"{models[0].stem})"))
+    choice_file(folder).write_text(json.dumps({
+        "model": str(models[best]), "chosen": best, "rigs": [str(r) for r in rigs],
+        "candidates": [{"model": str(m), "returns": r} for m, r in zip(models, returns, strict=True)]}, indent=2)
+        + "\n")
+    return models[best]
 
 
 def pretrain_dir(folder: Path) -> Path:

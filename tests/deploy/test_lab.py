@@ -159,7 +159,7 @@ def test_a_run_kept_apart_leaves_the_pages_alone(tmp_path: Path, monkeypatch: py
     assert written == [out]
 
 
-def test_the_fine_tune_starts_from_the_first_pretrain_that_met_tc(tmp_path: Path) -> None:
+def test_the_warm_start_comes_from_the_first_pretrain_that_met_tc(tmp_path: Path) -> None:
     from deploy.lab import attempt_dir, pretrain_dir, pretrain_met, pretrained
     from runtime.records import RunSummary, WorkerSummary
 
@@ -175,8 +175,67 @@ def test_the_fine_tune_starts_from_the_first_pretrain_that_met_tc(tmp_path: Path
     ended(1, solved=False)
     ended(2, solved=True)
     assert pretrain_met(tmp_path) == 2 and pretrain_dir(tmp_path) == tmp_path / "pretrain-2"
-    assert pretrained(LabSettings.given(), tmp_path) == tmp_path / "pretrain-2"
     assert pretrained(LabSettings.given(init_model=tmp_path / "m.pt"), tmp_path) == tmp_path / "m.pt"
+
+
+def test_choose_takes_the_controller_that_balances_the_most_identified_rigs() -> None:
+    from deploy.lab import choose
+
+    assert choose([[2450, 300, 2450], [2450, 2450, 150]]) == 0  # a tie on rigs balanced: the larger sum
+    assert choose([[2450, 100, 2000], [2450, 2450, 150]]) == 1  # more rigs to the end beats a larger sum
+    assert choose([[300, 200], [300, 200]]) == 0  # a full tie: the first to meet TC
+    with pytest.raises(ValueError, match="no candidate"):
+        choose([])
+
+
+def test_the_rigs_start_from_the_pretrain_controller_the_identified_rigs_balance_best(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every pretrain worker that met TC is a candidate, in the order they met it; each plays a greedy episode on each
+    identified rig's simulation (its identified profile, a validation seed, never the truth); the choice is kept."""
+    import worker.evaluate
+    from deploy.lab import VALIDATION_SEED, attempt_dir, choice_file, chosen, identified_files, pretrained
+    from runtime.records import RunSummary, WorkerSummary
+    from services.qube_sim.profile import LAB
+
+    s = LabSettings.given(workers=2, seed=7)
+    for path in identified_files(s, tmp_path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(LAB.to_json())
+    run = attempt_dir(tmp_path, 1)
+    (run / "models").mkdir(parents=True)
+    workers = [WorkerSummary(id=f"w{i}", index=i, solved=solved, episodes=episodes, steps=50, state="finished")
+               for i, (solved, episodes) in enumerate(((True, 9), (True, 5), (False, 20)))]
+    RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=20, workers=workers,
+               total_steps=50, rounds=20, end_reason="max episodes").write(run)
+    for name in ("w0", "w1", "w2"):
+        model_of(run / "models" / f"{name}.pt", "qube-local")
+    played: list[tuple[str, int, str]] = []
+    scripted = {"w1": [2450.0, 300.0], "w0": [2450.0, 2450.0]}  # w1 met TC first; w0 balances both identified rigs
+
+    def fake(model: Path, env_id: str, episodes: int = 10, seed: int = 0, **kw: object) -> worker.evaluate.Evaluation:
+        assert env_id == "qube-local" and episodes == 1 and kw["rig_profile"] == kw["rig_model"]
+        rig = int(Path(str(kw["rig_profile"])).stem[-1])
+        played.append((model.stem, seed, Path(str(kw["rig_profile"])).name))
+        r = scripted[model.stem][rig]
+        return worker.evaluate.Evaluation(model=str(model), env=env_id, episodes=1, seed=seed, device_noise=None,
+                                          returns=[r], steps=[1], mean=r, std=0.0, min=r, max=r, tc=2450.0,
+                                          reached_tc=r >= 2450)
+
+    monkeypatch.setattr(worker.evaluate, "evaluate", fake)
+    assert pretrained(s, tmp_path) == run / "models" / "w0.pt"
+    assert played == [("w1", 7000 + VALIDATION_SEED, "rig0.json"), ("w1", 7001 + VALIDATION_SEED, "rig1.json"),
+                      ("w0", 7000 + VALIDATION_SEED, "rig0.json"), ("w0", 7001 + VALIDATION_SEED, "rig1.json")]
+    kept = json.loads(choice_file(tmp_path).read_text())
+    assert kept["chosen"] == 1 and [c["returns"] for c in kept["candidates"]] == [scripted["w1"], scripted["w0"]]
+    monkeypatch.setattr(worker.evaluate, "evaluate", None)  # chosen once: a resumed fine-tune plays nothing again
+    assert pretrained(s, tmp_path) == chosen(tmp_path) == run / "models" / "w0.pt"
+
+    monkeypatch.undo()  # the real evaluation, on a simulated identified rig, of the one candidate left
+    choice_file(tmp_path).unlink()
+    (run / "models" / "w0.pt").unlink()
+    assert pretrained(s, tmp_path) == run / "models" / "w1.pt"
+    returns = json.loads(choice_file(tmp_path).read_text())["candidates"][0]["returns"]
+    assert len(returns) == 2 and all(0 <= r <= 2450 for r in returns)
 
 
 def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_runs_the_fine_tune_alone(tmp_path: Path) -> None:

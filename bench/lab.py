@@ -123,8 +123,10 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
             code = subprocess.run(command, env=env, stdout=log, stderr=subprocess.STDOUT, check=False).returncode
     wall = time.monotonic() - began
     print(f"seed {seed}: exit code {code}, {wall / 60:.1f} wall minutes ({folder})", flush=True)
+    truth = truth_file(family, runs)
     return {"seed": seed, "exit_code": code, "wall_s": None if args.collect else round(wall, 1), **measure(folder),
-            "zero_shot_returns": zero_shot(folder, truth_file(family, runs), seed, args.workers)}
+            "zero_shot_returns": zero_shot(folder, truth, seed, args.workers),
+            "zero_shot_first_returns": zero_shot(folder, truth, seed, args.workers, first=True)}
 
 
 def reuse(source: Path, folder: Path) -> None:
@@ -149,15 +151,15 @@ def not_reusable(source: Path) -> str | None:
     return None
 
 
-def zero_shot(folder: Path, truth: Path, seed: int, workers: int) -> list[float] | None:
-    """The pretrained controller the fine-tune started from, greedily, one episode on each of the lab's rigs (their
-    true physics, their identified model for the resets) before any fine-tuning; None without a pretrained
-    controller."""
+def zero_shot(folder: Path, truth: Path, seed: int, workers: int, first: bool = False) -> list[float] | None:
+    """The pretrained controller the fine-tune started from (``first``: the pretrain's first worker to meet TC, the
+    warm start before deploy.lab chose among them), greedily, one episode on each of the lab's rigs (their true
+    physics, their identified model for the resets) before any fine-tuning; None without a pretrained controller."""
     from protocol.tasks import worker_seed
     from runtime.model_file import InitModel
     from worker.evaluate import evaluate
 
-    model = chosen(folder)  # the pipeline's warm start; a lab from before it chose: the first worker to meet TC
+    model = None if first else chosen(folder)  # a lab from before the choice: the first worker to meet TC
     if model is None:
         try:
             model = InitModel.open(pretrain_dir(folder)).file
@@ -210,11 +212,17 @@ def aggregate(results: list[dict[str, Any]], workers: int) -> dict[str, Any]:
     def of(key: str) -> list[float | None]:
         return [r["last"][key] if r.get("finished") else None for r in results]
 
-    shots = [ret for r in results for ret in (r.get("zero_shot_returns") or [None] * workers)]
-    zero = sum(ret is not None and ret >= MAX_RETURN for ret in shots)
+    def balanced(key: str) -> tuple[int, list[float | None]]:
+        shots = [ret for r in results for ret in (r.get(key) or [None] * workers)]
+        return sum(ret is not None and ret >= MAX_RETURN for ret in shots), shots
+
+    zero, shots = balanced("zero_shot_returns")
     table = {"seeds": len(results), "finished": len(done), "episodes": spread_censored(of("episodes")),
              "balance_steps": spread_censored(of("balance_steps")), "rig_min": spread_censored(of("rig_min")),
              "zero_shot": f"{zero} of {len(shots)} rigs", "stopped_workers": sum(r.get("stopped", 0) for r in results)}
+    if any("zero_shot_first_returns" in r for r in results):
+        first, _ = balanced("zero_shot_first_returns")
+        table["zero_shot_first"] = f"{first} of {len(shots)} rigs"
     median = table["episodes"]["median"]
     table["targets"] = {
         "episodes": median is not None and median <= TARGETS["episodes"],
@@ -264,6 +272,9 @@ def render(report: dict[str, Any], source: str) -> str:
         f"{TARGETS['rig_min']:g} rig minutes {met(t['targets']['rig_min'])}; zero-shot on "
         f"{TARGETS['zero_shot_share']:.0%} of rigs {met(t['targets']['zero_shot'])}; no worker stopped "
         f"{met(t['targets']['no_worker_stopped'])}."]
+    if "zero_shot_first" in t:
+        lines.append(f"The pretrain's first worker to meet TC, from which the rigs started before the pipeline chose "
+                     f"its warm start on the identified rigs, balanced {t['zero_shot_first']} zero-shot.")
     for r in report["results"]:
         if not r.get("finished"):
             code = f"exit code {r['exit_code']}, " if r.get("exit_code") is not None else ""

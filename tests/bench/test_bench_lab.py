@@ -19,3 +19,18 @@ def test_a_lab_without_a_controller_counts_its_rigs_as_not_balanced() -> None:
     assert table["zero_shot"] == "5 of 9 rigs" and not table["targets"]["zero_shot"]
     assert table["finished"] == 2 and table["episodes"]["median"] == 10  # the unfinished lab counted as worse
     assert lab.aggregate(results[:1], workers=3)["targets"]["zero_shot"]
+
+
+def test_the_first_worker_to_meet_tc_is_counted_beside_the_chosen_warm_start() -> None:
+    """The zero-shot of the controller the pipeline chose, and apart, of the pretrain's first worker to meet TC (the
+    warm start before the choice): the target judges the chosen one; a file from before has no second count."""
+    results = [{**finished([MAX_RETURN] * 3), "zero_shot_first_returns": [MAX_RETURN, 159.0, 174.0]},
+               {**finished([MAX_RETURN] * 3), "zero_shot_first_returns": [MAX_RETURN] * 3}]
+    table = lab.aggregate(results, workers=3)
+    assert table["zero_shot"] == "6 of 6 rigs" and table["zero_shot_first"] == "4 of 6 rigs"
+    assert table["targets"]["zero_shot"]
+    text = lab.render({"results": results, "workers": 3, "env": "qube-local", "family": "combined",
+                       "qube_actions": "paper", "seeds": "501-502", "cpus": 2, "load_at_start": 1.0,
+                       "command": "python -m bench.lab"}, "lab.json")
+    assert "| 6 of 6 rigs |" in text and "first worker to meet TC" in text and "balanced 4 of 6 rigs zero-shot" in text
+    assert "zero_shot_first" not in lab.aggregate([finished([MAX_RETURN] * 3)], workers=3)

@@ -277,7 +277,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
             solved = sum(w.solved for w in summary.workers)
             if solved < len(summary.workers):  # a controller that met TC exists: the fine-tune starts from it
                 say("pretrain", f"{solved} of {len(summary.workers)} workers met TC ({summary.end_reason}); the "
-                    "fine-tune starts from the first of them to solve")
+                    "fine-tune starts from one of them")
             return
         why = f"attempt {attempt}: {summary.end_reason if summary is not None else f'exit code {code}'}"
         say("pretrain", f"no controller met TC ({why})")
@@ -362,8 +362,8 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
         except ModelFileError as err:
             raise StageFailed(str(err)) from None
     rigs = identified_files(s, folder)
-    say("finetune", f"choosing the warm start: {len(models)} pretrain controllers that met TC, one greedy episode on "
-        f"each of the {len(rigs)} identified rigs (simulated)")
+    say("finetune", f"choosing the warm start: {len(models)} pretrain controller{'s' * (len(models) > 1)} that met "
+        f"TC, one greedy episode on each of the {len(rigs)} identified rigs (simulated)")
     returns: list[list[float]] = []
     for model in models:
         returns.append([evaluate(model, "qube-local", episodes=1, seed=worker_seed(s.seed, i) + VALIDATION_SEED,

@@ -96,9 +96,11 @@ def breakaway_share(profile: RigProfile, actions: str | None) -> tuple[float, fl
 def for_lab(rigs: Sequence[RigProfile], actions: str | None, name: str = "identified-rigs",
             authority: float = AUTHORITY) -> RigProfile:
     """The pretrain profile of a lab's identified ``rigs`` under the action set ``actions``: :func:`around` them, its
-    arm friction capped at ``authority`` x the actions' standstill torque on the median rig (:func:`cap_breakaway`)."""
+    arm friction capped at ``authority`` x the actions' standstill torque on the median rig (:func:`cap_breakaway`),
+    but never below an identified rig's own: the pretrain keeps every rig the controller must hold."""
     profile = around(rigs, name=name)
-    return cap_breakaway(profile, authority * breakaway_share(profile, actions)[1])
+    own = max(max(r.static_arm, r.coulomb_arm) for r in rigs)
+    return cap_breakaway(profile, max(authority * breakaway_share(profile, actions)[1], own))
 
 
 def cap_breakaway(profile: RigProfile, most: float) -> RigProfile:

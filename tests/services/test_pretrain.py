@@ -74,6 +74,10 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
     drawn = [capped.episode_params(1, episode) for episode in range(200)]
     assert all(d is not None and d.Sr <= most and d.Cr <= most for d in drawn)
     assert for_lab(rigs, "levels") == plain  # 150 counts: the same tail is far below the torque
+    stickier = identified(LAB, static_arm=6.8e-3, coulomb_arm=4.5e-3)  # itself above 90 % of the median's torque
+    kept = for_lab([identified(LAB), stickier], "paper")
+    assert kept.ranges["static_arm"][1] == pytest.approx(6.8e-3)  # cut at the rig, never below it
+    assert kept.ranges["static_arm"][1] > AUTHORITY * breakaway_share(kept, "paper")[1]
 
 
 def test_the_cap_holds_nominal_values_too_and_is_positive() -> None:

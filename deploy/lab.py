@@ -252,7 +252,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     """A federation in process on rigs randomised around the identified ones, until every worker meets TC; again
     with another seed (``--pretrain-attempts``) when none of its workers did. Attempts that ended are kept: a resumed
     pipeline goes on at the first attempt that did not."""
-    from services.qube_sim.pretrain import for_lab
+    from services.qube_sim.pretrain import breakaway_share, for_lab
     from services.qube_sim.profile import load_profile
 
     rigs = [load_profile(path) for path in identified_files(s, folder)]
@@ -260,9 +260,10 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     profile_path = profile_file(folder)
     profile_path.write_text(profile.to_json())
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in profile.ranges.items())
+    ceiling, torque = profile.ranges["static_arm"][1], breakaway_share(profile, s.qube_actions)[1]
     say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}; "
-        f"arm friction at most {profile.ranges['static_arm'][1] * 1e3:.2f} mN m ({s.pretrain_authority:.0%} of what "
-        f"the `{s.qube_actions}` actions give the median rig at standstill)")
+        f"arm friction at most {ceiling * 1e3:.2f} mN m ({ceiling / torque:.0%} of what the `{s.qube_actions}` "
+        f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})")
     env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
     why = ""
     for attempt in range(1, s.pretrain_attempts + 1):

@@ -346,7 +346,7 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
     import torch
 
     from protocol.tasks import worker_seed
-    from runtime.model_file import ModelFileError, resolve
+    from runtime.model_file import ModelFileError, resolve, solvers
     from worker.evaluate import evaluate
 
     torch.set_num_threads(1)  # one thread, as every training process
@@ -355,8 +355,8 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
         return kept
     run = pretrain_dir(folder)
     summary = read_summary(run)
-    order = sorted((w.episodes, w.id) for w in (summary.workers if summary is not None else []) if w.solved)
-    models = [run / "models" / f"{name}.pt" for _, name in order if (run / "models" / f"{name}.pt").is_file()]
+    order = solvers(summary) if summary is not None else []
+    models = [run / "models" / f"{name}.pt" for name in order if (run / "models" / f"{name}.pt").is_file()]
     if not models:
         try:
             return resolve(run)  # no model to compare: the run folder's own answer (or its error)

@@ -162,6 +162,11 @@ def provenance(path: Path) -> dict[str, Any] | None:
     return value if isinstance(value, dict) else None
 
 
+def solvers(summary: RunSummary) -> list[str]:
+    """The ids of a run's workers that solved their task, in the order they solved it (episodes, then id)."""
+    return [w.id for w in sorted(summary.workers, key=lambda w: (w.episodes, w.id)) if w.solved]
+
+
 def resolve(path: Path) -> Path:
     """The model file ``path`` names: itself, or for a run folder the model of its first worker to solve."""
     if not path.is_dir():
@@ -169,13 +174,13 @@ def resolve(path: Path) -> Path:
             raise ModelFileError(f"no model file or run folder at {path}")
         return path
     try:
-        solved = [(w.episodes, w.id) for w in RunSummary.read(path).workers if w.solved]
+        solved = solvers(RunSummary.read(path))
     except (OSError, ValueError) as exc:
         raise ModelFileError(f"{path} is a folder but not a finished run folder (its summary.json: "
                              f"{type(exc).__name__}: {exc})") from None
     if not solved:
         raise ModelFileError(f"no worker of the run in {path} solved its task, so it has no model to start from")
-    first = min(solved)[1]
+    first = solved[0]
     model = path / "models" / f"{first}.pt"
     if not model.is_file():
         raise ModelFileError(f"{path}: its first worker to solve is {first}, but {model} does not exist (was the "

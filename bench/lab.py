@@ -123,10 +123,12 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
             code = subprocess.run(command, env=env, stdout=log, stderr=subprocess.STDOUT, check=False).returncode
     wall = time.monotonic() - began
     print(f"seed {seed}: exit code {code}, {wall / 60:.1f} wall minutes ({folder})", flush=True)
-    truth = truth_file(family, runs)
+    truth, first = truth_file(family, runs), first_model(folder)
+    start = chosen(folder) or first  # a lab from before the choice started from its first worker to meet TC
+    shots = zero_shot(start, folder, truth, seed, args.workers)
     return {"seed": seed, "exit_code": code, "wall_s": None if args.collect else round(wall, 1), **measure(folder),
-            "zero_shot_returns": zero_shot(folder, truth, seed, args.workers),
-            "zero_shot_first_returns": zero_shot(folder, truth, seed, args.workers, first=True)}
+            "zero_shot_returns": shots,
+            "zero_shot_first_returns": shots if first == start else zero_shot(first, folder, truth, seed, args.workers)}
 
 
 def reuse(source: Path, folder: Path) -> None:
@@ -151,20 +153,25 @@ def not_reusable(source: Path) -> str | None:
     return None
 
 
-def zero_shot(folder: Path, truth: Path, seed: int, workers: int, first: bool = False) -> list[float] | None:
-    """The pretrained controller the fine-tune started from (``first``: the pretrain's first worker to meet TC, the
-    warm start before deploy.lab chose among them), greedily, one episode on each of the lab's rigs (their true
-    physics, their identified model for the resets) before any fine-tuning; None without a pretrained controller."""
-    from protocol.tasks import worker_seed
+def first_model(folder: Path) -> Path | None:
+    """The model of the pretrain's first worker to meet TC, the warm start before deploy.lab chose among them (None:
+    no pretrain controller)."""
     from runtime.model_file import InitModel
+
+    try:
+        return InitModel.open(pretrain_dir(folder)).file
+    except ValueError:
+        return None
+
+
+def zero_shot(model: Path | None, folder: Path, truth: Path, seed: int, workers: int) -> list[float] | None:
+    """A pretrained controller ``model``, greedily, one episode on each of the lab's rigs (their true physics, their
+    identified model for the resets) before any fine-tuning; None without a controller."""
+    from protocol.tasks import worker_seed
     from worker.evaluate import evaluate
 
-    model = None if first else chosen(folder)  # a lab from before the choice: the first worker to meet TC
     if model is None:
-        try:
-            model = InitModel.open(pretrain_dir(folder)).file
-        except ValueError:
-            return None
+        return None
     return [evaluate(model, "qube-local", episodes=1, seed=worker_seed(seed, i), rig_profile=str(truth),
                      rig_model=str(folder / "identified" / f"rig{i}.json")).returns[0] for i in range(workers)]
 

@@ -18,8 +18,9 @@ nominal model (no identification). ``identified``: every rig is identified first
 on the simulated rig, services/qube_sim/identify.py's fit over ``lab``: the pipeline of deploy.lab), and the bridge's
 model is the rig's identified profile; the controller is still the nominal pretrain. ``around`` (opt-in): as
 ``identified``, with the controller pretrained around each lab's identified rigs (deploy.lab's pipeline, a pretrain
-per setting, seed and action set); the self-test and resets do not depend on the controller and are ``identified``'s.
-A rig the identification refuses counts as failed in every identified measure, as deploy.lab stops there.
+per setting, seed and action set, and deploy.lab's choice among its workers that met TC); the self-test and resets do
+not depend on the controller and are ``identified``'s. A rig the identification refuses counts as failed in every
+identified measure, as deploy.lab stops there.
 
 The zero-shot and fine-tune episodes run on the ``delayed`` clock (the loop's delay and lost actions of the rig's
 profile: what the loop-delay sweep varies) unless ``--clock lockstep``; the self-test and resets run inside the bridge,
@@ -296,8 +297,9 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
     """A pretrain of ``actions``: a federation of RIGS rigs on lockstep, reused when finished. Without
     ``identified``, the ``lab``-randomised one (bench.sim2real's ``randomised``: each rig's physics drawn afresh within
     +-RANDOMIZE at every reset); with the identified profiles of a lab's rigs, deploy.lab's, randomised around them
-    (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model, and as deploy.lab tried
-    again with its next seed (up to ``attempts``, into ``<run_dir>-<k>``) while no worker met TC."""
+    (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model, tried as deploy.lab does
+    again with its next seed (up to ``attempts``, into ``<run_dir>-<k>``) while no worker met TC, and its controller
+    chosen as deploy.lab chooses it (:func:`warm_start`)."""
     from deploy.lab import PRETRAIN_SEED_STEP
 
     t0 = time.process_time()
@@ -312,8 +314,25 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
         solved = any(w.solved for w in summary.workers)
         if solved:
             break
-    return {"finished": solved, "model": str(folder) if solved else None, "end_reason": summary.end_reason,
-            "episodes": summary.episodes_to_all_solved, "attempt": attempt, "cpu_s": round(time.process_time() - t0, 1)}
+    out = {"finished": solved, "model": str(folder) if solved else None, "end_reason": summary.end_reason,
+           "episodes": summary.episodes_to_all_solved, "attempt": attempt}
+    if solved and identified is not None:  # as deploy.lab: the worker the identified rigs balance best
+        out.update(warm_start(folder, identified, seed))
+    return {**out, "cpu_s": round(time.process_time() - t0, 1)}
+
+
+def warm_start(run: Path, identified: list[str], seed: int) -> dict[str, Any]:
+    """deploy.lab's choice of warm start for the lab of ``seed`` from its pretrain ``run`` (every worker that met TC,
+    played greedily on each rig's identified simulation): the chosen model, and each candidate's returns."""
+    from deploy.lab import candidates, choose, validation_returns
+
+    models = candidates(run)
+    if not models:  # no worker's model kept: the run folder's own answer (its first worker to meet TC)
+        return {}
+    returns = [validation_returns(m, [Path(f) for f in identified], seed) for m in models]
+    best = choose(returns)
+    return {"model": str(models[best]), "chosen": best,
+            "candidates": [{"model": str(m), "returns": r} for m, r in zip(models, returns, strict=True)]}
 
 
 def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: str,
@@ -394,7 +413,7 @@ def around_pretrains(args: argparse.Namespace, store: Store) -> list[Unit]:
                                    "max_episodes": args.pretrain_episodes, "algo": args.algo, "seed": seed,
                                    "identified": files, "attempts": PRETRAIN_ATTEMPTS},
                                   {"max_episodes": args.pretrain_episodes, "algo": args.algo,
-                                   "attempts": PRETRAIN_ATTEMPTS}))
+                                   "attempts": PRETRAIN_ATTEMPTS, "warm_start": "chosen"}))
     return [u for u in units if not store.done(u)]
 
 

@@ -338,25 +338,40 @@ def chosen(folder: Path) -> Path | None:
     return Path(json.loads(path.read_text())["model"]) if path.exists() else None
 
 
-def warm_start(s: LabSettings, folder: Path) -> Path:
-    """The pretrain's controller the rigs start from. Every worker of the pretrain that met TC has one; each plays one
-    greedy episode on each identified rig, simulated with the rig's identified profile (never its truth), and the one
-    :func:`choose` takes wins. The first to meet TC (the run folder's model) may have met it on a lucky streak of
-    draws. Chosen once: ``warm-start.json`` keeps the candidates, their returns and the choice."""
+def candidates(run: Path) -> list[Path]:
+    """The models of a finished pretrain's workers that met TC, in the order they met it (runtime.model_file.solvers):
+    the warm starts to choose from."""
+    from runtime.model_file import solvers
+
+    summary = read_summary(run)
+    order = solvers(summary) if summary is not None else []
+    return [run / "models" / f"{name}.pt" for name in order if (run / "models" / f"{name}.pt").is_file()]
+
+
+def validation_returns(model: Path, rigs: Sequence[Path], seed: int) -> list[float]:
+    """``model``'s greedy return on each identified rig (profile files, in rig order) of the lab of ``seed``: one
+    episode each, the rig simulated from its identified profile (never its truth) with its validation seed."""
     import torch
 
-    from protocol.tasks import worker_seed
-    from runtime.model_file import ModelFileError, resolve, solvers
     from worker.evaluate import evaluate
 
     torch.set_num_threads(1)  # one thread, as every training process
+    return [evaluate(model, "qube-local", episodes=1, seed=worker_seed(seed, i) + VALIDATION_SEED,
+                     rig_profile=str(rig), rig_model=str(rig)).returns[0] for i, rig in enumerate(rigs)]
+
+
+def warm_start(s: LabSettings, folder: Path) -> Path:
+    """The pretrain's controller the rigs start from. Every worker of the pretrain that met TC has one
+    (:func:`candidates`); each plays one greedy episode on each identified rig (:func:`validation_returns`), and the
+    one :func:`choose` takes wins. The first to meet TC (the run folder's model) may have met it on a lucky streak of
+    draws. Chosen once: ``warm-start.json`` keeps the candidates, their returns and the choice."""
+    from runtime.model_file import ModelFileError, resolve
+
     kept = chosen(folder)
     if kept is not None:
         return kept
     run = pretrain_dir(folder)
-    summary = read_summary(run)
-    order = solvers(summary) if summary is not None else []
-    models = [run / "models" / f"{name}.pt" for name in order if (run / "models" / f"{name}.pt").is_file()]
+    models = candidates(run)
     if not models:
         try:
             return resolve(run)  # no model to compare: the run folder's own answer (or its error)
@@ -367,8 +382,7 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
         f"TC, one greedy episode on each of the {len(rigs)} identified rigs (simulated)")
     returns: list[list[float]] = []
     for model in models:
-        returns.append([evaluate(model, "qube-local", episodes=1, seed=worker_seed(s.seed, i) + VALIDATION_SEED,
-                                 rig_profile=str(rig), rig_model=str(rig)).returns[0] for i, rig in enumerate(rigs)])
+        returns.append(validation_returns(model, rigs, s.seed))
         balanced = sum(r >= MAX_RETURN for r in returns[-1])
         say("finetune", f"{model.stem}: balanced {balanced} of {len(rigs)} identified rigs to the end (returns "
             f"{', '.join(f'{r:.0f}' for r in returns[-1])})")

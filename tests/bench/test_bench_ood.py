@@ -235,6 +235,31 @@ def test_an_around_pretrain_that_met_no_tc_is_tried_again_with_deploy_labs_next_
     result = ood.pretrain("paper", str(tmp_path / "s601"), 10, "ppo", seed=601, identified=["a"], attempts=2)
     assert ran == [("s601", 601), ("s601-2", 601 + PRETRAIN_SEED_STEP)]
     assert result["finished"] and result["model"] == str(tmp_path / "s601-2") and result["attempt"] == 2
+    assert "candidates" not in result  # no worker's model kept: the run folder's answer
+
+
+def test_an_around_pretrain_starts_from_the_worker_deploy_lab_would_choose(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Its workers that met TC, in that order, each played on every identified rig of the lab (the lab's seed)."""
+    from types import SimpleNamespace
+
+    import deploy.lab
+
+    monkeypatch.setattr(ood, "_pretrain", lambda *a: SimpleNamespace(workers=[SimpleNamespace(solved=True)],
+                                                                       end_reason="x", episodes_to_all_solved=40))
+    first, better = tmp_path / "w2.pt", tmp_path / "w0.pt"
+    monkeypatch.setattr(deploy.lab, "candidates", lambda run: [first, better])
+    played: list[tuple[str, list[str], int]] = []
+
+    def returns(model: Path, rigs: list[Path], seed: int) -> list[float]:
+        played.append((model.stem, [r.name for r in rigs], seed))
+        return [2450.0, 2450.0] if model == better else [2450.0, 180.0]
+
+    monkeypatch.setattr(deploy.lab, "validation_returns", returns)
+    result = ood.pretrain("paper", str(tmp_path / "s601"), 10, "ppo", seed=601, identified=["r0.json", "r1.json"])
+    assert played == [("w2", ["r0.json", "r1.json"], 601), ("w0", ["r0.json", "r1.json"], 601)]
+    assert result["model"] == str(better) and result["chosen"] == 1
+    assert [c["returns"] for c in result["candidates"]] == [[2450.0, 180.0], [2450.0, 2450.0]]
 
 
 def test_bench_sim2real_ood_is_this_command(capsys: pytest.CaptureFixture[str]) -> None:

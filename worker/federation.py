@@ -32,6 +32,7 @@ import torch
 from gymnasium import spaces
 from torch import nn
 
+from protocol.tensors import NORM_LIMIT, l2_norm
 from worker.adam import Adam
 from worker.nets import StepGradients, blend, seeded, tensors
 from worker.replay import Replay
@@ -136,8 +137,9 @@ class FederatedLearner:
 
     def _gradients(self, loss: torch.Tensor, net: nn.Module) -> dict[str, np.ndarray] | None:
         """The gradient of ``loss`` with respect to ``net``'s parameters only (torch.autograd.grad: nothing is
-        accumulated in any .grad), norm-clipped when configured; None when the loss or a gradient is not finite (so a
-        numerical blow-up never reaches the parameters or the chief)."""
+        accumulated in any .grad), norm-clipped when configured; None when the loss or a gradient is not finite, or
+        its norm exceeds the protocol's NORM_LIMIT (so a numerical blow-up never reaches the parameters or the chief,
+        which refuses such a gradient: a refused update would leave its round waiting for this worker)."""
         if not torch.isfinite(loss):
             return None
         named = list(net.named_parameters())
@@ -148,7 +150,7 @@ class FederatedLearner:
             coef = torch.clamp(self.config.max_grad_norm / (total + 1e-6), max=1.0)
             grads = [g * coef for g in grads]
         out = {name: g.numpy().astype(np.float32, copy=True) for (name, _), g in zip(named, grads, strict=True)}
-        return out if all(bool(np.isfinite(g).all()) for g in out.values()) else None
+        return out if l2_norm(out) <= NORM_LIMIT else None  # inf when a value is not finite
 
     # -- what each learner writes: acting, its memory, its update -------------------------------------------------
 

@@ -58,3 +58,33 @@ def test_a_failed_worker_ends_the_run_as_aborted_once_the_others_are_done(broken
     assert by_id["w0"].solved and by_id["w2"].solved  # the others learned on to their end
     assert summary.end_reason.startswith("aborted") and summary.episodes_to_all_solved is None
     audit(run_dir)
+
+
+@pytest.mark.slow
+def test_a_gradient_step_past_the_protocols_norm_limit_is_skipped_and_the_run_goes_on(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """An honest learner whose gradient blows up past NORM_LIMIT (a PPO policy whose entropy collapsed: seen in a QUBE
+    pretrain at round 550) skips that step, as it skips a non-finite one. Sent, the chief refuses it, and a lockstep
+    round without timeouts waits for that worker forever (the pretrain hung)."""
+    import json
+
+    from worker.federation import FederatedLearner
+
+    real = FederatedLearner._gradients
+    calls = {"n": 0, "blown": 0}
+
+    def blowing_up(self: FederatedLearner, loss: Any, net: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] % 7 == 0:  # now and then, a finite loss whose gradient is far past the limit
+            calls["blown"] += 1
+            loss = loss * 1e12
+        return real(self, loss, net)
+
+    monkeypatch.setattr(FederatedLearner, "_gradients", blowing_up)
+    run_dir = tmp_path / "run"
+    summary = run_federation(InprocessSettings.given(env=ENV, policy=POLICY, seed=SEED, workers=2, max_episodes=6,
+                                                     run_dir=run_dir), plot=False, tensorboard_files=False)
+    assert calls["blown"] > 3 and summary.end_reason.startswith("reached the maximum")
+    records = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    assert not [r for r in records if r["type"] == "refused"]
+    audit(run_dir)

@@ -132,8 +132,10 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
 
 
 def reuse(source: Path, folder: Path) -> None:
-    """Start a lab from another runs folder's lab of the same seed: its identified rigs and pretrain attempts, so that
-    deploy.lab runs the fine-tune stage alone (a ValueError when that lab did not get so far)."""
+    """Start a lab from another runs folder's lab of the same seed: its identified rigs and pretrain attempts.
+    deploy.lab resumes at its pretrain stage, which keeps every attempt that ended and runs only what the pipeline of
+    now adds to them (the choice's validation; another attempt when no controller held every identified rig), then the
+    fine-tune (a ValueError when that lab did not get so far)."""
     problem = not_reusable(source)
     if problem is not None:
         raise ValueError(problem)
@@ -142,14 +144,14 @@ def reuse(source: Path, folder: Path) -> None:
         if part.name in ("identified", profile_file(source).name) or part.name.startswith("pretrain"):
             copy = shutil.copytree if part.is_dir() else shutil.copy2
             copy(part, folder / part.name)
-    (folder / "lab.json").write_text(json.dumps({"done": ["identify", "pretrain"], "reused": str(source)}) + "\n")
+    (folder / "lab.json").write_text(json.dumps({"done": ["identify"], "reused": str(source)}) + "\n")
 
 
 def not_reusable(source: Path) -> str | None:
-    """Why ``source`` has no identified rigs and pretrain to reuse (None: it has)."""
+    """Why ``source`` has no identified rigs to reuse (None: it has; its pretrain attempts come along as they are)."""
     progress = json.loads((source / "lab.json").read_text()) if (source / "lab.json").exists() else {}
-    if not {"identify", "pretrain"} <= set(progress.get("done", [])):
-        return f"{source}: no identified rigs and pretrain to reuse (its lab.json does not list both as done)"
+    if "identify" not in progress.get("done", []):
+        return f"{source}: no identified rigs to reuse (its lab.json does not list them as done)"
     return None
 
 
@@ -325,8 +327,9 @@ def main(argv: list[str] | None = None) -> int:
                    "the paper's actions, lab-<set>.json for another set: the file the README and the lab page show; "
                    "another --out, for tuning seeds say, leaves the pages alone)")
     p.add_argument("--reuse", type=Path, default=None, metavar="RUNS_DIR", help="take each lab's identified rigs "
-                   "and pretrain from this earlier --runs-dir and run its fine-tune alone (to compare fine-tune "
-                   "settings on the same pretrains)")
+                   "and the pretrain attempts that ended from this earlier --runs-dir, and resume the pipeline at its "
+                   "pretrain stage (to compare fine-tune settings on the same pretrains: only what the pipeline adds "
+                   "to them runs)")
     p.add_argument("--collect", action="store_true", help="run nothing: measure the labs an earlier invocation left "
                    "in --runs-dir (an unfinished lab counts as unfinished, a seed without a folder as not run)")
     p.add_argument("--note", default="", help="a sentence the table shows after its header (with --collect: the "

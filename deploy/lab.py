@@ -6,11 +6,13 @@ as identified, then warm-start and fine-tune the rigs federated.
    simulated by ``python -m services.qube_sim --identify`` with the bridge's own control code; ``--env qube``: each
    rig is asked over MQTT (``python -m worker.identify``), a real bridge or a simulated one.
 2. **pretrain**: a federation in process on simulated rigs randomised around the identified ones
-   (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``; when none of its workers met TC,
-   again with another seed into ``pretrain-2/`` and so on (``--pretrain-attempts``).
+   (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``. Each worker that met TC plays one
+   greedy episode on each identified rig, simulated (``validated``). When none of its workers met TC, or none of
+   those balanced every identified rig, again with another seed into ``pretrain-2/`` and so on
+   (``--pretrain-attempts``).
 3. **finetune**: the rigs themselves, every worker warm-started from the pretrain, federated by
    ``python -m deploy.run_local`` into ``finetune/``; each rig's resets use its identified model. The warm start is
-   the pretrain worker's controller (of those that met TC) that balances the most identified rigs in simulation
+   the controller of the pretrains' workers that met TC that balanced the most identified rigs in simulation
    (``warm_start``, kept in ``warm-start.json``).
 
 Simulated rigs take their true physics from ``FEDRL_RIG_PROFILE`` (a profile, or a folder with one per rig). The
@@ -88,7 +90,8 @@ class LabSettings(LearnerTaskSettings):
         "barely move teaches nothing and keeps the pretrain from meeting TC); 10 leaves the ranges as identified",
         gt=0, le=10)
     pretrain_attempts: int = setting(PRETRAIN_ATTEMPTS, "pretrains to try until one has a controller that meets "
-                                     "TC, each with its own seed (a pretrain costs this host's time, no rig time)",
+                                     "TC and balances every identified rig in simulation, each with its own seed (a "
+                                     "pretrain costs this host's time, no rig time)",
                                      ge=1, le=MAX_ATTEMPTS)
     policy: PolicyName = setting("plain", "federation strategy of the pretrain and the fine-tune")
     algo: LearnerName = setting(learners.DEFAULT, "learner")
@@ -250,8 +253,9 @@ def met_tc(summary: RunSummary | None) -> bool:
 
 def pretrain(s: LabSettings, folder: Path) -> None:
     """A federation in process on rigs randomised around the identified ones, until every worker meets TC; again
-    with another seed (``--pretrain-attempts``) when none of its workers did. Attempts that ended are kept: a resumed
-    pipeline goes on at the first attempt that did not."""
+    with another seed (``--pretrain-attempts``) when none of its workers did, or none of those that did balanced every
+    identified rig in simulation (:func:`validated`): the next attempt's controllers join the choice
+    (:func:`warm_start`). Attempts that ended are kept: a resumed pipeline goes on at the first attempt that did not."""
     from services.qube_sim.pretrain import breakaway_share, for_lab
     from services.qube_sim.profile import load_profile
 
@@ -265,7 +269,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
         f"arm friction at most {ceiling * 1e3:.2f} mN m ({ceiling / torque:.0%} of what the `{s.qube_actions}` "
         f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})")
     env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
-    why = ""
+    why, met = "", False
     for attempt in range(1, s.pretrain_attempts + 1):
         run_dir = attempt_dir(folder, attempt)
         summary, code = read_summary(run_dir), None
@@ -275,13 +279,21 @@ def pretrain(s: LabSettings, folder: Path) -> None:
             code = run_child("pretrain", pretrain_command(s, folder, attempt), env)
             summary = read_summary(run_dir)
         if summary is not None and met_tc(summary):
+            met = True
             solved = sum(w.solved for w in summary.workers)
             if solved < len(summary.workers):  # a controller that met TC exists: the fine-tune starts from it
                 say("pretrain", f"{solved} of {len(summary.workers)} workers met TC ({summary.end_reason}); the "
                     "fine-tune starts from one of them")
-            return
+            pool = validated(s, folder, attempt)
+            if not pool or any(holds(c["returns"]) for c in pool):
+                return
+            say("pretrain", f"attempt {attempt}: no controller that met TC balanced every identified rig"
+                + (f"; attempt {attempt + 1} adds its own to the choice" if attempt < s.pretrain_attempts else ""))
+            continue
         why = f"attempt {attempt}: {summary.end_reason if summary is not None else f'exit code {code}'}"
         say("pretrain", f"no controller met TC ({why})")
+    if met:  # the fine-tune starts from the best controller of the attempts that met TC
+        return
     raise StageFailed(f"no pretrain ended with a controller that meets TC ({s.pretrain_attempts} attempts, last "
                       f"{why}); try more --pretrain-episodes or --pretrain-attempts, or another --seed"
                       + authority_hint(s, folder))
@@ -360,40 +372,65 @@ def validation_returns(model: Path, rigs: Sequence[Path], seed: int) -> list[flo
                      rig_profile=str(rig), rig_model=str(rig)).returns[0] for i, rig in enumerate(rigs)]
 
 
+def holds(returns: Sequence[float]) -> bool:
+    """Whether a controller balanced every identified rig to the end."""
+    return all(r >= MAX_RETURN for r in returns)
+
+
+def validation_file(folder: Path, attempt: int) -> Path:
+    """Where pretrain attempt ``attempt``'s candidates and their returns on the identified rigs are kept."""
+    return folder / f"validation-{attempt}.json"
+
+
+def validated(s: LabSettings, folder: Path, attempt: int) -> list[dict[str, Any]]:
+    """Pretrain attempt ``attempt``'s candidates (:func:`candidates`), each with its greedy return on each identified
+    rig (:func:`validation_returns`): ``[{"model", "returns"}]``, played once and kept in :func:`validation_file`."""
+    models = [str(m) for m in candidates(attempt_dir(folder, attempt))]
+    path = validation_file(folder, attempt)
+    if path.exists():
+        kept: list[dict[str, Any]] = json.loads(path.read_text())["candidates"]
+        if [c["model"] for c in kept] == models:
+            return kept
+    rigs = identified_files(s, folder)
+    if models:
+        say("pretrain", f"attempt {attempt}: {len(models)} controller{'s' * (len(models) > 1)} that met TC, one "
+            f"greedy episode each on the {len(rigs)} identified rigs (simulated)")
+    out = []
+    for model in models:
+        returns = validation_returns(Path(model), rigs, s.seed)
+        say("pretrain", f"{Path(model).stem}: balanced {sum(r >= MAX_RETURN for r in returns)} of {len(rigs)} "
+            f"identified rigs to the end (returns {', '.join(f'{r:.0f}' for r in returns)})")
+        out.append({"model": model, "returns": returns})
+    path.write_text(json.dumps({"rigs": [str(r) for r in rigs], "candidates": out}, indent=2) + "\n")
+    return out
+
+
 def warm_start(s: LabSettings, folder: Path) -> Path:
-    """The pretrain's controller the rigs start from. Every worker of the pretrain that met TC has one
-    (:func:`candidates`); each plays one greedy episode on each identified rig (:func:`validation_returns`), and the
-    one :func:`choose` takes wins. The first to meet TC (the run folder's model) may have met it on a lucky streak of
+    """The pretrain's controller the rigs start from. Every worker of every pretrain attempt that met TC has one
+    (:func:`candidates`); each played one greedy episode on each identified rig (:func:`validated`), and the one
+    :func:`choose` takes wins. The first to meet TC (the run folder's model) may have met it on a lucky streak of
     draws. Chosen once: ``warm-start.json`` keeps the candidates, their returns and the choice."""
     from runtime.model_file import ModelFileError, resolve
 
     kept = chosen(folder)
     if kept is not None:
         return kept
-    run = pretrain_dir(folder)
-    models = candidates(run)
-    if not models:
+    pool = [c for attempt in range(1, s.pretrain_attempts + 1) if met_tc(read_summary(attempt_dir(folder, attempt)))
+            for c in validated(s, folder, attempt)]
+    if not pool:
         try:
-            return resolve(run)  # no model to compare: the run folder's own answer (or its error)
+            return resolve(pretrain_dir(folder))  # no model to compare: the run folder's own answer (or its error)
         except ModelFileError as err:
             raise StageFailed(str(err)) from None
-    rigs = identified_files(s, folder)
-    say("finetune", f"choosing the warm start: {len(models)} pretrain controller{'s' * (len(models) > 1)} that met "
-        f"TC, one greedy episode on each of the {len(rigs)} identified rigs (simulated)")
-    returns: list[list[float]] = []
-    for model in models:
-        returns.append(validation_returns(model, rigs, s.seed))
-        balanced = sum(r >= MAX_RETURN for r in returns[-1])
-        say("finetune", f"{model.stem}: balanced {balanced} of {len(rigs)} identified rigs to the end (returns "
-            f"{', '.join(f'{r:.0f}' for r in returns[-1])})")
-    best = choose(returns)
-    say("finetune", f"the rigs start from {models[best].stem}" + ("" if best == 0 else f" (the first to meet TC was "
-                                                                   f"{models[0].stem})"))
+    best = choose([c["returns"] for c in pool])
+    model = Path(pool[best]["model"])
+    say("finetune", f"the rigs start from {model.parent.parent.name}/{model.stem}" + (
+        "" if best == 0 else f" (the first to meet TC was {Path(pool[0]['model']).parent.parent.name}/"
+                             f"{Path(pool[0]['model']).stem})"))
     choice_file(folder).write_text(json.dumps({
-        "model": str(models[best]), "chosen": best, "rigs": [str(r) for r in rigs],
-        "candidates": [{"model": str(m), "returns": r} for m, r in zip(models, returns, strict=True)]}, indent=2)
-        + "\n")
-    return models[best]
+        "model": str(model), "chosen": best, "rigs": [str(r) for r in identified_files(s, folder)],
+        "candidates": pool}, indent=2) + "\n")
+    return model
 
 
 def pretrain_dir(folder: Path) -> Path:

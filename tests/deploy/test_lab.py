@@ -238,7 +238,70 @@ def test_the_rigs_start_from_the_pretrain_controller_the_identified_rigs_balance
     assert len(returns) == 2 and all(0 <= r <= 2450 for r in returns)
 
 
-def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_runs_the_fine_tune_alone(tmp_path: Path) -> None:
+def test_a_pretrain_whose_controllers_fall_on_an_identified_rig_is_tried_again_and_pooled(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """Attempt 1 met TC but none of its controllers balanced every identified rig in simulation: attempt 2 runs, and
+    the rigs start from the best controller of both; each attempt is played once (kept), and a third never runs once
+    one controller holds every rig. With the attempts spent, the best of those that met TC is taken."""
+    import deploy.lab as lab_module
+    from deploy.lab import attempt_dir, identified_files, pretrain, validation_file, warm_start
+    from runtime.records import RunSummary, WorkerSummary
+    from services.qube_sim.profile import LAB
+    from tests.services.test_pretrain import identified
+
+    s = LabSettings.given(workers=2, seed=7, pretrain_attempts=3)
+    for path in identified_files(s, tmp_path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(identified(LAB).to_json())
+    ran: list[int] = []
+
+    def child(stage: str, command: list[str], env: dict[str, str]) -> int:
+        run = Path(command[command.index("--run-dir") + 1])
+        ran.append(1 if run.name == "pretrain" else int(run.name.split("-")[1]))
+        (run / "models").mkdir(parents=True)
+        workers = [WorkerSummary(id=f"w{i}", index=i, solved=True, episodes=9 + i, steps=50, state="finished")
+                   for i in range(2)]
+        RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=20, workers=workers,
+                   total_steps=50, rounds=20, end_reason="all workers solved").write(run)
+        for w in workers:
+            (run / "models" / f"{w.id}.pt").write_bytes(b"")
+        return 0
+
+    scripted = {("pretrain", "w0"): [2450.0, 300.0], ("pretrain", "w1"): [200.0, 2450.0],
+                ("pretrain-2", "w0"): [2450.0, 900.0], ("pretrain-2", "w1"): [2450.0, 2450.0]}
+    played: list[tuple[str, str]] = []
+
+    def returns(model: Path, rigs: list[Path], seed: int) -> list[float]:
+        assert seed == 7 and [r.name for r in rigs] == ["rig0.json", "rig1.json"]
+        played.append((model.parent.parent.name, model.stem))
+        return scripted[(model.parent.parent.name, model.stem)]
+
+    monkeypatch.setattr(lab_module, "run_child", child)
+    monkeypatch.setattr(lab_module, "validation_returns", returns)
+    pretrain(s, tmp_path)
+    assert ran == [1, 2] and len(played) == 4  # attempt 2 held both rigs: no attempt 3
+    out = capsys.readouterr().out
+    assert "attempt 1: no controller that met TC balanced every identified rig; attempt 2 adds" in out
+    assert warm_start(s, tmp_path) == attempt_dir(tmp_path, 2) / "models" / "w1.pt" and len(played) == 4  # kept
+    assert json.loads((tmp_path / "warm-start.json").read_text())["chosen"] == 3
+    pretrain(s, tmp_path)  # resumed: nothing runs or plays again
+    assert ran == [1, 2] and len(played) == 4 and validation_file(tmp_path, 2).exists()
+
+    spent = tmp_path / "spent"  # two attempts, neither holds both rigs: the best of the two
+    for path in identified_files(s, spent):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(identified(LAB).to_json())
+    scripted[("pretrain-2", "w1")] = [2450.0, 1000.0]
+    ran.clear()
+    two = LabSettings.given(workers=2, seed=7, pretrain_attempts=2)
+    pretrain(two, spent)
+    assert ran == [1, 2] and "no controller that met TC balanced every identified rig\n" in capsys.readouterr().out
+    assert warm_start(two, spent) == attempt_dir(spent, 2) / "models" / "w1.pt"  # 1 rig each: the largest sum
+
+
+def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_resumes_at_the_pretrain(tmp_path: Path) -> None:
+    """The pretrain stage runs again over the attempts kept: only what the pipeline adds to them (the choice's
+    validation, another attempt) runs before the fine-tune."""
     from bench.lab import not_reusable, reuse
 
     source, folder = tmp_path / "before" / "combined-paper-s7", tmp_path / "after" / "combined-paper-s7"
@@ -246,15 +309,16 @@ def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_runs_the_fine_tune_alone(
         (source / part).mkdir(parents=True)
         (source / part / "x.json").write_text(part)
     (source / "pretrain-profile.json").write_text("{}")
-    (source / "lab.json").write_text(json.dumps({"done": ["identify"]}))
-    assert "no identified rigs and pretrain to reuse" in (not_reusable(source) or "")
-    with pytest.raises(ValueError, match="no identified rigs and pretrain"):
+    (source / "warm-start.json").write_text("{}")
+    (source / "lab.json").write_text(json.dumps({"done": []}))
+    assert "no identified rigs to reuse" in (not_reusable(source) or "")
+    with pytest.raises(ValueError, match="no identified rigs to reuse"):
         reuse(source, folder)
     (source / "lab.json").write_text(json.dumps({"done": ["identify", "pretrain", "finetune"]}))
     reuse(source, folder)
     assert sorted(p.name for p in folder.iterdir()) == ["identified", "lab.json", "pretrain", "pretrain-2",
-                                                        "pretrain-profile.json"]  # never the fine-tune
-    assert json.loads((folder / "lab.json").read_text())["done"] == ["identify", "pretrain"]
+                                                        "pretrain-profile.json"]  # never the fine-tune or its choice
+    assert json.loads((folder / "lab.json").read_text())["done"] == ["identify"]
     assert (folder / "pretrain-2" / "x.json").read_text() == "pretrain-2"
 
 

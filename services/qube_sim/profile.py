@@ -32,19 +32,6 @@ NONIDEAL = {"coulomb_arm": "Cr", "static_arm": "Sr", "coulomb_pendulum": "Cp", "
 RANDOMIZABLE = (*PLANT, "motor", *NONIDEAL)
 
 
-def below_breakaway(drawn: dict[str, float]) -> dict[str, float]:
-    """Drawn plant values with each joint's Coulomb friction no higher than its static (breakaway) friction, where that
-    is set (> 0). The two are drawn apart, each from its own range; a Coulomb draw above the static one would make
-    the joint's breakaway the larger of the two draws (dynamics.friction), so that the breakaway's range is not what
-    is drawn: a sticky lab's pretrain would meet arms stickier than its ranges. A moving joint's friction never exceeds
-    its breakaway (Stribeck), so such a draw moves at its breakaway."""
-    out = dict(drawn)
-    for coulomb, static in (("Cr", "Sr"), ("Cp", "Sp")):
-        if out.get(static, 0.0) > 0 and out.get(coulomb, 0.0) > out[static]:
-            out[coulomb] = out[static]
-    return out
-
-
 class ProfileError(ValueError):
     """A profile that cannot be used: one line saying why."""
 
@@ -178,9 +165,8 @@ class RigProfile(BaseModel):
                        draw: int = 0) -> QubeParams | None:
         """Domain randomisation: the plant of rig ``seed`` for its ``episode``-th reset, every randomisable parameter
         drawn uniformly from +-``randomize`` (default: the profile's) of the profile's value and those in ``ranges``
-        from their range, a Coulomb friction no higher than its static one (:func:`below_breakaway`). None when the
-        profile randomises nothing. Deterministic in (seed, episode, draw); ``draw`` > 0 is a replacement for a plant
-        that could not be swung up."""
+        from their range. None when the profile randomises nothing. Deterministic in (seed, episode, draw); ``draw``
+        > 0 is a replacement for a plant that could not be swung up."""
         fraction = self.randomize if randomize is None else randomize
         if fraction <= 0 and not self.ranges:
             return None
@@ -196,7 +182,7 @@ class RigProfile(BaseModel):
                 changes.update(km=base.km * value, kt=base.kt * value)
             else:
                 changes[field] = value
-        return replace(base, **below_breakaway(changes))
+        return replace(base, **changes)
 
     # -- sensing and actuation ---------------------------------------------------------------------------------
     def device_options(self) -> dict[str, Any]:

@@ -17,7 +17,7 @@ import pytest
 from rpi_bridge.frame import build_command, parse_reply
 from services.qube_sim.__main__ import main as sim_main
 from services.qube_sim.dynamics import QubeDynamics, QubeParams
-from services.qube_sim.profile import BUILTIN, IDEAL, LAB, ProfileError, RigProfile, below_breakaway, load_profile
+from services.qube_sim.profile import BUILTIN, IDEAL, LAB, ProfileError, RigProfile, load_profile
 from services.qube_sim.spi_peer import SimulatedQube
 from worker.envs import make_env
 from worker.qube_env import RESET_ATTEMPTS, QubeLocalEnv, ResetFailed
@@ -331,15 +331,3 @@ def test_a_folder_gives_each_rig_its_own_profile(tmp_path: Path) -> None:
     (tmp_path / "empty").mkdir()
     with pytest.raises(ProfileError, match=r"no \*\.json file"):
         load_profile(tmp_path / "empty")
-
-
-def test_a_drawn_coulomb_friction_never_exceeds_the_drawn_breakaway() -> None:
-    """Overlapping ranges: the static (breakaway) draw is kept as drawn, a Coulomb draw above it moves down to it, so
-    the arm's breakaway stays inside its own range; a joint without static friction keeps its Coulomb draw."""
-    overlap = LAB.model_copy(update={"ranges": {"coulomb_arm": (1e-3, 4e-3), "static_arm": (2e-3, 3e-3),
-                                                "coulomb_pendulum": (1e-4, 2e-4), "static_pendulum": (0.0, 0.0)}})
-    draws = [p for p in (overlap.episode_params(5, k) for k in range(200)) if p is not None]
-    assert all(2e-3 <= p.Sr <= 3e-3 and 1e-3 <= p.Cr <= p.Sr for p in draws)
-    assert sum(p.Cr == p.Sr for p in draws) > 20  # a third of the Coulomb range lies above the static one
-    assert all(p.Sp == 0.0 and 1e-4 <= p.Cp <= 2e-4 for p in draws)
-    assert below_breakaway({"Cr": 3.0, "Sr": 2.0, "Cp": 1.0, "Sp": 0.0}) == {"Cr": 2.0, "Sr": 2.0, "Cp": 1.0, "Sp": 0.0}

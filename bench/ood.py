@@ -299,7 +299,8 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
     +-RANDOMIZE at every reset); with the identified profiles of a lab's rigs, deploy.lab's, randomised around them
     (services/qube_sim/pretrain.py), each simulated rig's reset from that profile's model, tried as deploy.lab does
     again with its next seed (up to ``attempts``, into ``<run_dir>-<k>``) while no worker met TC, and its controller
-    chosen as deploy.lab chooses it (:func:`warm_start`)."""
+    chosen among the workers of that attempt as deploy.lab chooses (:func:`warm_start`; deploy.lab's further attempt
+    when no controller holds every identified rig is not made here)."""
     from deploy.lab import PRETRAIN_SEED_STEP
 
     t0 = time.process_time()
@@ -324,15 +325,13 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
 def warm_start(run: Path, identified: list[str], seed: int) -> dict[str, Any]:
     """deploy.lab's choice of warm start for the lab of ``seed`` from its pretrain ``run`` (every worker that met TC,
     played greedily on each rig's identified simulation): the chosen model, and each candidate's returns."""
-    from deploy.lab import candidates, choose, validation_returns
+    from deploy.lab import candidates, choose, played
 
-    models = candidates(run)
-    if not models:  # no worker's model kept: the run folder's own answer (its first worker to meet TC)
+    pool = played(candidates(run), [Path(f) for f in identified], seed)
+    if not pool:  # no worker's model kept: the run folder's own answer (its first worker to meet TC)
         return {}
-    returns = [validation_returns(m, [Path(f) for f in identified], seed) for m in models]
-    best = choose(returns)
-    return {"model": str(models[best]), "chosen": best,
-            "candidates": [{"model": str(m), "returns": r} for m, r in zip(models, returns, strict=True)]}
+    best = choose([c["returns"] for c in pool])
+    return {"model": pool[best]["model"], "chosen": best, "candidates": pool}
 
 
 def _pretrain(folder: Path, seed: int, actions: str, max_episodes: int, algo: str,

@@ -335,7 +335,7 @@ def choose(returns: Sequence[Sequence[float]]) -> int:
     if not returns:
         raise ValueError("no candidate controllers to choose from")
     return min(range(len(returns)),
-               key=lambda k: (-sum(r >= MAX_RETURN for r in returns[k]), -sum(returns[k]), k))
+               key=lambda k: (-balanced(returns[k]), -sum(returns[k]), k))
 
 
 def choice_file(folder: Path) -> Path:
@@ -372,9 +372,27 @@ def validation_returns(model: Path, rigs: Sequence[Path], seed: int) -> list[flo
                      rig_profile=str(rig), rig_model=str(rig)).returns[0] for i, rig in enumerate(rigs)]
 
 
+def balanced(returns: Sequence[float]) -> int:
+    """How many identified rigs a controller balanced to the end, given its return on each."""
+    return sum(r >= MAX_RETURN for r in returns)
+
+
 def holds(returns: Sequence[float]) -> bool:
     """Whether a controller balanced every identified rig to the end."""
-    return all(r >= MAX_RETURN for r in returns)
+    return balanced(returns) == len(returns)
+
+
+def played(models: Sequence[Path], rigs: Sequence[Path], seed: int, stage: str | None = None) -> list[dict[str, Any]]:
+    """Each of ``models`` with its :func:`validation_returns` on ``rigs``: ``[{"model", "returns"}]``, in order, each
+    said under ``stage`` as it comes (None: silently)."""
+    out = []
+    for model in models:
+        returns = validation_returns(model, rigs, seed)
+        if stage is not None:
+            say(stage, f"{model.stem}: balanced {balanced(returns)} of {len(rigs)} identified rigs to the end "
+                f"(returns {', '.join(f'{r:.0f}' for r in returns)})")
+        out.append({"model": str(model), "returns": returns})
+    return out
 
 
 def validation_file(folder: Path, attempt: int) -> Path:
@@ -383,24 +401,19 @@ def validation_file(folder: Path, attempt: int) -> Path:
 
 
 def validated(s: LabSettings, folder: Path, attempt: int) -> list[dict[str, Any]]:
-    """Pretrain attempt ``attempt``'s candidates (:func:`candidates`), each with its greedy return on each identified
-    rig (:func:`validation_returns`): ``[{"model", "returns"}]``, played once and kept in :func:`validation_file`."""
-    models = [str(m) for m in candidates(attempt_dir(folder, attempt))]
+    """Pretrain attempt ``attempt``'s candidates (:func:`candidates`) :func:`played` on the identified rigs, once:
+    kept in :func:`validation_file`."""
+    models = candidates(attempt_dir(folder, attempt))
     path = validation_file(folder, attempt)
     if path.exists():
         kept: list[dict[str, Any]] = json.loads(path.read_text())["candidates"]
-        if [c["model"] for c in kept] == models:
+        if [c["model"] for c in kept] == [str(m) for m in models]:
             return kept
     rigs = identified_files(s, folder)
     if models:
         say("pretrain", f"attempt {attempt}: {len(models)} controller{'s' * (len(models) > 1)} that met TC, one "
             f"greedy episode each on the {len(rigs)} identified rigs (simulated)")
-    out = []
-    for model in models:
-        returns = validation_returns(Path(model), rigs, s.seed)
-        say("pretrain", f"{Path(model).stem}: balanced {sum(r >= MAX_RETURN for r in returns)} of {len(rigs)} "
-            f"identified rigs to the end (returns {', '.join(f'{r:.0f}' for r in returns)})")
-        out.append({"model": model, "returns": returns})
+    out = played(models, rigs, s.seed, "pretrain")
     path.write_text(json.dumps({"rigs": [str(r) for r in rigs], "candidates": out}, indent=2) + "\n")
     return out
 
@@ -424,9 +437,12 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
             raise StageFailed(str(err)) from None
     best = choose([c["returns"] for c in pool])
     model = Path(pool[best]["model"])
-    say("finetune", f"the rigs start from {model.parent.parent.name}/{model.stem}" + (
-        "" if best == 0 else f" (the first to meet TC was {Path(pool[0]['model']).parent.parent.name}/"
-                             f"{Path(pool[0]['model']).stem})"))
+
+    def name(m: str | Path) -> str:  # <attempt's run folder>/<worker>
+        return f"{Path(m).parent.parent.name}/{Path(m).stem}"
+
+    say("finetune", f"the rigs start from {name(model)}" + (
+        "" if best == 0 else f" (the first to meet TC was {name(pool[0]['model'])})"))
     choice_file(folder).write_text(json.dumps({
         "model": str(model), "chosen": best, "rigs": [str(r) for r in identified_files(s, folder)],
         "candidates": pool}, indent=2) + "\n")

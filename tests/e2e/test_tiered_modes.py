@@ -19,6 +19,7 @@ from deploy.settings import InprocessSettings
 pytestmark = pytest.mark.slow
 
 ENV, SEED, WORKERS, EDGES = "CartPole-v0", 3, 4, 2
+IDS = [f"w{i}" for i in range(WORKERS)]
 
 
 def _rounds(run_dir: Path) -> list[dict[str, Any]]:
@@ -27,8 +28,11 @@ def _rounds(run_dir: Path) -> list[dict[str, Any]]:
 
 def test_a_quorum_across_edges_in_process(tmp_path: Path) -> None:
     """Quorum 3 of 4, w3 three times slower: each edge forwards its first worker (its share of k is 1), the third
-    contributor comes in a partial of its own and closes the root's round; w3's late submissions are forwarded and
-    dropped at the root as late, and the audit's quorum and tiered checks pass."""
+    contributor comes in a partial of its own and closes the root's round; the late worker's submissions its edge
+    forwards are dropped at the root (as late, or as after the run's end), and the audit's quorum and tiered checks
+    pass. How many of w3's reach the root before the others' last round is the machine's pace (a loaded one may end
+    the run before w3's first episode), so their count is not asserted: tests/chief/test_tiered_quorum.py drives
+    that path on a fixed order of arrivals."""
     episodes = 8
     summary = run_federation(InprocessSettings.given(env=ENV, policy="weighted", seed=SEED, workers=WORKERS,
                              max_episodes=episodes, run_dir=tmp_path, edges=EDGES, quorum=3), plot=False,
@@ -40,7 +44,13 @@ def test_a_quorum_across_edges_in_process(tmp_path: Path) -> None:
     closed_early = [r for r in rounds if r.get("late")]
     assert closed_early and all(r["partials"] == 3 for r in closed_early)  # 1 + 1, then the third on its own
     assert report.tiered == len([r for r in rounds if r["digest"]])
-    assert (summary.rejected_messages or {}).get("late", 0) >= 1  # w3's, dropped at the root
+    assert all(set(r["late"]) == set(IDS) - set(r["contributors"]) for r in closed_early)
+    missed = {(w, r["round"]) for r in closed_early for w in r["late"]}
+    forwarded = [e for edge in range(EDGES) for e in map(json.loads, (tmp_path / "edges" / f"e{edge}" /
+                 "metrics.jsonl").open()) if e["type"] == "episode" and (e["worker"], e["round"]) in missed]
+    refused = summary.rejected_messages or {}
+    assert set(refused) <= {"late", "run_over"}, refused  # what its edge forwarded, and nothing else
+    assert refused.get("late", 0) + refused.get("run_over", 0) <= len(forwarded)
 
 
 def test_bounded_staleness_with_edges_in_process(tmp_path: Path) -> None:

@@ -9,11 +9,12 @@ as identified, then warm-start and fine-tune the rigs federated.
    (services/qube_sim/pretrain.py) until every worker meets TC, into ``pretrain/``. Each worker that met TC plays one
    greedy episode on each identified rig, simulated (``validated``). When none of its workers met TC, or none of
    those balanced every identified rig, again with another seed into ``pretrain-2/`` and so on
-   (``--pretrain-attempts``).
+   (``--pretrain-attempts``). When no attempt met TC, the workers' last controllers (``models/<id>.last.pt``) play
+   the same episodes; the stage fails only when none of them balanced an identified rig either.
 3. **finetune**: the rigs themselves, every worker warm-started from the pretrain, federated by
    ``python -m deploy.run_local`` into ``finetune/``; each rig's resets use its identified model. The warm start is
-   the controller of the pretrains' workers that met TC that balanced the most identified rigs in simulation
-   (``warm_start``, kept in ``warm-start.json``).
+   the controller of the pretrains' workers that met TC (or, when none did, of their last controllers) that balanced
+   the most identified rigs in simulation (``warm_start``, kept in ``warm-start.json``).
 
 Simulated rigs take their true physics from ``FEDRL_RIG_PROFILE`` (a profile, or a folder with one per rig). The
 pipeline never reads it: it passes the environment on to the simulators of stages 1 and 3 and learns the rigs only by
@@ -294,9 +295,16 @@ def pretrain(s: LabSettings, folder: Path) -> None:
         say("pretrain", f"no controller met TC ({why})")
     if met:  # the fine-tune starts from the best controller of the attempts that met TC
         return
+    last = [c for attempt in range(1, s.pretrain_attempts + 1) for c in validated(s, folder, attempt)]
+    most = max((balanced(c["returns"]) for c in last), default=0)
+    if most:  # the fine-tune starts from the best last controller (warm_start)
+        say("pretrain", f"no controller met TC in {s.pretrain_attempts} attempt{'s' * (s.pretrain_attempts > 1)}; "
+            f"the best of the workers' last controllers balanced {most} of {len(identified_files(s, folder))} "
+            "identified rigs to the end: the fine-tune starts from it")
+        return
     raise StageFailed(f"no pretrain ended with a controller that meets TC ({s.pretrain_attempts} attempts, last "
-                      f"{why}); try more --pretrain-episodes or --pretrain-attempts, or another --seed"
-                      + authority_hint(s, folder))
+                      f"{why}), and no worker's last controller balanced an identified rig; try more "
+                      "--pretrain-episodes or --pretrain-attempts, or another --seed" + authority_hint(s, folder))
 
 
 def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
@@ -353,11 +361,21 @@ def chosen(folder: Path) -> Path | None:
 def candidates(run: Path) -> list[Path]:
     """The models of a finished pretrain's workers that met TC, in the order they met it (runtime.model_file.solvers):
     the warm starts to choose from."""
-    from runtime.model_file import solvers
+    from runtime.model_file import mature_model, solvers
 
     summary = read_summary(run)
     order = solvers(summary) if summary is not None else []
-    return [run / "models" / f"{name}.pt" for name in order if (run / "models" / f"{name}.pt").is_file()]
+    return [m for name in order if (m := mature_model(run / "models", name)).is_file()]
+
+
+def last_candidates(run: Path) -> list[Path]:
+    """The last networks of a finished pretrain's workers that played their episodes without meeting TC, in worker
+    order (runtime.model_file.last_model): the warm starts to choose from when no attempt met TC."""
+    from runtime.model_file import last_model
+
+    summary = read_summary(run)
+    workers = sorted(summary.workers, key=lambda w: w.index) if summary is not None else []
+    return [m for w in workers if not w.solved and (m := last_model(run / "models", w.id)).is_file()]
 
 
 def validation_returns(model: Path, rigs: Sequence[Path], seed: int) -> list[float]:
@@ -401,9 +419,10 @@ def validation_file(folder: Path, attempt: int) -> Path:
 
 
 def validated(s: LabSettings, folder: Path, attempt: int) -> list[dict[str, Any]]:
-    """Pretrain attempt ``attempt``'s candidates (:func:`candidates`) :func:`played` on the identified rigs, once:
-    kept in :func:`validation_file`."""
-    models = candidates(attempt_dir(folder, attempt))
+    """Pretrain attempt ``attempt``'s candidates (:func:`candidates`; for an attempt none of whose workers met TC,
+    :func:`last_candidates`) :func:`played` on the identified rigs, once: kept in :func:`validation_file`."""
+    run = attempt_dir(folder, attempt)
+    models = candidates(run) or last_candidates(run)
     path = validation_file(folder, attempt)
     if path.exists():
         kept: list[dict[str, Any]] = json.loads(path.read_text())["candidates"]
@@ -411,7 +430,8 @@ def validated(s: LabSettings, folder: Path, attempt: int) -> list[dict[str, Any]
             return kept
     rigs = identified_files(s, folder)
     if models:
-        say("pretrain", f"attempt {attempt}: {len(models)} controller{'s' * (len(models) > 1)} that met TC, one "
+        kind = "that met TC" if met_tc(read_summary(run)) else "last of workers that did not meet TC"
+        say("pretrain", f"attempt {attempt}: {len(models)} controller{'s' * (len(models) > 1)} {kind}, one "
             f"greedy episode each on the {len(rigs)} identified rigs (simulated)")
     out = played(models, rigs, s.seed, "pretrain")
     path.write_text(json.dumps({"rigs": [str(r) for r in rigs], "candidates": out}, indent=2) + "\n")
@@ -422,14 +442,17 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
     """The pretrain's controller the rigs start from. Every worker of every pretrain attempt that met TC has one
     (:func:`candidates`); each played one greedy episode on each identified rig (:func:`validated`), and the one
     :func:`choose` takes wins. The first to meet TC (the run folder's model) may have met it on a lucky streak of
-    draws. Chosen once: ``warm-start.json`` keeps the candidates, their returns and the choice."""
+    draws. When no attempt met TC (and ``pretrain`` went on, because one of them balanced an identified rig), the
+    candidates are the workers' last controllers (:func:`last_candidates`). Chosen once: ``warm-start.json`` keeps the
+    candidates, their returns and the choice."""
     from runtime.model_file import ModelFileError, resolve
 
     kept = chosen(folder)
     if kept is not None:
         return kept
-    pool = [c for attempt in range(1, s.pretrain_attempts + 1) if met_tc(read_summary(attempt_dir(folder, attempt)))
-            for c in validated(s, folder, attempt)]
+    attempts = range(1, s.pretrain_attempts + 1)
+    met = [a for a in attempts if met_tc(read_summary(attempt_dir(folder, a)))]
+    pool = [c for attempt in met or attempts for c in validated(s, folder, attempt)]  # none met TC: the last ones
     if not pool:
         try:
             return resolve(pretrain_dir(folder))  # no model to compare: the run folder's own answer (or its error)
@@ -442,7 +465,8 @@ def warm_start(s: LabSettings, folder: Path) -> Path:
         return f"{Path(m).parent.parent.name}/{Path(m).stem}"
 
     say("finetune", f"the rigs start from {name(model)}" + (
-        "" if best == 0 else f" (the first to meet TC was {name(pool[0]['model'])})"))
+        " (the last controller of a worker that did not meet TC)" if not met
+        else "" if best == 0 else f" (the first to meet TC was {name(pool[0]['model'])})"))
     choice_file(folder).write_text(json.dumps({
         "model": str(model), "chosen": best, "rigs": [str(r) for r in identified_files(s, folder)],
         "candidates": pool}, indent=2) + "\n")

@@ -37,6 +37,17 @@ _STORAGES = {"FloatStorage": ("float32", 4), "DoubleStorage": ("float64", 8), "H
              "BoolStorage": ("bool", 1)}
 
 
+def mature_model(folder: Path, worker_id: str) -> Path:
+    """Where a worker saves its model when it solves: ``<model dir>/<id>.pt`` (a run's ``models/<id>.pt``)."""
+    return folder / f"{worker_id}.pt"
+
+
+def last_model(folder: Path, worker_id: str) -> Path:
+    """Where a worker that played its episodes without solving saves its last networks: ``<model dir>/<id>.last.pt``
+    (never taken for a solver's: ``resolve`` and a warm start's choice read it only when named)."""
+    return folder / f"{worker_id}.last.pt"
+
+
 class ModelFileError(ValueError):
     """A model path that cannot be used: missing, unreadable, not a worker's model, or a run folder without one."""
 
@@ -181,7 +192,7 @@ def resolve(path: Path) -> Path:
     if not solved:
         raise ModelFileError(f"no worker of the run in {path} solved its task, so it has no model to start from")
     first = solved[0]
-    model = path / "models" / f"{first}.pt"
+    model = mature_model(path / "models", first)
     if not model.is_file():
         raise ModelFileError(f"{path}: its first worker to solve is {first}, but {model} does not exist (was the "
                              "run started without a model folder?)")

@@ -44,7 +44,7 @@ from protocol.routes import hello_wait, qos_of
 from protocol.tasks import worker_seed
 from protocol.tensors import NORM_LIMIT, l2_norm
 from protocol.transport import Connect, Transport
-from runtime.model_file import InitModel
+from runtime.model_file import InitModel, last_model, mature_model
 from runtime.storage import StorageError, atomic_write, storage_errors
 from worker import model, resume
 from worker.episode import build_learner_and_env
@@ -292,6 +292,8 @@ class WorkerService:
             if algo.owed and not algo.finished and pending is None:
                 self._settle(algo, 0)  # the last answers, as a worker without staleness waits for its last
             self._keep(algo, start, pending)
+            if not algo.finished and pending is None and algo.next_episode > start.max_episodes:
+                self._save(learner, algo, start, last=True)  # its episodes played without meeting TC
             return self._ended(algo)
         finally:
             algo.close()
@@ -616,17 +618,18 @@ class WorkerService:
                                 f"round {old}'s answer came after this worker had given it up")
             del self.replies[old]
 
-    def _save(self, learner: Any, algo: Algorithm2, start: RunStart) -> None:
-        """Save the mature model with its provenance (worker/model.py) as <model_dir>/<id>.pt."""
+    def _save(self, learner: Any, algo: Algorithm2, start: RunStart, last: bool = False) -> None:
+        """Save the mature model with its provenance (worker/model.py) as <model_dir>/<id>.pt; ``last``: the networks
+        of a worker that played its episodes without meeting TC, as <model_dir>/<id>.last.pt."""
         if self.cfg.model_dir is None:
             return
         cfg = self.cfg
         prov = model.provenance(cfg.env, cfg.env_options(), algo.seed, start.seed, algo.episode, algo.total_steps,
                                 self.init_model, worker_id=cfg.worker_id, run_id=cfg.run_id)
-        path = self.cfg.model_dir / f"{self.cfg.worker_id}.pt"
+        path = (last_model if last else mature_model)(self.cfg.model_dir, self.cfg.worker_id)
         with storage_errors(path):  # a full or read-only disk: one line and exit 5, not a traceback
             self.cfg.model_dir.mkdir(parents=True, exist_ok=True)
         data = io.BytesIO()  # torch.save reports a full disk as a RuntimeError: serialise first, then write
         torch.save({**learner.state_dict(), "provenance": prov}, data)
         atomic_write(path, data.getvalue())  # the same bytes as learner.save(path, prov)
-        log.info("saved the mature model to %s", path)
+        log.info("saved the %s model to %s", "last (TC not met)" if last else "mature", path)

@@ -65,7 +65,8 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
     resend_interval: float = setting(30.0, "send an unanswered submission again after this many seconds (also at "
                                      "once after a reconnect or a chief restart)", gt=0)
     start_timeout: float = setting(600.0, "seconds to wait for the chief to start the run", gt=0)
-    model_dir: Path | None = setting(None, "save the mature model here as <id>.pt (unset: not saved)")
+    model_dir: Path | None = setting(None, "save the mature model here as <id>.pt, and a worker's last networks "
+                                     "as <id>.last.pt when it plays its episodes without meeting TC (unset: not saved)")
     state_dir: Path | None = setting(None, "when the chief interrupts the run, save this worker's resumable state "
                                      "here as <run>.<id>.state.pt, and take it up when the run resumes (unset: "
                                      "--model-dir; neither: not saved, a resumed run starts this worker afresh)")

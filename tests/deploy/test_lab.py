@@ -299,6 +299,56 @@ def test_a_pretrain_whose_controllers_fall_on_an_identified_rig_is_tried_again_a
     assert warm_start(two, spent) == attempt_dir(spent, 2) / "models" / "w1.pt"  # 1 rig each: the largest sum
 
 
+def test_with_no_attempt_meeting_tc_the_rigs_start_from_the_best_last_controller(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """No pretrain attempt met TC: the workers' last controllers (models/<id>.last.pt) of every attempt play the
+    identified rigs, and the rigs start from the one that balanced the most; when none balanced any, the stage
+    fails with one line."""
+    import deploy.lab as lab_module
+    from deploy.lab import StageFailed, attempt_dir, identified_files, pretrain, warm_start
+    from runtime.records import RunSummary, WorkerSummary
+    from services.qube_sim.profile import LAB
+    from tests.services.test_pretrain import identified
+
+    def child(stage: str, command: list[str], env: dict[str, str]) -> int:
+        run = Path(command[command.index("--run-dir") + 1])
+        (run / "models").mkdir(parents=True)
+        workers = [WorkerSummary(id=f"w{i}", index=i, solved=False, episodes=20, steps=50, state="stopped")
+                   for i in range(2)]
+        RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=20, workers=workers,
+                   total_steps=50, rounds=20, end_reason="reached the maximum of 20 episodes").write(run)
+        for w in workers:
+            (run / "models" / f"{w.id}.last.pt").write_bytes(b"")
+        return 0
+
+    scripted = {("pretrain", "w0"): [300.0, 200.0], ("pretrain", "w1"): [2450.0, 200.0],
+                ("pretrain-2", "w0"): [2450.0, 900.0], ("pretrain-2", "w1"): [100.0, 100.0]}
+    played: list[tuple[str, str]] = []
+
+    def returns(model: Path, rigs: list[Path], seed: int) -> list[float]:
+        played.append((model.parent.parent.name, model.name))
+        return scripted[(model.parent.parent.name, model.name.split(".")[0])]
+
+    monkeypatch.setattr(lab_module, "run_child", child)
+    monkeypatch.setattr(lab_module, "validation_returns", returns)
+    s = LabSettings.given(workers=2, seed=7, pretrain_attempts=2)
+    for folder in (tmp_path / "some", tmp_path / "none"):
+        for path in identified_files(s, folder):
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_text(identified(LAB).to_json())
+    pretrain(s, tmp_path / "some")
+    out = capsys.readouterr().out
+    assert "controllers last of workers that did not meet TC" in out and "balanced 1 of 2 identified rigs" in out
+    assert sorted(played) == [("pretrain", "w0.last.pt"), ("pretrain", "w1.last.pt"),
+                              ("pretrain-2", "w0.last.pt"), ("pretrain-2", "w1.last.pt")]
+    assert warm_start(s, tmp_path / "some") == attempt_dir(tmp_path / "some", 2) / "models" / "w0.last.pt"
+    assert len(played) == 4 and "did not meet TC" in capsys.readouterr().out  # played once, kept
+
+    scripted.update({k: [100.0, 100.0] for k in scripted})
+    with pytest.raises(StageFailed, match="no worker's last controller balanced an identified rig"):
+        pretrain(s, tmp_path / "none")
+
+
 def test_a_lab_reused_keeps_its_rigs_and_pretrains_and_resumes_at_the_pretrain(tmp_path: Path) -> None:
     """The pretrain stage runs again over the attempts kept: only what the pipeline adds to them (the choice's
     validation, another attempt) runs before the fine-tune."""

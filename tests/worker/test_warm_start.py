@@ -57,6 +57,21 @@ def test_warm_started_federation_plays_well_from_its_first_episode(pretrained: P
     assert network_digest(tmp_path / "models" / "w0.pt") != network_digest(model)
 
 
+def test_a_worker_that_does_not_meet_tc_saves_its_last_networks_apart(tmp_path: Path) -> None:
+    """Its episodes played without meeting TC, a worker saves its last networks as models/<id>.last.pt (with their
+    provenance), never as the solver's <id>.pt: a run folder still names no model, the file itself warm-starts."""
+    summary = run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=7, workers=2,
+                             max_episodes=3, run_dir=tmp_path / "run"), plot=False, tensorboard_files=False)
+    assert not any(w.solved for w in summary.workers)
+    models = tmp_path / "run" / "models"
+    assert sorted(p.name for p in models.iterdir()) == ["w0.last.pt", "w1.last.pt"]
+    prov = provenance(models / "w1.last.pt")
+    assert prov is not None and prov["episodes"] == 3 and prov["worker_id"] == "w1" and prov["seed"] == 7001
+    with pytest.raises(ModelFileError, match=r"no worker of the run .* solved"):
+        resolve(tmp_path / "run")
+    assert InitModel.open(models / "w1.last.pt").digest == network_digest(models / "w1.last.pt")
+
+
 def test_digest_covers_the_networks_only(pretrained: Path, tmp_path: Path) -> None:
     model = pretrained / "models" / "w0.pt"
     state = torch.load(model, weights_only=True)

@@ -123,11 +123,10 @@ def one(family: str, profile: RigProfile, seed: int, overrides: dict[str, float]
     row["evaluations"] = result.iterations
     row["train_rms_deg"] = round(result.train_rms_deg, 3)
     row["heldout_rms_deg"] = round(result.heldout_rms_deg, 3)
-    row["parameters"] = {
-        name: {"fitted": result.values[name], "truth": true_value(name, truth),
-               "error": (result.values[name] / true_value(name, truth) - 1) if true_value(name, truth) else None,
-               "sigma": result.sigma[name]}
-        for name in TRUTH}
+    row["parameters"] = {name: {"fitted": result.values[name], "truth": (true := true_value(name, truth)),
+                                "error": (result.values[name] / true - 1) if true else None,
+                                "sigma": result.sigma[name]}
+                         for name in TRUTH}
     row["parameters"]["delay_ms"] = {"fitted": result.values["delay_ms"], "sigma_ms": result.sigma["delay_ms"],
                                      "rig_delay_ms": profile.sensing_latency_ms + profile.action_delay_ms
                                      + profile.action_jitter_ms / 2}

@@ -238,6 +238,22 @@ def test_the_rigs_start_from_the_pretrain_controller_the_identified_rigs_balance
     assert len(returns) == 2 and all(0 <= r <= 2450 for r in returns)
 
 
+def finished_pretrain(run: Path, solved: bool) -> None:
+    """A fake pretrain attempt's run folder: two workers that all met TC (models/<id>.pt) or none did, each having
+    played its 20 episodes (models/<id>.last.pt)."""
+    from runtime.model_file import last_model, mature_model
+    from runtime.records import RunSummary, WorkerSummary
+
+    (run / "models").mkdir(parents=True)
+    workers = [WorkerSummary(id=f"w{i}", index=i, solved=solved, episodes=9 + i if solved else 20, steps=50,
+                             state="finished" if solved else "stopped") for i in range(2)]
+    RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=20, workers=workers,
+               total_steps=50, rounds=20,
+               end_reason="all workers solved" if solved else "reached the maximum of 20 episodes").write(run)
+    for w in workers:
+        (mature_model if solved else last_model)(run / "models", w.id).write_bytes(b"")
+
+
 def test_a_pretrain_whose_controllers_fall_on_an_identified_rig_is_tried_again_and_pooled(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
     """Attempt 1 met TC but none of its controllers balanced every identified rig in simulation: attempt 2 runs, and
@@ -245,7 +261,6 @@ def test_a_pretrain_whose_controllers_fall_on_an_identified_rig_is_tried_again_a
     one controller holds every rig. With the attempts spent, the best of those that met TC is taken."""
     import deploy.lab as lab_module
     from deploy.lab import attempt_dir, identified_files, pretrain, validation_file, warm_start
-    from runtime.records import RunSummary, WorkerSummary
     from services.qube_sim.profile import LAB
     from tests.services.test_pretrain import identified
 
@@ -258,13 +273,7 @@ def test_a_pretrain_whose_controllers_fall_on_an_identified_rig_is_tried_again_a
     def child(stage: str, command: list[str], env: dict[str, str]) -> int:
         run = Path(command[command.index("--run-dir") + 1])
         ran.append(1 if run.name == "pretrain" else int(run.name.split("-")[1]))
-        (run / "models").mkdir(parents=True)
-        workers = [WorkerSummary(id=f"w{i}", index=i, solved=True, episodes=9 + i, steps=50, state="finished")
-                   for i in range(2)]
-        RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=20, workers=workers,
-                   total_steps=50, rounds=20, end_reason="all workers solved").write(run)
-        for w in workers:
-            (run / "models" / f"{w.id}.pt").write_bytes(b"")
+        finished_pretrain(run, solved=True)
         return 0
 
     scripted = {("pretrain", "w0"): [2450.0, 300.0], ("pretrain", "w1"): [200.0, 2450.0],
@@ -306,19 +315,12 @@ def test_with_no_attempt_meeting_tc_the_rigs_start_from_the_best_last_controller
     fails with one line."""
     import deploy.lab as lab_module
     from deploy.lab import StageFailed, attempt_dir, identified_files, pretrain, warm_start
-    from runtime.records import RunSummary, WorkerSummary
     from services.qube_sim.profile import LAB
     from tests.services.test_pretrain import identified
 
     def child(stage: str, command: list[str], env: dict[str, str]) -> int:
         run = Path(command[command.index("--run-dir") + 1])
-        (run / "models").mkdir(parents=True)
-        workers = [WorkerSummary(id=f"w{i}", index=i, solved=False, episodes=20, steps=50, state="stopped")
-                   for i in range(2)]
-        RunSummary(env="qube-local", policy="plain", tc=2450, r_floor=0, max_episodes=20, workers=workers,
-                   total_steps=50, rounds=20, end_reason="reached the maximum of 20 episodes").write(run)
-        for w in workers:
-            (run / "models" / f"{w.id}.last.pt").write_bytes(b"")
+        finished_pretrain(run, solved=False)
         return 0
 
     scripted = {("pretrain", "w0"): [300.0, 200.0], ("pretrain", "w1"): [2450.0, 200.0],

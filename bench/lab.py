@@ -110,7 +110,8 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
            "FEDRL_RIG_PROFILE": str(truth_file(family, runs)), "PYTHONUNBUFFERED": "1"}
     command = [sys.executable, "-m", "deploy.lab", "--env", args.env, "--workers", str(args.workers), "--seed",
                str(seed), "--run-dir", str(folder), "--max-episodes", str(args.max_episodes), "--pretrain-episodes",
-               str(args.pretrain_episodes), "--qube-actions", args.qube_actions, "--warm-lr", str(args.warm_lr)]
+               str(args.pretrain_episodes), "--qube-actions", args.qube_actions, "--warm-lr", str(args.warm_lr),
+               "--warm-temperature", str(args.warm_temperature)]
     if args.reuse is not None and not args.collect and not (folder / "lab.json").exists():
         reuse(args.reuse / folder.name, folder)
     began = time.monotonic()
@@ -321,6 +322,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warm-lr", type=float, default=LabSettings.model_fields["warm_lr"].default,
                    help="the fine-tune's learning-rate factor, full rates only after 3 episodes in a row short "
                    "of TC (deploy.lab --warm-lr; default %(default)s)")
+    p.add_argument("--warm-temperature", type=float, default=LabSettings.model_fields["warm_temperature"].default,
+                   help="the fine-tune's policy temperature at its start (deploy.lab --warm-temperature; default "
+                   "%(default)s)")
     p.add_argument("--runs-dir", type=Path, default=Path("runs/bench-lab"))
     p.add_argument("--jobs", type=int, default=1, help="labs at a time (each runs 3-4 processes)")
     p.add_argument("--out", type=Path, default=None, help="the results file (default bench/results/lab.json for "
@@ -363,7 +367,7 @@ def main(argv: list[str] | None = None) -> int:
     table = aggregate(results, args.workers)
     write_report(args.out, "bench.lab", argv, {
         "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
-        "warm_lr": args.warm_lr,
+        "warm_lr": args.warm_lr, "warm_temperature": args.warm_temperature,
         "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
         "wall_s": round(time.monotonic() - began, 1),
         "collected": args.collect, "reused": str(args.reuse) if args.reuse else None, "note": args.note,

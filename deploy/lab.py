@@ -56,6 +56,8 @@ from runtime.settings import (
     returns_code,
     setting,
     warm_lr_setting,
+    warm_start_problem,
+    warm_temperature_setting,
 )
 from services.qube_sim.pretrain import AUTHORITY
 
@@ -103,6 +105,7 @@ class LabSettings(LearnerTaskSettings):
     broker: str | None = setting(None, "--env qube: the broker of real rigs (unset: the pipeline starts an embedded "
                                  "broker and simulated rigs)")
     warm_lr: float = warm_lr_setting(0.1)
+    warm_temperature: float = warm_temperature_setting()
     init_model: Path | None = setting(None, "skip the pretrain: fine-tune from this model (a models/<id>.pt, or a run "
                                       "folder: its first worker to solve), e.g. an earlier pipeline's pretrain/",
                                       metavar="PATH")
@@ -120,6 +123,8 @@ class LabSettings(LearnerTaskSettings):
             raise ValueError("--env qube-local runs on a simulated clock: --qube-clock lockstep or delayed")
         if self.env == "qube-local" and self.broker is not None:
             raise ValueError("--broker is for --env qube (rigs over MQTT)")
+        if (problem := warm_start_problem("pretrained", warm_temperature=self.warm_temperature, algo=self.algo)):
+            raise ValueError(problem)
         return self
 
     def folder(self) -> Path:
@@ -490,7 +495,8 @@ def finetune_command(s: LabSettings, folder: Path) -> list[str]:
     command = [sys.executable, "-m", "deploy.run_local", "--env", s.env, "--workers", str(s.workers), "--seed",
                str(s.seed), "--policy", s.policy, "--algo", s.algo, "--max-episodes", str(s.max_episodes),
                "--run-id", f"lab-s{s.seed}", "--run-dir", str(folder / "finetune"), "--init-model",
-               str(pretrained(s, folder)), "--warm-lr", str(s.warm_lr), "--rig-model", str(folder / "identified"),
+               str(pretrained(s, folder)), "--warm-lr", str(s.warm_lr), "--warm-temperature",
+               str(s.warm_temperature), "--rig-model", str(folder / "identified"),
                "--qube-actions", s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off"]
     return command + (["--broker", s.broker, "--no-simulate-rigs"] if s.broker else [])
 

@@ -18,9 +18,19 @@ from pydantic import (
 
 from chief.settings import FederationSettings, quorum_problem
 from deploy import sites
+from protocol import learners
 from protocol.mqtt import BrokerAddress
 from protocol.topics import check_id
-from runtime.settings import Counts, Port, Settings, Words, setting, warm_lr_problem, warm_lr_setting
+from runtime.settings import (
+    Counts,
+    Port,
+    Settings,
+    Words,
+    setting,
+    warm_lr_setting,
+    warm_start_problem,
+    warm_temperature_setting,
+)
 from services.qube_sim.profile import DRAWN_MODEL, check_model_source, load_profile
 from services.qube_sim.settings import Clock
 from worker.settings import DeviceNoiseSettings
@@ -42,10 +52,12 @@ class WarmStartSettings(Settings):
     init_model: Path | None = setting(None, "warm start every worker from this model (a models/<id>.pt, or a run "
                                       "folder: its first worker to solve); unset: from scratch", metavar="PATH")
     warm_lr: float = warm_lr_setting()
+    warm_temperature: float = warm_temperature_setting()
 
     @model_validator(mode="after")
     def _warm(self) -> WarmStartSettings:
-        problem = warm_lr_problem(self.warm_lr, self.init_model)
+        problem = warm_start_problem(self.init_model, self.warm_lr, self.warm_temperature,
+                                     getattr(self, "algo", learners.DEFAULT))
         if problem is not None:
             raise ValueError(problem)
         return self

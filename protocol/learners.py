@@ -28,6 +28,10 @@ LEARNERS: dict[str, str] = {
 #: The learners that act only in a discrete action space.
 DISCRETE_ONLY = frozenset({"dqn"})
 
+#: The learners whose policy a warm start can temper (--warm-temperature: worker/ppo.py ``temper``). SAC tunes its
+#: entropy itself, and DQN's exploration is its epsilon schedule.
+TEMPERED = ("ppo",)
+
 
 def names() -> list[str]:
     return list(LEARNERS)

@@ -137,10 +137,25 @@ def warm_lr_setting(default: float = 1.0) -> Any:
                    "learner's rates throughout", gt=0, le=1)
 
 
-def warm_lr_problem(warm_lr: float, init_model: object) -> str | None:
-    """Why ``warm_lr`` cannot be given (for the settings' validators): it is a setting of a warm start."""
-    if warm_lr != 1.0 and init_model is None:
-        return "--warm-lr (FEDRL_WARM_LR) is a setting of a warm start: give --init-model too"
+def warm_temperature_setting(default: float = 1.0) -> Any:
+    """The ``warm_temperature`` setting, the same in the worker and in every launcher that warm-starts one."""
+    return setting(default, "with --init-model and PPO: the policy's temperature at the start, its action logits "
+                   "divided by it (a Gaussian's standard deviation times it), so that the model samples closer to its "
+                   "greedy action; it learns on from there (worker/ppo.py temper, docs/how-to/warm-start.md); 1: as "
+                   "the model was trained", gt=0, le=1)
+
+
+def warm_start_problem(init_model: object, warm_lr: float = 1.0, warm_temperature: float = 1.0,
+                       algo: str = learners.DEFAULT) -> str | None:
+    """Why a warm start's settings cannot be given (for the settings' validators): they need --init-model, and a
+    temperature a learner that has one."""
+    for name, value in (("warm_lr", warm_lr), ("warm_temperature", warm_temperature)):
+        if value != 1.0 and init_model is None:
+            flag, var = "--" + name.replace("_", "-"), "FEDRL_" + name.upper()
+            return f"{flag} ({var}) is a setting of a warm start: give --init-model too"
+    if warm_temperature != 1.0 and algo not in learners.TEMPERED:
+        return (f"--warm-temperature (FEDRL_WARM_TEMPERATURE) needs a learner with a policy temperature "
+                f"({', '.join(learners.TEMPERED)}), not {algo}")
     return None
 
 

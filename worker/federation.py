@@ -300,6 +300,11 @@ class FederatedLearner:
                 for group in optimizer.param_groups:
                     group["lr"] = getattr(self.config, lr)
 
+    def temper(self, temperature: float) -> None:
+        """The policy at ``temperature`` (0 < T <= 1) from now on, at a warm start (--warm-temperature); a learner
+        without one (protocol/learners.py ``TEMPERED``) refuses it."""
+        raise ValueError(f"{self.ALGO} has no policy temperature to set")
+
     def scale_learning_rates(self, factor: float) -> None:
         """Every optimizer's learning rate at ``factor`` times its configured one (``OPTIMIZERS``); the Adam moments
         are kept (a warm start's gentle rates, worker/federated.py ``warm_factor``)."""

@@ -153,14 +153,17 @@ def check_fits(state: dict[str, Any], learner: Learner, env_id: str, path: Path,
 
 
 def warm_start(learner: Learner, state: dict[str, Any], env_id: str, path: Path, algo: str = "ppo",
-               qube_actions: str | None = None) -> None:
-    """Check the model against the task and learner (``check_fits``), then start ``learner`` from it."""
+               qube_actions: str | None = None, temperature: float = 1.0) -> None:
+    """Check the model against the task and learner (``check_fits``), then start ``learner`` from it, its policy at
+    ``temperature`` (``Learner.temper``; 1: as the model was trained)."""
     check_fits(state, learner, env_id, path, algo, qube_actions)
     try:
         learner.warm_start(state)
     except (KeyError, RuntimeError, ValueError) as exc:
         first = (str(exc).splitlines() or [""])[0][:300]
         raise ModelFileError(f"{path} could not be loaded for {env_id}: {first}") from None
+    if temperature != 1.0:
+        learner.temper(temperature)
 
 
 def open_init_model(path: Path, env_id: str, rig_id: str | None = None, algo: str = "ppo",

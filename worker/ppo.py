@@ -114,6 +114,22 @@ class Actor(nn.Module):
         out = self(obs)
         return out.argmax(dim=-1) if self.discrete else out
 
+    @torch.no_grad()
+    def temper(self, temperature: float) -> None:
+        """pi at temperature T from now on: the logits divided by T (the output layer's weights and bias scaled by
+        1/T), or the Gaussian's standard deviation times T (log_std + log T). The greedy action stays the same, and
+        pi stays this network, which PPO goes on learning as before (the ratio of Eq. 1 compares the tempered policy
+        with itself)."""
+        if not 0 < temperature <= 1:
+            raise ValueError(f"a policy temperature must be in (0, 1], not {temperature}")
+        if self.discrete:
+            out = self.net[-1]
+            assert isinstance(out, nn.Linear)
+            out.weight.div_(temperature)
+            out.bias.div_(temperature)
+        else:
+            self.log_std.add_(math.log(temperature))
+
     def log_prob_entropy(self, obs: torch.Tensor, actions: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """log pi_theta(a_t|s_t) and the policy entropy per sample."""
         out = self(obs)
@@ -289,6 +305,10 @@ class PPOLearner(FederatedLearner):
 
     def _normalized(self, x: torch.Tensor) -> torch.Tensor:
         return self.obs_norm.normalize(x) if self.config.normalize_obs else x
+
+    def temper(self, temperature: float) -> None:
+        """A warm start's policy temperature (``Actor.temper``)."""
+        self.actor.temper(temperature)
 
     def _to_env(self, action: torch.Tensor) -> Any:
         """A numpy int (Discrete) or a raw float32 array (Box, not clipped: the environment clips)."""

@@ -245,8 +245,9 @@ class WorkerService:
                                              env_options={**cfg.env_options(), "halt": self._interrupt}, algo=cfg.algo)
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
             model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo,
-                             cfg.qube_actions)
-            log.info("warm start from %s (networks %s)", self.init_model.file, self.init_model.digest[:12])
+                             cfg.qube_actions, cfg.warm_temperature)
+            log.info("warm start from %s (networks %s%s)", self.init_model.file, self.init_model.digest[:12],
+                     f", temperature {cfg.warm_temperature:g}" if cfg.warm_temperature != 1.0 else "")
         self.measured = bool(getattr(env, "measured", False))
         algo = Algorithm2(cfg.worker_id, env, learner, start.tc, seed, first_episode=start.first_episode,
                           shape=start.shape, max_staleness=start.max_staleness,

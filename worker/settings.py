@@ -26,8 +26,9 @@ from runtime.settings import (
     TaskName,
     qube_actions_setting,
     setting,
-    warm_lr_problem,
     warm_lr_setting,
+    warm_start_problem,
+    warm_temperature_setting,
 )
 
 
@@ -85,6 +86,7 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
         None, "warm start: begin from this model (a models/<id>.pt, or a run folder: its first worker to solve); "
         "unset: from scratch", metavar="PATH")
     warm_lr: float = warm_lr_setting()
+    warm_temperature: float = warm_temperature_setting()
     worker_key: CliSuppress[str | None] = setting(None, "this worker's own key (a variable only; give "
                                                   "FEDRL_CHIEF_KEY with it): it tags everything the worker sends, "
                                                   "and no other worker holds it. The launcher derives it from the run "
@@ -112,7 +114,7 @@ class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, Learn
 
     @model_validator(mode="after")
     def _warm(self) -> WorkerSettings:
-        problem = warm_lr_problem(self.warm_lr, self.init_model)
+        problem = warm_start_problem(self.init_model, self.warm_lr, self.warm_temperature, self.algo)
         if problem is not None:
             raise ValueError(problem)
         return self

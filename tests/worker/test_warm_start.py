@@ -201,3 +201,69 @@ def test_warm_rates_are_a_setting_of_a_warm_start(pretrained: Path, tmp_path: Pa
             InprocessSettings.given(**given, init_model=pretrained, warm_lr=bad)
     worker = InprocessSettings.given(**given, init_model=pretrained, warm_lr=0.1).child(WorkerSettings)
     assert worker.warm_lr == 0.1  # what a launcher's workers are given
+
+
+def test_a_warm_temperature_sharpens_the_policy_and_keeps_its_greedy_action(pretrained: Path) -> None:
+    """``--warm-temperature T``: the loaded policy's logits divided by T (CartPole, Discrete), the same arg-max; a
+    Gaussian's standard deviation times T (Pendulum, Box); a learner without a policy temperature refuses it."""
+    from worker import model
+    from worker.episode import build_learner_and_env
+
+    state = model.load_state(pretrained / "models" / "w0.pt")
+    obs = torch.randn(64, 4)
+    logits = {}
+    for temperature in (1.0, 0.25):
+        env, learner = build_learner_and_env("CartPole-v0", seed=3, device_noise=0.0)
+        model.warm_start(learner, state, "CartPole-v0", pretrained, temperature=temperature)
+        logits[temperature] = learner.actor(learner._normalized(obs))
+        env.close()
+    assert torch.allclose(logits[0.25], logits[1.0] / 0.25, atol=1e-5)
+    assert torch.equal(logits[0.25].argmax(-1), logits[1.0].argmax(-1))
+
+    env, gaussian = build_learner_and_env("Pendulum-v1", seed=3, device_noise=0.0)
+    before = gaussian.actor.log_std.detach().clone()
+    gaussian.temper(0.5)
+    assert torch.allclose(gaussian.actor.log_std.exp(), before.exp() * 0.5)
+    with pytest.raises(ValueError, match="temperature must be in"):
+        gaussian.temper(1.5)
+    env.close()
+    env, sac = build_learner_and_env("Pendulum-v1", seed=3, device_noise=0.0, algo="sac")
+    with pytest.raises(ValueError, match="sac has no policy temperature"):
+        sac.temper(0.5)
+    env.close()
+
+
+def test_a_warm_temperature_is_a_setting_of_a_ppo_warm_start(pretrained: Path, tmp_path: Path) -> None:
+    from deploy.lab import LabSettings, finetune_command
+    from worker.settings import WorkerSettings
+
+    given = {"env": "CartPole-v0", "run_dir": tmp_path}
+    with pytest.raises(ValueError, match=r"--warm-temperature .* is a setting of a warm start"):
+        InprocessSettings.given(**given, warm_temperature=0.5)
+    with pytest.raises(ValueError, match=r"--warm-temperature .* needs a learner with a policy temperature"):
+        InprocessSettings.given(**given, init_model=pretrained, warm_temperature=0.5, algo="dqn")
+    with pytest.raises(ValueError, match=r"needs a learner with a policy temperature \(ppo\), not sac"):
+        LabSettings.given(algo="sac", warm_temperature=0.5)
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError):
+            WorkerSettings.given(env="CartPole-v0", init_model=pretrained, warm_temperature=bad)
+    worker = InprocessSettings.given(**given, init_model=pretrained, warm_temperature=0.5).child(WorkerSettings)
+    assert worker.warm_temperature == 0.5  # what a launcher's workers are given
+    lab = LabSettings.given(warm_temperature=0.5, init_model=pretrained, run_dir=tmp_path / "lab")
+    command = finetune_command(lab, tmp_path / "lab")
+    assert command[command.index("--warm-temperature") + 1] == "0.5"
+
+
+def test_a_launchers_warm_temperature_reaches_its_workers(pretrained: Path, tmp_path: Path) -> None:
+    """The same warm-started run at T = 1 and T = 0.25: each worker's first update reports a policy entropy, lower
+    at 0.25 (the launcher's setting reached every worker's learner)."""
+    entropy = {}
+    for temperature in (1.0, 0.25):
+        run_dir = tmp_path / f"t{temperature}"
+        run_federation(InprocessSettings.given(env="CartPole-v0", policy="weighted", seed=7, workers=2,
+                                               max_episodes=2, run_dir=run_dir, init_model=pretrained,
+                                               warm_temperature=temperature), plot=False, tensorboard_files=False)
+        entropy[temperature] = {r["worker"]: r["stats"]["entropy"] for r in map(json.loads, (run_dir / "metrics.jsonl")
+                                .open()) if r["type"] == "episode" and r["episode"] == 1 and r.get("stats")}
+    assert set(entropy[1.0]) == set(entropy[0.25]) == {"w0", "w1"}, entropy
+    assert all(entropy[0.25][w] < entropy[1.0][w] for w in ("w0", "w1")), entropy

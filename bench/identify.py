@@ -36,7 +36,7 @@ RESULTS = Path("bench/results")
 CONTROL = ControlConfig(self_test=SelfTestConfig(pulse_ticks=8))
 #: Fitted name -> the QubeParams field of the truth it is compared with.
 TRUTH = {"Dr": "Dr", "Dp": "Dp", "coulomb_arm": "Cr", "static_arm": "Sr", "coulomb_pendulum": "Cp", "motor": "km",
-         "deadzone_v": "deadzone", "mr": "mr", "Lr": "Lr", "Lp": "Lp"}
+         "deadzone_v": "deadzone", "mr": "mr", "Lr": "Lr", "Lp": "Lp", "cable_stiffness": "cable_stiffness"}
 
 
 def true_value(name: str, truth: QubeParams) -> float:
@@ -144,12 +144,12 @@ def medians(rows: list[dict[str, Any]]) -> dict[str, Any]:
         summary: dict[str, Any] = {"rigs": len([r for r in rows if r["family"] == family]),
                                    "trusted": sum(r["outcome"] == "trusted" for r in fitted)}
         for name in TRUTH:
-            errors = [abs(r["parameters"][name]["error"]) for r in fitted if r["parameters"][name]["error"] is not None]
+            errors = [abs(e) for r in fitted if (e := r["parameters"].get(name, {}).get("error")) is not None]
             if errors:
                 summary[name] = {"median_abs_error": round(statistics.median(errors), 4),
                                  "max_abs_error": round(max(errors), 4),
-                                 "median_sigma": round(statistics.median(r["parameters"][name]["sigma"]
-                                                                         for r in fitted), 4)}
+                                 "median_sigma": round(statistics.median(
+                                     r["parameters"][name]["sigma"] for r in fitted if name in r["parameters"]), 4)}
         for key in ("heldout_rms_deg", "train_rms_deg", "rig_seconds", "fit_wall_s", "record_wall_s"):
             summary[f"median_{key}"] = round(statistics.median(r[key] for r in fitted), 3)
         out[family] = summary
@@ -181,7 +181,7 @@ def markdown(data: dict[str, Any]) -> str:
     value (the median stated 1-sigma in brackets), the median held-out error, rig and fit seconds; then how many rigs
     had each of the target's values within 20 %."""
     head = f"Generated from `{RESULTS / 'identify.json'}`, made by `{data['command']}` ({data['wall_s']:.0f} s).\n\n"
-    names = list(TRUTH)
+    names = [n for n in TRUTH if any(n in m for m in data["medians"].values())]  # a file from before a value was fitted
     rows = ["| family | rigs | trusted | " + " | ".join(f"`{n}`" for n in names) + " | held-out RMS | rig s | fit s |",
             "| --- " * (len(names) + 6) + "|"]
     for family, m in data["medians"].items():

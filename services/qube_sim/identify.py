@@ -44,7 +44,7 @@ from rpi_bridge.frame import VOLTS_PER_COUNT
 from rpi_bridge.identify import IDENTIFY_ATTEMPTS, IdentifyConfig, IdentifyFailed, Recording, RecordingError, drive
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.dynamics import QubeParams, derivatives_array, motor_torque_array
-from services.qube_sim.profile import Identified, ProfileError, RigProfile, load_profile
+from services.qube_sim.profile import LAB, Identified, ProfileError, RigProfile, load_profile
 from services.qube_sim.spi_peer import SimulatedQube
 
 #: Fitted quantities: name -> the range of values a fit may return (the profile's own limits, or physically
@@ -53,12 +53,12 @@ from services.qube_sim.spi_peer import SimulatedQube
 FITTED: dict[str, tuple[float, float]] = {
     "Dr": (1e-7, 0.05), "Dp": (1e-8, 0.01), "coulomb_arm": (0.0, 0.05), "static_ratio": (1.0, 5.0),
     "coulomb_pendulum": (0.0, 0.01), "motor": (0.005, 0.5), "deadzone_v": (0.0, 3.0), "mr": (0.01, 1.0),
-    "Lr": (0.01, 0.5), "Lp": (0.01, 0.5), "delay_ms": (0.0, 7.0),
+    "Lr": (0.01, 0.5), "Lp": (0.01, 0.5), "delay_ms": (0.0, 7.0), "cable_stiffness": (0.0, 0.01),
 }
 #: Fitted first, the others held at the base's values (see :func:`fit`).
 FIRST_STAGE = ("Dr", "Dp", "coulomb_arm", "coulomb_pendulum", "motor", "mr")
 #: The QubeParams fields that the fitted values set (see :func:`_params`).
-_VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr", "Lp")
+_VARIED = ("Dr", "Dp", "Cr", "Sr", "Cp", "Sp", "km", "kt", "deadzone", "mr", "Lr", "Lp", "cable_stiffness")
 #: Parameters whose uncertainty decides whether the fit is trusted (the ones that decide control).
 GATED = ("Dr", "Dp", "coulomb_arm", "motor", "mr")
 #: Viscous damping this small is negligible for the swing-up and the hold: a damping's 1-sigma is gated relative to
@@ -246,14 +246,15 @@ def _params(base: QubeParams, values: dict[str, float], static_pendulum_ratio: f
     cp = values["coulomb_pendulum"]
     return replace(base, Dr=values["Dr"], Dp=values["Dp"], Cr=cr, Sr=cr * values["static_ratio"], Cp=cp,
                    Sp=cp * static_pendulum_ratio, km=values["motor"], kt=values["motor"], deadzone=values["deadzone_v"],
-                   mr=values["mr"], Lr=values["Lr"], Lp=values["Lp"])
+                   mr=values["mr"], Lr=values["Lr"], Lp=values["Lp"], cable_stiffness=values["cable_stiffness"])
 
 
 def _initial(base: RigProfile) -> dict[str, float]:
     guess = {"Dr": base.Dr or 2.7e-4, "Dp": base.Dp or 5e-5, "coulomb_arm": base.coulomb_arm or 1e-3,
              "static_ratio": base.static_arm / base.coulomb_arm if base.coulomb_arm and base.static_arm else 1.3,
              "coulomb_pendulum": base.coulomb_pendulum or 1e-4, "motor": base.km, "deadzone_v": base.deadzone_v or 0.05,
-             "mr": base.mr, "Lr": base.Lr, "Lp": base.Lp, "delay_ms": 1.0}
+             "mr": base.mr, "Lr": base.Lr, "Lp": base.Lp, "delay_ms": 1.0,
+             "cable_stiffness": base.cable_stiffness or LAB.cable_stiffness}
     return {k: min(FITTED[k][1], max(FITTED[k][0], v)) for k, v in guess.items()}  # every log value > 0 already
 
 
@@ -488,7 +489,8 @@ def to_profile(result: Fit, base: RigProfile, rec: Recording, source: str, name:
             "Dr": v["Dr"], "Dp": v["Dp"], "coulomb_arm": v["coulomb_arm"], "static_arm": v["static_arm"],
             "coulomb_pendulum": v["coulomb_pendulum"], "static_pendulum": result.params.Sp,
             "km": v["motor"], "kt": v["motor"], "deadzone_v": v["deadzone_v"],
-            "mr": v["mr"], "Lr": v["Lr"], "Lp": v["Lp"], "action_delay_ms": delay, "spread": 0.0,
+            "mr": v["mr"], "Lr": v["Lr"], "Lp": v["Lp"], "cable_stiffness": v["cable_stiffness"],
+            "action_delay_ms": delay, "spread": 0.0,
             "spread_nonideal": 0.0, "randomize": 0.0, "ranges": {}, "identified": identified.model_dump()}
     return RigProfile.model_validate(data)
 

@@ -24,7 +24,7 @@ RANDOMISED: dict[str, tuple[str, str]] = {
     "Dr": ("Dr", "Dr"), "Dp": ("Dp", "Dp"), "mr": ("mr", "mr"), "Lr": ("Lr", "Lr"), "Lp": ("Lp", "Lp"),
     "coulomb_arm": ("coulomb_arm", "coulomb_arm"), "static_arm": ("static_arm", "static_arm"),
     "coulomb_pendulum": ("coulomb_pendulum", "coulomb_pendulum"), "deadzone_v": ("deadzone_v", "deadzone_v"),
-    "motor": ("km", "motor"),
+    "motor": ("km", "motor"), "cable_stiffness": ("cable_stiffness", "cable_stiffness"),
 }
 #: The least half-width of a range, relative to the value (a fit that claims more precision is not believed): wide for
 #: what dissipates energy (damping, dry friction, deadzone), which a few minutes of one rig pin down least and which
@@ -33,6 +33,10 @@ RANDOMISED: dict[str, tuple[str, str]] = {
 FLOOR = 0.3
 FLOOR_INERTIAL = 0.1
 INERTIAL = frozenset({"mr", "Lr", "Lp", "motor"})
+#: ... and for the encoder cable's stiffness, whose pull on the arm (a few tenths of a mN m over the arm's travel) a
+#: recording pins down least: 0.73-1.08x the truth's on six recordings of one combined rig, 0.87-1.13x on eleven tuning
+#: rigs (seeds 527000-532002), each claiming a 1-sigma of about 1 % (docs/how-to/identify.md).
+FLOOR_CABLE = 0.5
 #: A range reaches this many of the fit's standard deviations beyond the rigs' values.
 SIGMAS = 3.0
 #: Every randomisable parameter not identified is drawn from ± this fraction of the nominal value.
@@ -68,7 +72,8 @@ def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIG
         for rig in rigs:
             assert rig.identified is not None
             value = getattr(rig, field)
-            least = min(floor, FLOOR_INERTIAL) if fitted in INERTIAL else floor
+            least = min(floor, FLOOR_INERTIAL) if fitted in INERTIAL else max(floor, FLOOR_CABLE) \
+                if fitted == "cable_stiffness" else floor
             width = max(least, sigmas * rig.identified.sigma.get(fitted, 0.0))
             lo.append(max(0.0, value * (1 - width)))
             hi.append(value * (1 + width))

@@ -34,8 +34,8 @@ FLOOR = 0.3
 FLOOR_INERTIAL = 0.1
 INERTIAL = frozenset({"mr", "Lr", "Lp", "motor"})
 #: ... and for the encoder cable's stiffness, whose pull on the arm (a few tenths of a mN m over the arm's travel) a
-#: recording pins down least: 0.73-1.08x the truth's on six recordings of one combined rig, 0.87-1.13x on eleven tuning
-#: rigs (seeds 527000-532002), each claiming a 1-sigma of about 1 % (docs/how-to/identify.md).
+#: recording pins down least: 0.87-1.13x the truth's on eleven tuning rigs (bench/results/identify-cable-tune.json),
+#: 0.73x on the combined rig of tests/services/test_identify.py, each fit claiming a 1-sigma of 0.4-10 %.
 FLOOR_CABLE = 0.5
 #: A range reaches this many of the fit's standard deviations beyond the rigs' values.
 SIGMAS = 3.0

@@ -37,10 +37,6 @@ GROUPS: dict[str, tuple[str, ...]] = {
     "voltage offset": ("voltage_offset_v",),
     "delays": ("sensing_latency_ms", "action_delay_ms", "action_jitter_ms"),
 }
-#: Rig i's episode e resets with seed ``worker_seed(seed, i) + EPISODE_SEED + e``: none of a lab's rigs' seeds, nor its
-#: validation's (deploy/lab.py VALIDATION_SEED, 500).
-EPISODE_SEED = 700
-
 
 def variant(identified: dict[str, Any], truth: QubeParams, truth_profile: RigProfile,
             fields: tuple[str, ...]) -> dict[str, Any]:
@@ -58,23 +54,18 @@ def variant(identified: dict[str, Any], truth: QubeParams, truth_profile: RigPro
 
 
 def returns_on(model: Path, profile: dict[str, Any], rig_model: Path, rig_seed: int, episodes: int) -> list[float]:
-    """``model``'s greedy returns on the rig ``profile`` describes (its resets from ``rig_model``, as in the lab)."""
+    """``model``'s greedy returns on the rig ``profile`` describes (its resets from ``rig_model``, as in the lab):
+    worker.evaluate's episodes, the rig simulated with the rig's own seed."""
     import torch
 
-    from worker.envs import make_env
-    from worker.evaluate import actions_of_model, load_learner, play
+    from worker.evaluate import evaluate
 
     torch.set_num_threads(1)
     with tempfile.TemporaryDirectory() as folder:
         path = Path(folder) / "rig.json"
         path.write_text(json.dumps(profile))
-        env = make_env("qube-local", rig_seed, None, rig_profile=str(path), rig_model=str(rig_model),
-                       **actions_of_model(model))
-        try:
-            learner = load_learner(model, "qube-local", env.observation_space, env.action_space)
-            return [play(env, learner, rig_seed + EPISODE_SEED + e)[0] for e in range(episodes)]
-        finally:
-            env.close()
+        return evaluate(model, "qube-local", episodes=episodes, seed=rig_seed, rig_profile=str(path),
+                        rig_model=str(rig_model)).returns
 
 
 def start_model(folder: Path) -> Path:

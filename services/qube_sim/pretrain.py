@@ -72,8 +72,9 @@ def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIG
         for rig in rigs:
             assert rig.identified is not None
             value = getattr(rig, field)
-            least = min(floor, FLOOR_INERTIAL) if fitted in INERTIAL else max(floor, FLOOR_CABLE) \
-                if fitted == "cable_stiffness" else floor
+            least = min(floor, FLOOR_INERTIAL) if fitted in INERTIAL else floor
+            if fitted == "cable_stiffness":
+                least = max(least, FLOOR_CABLE)
             width = max(least, sigmas * rig.identified.sigma.get(fitted, 0.0))
             lo.append(max(0.0, value * (1 - width)))
             hi.append(value * (1 + width))

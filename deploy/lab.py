@@ -55,8 +55,8 @@ from runtime.settings import (
     qube_actions_setting,
     returns_code,
     setting,
+    temperature_problem,
     warm_lr_setting,
-    warm_start_problem,
     warm_temperature_setting,
 )
 from services.qube_sim.pretrain import AUTHORITY
@@ -123,7 +123,7 @@ class LabSettings(LearnerTaskSettings):
             raise ValueError("--env qube-local runs on a simulated clock: --qube-clock lockstep or delayed")
         if self.env == "qube-local" and self.broker is not None:
             raise ValueError("--broker is for --env qube (rigs over MQTT)")
-        if (problem := warm_start_problem("pretrained", warm_temperature=self.warm_temperature, algo=self.algo)):
+        if (problem := temperature_problem(self.warm_temperature, self.algo)):  # it always warm-starts
             raise ValueError(problem)
         return self
 

@@ -153,6 +153,11 @@ def warm_start_problem(init_model: object, warm_lr: float = 1.0, warm_temperatur
         if value != 1.0 and init_model is None:
             flag, var = "--" + name.replace("_", "-"), "FEDRL_" + name.upper()
             return f"{flag} ({var}) is a setting of a warm start: give --init-model too"
+    return temperature_problem(warm_temperature, algo)
+
+
+def temperature_problem(warm_temperature: float, algo: str = learners.DEFAULT) -> str | None:
+    """Why a warm start's policy temperature cannot be given to learner ``algo`` (None: it can)."""
     if warm_temperature != 1.0 and algo not in learners.TEMPERED:
         return (f"--warm-temperature (FEDRL_WARM_TEMPERATURE) needs a learner with a policy temperature "
                 f"({', '.join(learners.TEMPERED)}), not {algo}")

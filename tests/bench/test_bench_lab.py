@@ -3,6 +3,8 @@ column, its rigs counted as not balanced zero-shot and its last rig as unfinishe
 
 from __future__ import annotations
 
+import pytest
+
 from bench import lab
 from protocol.qube import MAX_RETURN
 
@@ -34,3 +36,24 @@ def test_the_first_worker_to_meet_tc_is_counted_beside_the_chosen_warm_start() -
                        "command": "python -m bench.lab"}, "lab.json")
     assert "| 6 of 6 rigs |" in text and "first worker to meet TC" in text and "balanced 4 of 6 rigs zero-shot" in text
     assert "zero_shot_first" not in lab.aggregate([finished([MAX_RETURN] * 3)], workers=3)
+
+
+def test_the_repeated_zero_shot_counts_episodes_and_rigs_that_always_held() -> None:
+    """Beside the target's one episode per rig, the greedy episodes a lab's warm start balanced of those it played
+    and the rigs it held in every one; a lab without a controller has its rigs counted with none balanced."""
+    top = MAX_RETURN
+    results = [{**finished([top] * 3), "zero_shot_repeated_returns": [[top] * 4, [top, 90.0, top, top], [top] * 4]},
+               {"seed": 2, "finished": False, "zero_shot_returns": None, "zero_shot_repeated_returns": None}]
+    z = lab.aggregate(results, workers=3)["zero_shot_repeated"]
+    assert z == {"balanced": 11, "episodes": 24, "per_rig": 4, "rigs": 6, "rigs_always": 2}
+    text = lab.render({"results": results, "workers": 3, "env": "qube-local", "family": "combined",
+                       "qube_actions": "paper", "seeds": "501-502", "cpus": 2, "load_at_start": 1.0,
+                       "command": "python -m bench.lab"}, "lab.json")
+    assert "4 greedy episodes on each rig" in text and "11 of 24 balanced" in text and "2 of 6 rigs" in text
+    assert "zero_shot_repeated" not in lab.aggregate([finished([top] * 3)], workers=3)  # a file from before
+
+
+def test_zero_shot_episodes_must_be_positive(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        lab.main(["--zero-shot-episodes", "0", "--report"])
+    assert "--zero-shot-episodes must be at least 1" in capsys.readouterr().err

@@ -59,7 +59,7 @@ from runtime.settings import (
     warm_lr_setting,
     warm_temperature_setting,
 )
-from services.qube_sim.pretrain import AUTHORITY, COULOMB_AUTHORITY
+from services.qube_sim.pretrain import AUTHORITY
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
@@ -92,10 +92,6 @@ class LabSettings(LearnerTaskSettings):
         "pretrain rig's arm breakaway may take: drawn arm friction above it is cut there (a rig whose arm the actions "
         "barely move teaches nothing and keeps the pretrain from meeting TC); 10 leaves the ranges as identified",
         gt=0, le=10)
-    pretrain_coulomb_authority: float = setting(
-        COULOMB_AUTHORITY, "the largest share of that torque that a pretrain rig's moving (Coulomb) arm friction may "
-        "take, never below an identified rig's own: past it the actions barely move the arm; 10 leaves the ranges as "
-        "identified", gt=0, le=10)
     pretrain_attempts: int = setting(PRETRAIN_ATTEMPTS, "pretrains to try until one has a controller that meets "
                                      "TC and balances every identified rig in simulation, each with its own seed (a "
                                      "pretrain costs this host's time, no rig time)",
@@ -270,18 +266,14 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     from services.qube_sim.profile import load_profile
 
     rigs = [load_profile(path) for path in identified_files(s, folder)]
-    profile = for_lab(rigs, s.qube_actions, name=f"around-{len(rigs)}-identified", authority=s.pretrain_authority,
-                      coulomb_authority=s.pretrain_coulomb_authority)
+    profile = for_lab(rigs, s.qube_actions, name=f"around-{len(rigs)}-identified", authority=s.pretrain_authority)
     profile_path = profile_file(folder)
     profile_path.write_text(profile.to_json())
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in profile.ranges.items())
     ceiling, torque = profile.ranges["static_arm"][1], breakaway_share(profile, s.qube_actions)[1]
-    moving = profile.ranges["coulomb_arm"][1]
     say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}; "
         f"arm friction at most {ceiling * 1e3:.2f} mN m ({ceiling / torque:.0%} of what the `{s.qube_actions}` "
-        f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g}), its Coulomb "
-        f"friction at most {moving * 1e3:.2f} mN m ({moving / torque:.0%}; --pretrain-coulomb-authority "
-        f"{s.pretrain_coulomb_authority:g})")
+        f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})")
     env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
     why, met = "", False
     for attempt in range(1, s.pretrain_attempts + 1):

@@ -46,12 +46,6 @@ REST = 0.2
 #: among the others keep the mean of the last 10 returns below TC: the pretrain never meets it. A tail that reaches
 #: past it (a sticky lab rig's 1.3x) is cut there.
 AUTHORITY = 0.9
-#: ... and the largest share of it that the arm's moving (Coulomb) friction may take. A controller of the paper's
-#: actions meets this friction on every move it makes: in tuning lab 527's pretrain (bench.lab, tuning seeds) the one
-#: worker that learned to balance held 58 of its 75 draws whose Coulomb friction took under 48 % of the torque, and 1
-#: of 151 above 60 %, where half of that lab's draws lay (its stickiest rig at 69 %, +-30 % beyond); the pretrain
-#: never met TC. A tail past it is cut there, never below an identified rig's own.
-COULOMB_AUTHORITY = 0.6
 
 
 def around(rigs: Sequence[RigProfile], floor: float = FLOOR, sigmas: float = SIGMAS, rest: float = REST,
@@ -106,31 +100,27 @@ def breakaway_share(profile: RigProfile, actions: str | None) -> tuple[float, fl
 
 
 def for_lab(rigs: Sequence[RigProfile], actions: str | None, name: str = "identified-rigs",
-            authority: float = AUTHORITY, coulomb_authority: float = COULOMB_AUTHORITY) -> RigProfile:
+            authority: float = AUTHORITY) -> RigProfile:
     """The pretrain profile of a lab's identified ``rigs`` under the action set ``actions``: :func:`around` them, its
-    arm friction capped at ``authority`` x the actions' standstill torque on the median rig and its Coulomb friction
-    at ``coulomb_authority`` x that torque (:func:`cap_breakaway`), each never below an identified rig's own: the
-    pretrain keeps every rig the controller must hold."""
+    arm friction capped at ``authority`` x the actions' standstill torque on the median rig (:func:`cap_breakaway`),
+    but never below an identified rig's own: the pretrain keeps every rig the controller must hold."""
     profile = around(rigs, name=name)
-    torque = breakaway_share(profile, actions)[1]
     own = max(max(r.static_arm, r.coulomb_arm) for r in rigs)
-    own_moving = max(r.coulomb_arm for r in rigs)
-    return cap_breakaway(profile, max(authority * torque, own), max(coulomb_authority * torque, own_moving))
+    return cap_breakaway(profile, max(authority * breakaway_share(profile, actions)[1], own))
 
 
-def cap_breakaway(profile: RigProfile, most: float, moving: float | None = None) -> RigProfile:
-    """``profile`` with the arm's dry friction (static and Coulomb) drawn no higher than ``most`` (N m), and its
-    Coulomb friction no higher than ``moving`` (N m; None: ``most``), nor its nominal values: a pretrain rig whose arm
-    the actions cannot break away, or barely move, teaches nothing (no controller balances it) and, drawn at random
-    among the others, keeps the mean of the last 10 returns below TC. A ValueError for a cap that is not positive."""
-    moving = most if moving is None else min(moving, most)
-    if not (most > 0 and moving > 0):
-        raise ValueError(f"the arm's friction caps must be positive, not {most} and {moving}")
+def cap_breakaway(profile: RigProfile, most: float) -> RigProfile:
+    """``profile`` with the arm's dry friction (static and Coulomb) drawn no higher than ``most`` (N m), nor its
+    nominal values: a pretrain rig whose arm the actions cannot break away teaches nothing (no controller balances
+    it) and, drawn at random among the others, keeps the mean of the last 10 returns below TC. A ValueError for a cap
+    that is not positive."""
+    if not most > 0:
+        raise ValueError(f"the arm's breakaway cap must be positive, not {most}")
     ranges = dict(profile.ranges)
-    caps = {"static_arm": most, "coulomb_arm": moving}
-    for key, cap in caps.items():
+    for key in ("static_arm", "coulomb_arm"):
         lo, hi = ranges.get(key, (getattr(profile, key) * (1 - profile.randomize),
                                   getattr(profile, key) * (1 + profile.randomize)))
-        ranges[key] = (min(lo, cap), min(hi, cap))
+        ranges[key] = (min(lo, most), min(hi, most))
     return RigProfile.model_validate({**profile.model_dump(), "ranges": ranges,
-                                      **{key: min(getattr(profile, key), cap) for key, cap in caps.items()}})
+                                      "static_arm": min(profile.static_arm, most),
+                                      "coulomb_arm": min(profile.coulomb_arm, most)})

@@ -109,8 +109,7 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
     rig = load_profile(folder / "identified" / "rig0.json")
     expected = for_lab([rig], "paper", name="around-1-identified")
     assert "arm friction at most" in proc.stdout
-    assert "actions give the median rig at standstill; --pretrain-authority 0.9), its Coulomb friction" in proc.stdout
-    assert "--pretrain-coulomb-authority 0.6)" in proc.stdout
+    assert "actions give the median rig at standstill; --pretrain-authority 0.9)" in proc.stdout
     assert load_profile(folder / "pretrain-profile.json") == expected
     for run_dir, seed in (("pretrain", 8), ("pretrain-2", 10008)):
         summary = json.loads((folder / run_dir / "summary.json").read_text())

@@ -8,7 +8,6 @@ import pytest
 from services.qube_sim import families
 from services.qube_sim.pretrain import (
     AUTHORITY,
-    COULOMB_AUTHORITY,
     FLOOR,
     FLOOR_CABLE,
     FLOOR_INERTIAL,
@@ -65,7 +64,7 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
     torque = breakaway_share(plain, "paper")[1]
     assert plain.ranges["static_arm"][1] == pytest.approx(5.5e-3 * (1 + FLOOR))  # the tail: above the torque
     assert plain.ranges["static_arm"][1] > torque
-    capped = for_lab(rigs, "paper", coulomb_authority=10)  # the breakaway's ceiling alone
+    capped = for_lab(rigs, "paper")
     most = AUTHORITY * torque
     assert capped.ranges["static_arm"] == (plain.ranges["static_arm"][0], pytest.approx(most))
     assert capped.ranges["coulomb_arm"] == (plain.ranges["coulomb_arm"][0],
@@ -75,32 +74,11 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
         k: v for k, v in plain.ranges.items() if not k.endswith("_arm")}
     drawn = [capped.episode_params(1, episode) for episode in range(200)]
     assert all(d is not None and d.Sr <= most and d.Cr <= most for d in drawn)
-    assert for_lab(rigs, "levels", coulomb_authority=10) == plain  # 150 counts: the same tail is far below the torque
+    assert for_lab(rigs, "levels") == plain  # 150 counts: the same tail is far below the torque
     stickier = identified(LAB, static_arm=6.8e-3, coulomb_arm=4.5e-3)  # itself above 90 % of the median's torque
-    kept = for_lab([identified(LAB), stickier], "paper", coulomb_authority=10)
+    kept = for_lab([identified(LAB), stickier], "paper")
     assert kept.ranges["static_arm"][1] == pytest.approx(6.8e-3)  # cut at the rig, never below it
     assert kept.ranges["static_arm"][1] > AUTHORITY * breakaway_share(kept, "paper")[1]
-
-
-def test_a_lab_pretrain_cuts_the_arms_moving_friction_at_its_own_ceiling() -> None:
-    """Coulomb friction past COULOMB_AUTHORITY of the actions' standstill torque is cut there (static friction keeps
-    the breakaway's ceiling), never below an identified rig's own Coulomb friction; the stronger actions leave it."""
-    moving = identified(LAB, static_arm=4.0e-3, coulomb_arm=3.8e-3)  # its Coulomb friction itself under the ceiling
-    rigs = [identified(LAB), moving]
-    plain = around(rigs)
-    torque = breakaway_share(plain, "paper")[1]
-    ceiling = COULOMB_AUTHORITY * torque
-    assert 3.8e-3 < ceiling < plain.ranges["coulomb_arm"][1]  # the 1.3x tail passes it
-    capped = for_lab(rigs, "paper")
-    assert capped.ranges["coulomb_arm"] == (plain.ranges["coulomb_arm"][0], pytest.approx(ceiling))
-    assert capped.ranges["static_arm"] == plain.ranges["static_arm"]  # 5.2 mN m: under the breakaway's ceiling
-    drawn = [capped.episode_params(2, episode) for episode in range(200)]
-    assert all(d is not None and d.Cr <= ceiling + 1e-12 for d in drawn)
-    assert max(d.Sr for d in drawn if d is not None) > ceiling  # static friction is drawn above it still
-    heavier = identified(LAB, static_arm=4.8e-3, coulomb_arm=4.7e-3)  # its own Coulomb friction above the ceiling
-    kept = for_lab([identified(LAB), heavier], "paper")
-    assert kept.ranges["coulomb_arm"][1] == pytest.approx(4.7e-3)
-    assert for_lab(rigs, "levels") == plain
 
 
 def test_the_cap_holds_nominal_values_too_and_is_positive() -> None:
@@ -109,7 +87,3 @@ def test_the_cap_holds_nominal_values_too_and_is_positive() -> None:
     assert profile.ranges["static_arm"] == (1e-3, 1e-3)
     with pytest.raises(ValueError, match="must be positive"):
         cap_breakaway(LAB, 0.0)
-    with pytest.raises(ValueError, match="must be positive"):
-        cap_breakaway(LAB, 1e-3, moving=0.0)
-    moving = cap_breakaway(LAB, 1.0, moving=1e-3)  # Coulomb friction alone
-    assert (moving.static_arm, moving.coulomb_arm) == (LAB.static_arm, 1e-3)

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import math
 import os
 import subprocess
 import sys
@@ -47,7 +48,7 @@ from protocol.mqtt import BrokerAddress
 from protocol.qube import ACTION_SETS, MAX_RETURN, action_set
 from protocol.tasks import worker_seed
 from rpi_bridge.identify import IDENTIFY_ATTEMPTS
-from runtime.records import SUMMARY, RunSummary
+from runtime.records import SUMMARY, AnyRecord, EpisodeRecord, RunSummary, read_metrics
 from runtime.settings import (
     LearnerName,
     LearnerTaskSettings,
@@ -297,7 +298,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
                 + (f"; attempt {attempt + 1} adds its own to the choice" if attempt < s.pretrain_attempts else ""))
             continue
         why = f"attempt {attempt}: {summary.end_reason if summary is not None else f'exit code {code}'}"
-        say("pretrain", f"no controller met TC ({why})")
+        say("pretrain", f"no controller met TC ({why}){how_far(read_metrics(run_dir))}")
     if met:  # the fine-tune starts from the best controller of the attempts that met TC
         return
     last = [c for attempt in range(1, s.pretrain_attempts + 1) for c in validated(s, folder, attempt)]
@@ -310,6 +311,34 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     raise StageFailed(f"no pretrain ended with a controller that meets TC ({s.pretrain_attempts} attempts, last "
                       f"{why}), and no worker's last controller balanced an identified rig; try more "
                       "--pretrain-episodes or --pretrain-attempts, or another --seed" + authority_hint(s, folder))
+
+
+#: A policy entropy (nats) below which a pretrain worker's policy has stopped exploring: pretrains that met TC kept
+#: 0.17-0.82 at their 80th episode, and those that never took off fell to 0.00-0.09 (docs/how-to/lab.md).
+COLLAPSED = 0.1
+
+
+def how_far(records: Sequence[AnyRecord]) -> str:
+    """What a pretrain that met no TC got to, for its failure line: each worker's best PI and its policy's entropy at
+    its last update, naming the workers whose policy collapsed (below COLLAPSED); '' without episodes."""
+    best: dict[str, float] = {}
+    entropy: dict[str, float] = {}
+    for r in records:
+        if isinstance(r, EpisodeRecord):
+            best[r.worker] = max(best.get(r.worker, -math.inf), r.pi)
+            value = (r.stats or {}).get("entropy")
+            if value is not None and math.isfinite(value):
+                entropy[r.worker] = value
+    if not best:
+        return ""
+    text = "; best PI " + ", ".join(f"{w} {pi:.0f}" for w, pi in best.items())
+    if entropy:
+        text += "; policy entropy at the end " + ", ".join(f"{w} {h:.2f}" for w, h in entropy.items()) + " nats"
+        collapsed = [w for w, h in entropy.items() if h < COLLAPSED]
+        if collapsed:
+            text += (f" ({', '.join(collapsed)} below {COLLAPSED:g}: a policy that no longer explores, see "
+                     "docs/how-to/lab.md, 'When a pretrain misses TC')")
+    return text
 
 
 def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:

@@ -15,7 +15,8 @@ import pytest
 
 from bench.lab import measure
 from chief.audit import audit
-from deploy.lab import LabSettings
+from deploy.lab import COLLAPSED, LabSettings, how_far
+from runtime.records import EpisodeRecord, RoundRecord
 from services.qube_sim import families
 from services.qube_sim.pretrain import for_lab
 from services.qube_sim.profile import load_profile
@@ -110,6 +111,7 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
     expected = for_lab([rig], "paper", name="around-1-identified")
     assert "arm friction at most" in proc.stdout
     assert "actions give the median rig at standstill; --pretrain-authority 0.9)" in proc.stdout
+    assert "no controller met TC (attempt 1: " in proc.stdout and "; best PI w0 " in proc.stdout  # how far it got
     assert load_profile(folder / "pretrain-profile.json") == expected
     for run_dir, seed in (("pretrain", 8), ("pretrain-2", 10008)):
         summary = json.loads((folder / run_dir / "summary.json").read_text())
@@ -391,3 +393,21 @@ def test_a_failed_pretrain_names_the_rig_with_the_least_authority_left(tmp_path:
     hint = authority_hint(s, tmp_path)
     assert hint.startswith("; rig1's arm breakaway takes 7") and "`--qube-actions levels`: 3" in hint, hint
     assert authority_hint(LabSettings.given(workers=2, qube_actions="levels"), tmp_path) == ""
+
+
+def test_a_pretrain_that_met_no_tc_says_how_far_each_worker_got_and_whose_policy_collapsed() -> None:
+    """The failure line of a pretrain attempt: each worker's best PI and its policy's last entropy, naming a worker
+    whose entropy fell below COLLAPSED (a deterministic policy that no longer explores, as lab 532's w0)."""
+    def episode(worker: str, n: int, pi: float, entropy: float | None) -> EpisodeRecord:
+        stats = None if entropy is None else {"entropy": entropy}
+        return EpisodeRecord(worker=worker, round=n, episode=n, return_=pi, pi=pi, steps=20, kind="update",
+                             stats=stats)
+
+    records = [episode("w0", 1, 20.0, 1.09), episode("w1", 1, 30.0, 1.05), episode("w0", 2, 245.3, 0.0),
+               episode("w1", 2, 120.0, 0.27), episode("w1", 3, 90.0, None),
+               RoundRecord(round=1, episode=1, kind="aggregate", strategy="plain", contributors=["w0", "w1"])]
+    text = how_far(records)
+    assert text.startswith("; best PI w0 245, w1 120; policy entropy at the end w0 0.00, w1 0.27 nats")
+    assert f"(w0 below {COLLAPSED:g}: a policy that no longer explores" in text
+    assert "collapsed" not in how_far(records[:2]) and "below" not in how_far(records[:2])
+    assert how_far([]) == ""

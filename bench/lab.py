@@ -128,7 +128,7 @@ def run_seed(seed: int, family: str, args: argparse.Namespace, runs: Path) -> di
     truth, first = truth_file(family, runs), first_model(folder)
     start = chosen(folder) or first  # a lab from before the choice started from its first worker to meet TC
     repeated = zero_shot(start, folder, truth, seed, args.workers, args.zero_shot_episodes)
-    shots = None if repeated is None else [returns[0] for returns in repeated]
+    shots = first_episodes(repeated)
     return {"seed": seed, "exit_code": code, "wall_s": None if args.collect else round(wall, 1), **measure(folder),
             "zero_shot_returns": shots, "zero_shot_repeated_returns": repeated,
             "zero_shot_first_returns": shots if first == start else first_episodes(

@@ -334,8 +334,9 @@ def how_far(records: Sequence[AnyRecord]) -> str:
         return ""
     text = "; best PI " + ", ".join(f"{w} {pi:.0f}" for w, pi in sorted(best.items()))
     if entropy:
-        text += "; policy entropy at the end " + ", ".join(f"{w} {h:.2f}" for w, h in sorted(entropy.items())) + " nats"
-        collapsed = [w for w, h in sorted(entropy.items()) if h < COLLAPSED]
+        last = sorted(entropy.items())
+        text += "; policy entropy at the end " + ", ".join(f"{w} {h:.2f}" for w, h in last) + " nats"
+        collapsed = [w for w, h in last if h < COLLAPSED]
         if collapsed:
             text += (f" ({', '.join(collapsed)} below {COLLAPSED:g}: a policy that no longer explores, see "
                      "docs/how-to/lab.md, 'When a pretrain misses TC')")

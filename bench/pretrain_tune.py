@@ -79,7 +79,7 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
     from deploy.inprocess import run_federation
     from deploy.settings import InprocessSettings
     from services.qube_sim.pretrain import for_lab
-    from services.qube_sim.profile import load_profile
+    from services.qube_sim.profile import DRAWN_MODEL, load_profile
 
     folder = identified(seed, runs)
     profile = folder.parent / "pretrain-profile.json"
@@ -89,7 +89,7 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
     tuned("qube-local", "ppo", overrides)
     run_federation(InprocessSettings.given(env="qube-local", policy="plain", seed=seed, workers=RIGS,
                                            max_episodes=max_episodes, run_dir=run_dir, rig_profile=str(profile),
-                                           rig_model=str(profile), qube_actions=actions),
+                                           rig_model=DRAWN_MODEL, qube_actions=actions),
                    plot=False, tensorboard_files=False, models=False, tolerate_failures=True)
     return run_dir
 

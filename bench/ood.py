@@ -301,15 +301,13 @@ def pretrain(actions: str, run_dir: str, max_episodes: int, algo: str, seed: int
     again with its next seed (up to ``attempts``, into ``<run_dir>-<k>``) while no worker met TC, and its controller
     chosen among the workers of that attempt as deploy.lab chooses (:func:`warm_start`; deploy.lab's further attempt
     when no controller holds every identified rig is not made here)."""
-    from deploy.lab import PRETRAIN_SEED_STEP
+    from deploy.lab import attempt_seed
 
     t0 = time.process_time()
     for attempt in range(1, attempts + 1):
         folder = Path(run_dir if attempt == 1 else f"{run_dir}-{attempt}")
-        attempt_seed = seed + PRETRAIN_SEED_STEP * (attempt - 1)
-
-        def run(into: Path, attempt_seed: int = attempt_seed) -> RunSummary:
-            return _pretrain(into, attempt_seed, actions, max_episodes, algo, identified)
+        def run(into: Path, its_seed: int = attempt_seed(seed, attempt)) -> RunSummary:
+            return _pretrain(into, its_seed, actions, max_episodes, algo, identified)
 
         summary = reused(folder, run)
         solved = any(w.solved for w in summary.workers)

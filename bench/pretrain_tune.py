@@ -1,11 +1,13 @@
-"""``python -m bench.pretrain_tune SEED --qube-actions levels --set KEY=VALUE ...``: one tuning run of ``deploy.lab``'s
+"""``python -m bench.pretrain_tune SEED --attempt N --set KEY=VALUE ...``: one tuning run of ``deploy.lab``'s
 pretrain (stage 2) on a lab of tuning seed SEED, and its learning curve.
 
 The lab's three rigs are of the combined family (services/qube_sim/families.py), identified as ``deploy.lab``'s
 stage 1 does (``python -m services.qube_sim --identify``, kept in ``--runs-dir``/s<SEED>/identified); the pretrain is
 the in-process federation of stage 2 (3 workers, ``plain``, randomised around the identified rigs), its PPO preset
-replaced in this process by itself with the ``--set`` overrides (as ``python -m bench.tune``). Only the tuning seeds
-701-709 are allowed: bench.lab's report seeds (501-510) and bench.ood's (601-606) stay unseen.
+replaced in this process by itself with the ``--set`` overrides (as ``python -m bench.tune``); ``--attempt N`` runs
+the pretrain of the lab's attempt N (its seed as ``deploy.lab`` gives it). Only tuning seeds are allowed: this tool's
+701-709 and the labs bench.lab was tuned on (521-540); bench.lab's report seeds (501-510) and bench.ood's (601-610) stay
+unseen.
 
 Each run appends one line to ``--out``: the seed, action set, overrides, every worker's episodes and whether it met TC,
 and its learning curve (PI, the first episode of a full return, and the policy's entropy at fixed episodes), which
@@ -25,12 +27,12 @@ from pathlib import Path
 from typing import Any
 
 from bench import output
-from protocol.qube import MAX_RETURN
+from protocol.qube import DEFAULT_ACTIONS, MAX_RETURN
 from protocol.tasks import worker_seed
 from runtime.records import METRICS, SUMMARY, RunSummary
 
-#: The seeds this tool may tune on (never a report seed).
-TUNING_SEEDS = tuple(range(701, 710))
+#: The seeds this tool may tune on (never a report seed): its own, and bench.lab's tuning labs.
+TUNING_SEEDS = (*range(701, 710), *range(521, 541))
 #: Episodes at which the learning curve is read.
 CHECKPOINTS = (25, 50, 100, 150, 200, 300, 400, 500, 600)
 OUT = Path("bench/results/pretrain-tuning.jsonl")
@@ -73,10 +75,12 @@ def curve(run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, runs: Path) -> Path:
-    """The pretrain of ``deploy.lab`` on the lab of ``seed``, with the PPO preset's ``overrides``; its run folder."""
+def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, runs: Path, attempt: int = 1) -> Path:
+    """The pretrain (attempt ``attempt``) of ``deploy.lab`` on the lab of ``seed``, with the PPO preset's
+    ``overrides``; its run folder."""
     from bench.tune import tuned
     from deploy.inprocess import run_federation
+    from deploy.lab import attempt_seed
     from deploy.settings import InprocessSettings
     from services.qube_sim.pretrain import for_lab
     from services.qube_sim.profile import DRAWN_MODEL, load_profile
@@ -85,18 +89,22 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
     profile = folder.parent / "pretrain-profile.json"
     profile.write_text(for_lab([load_profile(folder / f"rig{i}.json") for i in range(RIGS)], actions,
                                name=f"around-{RIGS}-identified").to_json())
-    run_dir = runs / (f"s{seed}-{actions}" + "".join(f"-{k}={v}" for k, v in overrides.items()))
+    run_dir = runs / (f"s{seed}-{actions}" + f"-attempt{attempt}" * (attempt > 1)
+                      + "".join(f"-{k}={v}" for k, v in overrides.items()))
     tuned("qube-local", "ppo", overrides)
-    run_federation(InprocessSettings.given(env="qube-local", policy="plain", seed=seed, workers=RIGS,
-                                           max_episodes=max_episodes, run_dir=run_dir, rig_profile=str(profile),
-                                           rig_model=DRAWN_MODEL, qube_actions=actions),
+    run_federation(InprocessSettings.given(env="qube-local", policy="plain", workers=RIGS,
+                                           seed=attempt_seed(seed, attempt), max_episodes=max_episodes,
+                                           run_dir=run_dir, rig_profile=str(profile), rig_model=DRAWN_MODEL,
+                                           qube_actions=actions),
                    plot=False, tensorboard_files=False, models=False, tolerate_failures=True)
     return run_dir
 
 
-def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], wall_s: float | None) -> dict[str, Any]:
+def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], wall_s: float | None,
+            attempt: int = 1) -> dict[str, Any]:
     summary = RunSummary.read(run_dir) if (run_dir / SUMMARY).exists() else None
-    return {"seed": seed, "qube_actions": actions, "set": overrides, "finished": summary is not None,
+    return {"seed": seed, "attempt": attempt, "qube_actions": actions, "set": overrides,
+            "finished": summary is not None,
             "end_reason": summary.end_reason if summary else "stopped before its end",
             "last_worker_episodes": summary.episodes_to_all_solved if summary else None,
             "solved": [w.id for w in summary.workers if w.solved] if summary else None,
@@ -107,8 +115,9 @@ def main(argv: list[str] | None = None) -> int:
     from worker.settings import parse_override
 
     p = argparse.ArgumentParser(prog="python -m bench.pretrain_tune", description=__doc__.splitlines()[0])
-    p.add_argument("seed", type=int, help=f"a tuning seed, {TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]}")
-    p.add_argument("--qube-actions", default="levels")
+    p.add_argument("seed", type=int, help="a tuning seed: 701-709, or a tuning lab of bench.lab, 521-540")
+    p.add_argument("--attempt", type=int, default=1, help="the lab's pretrain attempt N (deploy.lab's seed of it)")
+    p.add_argument("--qube-actions", default=DEFAULT_ACTIONS)
     p.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="KEY=VALUE")
     p.add_argument("--max-episodes", type=int, default=600)
     p.add_argument("--runs-dir", type=Path, default=Path("runs/pretrain-tune"))
@@ -116,12 +125,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--summarise", type=Path, metavar="RUN_DIR", help="run nothing: the line of this run folder")
     args = p.parse_args(argv)
     if args.seed not in TUNING_SEEDS:
-        p.error(f"{args.seed} is not a tuning seed ({TUNING_SEEDS[0]}-{TUNING_SEEDS[-1]}): report seeds stay unseen")
+        p.error(f"{args.seed} is not a tuning seed (701-709, 521-540): report seeds stay unseen")
+    if args.attempt < 1:
+        p.error("--attempt counts from 1")
     overrides = dict(parse_override(text) for text in args.overrides)
     began = time.monotonic()
-    run_dir = args.summarise or run(args.seed, args.qube_actions, overrides, args.max_episodes, args.runs_dir)
+    run_dir = args.summarise or run(args.seed, args.qube_actions, overrides, args.max_episodes, args.runs_dir,
+                                    args.attempt)
     wall = None if args.summarise else round(time.monotonic() - began, 1)
-    line = line_of(run_dir, args.seed, args.qube_actions, overrides, wall)
+    line = line_of(run_dir, args.seed, args.qube_actions, overrides, wall, args.attempt)
     output.append_line(args.out, line)
     return 0
 

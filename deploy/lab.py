@@ -249,8 +249,9 @@ def attempt_dir(folder: Path, attempt: int) -> Path:
     return folder / ("pretrain" if attempt == 1 else f"pretrain-{attempt}")
 
 
-def attempt_seed(s: LabSettings, attempt: int) -> int:
-    return s.seed + PRETRAIN_SEED_STEP * (attempt - 1)
+def attempt_seed(seed: int, attempt: int) -> int:
+    """The seed of pretrain attempt ``attempt`` of the lab of ``seed``."""
+    return seed + PRETRAIN_SEED_STEP * (attempt - 1)
 
 
 def met_tc(summary: RunSummary | None) -> bool:
@@ -282,7 +283,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
         summary, code = read_summary(run_dir), None
         if summary is None or summary.end_reason == "interrupted":  # not run yet, or to run again
             if attempt > 1:
-                say("pretrain", f"attempt {attempt} of {s.pretrain_attempts}, seed {attempt_seed(s, attempt)}")
+                say("pretrain", f"attempt {attempt} of {s.pretrain_attempts}, seed {attempt_seed(s.seed, attempt)}")
             code = run_child("pretrain", pretrain_command(s, folder, attempt), env)
             summary = read_summary(run_dir)
         if summary is not None and met_tc(summary):
@@ -350,7 +351,7 @@ def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
 
     profile_path = profile_file(folder)
     return [sys.executable, "-m", "deploy.inprocess", "--env", "qube-local", "--workers", str(s.pretrain_workers),
-            "--seed", str(attempt_seed(s, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
+            "--seed", str(attempt_seed(s.seed, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
             str(s.pretrain_episodes), "--run-dir", str(attempt_dir(folder, attempt)),
             "--rig-profile", str(profile_path), "--rig-model", DRAWN_MODEL, "--qube-actions", s.qube_actions]
 

@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 
 from bench import pretrain_tune
+from tests.bench.test_bench_unidentified import identified_rig
 
 
 @pytest.mark.parametrize("seed", [501, 510, 601, 606, 1])
@@ -28,3 +29,22 @@ def test_the_curve_of_a_run_stopped_before_its_end(tmp_path: Path) -> None:
     w0 = line["curve"]["w0"]
     assert w0["episodes"] == 60 and w0["first_full_return"] == 30 and w0["last_pi"] == 60.0
     assert w0["pi"] == {25: 25.0, 50: 50.0} and w0["entropy"] == {25: 0.04, 50: 0.02}
+
+
+@pytest.mark.parametrize("seed", [701, 709, 521, 540])
+def test_the_tuning_seeds_are_this_tools_and_bench_labs_tuning_labs(seed: int) -> None:
+    assert seed in pretrain_tune.TUNING_SEEDS
+
+
+def test_an_attempt_runs_with_the_seed_deploy_lab_gives_it(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from deploy import inprocess
+
+    given: dict[str, object] = {}
+    folder = tmp_path / "s527" / "identified"
+    folder.mkdir(parents=True)
+    for i in range(pretrain_tune.RIGS):
+        (folder / f"rig{i}.json").write_text(identified_rig().to_json())
+    monkeypatch.setattr(pretrain_tune, "identified", lambda seed, runs: folder)
+    monkeypatch.setattr(inprocess, "run_federation", lambda s, **_: given.update(seed=s.seed, run_dir=s.run_dir))
+    run_dir = pretrain_tune.run(527, "paper", {}, 5, tmp_path, attempt=2)
+    assert given == {"seed": 527 + 10_000, "run_dir": run_dir} and run_dir.name == "s527-paper-attempt2"

@@ -33,7 +33,7 @@ from runtime.settings import (
 )
 from services.qube_sim.profile import DRAWN_MODEL, check_model_source, load_profile
 from services.qube_sim.settings import Clock
-from worker.settings import DeviceNoiseSettings
+from worker.settings import DeviceNoiseSettings, LearnerSetSettings
 
 OFF = ("off", "none", "no", "false")
 
@@ -130,7 +130,8 @@ class TieredSettings(FederationSettings):
         return self
 
 
-class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSettings, TieredSettings):
+class LocalRunSettings(DeviceNoiseSettings, LearnerSetSettings, WarmStartSettings, SimulatedRigSettings,
+                       TieredSettings):
     """A federation on this machine: embedded MQTT broker, chief and N workers as separate processes (make run)."""
 
     workers: PositiveInt | None = setting(None, "number of workers (unset: 4, or 3 for qube as in the paper)")
@@ -193,7 +194,8 @@ class LocalRunSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSetti
         return None if value is None else check_id(value, "run id")
 
 
-class InprocessSettings(DeviceNoiseSettings, WarmStartSettings, SimulatedRigSettings, TieredSettings):
+class InprocessSettings(DeviceNoiseSettings, LearnerSetSettings, WarmStartSettings, SimulatedRigSettings,
+                        TieredSettings):
     """A whole federation in one process, for sweeps: make run's chief and worker services on an in-memory hub."""
 
     workers: int = setting(4, "number of workers", ge=1)

@@ -173,6 +173,18 @@ def fits_task(algo: str, env: str, qube_actions: str | None = None) -> None:
 
 #: A list given as ``a,b,c`` (or spaces) in a variable and as separate words on the command line.
 Words = Annotated[list[str], NoDecode, BeforeValidator(_words)]
+
+
+def _assignments(value: Any) -> Any:
+    """``"a=1,b=(2, 3)"`` -> ``["a=1", "b=(2, 3)"]``: a variable's KEY=VALUE items, split at the commas that start
+    another ``KEY=`` (a value may hold commas of its own: a tuple)."""
+    if isinstance(value, str):
+        return [item.strip() for item in re.split(r",\s*(?=[A-Za-z_]\w*=)", value) if item.strip()]
+    return value
+
+
+#: KEY=VALUE items (``--set KEY=VALUE``, repeatable; a variable's are comma-separated: :func:`encode` joins them so).
+Assignments = Annotated[list[str], NoDecode, BeforeValidator(_assignments)]
 Counts = Annotated[list[PositiveInt], NoDecode, BeforeValidator(_words), Field(min_length=1)]
 Port = Annotated[int, Field(ge=0, le=65535)]
 LogLevel = Annotated[str, OneOf(lambda: ["DEBUG", "INFO", "WARNING", "ERROR"]), BeforeValidator(str.upper)]

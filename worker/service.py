@@ -204,7 +204,8 @@ class WorkerService:
         """Say hello until the chief's RunStart names this worker (protocol.routes.hello_wait apart)."""
         cfg = self.cfg
         _, probe = build_learner_and_env(cfg.env, seed=0, device_noise=0.0, rig_id=cfg.rig_id, conn=self.conn,
-                                         spec_only=True, algo=cfg.algo, env_options=cfg.env_options())
+                                         spec_only=True, algo=cfg.algo, env_options=cfg.env_options(),
+                                         overrides=cfg.learner_overrides())
         hello = WorkerHello(worker_id=cfg.worker_id, env_id=cfg.env, actor_spec=probe.actor_spec(),
                             critic_spec=probe.critic_spec(), update_steps=probe.config.update_epochs, algo=cfg.algo,
                             host=socket.gethostname(), pid=os.getpid(),
@@ -242,7 +243,8 @@ class WorkerService:
         seed = worker_seed(start.seed, index)
         env, learner = build_learner_and_env(cfg.env, seed=seed, device_noise=cfg.device_noise,
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
-                                             env_options={**cfg.env_options(), "halt": self._interrupt}, algo=cfg.algo)
+                                             env_options={**cfg.env_options(), "halt": self._interrupt}, algo=cfg.algo,
+                                             overrides=cfg.learner_overrides())
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
             model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo,
                              cfg.qube_actions, cfg.warm_temperature)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import ast
 from pathlib import Path
-from typing import Any
+from typing import Any, Self
 
 from pydantic import ValidationInfo, field_validator, model_validator
 from pydantic_settings import CliPositionalArg, CliSuppress
@@ -15,6 +15,7 @@ from protocol.rigtime import Clock
 from protocol.topics import check_edge, check_id
 from runtime.model_file import ModelPath
 from runtime.settings import (
+    Assignments,
     LearnerName,
     LearnerTaskSettings,
     LogLevel,
@@ -39,7 +40,27 @@ class DeviceNoiseSettings(Settings):
                                   "it off", ge=0, allow_inf_nan=False)
 
 
-class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, LearnerTaskSettings):
+class LearnerSetSettings(Settings):
+    """Fields of the learner's preset replaced for this process (``--set KEY=VALUE``, repeatable): a launcher hands
+    them to its workers as every other setting (``FEDRL_LEARNER_SET``: a JSON list)."""
+
+    learner_set: CliSuppress[Assignments] = setting([], "override a field of the learner's preset for the task "
+                                                  "(PPOConfig, SACConfig, DQNConfig), e.g. entropy_coef=0.03",
+                                                  aliases=["--set"], metavar="KEY=VALUE")
+
+    @model_validator(mode="after")
+    def _learner_set_parses(self) -> Self:
+        self.learner_overrides()
+        return self
+
+    def learner_overrides(self) -> dict[str, Any]:
+        """``learner_set`` as field -> value of the learner's configuration (a ValueError for an unknown field)."""
+        algo = getattr(self, "algo", learners.DEFAULT)
+        return dict(parse_override(text, algo) for text in self.learner_set)
+
+
+class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, LearnerSetSettings,
+                     LearnerTaskSettings):
     """A federated RL worker (paper Algorithm 2)."""
 
     worker_id: str = setting("auto", "worker id, unique in the run ('auto' = hostname plus a random suffix)",
@@ -224,7 +245,7 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
         return self
 
 
-class TrainLocalSettings(DeviceNoiseSettings, LearnerTaskSettings):
+class TrainLocalSettings(DeviceNoiseSettings, LearnerSetSettings, LearnerTaskSettings):
     """One worker, no federation: Algorithm 2 without the chief, for experiments and tuning."""
 
     env: TaskName = setting("CartPole-v0", "task to learn")
@@ -232,19 +253,7 @@ class TrainLocalSettings(DeviceNoiseSettings, LearnerTaskSettings):
     algo: LearnerName = setting(learners.DEFAULT, "learner (python -m worker.learners lists them)")
     seed: int = setting(1, "seed of the networks, the sampling and the env")
     max_episodes: int = setting(2000, "the most episodes (the paper's M)", aliases=["--episodes"], ge=1)
-    overrides: CliSuppress[list[str]] = setting([], "override a field of the learner's preset for the task "
-                                                "(PPOConfig, SACConfig)", aliases=["--set"], env=False,
-                                                metavar="KEY=VALUE")
     print_every: int = setting(10, "print every N episodes", aliases=["--every"], ge=1)
-
-    @model_validator(mode="after")
-    def _overrides_parse(self) -> TrainLocalSettings:
-        for text in self.overrides:
-            parse_override(text, self.algo)
-        return self
-
-    def learner_overrides(self) -> dict[str, Any]:
-        return dict(parse_override(text, self.algo) for text in self.overrides)
 
 
 def parse_override(text: str, algo: str = learners.DEFAULT) -> tuple[str, Any]:

@@ -159,7 +159,8 @@ def test_a_child_process_sees_what_the_launcher_was_given(clean_env: pytest.Monk
     clean_env.setenv("FEDRL_LOG_LEVEL", "DEBUG")  # not a launcher setting: the children read it as before
     (tmp_path / ".env").write_text("FEDRL_START_TIMEOUT=77\n")
     launcher = LocalRunSettings.load(["--seed", "5", "--policy", "plain", "--round-timeout", "4", "--env",
-                                      "qube", "--qube-clock", "delayed", "--device-noise", "0.5"], prog="run")
+                                      "qube", "--qube-clock", "delayed", "--device-noise", "0.5", "--set",
+                                      "hidden_sizes=(64, 64)", "--set", "entropy_coef=0.03"], prog="run")
     wanted = {
         "chief": launcher.child(ChiefSettings, workers=3, broker="mqtt://127.0.0.1:1", run_id="r1",
                                 mqtt_username="chief", mqtt_password="s3cret", run_dir=tmp_path / "run"),
@@ -183,7 +184,26 @@ def test_a_child_process_sees_what_the_launcher_was_given(clean_env: pytest.Monk
     assert (seen["chief"]["start_timeout"], seen["chief"]["log_level"]) == (77.0, "DEBUG")
     assert (seen["chief"]["mqtt_username"], seen["chief"]["mqtt_password"]) == ("chief", "s3cret")
     assert (seen["worker"]["env"], seen["worker"]["device_noise"], seen["worker"]["rig_id"]) == ("qube", 0.5, "rig1")
+    assert seen["worker"]["learner_set"] == ["hidden_sizes=(64, 64)", "entropy_coef=0.03"]
     assert (seen["rig"]["qube_clock"], seen["rig"]["seed"]) == ("delayed", 5001)
+
+
+@pytest.mark.parametrize(("text", "items"), [
+    ("entropy_coef=0.03", ["entropy_coef=0.03"]),
+    ("hidden_sizes=(64, 64),entropy_coef=0.03", ["hidden_sizes=(64, 64)", "entropy_coef=0.03"]),
+    ("actor_lr=1e-4, obs_scale=(1.0,2.0)", ["actor_lr=1e-4", "obs_scale=(1.0,2.0)"]),
+    ("", [])])
+def test_a_variables_learner_set_splits_where_another_key_starts(text: str, items: list[str],
+                                                                 clean_env: pytest.MonkeyPatch) -> None:
+    clean_env.setenv("FEDRL_LEARNER_SET", text)
+    assert WorkerSettings.load([], prog="worker").learner_set == items
+
+
+def test_an_unknown_learner_field_is_refused_in_one_line(clean_env: pytest.MonkeyPatch,
+                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit):
+        LocalRunSettings.load(["--set", "entropy=0.1"], prog="run")
+    assert "expected KEY=VALUE with KEY one of" in capsys.readouterr().err
 
 
 def test_a_container_child_reads_nothing_of_the_host(clean_env: pytest.MonkeyPatch) -> None:

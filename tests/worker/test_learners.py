@@ -126,7 +126,7 @@ def test_overrides_are_the_chosen_learners_fields() -> None:
     assert parse_override("tau=0.01", "sac") == ("tau", 0.01)
     with pytest.raises(ValueError, match="KEY one of"):
         parse_override("tau=0.01", "ppo")
-    s = TrainLocalSettings.given(algo="sac", overrides=["utd_ratio=0.5"])
+    s = TrainLocalSettings.given(algo="sac", learner_set=["utd_ratio=0.5"])
     assert s.learner_overrides() == {"utd_ratio": 0.5}
 
 

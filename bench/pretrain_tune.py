@@ -3,8 +3,9 @@ pretrain (stage 2) on a lab of tuning seed SEED, and its learning curve.
 
 The lab's three rigs are of the combined family (services/qube_sim/families.py), identified as ``deploy.lab``'s
 stage 1 does (``python -m services.qube_sim --identify``, kept in ``--runs-dir``/s<SEED>/identified); the pretrain is
-the in-process federation of stage 2 (3 workers, ``plain``, randomised around the identified rigs), its PPO preset
-replaced in this process by itself with the ``--set`` overrides (as ``python -m bench.tune``); ``--attempt N`` runs
+the in-process federation of stage 2 (3 workers, ``plain``, randomised around the identified rigs), its learners with
+deploy.lab's pretrain overrides (``PRETRAIN_SET``) and then the ``--set`` ones (as ``deploy.lab --pretrain-set``,
+which replaces them: here ``--set entropy_coef=0.01`` restores the preset's value); ``--attempt N`` runs
 the pretrain of the lab's attempt N (its seed as ``deploy.lab`` gives it). Only tuning seeds are allowed: this tool's
 701-709 and the labs bench.lab was tuned on (521-540); bench.lab's report seeds (501-510) and bench.ood's (601-610) stay
 unseen.
@@ -78,7 +79,6 @@ def curve(run_dir: Path) -> dict[str, Any]:
 def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, runs: Path, attempt: int = 1) -> Path:
     """The pretrain (attempt ``attempt``) of ``deploy.lab`` on the lab of ``seed``, with the PPO preset's
     ``overrides``; its run folder."""
-    from bench.tune import tuned
     from deploy.inprocess import run_federation
     from deploy.lab import attempt_seed
     from deploy.settings import InprocessSettings
@@ -91,11 +91,11 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
                                name=f"around-{RIGS}-identified").to_json())
     run_dir = runs / (f"s{seed}-{actions}" + f"-attempt{attempt}" * (attempt > 1)
                       + "".join(f"-{k}={v}" for k, v in overrides.items()))
-    tuned("qube-local", "ppo", overrides)
     run_federation(InprocessSettings.given(env="qube-local", policy="plain", workers=RIGS,
                                            seed=attempt_seed(seed, attempt), max_episodes=max_episodes,
                                            run_dir=run_dir, rig_profile=str(profile), rig_model=DRAWN_MODEL,
-                                           qube_actions=actions),
+                                           qube_actions=actions,
+                                           learner_set=[f"{k}={v!r}" for k, v in overrides.items()]),
                    plot=False, tensorboard_files=False, models=False, tolerate_failures=True)
     return run_dir
 
@@ -112,6 +112,7 @@ def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], w
 
 
 def main(argv: list[str] | None = None) -> int:
+    from deploy.lab import PRETRAIN_SET
     from worker.settings import parse_override
 
     p = argparse.ArgumentParser(prog="python -m bench.pretrain_tune", description=__doc__.splitlines()[0])
@@ -128,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"{args.seed} is not a tuning seed (701-709, 521-540): report seeds stay unseen")
     if args.attempt < 1:
         p.error("--attempt counts from 1")
-    overrides = dict(parse_override(text) for text in args.overrides)
+    overrides = dict(parse_override(text) for text in (*PRETRAIN_SET, *args.overrides))
     began = time.monotonic()
     run_dir = args.summarise or run(args.seed, args.qube_actions, overrides, args.max_episodes, args.runs_dir,
                                     args.attempt)

@@ -108,7 +108,8 @@ def run_federation(s: InprocessSettings, *, plot: bool = True, progress: bool = 
     if failed and not (tolerate_failures and all(c == EXIT_ERROR for c in failed.values())):
         raise RuntimeError(f"in-process workers failed: {failed}")
     summary = RunSummary.read(s.run_dir).model_copy(update={
-        "run_id": s.run_dir.name, "mode": "in-process", "broker": None, "env_options": env_options(s) or None})
+        "run_id": s.run_dir.name, "mode": "in-process", "broker": None, "env_options": env_options(s) or None,
+        "learner_set": s.learner_set or None})
     summary.write(s.run_dir)
     (s.run_dir / "timing.json").write_text(json.dumps(
         {"worker_s": {w: [round(x, 5) for x in c[0].seconds] for w, c in worker_conns.items() if c},

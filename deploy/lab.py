@@ -40,6 +40,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from pydantic import field_validator, model_validator
+from pydantic_settings import CliSuppress
 
 from chief.settings import PolicyName
 from protocol import learners
@@ -50,6 +51,7 @@ from protocol.tasks import worker_seed
 from rpi_bridge.identify import IDENTIFY_ATTEMPTS
 from runtime.records import SUMMARY, AnyRecord, EpisodeRecord, RunSummary, read_metrics
 from runtime.settings import (
+    Assignments,
     LearnerName,
     LearnerTaskSettings,
     QubeActions,
@@ -64,6 +66,8 @@ from services.qube_sim.pretrain import AUTHORITY
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
+#: The learner preset's fields the pretrain replaces (``--pretrain-set``).
+PRETRAIN_SET: tuple[str, ...] = ()
 #: Pretrains tried (each with its own seed) until one has a controller that meets TC, by default.
 PRETRAIN_ATTEMPTS = 2
 #: The most pretrain attempts (--pretrain-attempts).
@@ -97,6 +101,10 @@ class LabSettings(LearnerTaskSettings):
                                      "TC and balances every identified rig in simulation, each with its own seed (a "
                                      "pretrain costs this host's time, no rig time)",
                                      ge=1, le=MAX_ATTEMPTS)
+    pretrain_set: CliSuppress[Assignments] = setting(
+        list(PRETRAIN_SET), "override a field of the learner's preset in the pretrain only (given, they replace the "
+        f"default: {', '.join(PRETRAIN_SET) or 'none'}; docs/how-to/lab.md)", aliases=["--pretrain-set"],
+        metavar="KEY=VALUE")
     policy: PolicyName = setting("plain", "federation strategy of the pretrain and the fine-tune")
     algo: LearnerName = setting(learners.DEFAULT, "learner")
     qube_actions: QubeActions = qube_actions_setting()
@@ -126,6 +134,10 @@ class LabSettings(LearnerTaskSettings):
             raise ValueError("--broker is for --env qube (rigs over MQTT)")
         if (problem := temperature_problem(self.warm_temperature, self.algo)):  # it always warm-starts
             raise ValueError(problem)
+        from worker.settings import parse_override
+
+        for text in self.pretrain_set:
+            parse_override(text, self.algo)
         return self
 
     def folder(self) -> Path:
@@ -353,7 +365,8 @@ def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
     return [sys.executable, "-m", "deploy.inprocess", "--env", "qube-local", "--workers", str(s.pretrain_workers),
             "--seed", str(attempt_seed(s.seed, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
             str(s.pretrain_episodes), "--run-dir", str(attempt_dir(folder, attempt)),
-            "--rig-profile", str(profile_path), "--rig-model", DRAWN_MODEL, "--qube-actions", s.qube_actions]
+            "--rig-profile", str(profile_path), "--rig-model", DRAWN_MODEL, "--qube-actions", s.qube_actions,
+            *(word for text in s.pretrain_set for word in ("--set", text))]
 
 
 # -- stage 3: fine-tune -------------------------------------------------------------------------------------------

@@ -371,10 +371,12 @@ class RunSummary(Record):
     ``refused_steps`` those it did not count (absent when no worker's submissions said). ``last_rig``: the rig time of
     the run's last rig (QUBE-Servo 2 tasks only). ``init_model``: the model every worker started from (absent from
     scratch). ``env_options``: the workers' task options an in-process launcher gave (qube-local's rig profile,
-    randomisation and clock; absent when none)."""
+    randomisation and clock; absent when none); ``learner_set``: the fields of the learner's preset it replaced
+    (``--set``; absent when none)."""
 
     OPTIONAL = frozenset({"quorum", "mode", "wall_s", "finished_at", "broker", "rejected_messages", "duplicates",
-                          "restarts", "played_steps", "refused_steps", "last_rig", "init_model", "env_options"})
+                          "restarts", "played_steps", "refused_steps", "last_rig", "init_model", "env_options",
+                          "learner_set"})
 
     run_id: str = ""
     env: str
@@ -405,6 +407,7 @@ class RunSummary(Record):
     last_rig: LastRig | None = None
     init_model: InitModelRecord | None = None
     env_options: dict[str, Any] | None = None
+    learner_set: list[str] | None = None
 
     def dump(self) -> dict[str, Any]:
         """As Record.dump, each worker's row without its optional fields when None too."""

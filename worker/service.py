@@ -245,6 +245,8 @@ class WorkerService:
                                              init_seed=start.seed, rig_id=cfg.rig_id, conn=self.conn,
                                              env_options={**cfg.env_options(), "halt": self._interrupt}, algo=cfg.algo,
                                              overrides=cfg.learner_overrides())
+        if cfg.learner_set:
+            log.info("learner preset overridden: %s", ", ".join(cfg.learner_set))
         if self.init_model is not None and self.init_state is not None:  # the model replaces the shared init seed
             model.warm_start(learner, self.init_state, cfg.env, self.init_model.file, cfg.algo,
                              cfg.qube_actions, cfg.warm_temperature)

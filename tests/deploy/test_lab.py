@@ -15,7 +15,7 @@ import pytest
 
 from bench.lab import measure
 from chief.audit import audit
-from deploy.lab import COLLAPSED, LabSettings, how_far
+from deploy.lab import COLLAPSED, PRETRAIN_SET, LabSettings, finetune_command, how_far, pretrain_command
 from runtime.records import EpisodeRecord, RoundRecord
 from services.qube_sim import families
 from services.qube_sim.pretrain import for_lab
@@ -54,7 +54,8 @@ def test_settings_are_checked_before_anything_starts(tmp_path: Path, truth: Path
     for args, expected in ((["--algo", "dqn", "--qube-actions", "voltage"], "needs discrete actions"),
                            (["--qube-clock", "realtime"], "runs on a simulated clock"),
                            (["--broker", "mqtt://127.0.0.1:1"], "--broker is for --env qube"),
-                           (["--identify-attempts", "0"], "identify-attempts")):
+                           (["--identify-attempts", "0"], "identify-attempts"),
+                           (["--pretrain-set", "entropy=0.1"], "expected KEY=VALUE with KEY one of")):
         proc = lab([*args, "--run-dir", str(tmp_path / "x")], truth, timeout=120)
         assert proc.returncode == 2 and expected in proc.stderr and proc.stderr.count("\n") == 1, proc.stderr
     assert not (tmp_path / "x").exists()
@@ -118,6 +119,7 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
         assert summary["env_options"]["rig_profile"] == str(folder / "pretrain-profile.json")  # never the truth
         assert summary["env_options"]["rig_model"] == "drawn"  # each draw's resets as its identified rig's would be
         assert summary["seed"] == seed and summary["max_episodes"] == 1
+        assert summary.get("learner_set") == (list(PRETRAIN_SET) or None)  # the pretrain's own learner overrides
 
     again = lab([*args, "--pretrain-attempts", "3"], truth)  # resumes at the pretrain's third attempt
     assert again.returncode == 1 and "[lab identify] done before: skipped" in again.stdout
@@ -411,3 +413,11 @@ def test_a_pretrain_that_met_no_tc_says_how_far_each_worker_got_and_whose_policy
     assert f"(w0 below {COLLAPSED:g}: a policy that no longer explores" in text
     assert "collapsed" not in how_far(records[:2]) and "below" not in how_far(records[:2])
     assert how_far([]) == ""
+
+
+def test_the_pretrain_gets_its_learner_overrides_and_the_fine_tune_does_not(tmp_path: Path) -> None:
+    default = pretrain_command(LabSettings.given(), tmp_path, 1)
+    assert [default[i + 1] for i, word in enumerate(default) if word == "--set"] == list(PRETRAIN_SET)
+    given = pretrain_command(LabSettings.given(pretrain_set=["actor_lr=1e-4", "hidden_sizes=(64, 64)"]), tmp_path, 2)
+    assert given[given.index("--set"):] == ["--set", "actor_lr=1e-4", "--set", "hidden_sizes=(64, 64)"]
+    assert "--set" not in finetune_command(LabSettings.given(init_model=tmp_path / "m.pt"), tmp_path)

@@ -34,7 +34,8 @@ def built(monkeypatch: pytest.MonkeyPatch) -> list[Any]:
 def test_every_worker_learns_with_the_launchers_overrides(given: list[str], built: list[Any], tmp_path: Path) -> None:
     s = InprocessSettings.given(env="CartPole-v0", policy="plain", seed=3, workers=2, max_episodes=2,
                                 run_dir=tmp_path / "run", learner_set=given)
-    run_federation(s, plot=False, tensorboard_files=False, models=False, tolerate_failures=True)
+    summary = run_federation(s, plot=False, tensorboard_files=False, models=False, tolerate_failures=True)
+    assert summary.learner_set == (given or None)  # the run says what it changed
     preset = env_spec("CartPole-v0").learner_config("ppo")
     wanted = (0.05, (16, 16)) if given else (preset.entropy_coef, preset.hidden_sizes)
     assert len(built) == 2 and all((c.entropy_coef, tuple(c.hidden_sizes)) == wanted for c in built)

@@ -76,7 +76,8 @@ def curve(run_dir: Path) -> dict[str, Any]:
     return out
 
 
-def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, runs: Path, attempt: int = 1) -> Path:
+def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, runs: Path, attempt: int = 1,
+        ease_in: int = 0) -> Path:
     """The pretrain (attempt ``attempt``) of ``deploy.lab`` on the lab of ``seed``, with the PPO preset's
     ``overrides``; its run folder."""
     from deploy.inprocess import run_federation
@@ -86,10 +87,10 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
     from services.qube_sim.profile import DRAWN_MODEL, load_profile
 
     folder = identified(seed, runs)
-    profile = folder.parent / "pretrain-profile.json"
+    profile = folder.parent / f"pretrain-profile-ease{ease_in}.json"
     profile.write_text(for_lab([load_profile(folder / f"rig{i}.json") for i in range(RIGS)], actions,
-                               name=f"around-{RIGS}-identified").to_json())
-    run_dir = runs / (f"s{seed}-{actions}" + f"-attempt{attempt}" * (attempt > 1)
+                               name=f"around-{RIGS}-identified", ease_in=ease_in).to_json())
+    run_dir = runs / (f"s{seed}-{actions}" + f"-attempt{attempt}" * (attempt > 1) + f"-ease{ease_in}" * (ease_in > 0)
                       + "".join(f"-{k}={v}" for k, v in overrides.items()))
     run_federation(InprocessSettings.given(env="qube-local", policy="plain", workers=RIGS,
                                            seed=attempt_seed(seed, attempt), max_episodes=max_episodes,
@@ -101,9 +102,9 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
 
 
 def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], wall_s: float | None,
-            attempt: int = 1) -> dict[str, Any]:
+            attempt: int = 1, ease_in: int = 0) -> dict[str, Any]:
     summary = RunSummary.read(run_dir) if (run_dir / SUMMARY).exists() else None
-    return {"seed": seed, "attempt": attempt, "qube_actions": actions, "set": overrides,
+    return {"seed": seed, "attempt": attempt, "ease_in": ease_in, "qube_actions": actions, "set": overrides,
             "finished": summary is not None,
             "end_reason": summary.end_reason if summary else "stopped before its end",
             "last_worker_episodes": summary.episodes_to_all_solved if summary else None,
@@ -119,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("seed", type=int, help="a tuning seed: 701-709, or a tuning lab of bench.lab, 521-540")
     p.add_argument("--attempt", type=int, default=1, help="the lab's pretrain attempt N (deploy.lab's seed of it)")
     p.add_argument("--qube-actions", default=DEFAULT_ACTIONS)
+    p.add_argument("--ease-in", type=int, default=0, metavar="N",
+                   help="ease the arm's dry friction in over each worker's first N episodes (for_lab's ease_in)")
     p.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="KEY=VALUE")
     p.add_argument("--max-episodes", type=int, default=600)
     p.add_argument("--runs-dir", type=Path, default=Path("runs/pretrain-tune"))
@@ -132,9 +135,9 @@ def main(argv: list[str] | None = None) -> int:
     overrides = dict(parse_override(text) for text in (*PRETRAIN_SET, *args.overrides))
     began = time.monotonic()
     run_dir = args.summarise or run(args.seed, args.qube_actions, overrides, args.max_episodes, args.runs_dir,
-                                    args.attempt)
+                                    args.attempt, args.ease_in)
     wall = None if args.summarise else round(time.monotonic() - began, 1)
-    line = line_of(run_dir, args.seed, args.qube_actions, overrides, wall, args.attempt)
+    line = line_of(run_dir, args.seed, args.qube_actions, overrides, wall, args.attempt, args.ease_in)
     output.append_line(args.out, line)
     return 0
 

@@ -39,6 +39,8 @@ INERTIAL = frozenset({"mr", "Lr", "Lp", "motor"})
 FLOOR_CABLE = 0.5
 #: A range reaches this many of the fit's standard deviations beyond the rigs' values.
 SIGMAS = 3.0
+#: The ranges of the arm's dry friction (what decides whether the actions move the arm at all).
+ARM_FRICTION = ("static_arm", "coulomb_arm")
 #: Every randomisable parameter not identified is drawn from ± this fraction of the nominal value.
 REST = 0.2
 #: The largest share of the actions' standstill torque (on the median identified rig) that a pretrain rig's arm
@@ -100,13 +102,18 @@ def breakaway_share(profile: RigProfile, actions: str | None) -> tuple[float, fl
 
 
 def for_lab(rigs: Sequence[RigProfile], actions: str | None, name: str = "identified-rigs",
-            authority: float = AUTHORITY) -> RigProfile:
+            authority: float = AUTHORITY, ease_in: int = 0) -> RigProfile:
     """The pretrain profile of a lab's identified ``rigs`` under the action set ``actions``: :func:`around` them, its
     arm friction capped at ``authority`` x the actions' standstill torque on the median rig (:func:`cap_breakaway`),
-    but never below an identified rig's own: the pretrain keeps every rig the controller must hold."""
+    but never below an identified rig's own: the pretrain keeps every rig the controller must hold. With ``ease_in``
+    N > 0 the arm's dry friction is eased in over each worker's first N episodes (RigProfile.curriculum): drawn from
+    the bottom of its range at first, from all of it from episode N on."""
     profile = around(rigs, name=name)
     own = max(max(r.static_arm, r.coulomb_arm) for r in rigs)
-    return cap_breakaway(profile, max(authority * breakaway_share(profile, actions)[1], own))
+    profile = cap_breakaway(profile, max(authority * breakaway_share(profile, actions)[1], own))
+    if ease_in <= 0:
+        return profile
+    return RigProfile.model_validate({**profile.model_dump(), "curriculum": {key: ease_in for key in ARM_FRICTION}})
 
 
 def cap_breakaway(profile: RigProfile, most: float) -> RigProfile:
@@ -117,7 +124,7 @@ def cap_breakaway(profile: RigProfile, most: float) -> RigProfile:
     if not most > 0:
         raise ValueError(f"the arm's breakaway cap must be positive, not {most}")
     ranges = dict(profile.ranges)
-    for key in ("static_arm", "coulomb_arm"):
+    for key in ARM_FRICTION:
         lo, hi = ranges.get(key, (getattr(profile, key) * (1 - profile.randomize),
                                   getattr(profile, key) * (1 + profile.randomize)))
         ranges[key] = (min(lo, most), min(hi, most))

@@ -115,6 +115,9 @@ class RigProfile(BaseModel):
     ranges: dict[str, tuple[float, float]] = Field(default_factory=dict, description="domain randomisation: at each "
                                                    "reset, draw these parameters uniformly from [lo, hi] (absolute "
                                                    "values; 'motor' is a factor on km and kt)")
+    curriculum: dict[str, int] = Field(default_factory=dict, description="domain randomisation eased in: for a "
+                                       "parameter of ranges named here with N, episode e < N draws from [lo, lo + "
+                                       "(hi - lo) e / N], the full range from episode N on")
     identified: Identified | None = Field(None, description="set on a profile fitted to a rig's identification "
                                           "recording (docs/how-to/identify.md)")
 
@@ -133,6 +136,9 @@ class RigProfile(BaseModel):
                 raise ValueError(f"ranges: unknown parameter {key!r}; randomisable: {', '.join(RANDOMIZABLE)}")
             if not a <= b:
                 raise ValueError(f"ranges[{key!r}]: lo {a} must not exceed hi {b}")
+        for key, episodes in self.curriculum.items():
+            if key not in self.ranges or episodes < 1:
+                raise ValueError(f"curriculum[{key!r}]: a parameter of ranges and at least 1 episode, got {episodes}")
         return self
 
     # -- the plant ---------------------------------------------------------------------------------------------
@@ -165,8 +171,9 @@ class RigProfile(BaseModel):
                        draw: int = 0) -> QubeParams | None:
         """Domain randomisation: the plant of rig ``seed`` for its ``episode``-th reset, every randomisable parameter
         drawn uniformly from +-``randomize`` (default: the profile's) of the profile's value and those in ``ranges``
-        from their range. None when the profile randomises nothing. Deterministic in (seed, episode, draw); ``draw``
-        > 0 is a replacement for a plant that could not be swung up."""
+        from their range, its upper end eased in over the first episodes where ``curriculum`` says (episodes count
+        from 1). None when the profile randomises nothing. Deterministic in (seed, episode, draw); ``draw`` > 0 is a
+        replacement for a plant that could not be swung up."""
         fraction = self.randomize if randomize is None else randomize
         if fraction <= 0 and not self.ranges:
             return None
@@ -177,6 +184,8 @@ class RigProfile(BaseModel):
             field = {**PLANT, **NONIDEAL}.get(name)
             nominal = 1.0 if field is None else getattr(base, field)
             lo, hi = self.ranges.get(name, (nominal * (1 - fraction), nominal * (1 + fraction)))
+            if episode < (eased := self.curriculum.get(name, 0)):
+                hi = lo + (hi - lo) * max(episode, 0) / eased
             value = rng.uniform(lo, hi)
             if field is None:  # motor
                 changes.update(km=base.km * value, kt=base.kt * value)

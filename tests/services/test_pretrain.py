@@ -81,6 +81,16 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
     assert kept.ranges["static_arm"][1] > AUTHORITY * breakaway_share(kept, "paper")[1]
 
 
+def test_ease_in_eases_only_the_arms_dry_friction_in_and_keeps_the_ranges() -> None:
+    rigs = [identified(LAB), identified(LAB, static_arm=5.5e-3, coulomb_arm=4.5e-3)]
+    plain, eased = for_lab(rigs, "paper"), for_lab(rigs, "paper", ease_in=150)
+    assert plain.curriculum == {} and eased.curriculum == {"static_arm": 150, "coulomb_arm": 150}
+    assert eased.model_dump(exclude={"curriculum"}) == plain.model_dump(exclude={"curriculum"})
+    lo = plain.ranges["coulomb_arm"][0]
+    first = [eased.episode_params(seed, 1) for seed in range(20)]
+    assert all(p is not None and p.Cr <= lo + (plain.ranges["coulomb_arm"][1] - lo) / 150 for p in first)
+
+
 def test_the_cap_holds_nominal_values_too_and_is_positive() -> None:
     profile = cap_breakaway(LAB, 1e-3)  # below lab's own friction: nominal values cut as well, ranges degenerate
     assert (profile.static_arm, profile.coulomb_arm) == (1e-3, 1e-3)

@@ -39,6 +39,8 @@ def test_show_profile_round_trips_through_a_file(tmp_path: Path, capsys: pytest.
     ({"mp": 5.0}, "mp: Input should be less than or equal to 0.5"),
     ({"coulomb_arm": 0.002, "static_arm": 0.001}, "static_arm must be 0 or at least coulomb_arm"),
     ({"ranges": {"mass": [0.01, 0.02]}}, "unknown parameter 'mass'"),
+    ({"curriculum": {"coulomb_arm": 100}}, "a parameter of ranges and at least 1 episode, got 100"),
+    ({"ranges": {"coulomb_arm": [0.001, 0.002]}, "curriculum": {"coulomb_arm": 0}}, "at least 1 episode, got 0"),
     ([1, 2], "expected a JSON object"),
 ])
 def test_bad_profiles_get_one_line_and_exit_2(content: object, expected: str, tmp_path: Path,
@@ -85,6 +87,22 @@ def test_spread_and_randomisation_are_deterministic_and_bounded() -> None:
         assert 0.8 * LAB.mp <= p.mp <= 1.2 * LAB.mp and 0.8 * LAB.km <= p.km == p.kt <= 1.2 * LAB.km
         assert -0.1 <= p.voltage_offset <= 0.1
     assert min(p.voltage_offset for p in draws if p) < 0 < max(p.voltage_offset for p in draws if p)
+
+
+def test_a_curriculum_eases_a_range_in_and_leaves_the_draws_of_the_rest_alone() -> None:
+    lo, hi, n = 0.001, 0.005, 100
+    plain = LAB.model_copy(update={"randomize": 0.2, "ranges": {"coulomb_arm": (lo, hi)}})
+    eased = RigProfile.model_validate({**plain.model_dump(), "curriculum": {"coulomb_arm": n}})
+    for seed in (3, 4):
+        for episode in (1, 10, 50, 99, 100, 101, 400):
+            a, b = plain.episode_params(seed, episode), eased.episode_params(seed, episode)
+            assert a is not None and b is not None
+            if episode >= n:  # the full range: the same draw as without a curriculum
+                assert a == b
+            else:  # the same quantile of the range's bottom part; every other parameter as without one
+                assert lo <= b.Cr <= lo + (hi - lo) * episode / n and b.Cr < a.Cr
+                assert (b.Cr - lo) / (episode / n) == pytest.approx(a.Cr - lo)
+                assert replace(b, Cr=a.Cr) == a
 
 
 def test_qube_local_randomises_each_episode_and_is_reproducible() -> None:

@@ -31,6 +31,7 @@ from bench import output
 from protocol.qube import DEFAULT_ACTIONS, MAX_RETURN
 from protocol.tasks import worker_seed
 from runtime.records import METRICS, SUMMARY, RunSummary
+from services.qube_sim.pretrain import EASE_IN
 
 #: The seeds this tool may tune on (never a report seed): its own, and bench.lab's tuning labs.
 TUNING_SEEDS = (*range(701, 710), *range(521, 541))
@@ -77,7 +78,7 @@ def curve(run_dir: Path) -> dict[str, Any]:
 
 
 def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, runs: Path, attempt: int = 1,
-        ease_in: int = 0) -> Path:
+        ease_in: int = EASE_IN) -> Path:
     """The pretrain (attempt ``attempt``) of ``deploy.lab`` on the lab of ``seed``, with the PPO preset's
     ``overrides``; its run folder."""
     from deploy.inprocess import run_federation
@@ -90,8 +91,8 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
     profile = folder.parent / f"pretrain-profile-ease{ease_in}.json"
     profile.write_text(for_lab([load_profile(folder / f"rig{i}.json") for i in range(RIGS)], actions,
                                name=f"around-{RIGS}-identified", ease_in=ease_in).to_json())
-    run_dir = runs / (f"s{seed}-{actions}" + f"-attempt{attempt}" * (attempt > 1) + f"-ease{ease_in}" * (ease_in > 0)
-                      + "".join(f"-{k}={v}" for k, v in overrides.items()))
+    run_dir = runs / (f"s{seed}-{actions}" + f"-attempt{attempt}" * (attempt > 1)
+                      + f"-ease{ease_in}" * (ease_in != EASE_IN) + "".join(f"-{k}={v}" for k, v in overrides.items()))
     run_federation(InprocessSettings.given(env="qube-local", policy="plain", workers=RIGS,
                                            seed=attempt_seed(seed, attempt), max_episodes=max_episodes,
                                            run_dir=run_dir, rig_profile=str(profile), rig_model=DRAWN_MODEL,
@@ -120,8 +121,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("seed", type=int, help="a tuning seed: 701-709, or a tuning lab of bench.lab, 521-540")
     p.add_argument("--attempt", type=int, default=1, help="the lab's pretrain attempt N (deploy.lab's seed of it)")
     p.add_argument("--qube-actions", default=DEFAULT_ACTIONS)
-    p.add_argument("--ease-in", type=int, default=0, metavar="N",
-                   help="ease the arm's dry friction in over each worker's first N episodes (for_lab's ease_in)")
+    p.add_argument("--ease-in", type=int, default=EASE_IN, metavar="N",
+                   help=f"ease the arm's dry friction in over each worker's first N episodes (default {EASE_IN}, "
+                   "deploy.lab's; 0: the whole range from the first)")
     p.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="KEY=VALUE")
     p.add_argument("--max-episodes", type=int, default=600)
     p.add_argument("--runs-dir", type=Path, default=Path("runs/pretrain-tune"))

@@ -62,7 +62,7 @@ from runtime.settings import (
     warm_lr_setting,
     warm_temperature_setting,
 )
-from services.qube_sim.pretrain import AUTHORITY
+from services.qube_sim.pretrain import AUTHORITY, EASE_IN
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
@@ -101,6 +101,9 @@ class LabSettings(LearnerTaskSettings):
                                      "TC and balances every identified rig in simulation, each with its own seed (a "
                                      "pretrain costs this host's time, no rig time)",
                                      ge=1, le=MAX_ATTEMPTS)
+    pretrain_ease_in: int = setting(EASE_IN, "episodes over which each pretrain worker's drawn arm friction rises "
+                                    "from the bottom of its range to all of it (0: the whole range from the first)",
+                                    ge=0, le=100_000)
     pretrain_set: CliSuppress[Assignments] = setting(
         list(PRETRAIN_SET), "override a field of the learner's preset in the pretrain only (given, they replace the "
         f"default: {', '.join(PRETRAIN_SET) or 'none'}; docs/how-to/lab.md)", aliases=["--pretrain-set"],
@@ -280,14 +283,17 @@ def pretrain(s: LabSettings, folder: Path) -> None:
     from services.qube_sim.profile import load_profile
 
     rigs = [load_profile(path) for path in identified_files(s, folder)]
-    profile = for_lab(rigs, s.qube_actions, name=f"around-{len(rigs)}-identified", authority=s.pretrain_authority)
+    profile = for_lab(rigs, s.qube_actions, name=f"around-{len(rigs)}-identified", authority=s.pretrain_authority,
+                      ease_in=s.pretrain_ease_in)
     profile_path = profile_file(folder)
     profile_path.write_text(profile.to_json())
     ranges = ", ".join(f"{k} {lo:.3g}-{hi:.3g}" for k, (lo, hi) in profile.ranges.items())
     ceiling, torque = profile.ranges["static_arm"][1], breakaway_share(profile, s.qube_actions)[1]
     say("pretrain", f"randomised around {len(rigs)} identified rigs: {ranges}; the rest +-{profile.randomize:.0%}; "
         f"arm friction at most {ceiling * 1e3:.2f} mN m ({ceiling / torque:.0%} of what the `{s.qube_actions}` "
-        f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})")
+        f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})"
+        + (f"; the arm's dry friction eased in over each worker's first {s.pretrain_ease_in} episodes "
+           "(--pretrain-ease-in)" if s.pretrain_ease_in else ""))
     env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
     why, met = "", False
     for attempt in range(1, s.pretrain_attempts + 1):

@@ -41,6 +41,12 @@ FLOOR_CABLE = 0.5
 SIGMAS = 3.0
 #: The ranges of the arm's dry friction (what decides whether the actions move the arm at all).
 ARM_FRICTION = ("static_arm", "coulomb_arm")
+#: Episodes over which a lab's pretrain eases the arm's dry friction in (for_lab's ``ease_in``). Drawn from the whole
+#: range from the first episode, a sticky draw teaches nothing (the arm hardly moves), and a lab whose draws hold
+#: many of them can stall every worker before one learns to balance: bench.pretrain_tune's tuning labs 705 (no TC in
+#: 600 episodes) and 532 (its first attempt, none in 600 in the lab of 2026-12-06) met TC by their 214th and 205th
+#: episode eased in over 150 (docs/how-to/lab.md, "When a pretrain misses TC").
+EASE_IN = 150
 #: Every randomisable parameter not identified is drawn from ± this fraction of the nominal value.
 REST = 0.2
 #: The largest share of the actions' standstill torque (on the median identified rig) that a pretrain rig's arm
@@ -102,7 +108,7 @@ def breakaway_share(profile: RigProfile, actions: str | None) -> tuple[float, fl
 
 
 def for_lab(rigs: Sequence[RigProfile], actions: str | None, name: str = "identified-rigs",
-            authority: float = AUTHORITY, ease_in: int = 0) -> RigProfile:
+            authority: float = AUTHORITY, ease_in: int = EASE_IN) -> RigProfile:
     """The pretrain profile of a lab's identified ``rigs`` under the action set ``actions``: :func:`around` them, its
     arm friction capped at ``authority`` x the actions' standstill torque on the median rig (:func:`cap_breakaway`),
     but never below an identified rig's own: the pretrain keeps every rig the controller must hold. With ``ease_in``

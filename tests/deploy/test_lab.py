@@ -112,6 +112,7 @@ def test_the_pretrain_randomises_around_the_identified_rigs_and_resumes_there(tm
     expected = for_lab([rig], "paper", name="around-1-identified")
     assert "arm friction at most" in proc.stdout
     assert "actions give the median rig at standstill; --pretrain-authority 0.9)" in proc.stdout
+    assert "eased in over each worker's first 150 episodes (--pretrain-ease-in)" in proc.stdout
     assert "no controller met TC (attempt 1: " in proc.stdout and "; best PI w0 " in proc.stdout  # how far it got
     assert load_profile(folder / "pretrain-profile.json") == expected
     for run_dir, seed in (("pretrain", 8), ("pretrain-2", 10008)):

@@ -64,7 +64,7 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
     torque = breakaway_share(plain, "paper")[1]
     assert plain.ranges["static_arm"][1] == pytest.approx(5.5e-3 * (1 + FLOOR))  # the tail: above the torque
     assert plain.ranges["static_arm"][1] > torque
-    capped = for_lab(rigs, "paper")
+    capped = for_lab(rigs, "paper", ease_in=0)
     most = AUTHORITY * torque
     assert capped.ranges["static_arm"] == (plain.ranges["static_arm"][0], pytest.approx(most))
     assert capped.ranges["coulomb_arm"] == (plain.ranges["coulomb_arm"][0],
@@ -74,7 +74,7 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
         k: v for k, v in plain.ranges.items() if not k.endswith("_arm")}
     drawn = [capped.episode_params(1, episode) for episode in range(200)]
     assert all(d is not None and d.Sr <= most and d.Cr <= most for d in drawn)
-    assert for_lab(rigs, "levels") == plain  # 150 counts: the same tail is far below the torque
+    assert for_lab(rigs, "levels", ease_in=0) == plain  # 150 counts: the same tail is far below the torque
     stickier = identified(LAB, static_arm=6.8e-3, coulomb_arm=4.5e-3)  # itself above 90 % of the median's torque
     kept = for_lab([identified(LAB), stickier], "paper")
     assert kept.ranges["static_arm"][1] == pytest.approx(6.8e-3)  # cut at the rig, never below it
@@ -83,7 +83,7 @@ def test_a_lab_pretrain_never_draws_an_arm_the_actions_cannot_break_away() -> No
 
 def test_ease_in_eases_only_the_arms_dry_friction_in_and_keeps_the_ranges() -> None:
     rigs = [identified(LAB), identified(LAB, static_arm=5.5e-3, coulomb_arm=4.5e-3)]
-    plain, eased = for_lab(rigs, "paper"), for_lab(rigs, "paper", ease_in=150)
+    plain, eased = for_lab(rigs, "paper", ease_in=0), for_lab(rigs, "paper", ease_in=150)
     assert plain.curriculum == {} and eased.curriculum == {"static_arm": 150, "coulomb_arm": 150}
     assert eased.model_dump(exclude={"curriculum"}) == plain.model_dump(exclude={"curriculum"})
     lo = plain.ranges["coulomb_arm"][0]

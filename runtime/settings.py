@@ -289,8 +289,10 @@ class Settings(BaseSettings):
             if CLI_SUPPRESS not in field.metadata:
                 shortcuts[name.replace("_", "-")] = [a.lstrip("-") for a in names[1:]]
             elif names:  # a repeatable flag, its values taken whole
+                var = env_name(name, field)
                 parser.add_argument(*names, dest=name, action="append", default=argparse.SUPPRESS,
-                                    metavar=_meta(field)["metavar"], help=f"{field.description} (repeatable)")
+                                    metavar=_meta(field)["metavar"], help=f"{field.description} (repeatable)"
+                                    + (f" [env: {var}]" if var else ""))
         source: CliSettingsSource[Any] = CliSettingsSource(
             cls, root_parser=parser, cli_kebab_case=True, cli_implicit_flags=True, cli_avoid_json=True,
             cli_hide_none_type=True, cli_show_env_vars=True, cli_shortcuts=shortcuts, _env_settings_source=_Env(cls),

@@ -103,7 +103,7 @@ def run(seed: int, actions: str, overrides: dict[str, Any], max_episodes: int, r
 
 
 def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], wall_s: float | None,
-            attempt: int = 1, ease_in: int = 0) -> dict[str, Any]:
+            attempt: int = 1, ease_in: int = EASE_IN) -> dict[str, Any]:
     summary = RunSummary.read(run_dir) if (run_dir / SUMMARY).exists() else None
     return {"seed": seed, "attempt": attempt, "ease_in": ease_in, "qube_actions": actions, "set": overrides,
             "finished": summary is not None,
@@ -115,7 +115,7 @@ def line_of(run_dir: Path, seed: int, actions: str, overrides: dict[str, Any], w
 
 def main(argv: list[str] | None = None) -> int:
     from deploy.lab import PRETRAIN_SET
-    from worker.settings import parse_override
+    from worker.settings import parse_overrides
 
     p = argparse.ArgumentParser(prog="python -m bench.pretrain_tune", description=__doc__.splitlines()[0])
     p.add_argument("seed", type=int, help="a tuning seed: 701-709, or a tuning lab of bench.lab, 521-540")
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"{args.seed} is not a tuning seed (701-709, 521-540): report seeds stay unseen")
     if args.attempt < 1:
         p.error("--attempt counts from 1")
-    overrides = dict(parse_override(text) for text in (*PRETRAIN_SET, *args.overrides))
+    overrides = parse_overrides((*PRETRAIN_SET, *args.overrides))
     began = time.monotonic()
     run_dir = args.summarise or run(args.seed, args.qube_actions, overrides, args.max_episodes, args.runs_dir,
                                     args.attempt, args.ease_in)

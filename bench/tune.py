@@ -68,7 +68,7 @@ def run(task: str, strategy: str, algo: str, seed: int, workers: int, max_episod
 
 
 def main(argv: list[str] | None = None) -> int:
-    from worker.settings import parse_override
+    from worker.settings import parse_overrides
 
     parser = argparse.ArgumentParser(prog="python -m bench.tune", description=__doc__.splitlines()[0])
     parser.add_argument("task")
@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--set", dest="overrides", nargs="*", default=[], metavar="KEY=VALUE")
     parser.add_argument("--out", type=Path, default=Path("bench/results/tuning.jsonl"))
     args = parser.parse_args(argv)
-    overrides = dict(parse_override(text, args.algo) for text in args.overrides)
+    overrides = parse_overrides(args.overrides, args.algo)
     if bad := [s for s in args.seeds if s not in TUNING_SEEDS]:
         parser.error(f"not tuning seeds: {bad} (the report seeds stay unseen)")
     for seed in args.seeds:

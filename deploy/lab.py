@@ -137,10 +137,9 @@ class LabSettings(LearnerTaskSettings):
             raise ValueError("--broker is for --env qube (rigs over MQTT)")
         if (problem := temperature_problem(self.warm_temperature, self.algo)):  # it always warm-starts
             raise ValueError(problem)
-        from worker.settings import parse_override
+        from worker.settings import parse_overrides
 
-        for text in self.pretrain_set:
-            parse_override(text, self.algo)
+        parse_overrides(self.pretrain_set, self.algo)
         return self
 
     def folder(self) -> Path:

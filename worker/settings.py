@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+from collections.abc import Iterable
 from pathlib import Path
 from typing import Any, Self
 
@@ -55,8 +56,7 @@ class LearnerSetSettings(Settings):
 
     def learner_overrides(self) -> dict[str, Any]:
         """``learner_set`` as field -> value of the learner's configuration (a ValueError for an unknown field)."""
-        algo = getattr(self, "algo", learners.DEFAULT)
-        return dict(parse_override(text, algo) for text in self.learner_set)
+        return parse_overrides(self.learner_set, getattr(self, "algo", learners.DEFAULT))
 
 
 class WorkerSettings(RunMqttSettings, RunKeySettings, DeviceNoiseSettings, LearnerSetSettings,
@@ -271,6 +271,11 @@ def parse_override(text: str, algo: str = learners.DEFAULT) -> tuple[str, Any]:
         return key, ast.literal_eval(raw)
     except (ValueError, SyntaxError):
         return key, raw
+
+
+def parse_overrides(texts: Iterable[str], algo: str = learners.DEFAULT) -> dict[str, Any]:
+    """Every ``KEY=VALUE`` of ``texts`` (parse_override), later ones winning: field -> value of ``algo``'s config."""
+    return dict(parse_override(text, algo) for text in texts)
 
 
 

@@ -26,6 +26,7 @@ def test_the_curve_of_a_run_stopped_before_its_end(tmp_path: Path) -> None:
     (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     line = pretrain_tune.line_of(tmp_path, 701, "levels", {"actor_lr": 1e-3}, None)
     assert not line["finished"] and line["last_worker_episodes"] is None
+    assert line["ease_in"] == pretrain_tune.EASE_IN  # the default of run and of the command line
     w0 = line["curve"]["w0"]
     assert w0["episodes"] == 60 and w0["first_full_return"] == 30 and w0["last_pi"] == 60.0
     assert w0["pi"] == {25: 25.0, 50: 50.0} and w0["entropy"] == {25: 0.04, 50: 0.02}

@@ -63,6 +63,7 @@ from runtime.settings import (
     warm_temperature_setting,
 )
 from services.qube_sim.pretrain import AUTHORITY, EASE_IN
+from worker.settings import LearnerSetSettings, parse_overrides
 
 #: The stages, in order.
 STAGES = ("identify", "pretrain", "finetune")
@@ -74,9 +75,11 @@ PRETRAIN_ATTEMPTS = 2
 MAX_ATTEMPTS = 10
 #: Variables that carry the true physics of simulated rigs: the pretrain's simulator must not see them.
 TRUTH = ("FEDRL_RIG_PROFILE", "FEDRL_RANDOMIZE")
+#: Variables the pipeline reads itself and hands each stage on its command line: a stage must not read them again.
+HANDED = ("FEDRL_LEARNER_SET",)
 
 
-class LabSettings(LearnerTaskSettings):
+class LabSettings(LearnerSetSettings, LearnerTaskSettings):
     """A lab's rigs from identification to a fine-tuned controller (docs/how-to/lab.md)."""
 
     env: Literal["qube", "qube-local"] = setting("qube-local", "qube: rigs over MQTT (real bridges, or the simulated "
@@ -105,9 +108,9 @@ class LabSettings(LearnerTaskSettings):
                                     "from the bottom of its range to all of it (0: the whole range from the first)",
                                     ge=0, le=100_000)
     pretrain_set: CliSuppress[Assignments] = setting(
-        list(PRETRAIN_SET), "override a field of the learner's preset in the pretrain only (given, they replace the "
-        f"default: {', '.join(PRETRAIN_SET) or 'none'}; docs/how-to/lab.md)", aliases=["--pretrain-set"],
-        metavar="KEY=VALUE")
+        list(PRETRAIN_SET), "override a field of the learner's preset in the pretrain only, after --set's (given, "
+        f"they replace the default: {', '.join(PRETRAIN_SET) or 'none'}; docs/how-to/lab.md)",
+        aliases=["--pretrain-set"], metavar="KEY=VALUE")
     policy: PolicyName = setting("plain", "federation strategy of the pretrain and the fine-tune")
     algo: LearnerName = setting(learners.DEFAULT, "learner")
     qube_actions: QubeActions = qube_actions_setting()
@@ -137,8 +140,6 @@ class LabSettings(LearnerTaskSettings):
             raise ValueError("--broker is for --env qube (rigs over MQTT)")
         if (problem := temperature_problem(self.warm_temperature, self.algo)):  # it always warm-starts
             raise ValueError(problem)
-        from worker.settings import parse_overrides
-
         parse_overrides(self.pretrain_set, self.algo)
         return self
 
@@ -172,6 +173,11 @@ def save_progress(folder: Path, progress: dict[str, Any]) -> None:
     tmp.replace(path)
 
 
+def child_env() -> dict[str, str]:
+    """This environment without what the pipeline hands its stages itself (:data:`HANDED`)."""
+    return {k: v for k, v in os.environ.items() if k not in HANDED}
+
+
 def say(stage: str, text: str) -> None:
     print(f"[lab {stage}] {text}", flush=True)
 
@@ -200,7 +206,7 @@ def identify(s: LabSettings, folder: Path) -> None:
 
     out = folder / "identified"
     out.mkdir(parents=True, exist_ok=True)
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env = {**child_env(), "PYTHONUNBUFFERED": "1"}
     todo = []
     for i, path in enumerate(identified_files(s, folder)):
         try:
@@ -293,7 +299,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
         f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})"
         + (f"; the arm's dry friction eased in over each worker's first {s.pretrain_ease_in} episodes "
            "(--pretrain-ease-in)" if s.pretrain_ease_in else ""))
-    env = {**{k: v for k, v in os.environ.items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
+    env = {**{k: v for k, v in child_env().items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
     why, met = "", False
     for attempt in range(1, s.pretrain_attempts + 1):
         run_dir = attempt_dir(folder, attempt)
@@ -371,7 +377,7 @@ def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
             "--seed", str(attempt_seed(s.seed, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
             str(s.pretrain_episodes), "--run-dir", str(attempt_dir(folder, attempt)),
             "--rig-profile", str(profile_path), "--rig-model", DRAWN_MODEL, "--qube-actions", s.qube_actions,
-            *(word for text in s.pretrain_set for word in ("--set", text))]
+            *(word for text in (*s.learner_set, *s.pretrain_set) for word in ("--set", text))]
 
 
 # -- stage 3: fine-tune -------------------------------------------------------------------------------------------
@@ -547,12 +553,13 @@ def finetune_command(s: LabSettings, folder: Path) -> list[str]:
                "--run-id", f"lab-s{s.seed}", "--run-dir", str(folder / "finetune"), "--init-model",
                str(pretrained(s, folder)), "--warm-lr", str(s.warm_lr), "--warm-temperature",
                str(s.warm_temperature), "--rig-model", str(folder / "identified"),
-               "--qube-actions", s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off"]
+               "--qube-actions", s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off",
+               *(word for text in s.learner_set for word in ("--set", text))]
     return command + (["--broker", s.broker, "--no-simulate-rigs"] if s.broker else [])
 
 
 def finetune(s: LabSettings, folder: Path) -> None:
-    code = run_child("finetune", finetune_command(s, folder), {**os.environ, "PYTHONUNBUFFERED": "1"})
+    code = run_child("finetune", finetune_command(s, folder), {**child_env(), "PYTHONUNBUFFERED": "1"})
     summary = read_summary(folder / "finetune")
     if summary is None or summary.end_reason == "interrupted":
         raise StageFailed(f"the fine-tune did not end (exit code {code}); the same command resumes it")

@@ -344,6 +344,9 @@ def report(s: LocalRunSettings, code: int, wall: float) -> int:
               file=sys.stderr)
         return code or 1
     summary = RunSummary.read(s.run_dir)
+    if s.learner_set and summary.learner_set != s.learner_set:  # the chief never sees the workers' learner settings
+        summary = summary.model_copy(update={"learner_set": s.learner_set})
+        summary.write(s.run_dir)
     print_summary(summary, s, wall)
     if summary.end_reason == INTERRUPTED:
         print(f"\nthe run stopped on a storage fault after {summary.rounds} rounds (the chief's log names it); once "

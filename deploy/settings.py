@@ -212,7 +212,7 @@ class InprocessSettings(DeviceNoiseSettings, LearnerSetSettings, WarmStartSettin
         return value
 
 
-class DockerSettings(DeviceNoiseSettings, FederationSettings):
+class DockerSettings(DeviceNoiseSettings, LearnerSetSettings, FederationSettings):
     """Federations in Docker containers (Mosquitto, chief, N workers), one per worker count, through the Docker SDK."""
 
     workers: Counts = setting([4], "worker count(s); several make a sweep, one run each")

@@ -15,7 +15,15 @@ import pytest
 
 from bench.lab import measure
 from chief.audit import audit
-from deploy.lab import COLLAPSED, PRETRAIN_SET, LabSettings, finetune_command, how_far, pretrain_command
+from deploy.lab import (
+    COLLAPSED,
+    PRETRAIN_SET,
+    LabSettings,
+    child_env,
+    finetune_command,
+    how_far,
+    pretrain_command,
+)
 from runtime.records import EpisodeRecord, RoundRecord
 from services.qube_sim import families
 from services.qube_sim.pretrain import for_lab
@@ -422,3 +430,16 @@ def test_the_pretrain_gets_its_learner_overrides_and_the_fine_tune_does_not(tmp_
     given = pretrain_command(LabSettings.given(pretrain_set=["actor_lr=1e-4", "hidden_sizes=(64, 64)"]), tmp_path, 2)
     assert given[given.index("--set"):] == ["--set", "actor_lr=1e-4", "--set", "hidden_sizes=(64, 64)"]
     assert "--set" not in finetune_command(LabSettings.given(init_model=tmp_path / "m.pt"), tmp_path)
+
+
+def test_set_reaches_both_stages_and_the_variable_is_read_once(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """``--set`` (FEDRL_LEARNER_SET) goes to the pretrain, before ``--pretrain-set``, and to the fine-tune, on their
+    command lines; the stages' environment does not carry the variable, so it is not read twice or behind --set."""
+    s = LabSettings.given(learner_set=["entropy_coef=0.02"], pretrain_set=["entropy_coef=0.03"],
+                          init_model=tmp_path / "m.pt")
+    pre, fine = pretrain_command(s, tmp_path, 1), finetune_command(s, tmp_path)
+    assert pre[pre.index("--set"):] == ["--set", "entropy_coef=0.02", "--set", "entropy_coef=0.03"]
+    assert fine[fine.index("--set"):fine.index("--set") + 2] == ["--set", "entropy_coef=0.02"]
+    monkeypatch.setenv("FEDRL_LEARNER_SET", "entropy_coef=0.02")
+    monkeypatch.setenv("FEDRL_SEED", "3")
+    assert "FEDRL_LEARNER_SET" not in child_env() and child_env()["FEDRL_SEED"] == "3"

@@ -39,3 +39,30 @@ def test_every_worker_learns_with_the_launchers_overrides(given: list[str], buil
     preset = env_spec("CartPole-v0").learner_config("ppo")
     wanted = (0.05, (16, 16)) if given else (preset.entropy_coef, preset.hidden_sizes)
     assert len(built) == 2 and all((c.entropy_coef, tuple(c.hidden_sizes)) == wanted for c in built)
+
+
+def test_a_launched_runs_summary_says_what_its_workers_learner_replaced(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """deploy.run_local's chief never sees the workers' settings: the launcher adds ``learner_set`` to its summary."""
+    from deploy import run_local
+    from runtime.records import RunSummary
+    from tests.deploy.test_printed_commands import solved_run
+
+    monkeypatch.setenv("FEDRL_ENV_FILE", "/dev/null")
+    given = ["entropy_coef=0.05", "hidden_sizes=(16, 16)"]
+    for learner_set in (given, []):
+        run_dir = tmp_path / f"run{len(learner_set)}"
+        flags = [word for text in learner_set for word in ("--set", text)]
+        s = run_local.load(["--run-id", "r1", "--run-dir", str(run_dir), *flags])
+        solved_run(run_dir, s)
+        assert run_local.report(s, 0, 1.0) == 0
+        assert RunSummary.read(run_dir).learner_set == (learner_set or None)
+
+
+def test_the_docker_launcher_hands_its_workers_the_overrides() -> None:
+    from deploy.settings import DockerSettings
+    from worker.settings import WorkerSettings
+
+    s = DockerSettings.given(learner_set=["entropy_coef=0.05"])
+    worker = s.child(WorkerSettings, inherit=False, broker="mqtt://127.0.0.1:1", run_id="r1", worker_id="w0")
+    assert worker.learner_overrides() == {"entropy_coef": 0.05}

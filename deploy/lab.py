@@ -173,9 +173,15 @@ def save_progress(folder: Path, progress: dict[str, Any]) -> None:
     tmp.replace(path)
 
 
-def child_env() -> dict[str, str]:
-    """This environment without what the pipeline hands its stages itself (:data:`HANDED`)."""
-    return {k: v for k, v in os.environ.items() if k not in HANDED}
+def child_env(hidden: Sequence[str] = ()) -> dict[str, str]:
+    """A stage's environment: this one without what the pipeline hands its stages itself (:data:`HANDED`) and without
+    ``hidden``, output unbuffered."""
+    return {**{k: v for k, v in os.environ.items() if k not in (*HANDED, *hidden)}, "PYTHONUNBUFFERED": "1"}
+
+
+def set_flags(texts: Sequence[str]) -> list[str]:
+    """``--set KEY=VALUE`` for each of ``texts``: a stage's learner overrides on its command line."""
+    return [word for text in texts for word in ("--set", text)]
 
 
 def say(stage: str, text: str) -> None:
@@ -206,7 +212,7 @@ def identify(s: LabSettings, folder: Path) -> None:
 
     out = folder / "identified"
     out.mkdir(parents=True, exist_ok=True)
-    env = {**child_env(), "PYTHONUNBUFFERED": "1"}
+    env = child_env()
     todo = []
     for i, path in enumerate(identified_files(s, folder)):
         try:
@@ -299,7 +305,7 @@ def pretrain(s: LabSettings, folder: Path) -> None:
         f"actions give the median rig at standstill; --pretrain-authority {s.pretrain_authority:g})"
         + (f"; the arm's dry friction eased in over each worker's first {s.pretrain_ease_in} episodes "
            "(--pretrain-ease-in)" if s.pretrain_ease_in else ""))
-    env = {**{k: v for k, v in child_env().items() if k not in TRUTH}, "PYTHONUNBUFFERED": "1"}
+    env = child_env(TRUTH)
     why, met = "", False
     for attempt in range(1, s.pretrain_attempts + 1):
         run_dir = attempt_dir(folder, attempt)
@@ -377,7 +383,7 @@ def pretrain_command(s: LabSettings, folder: Path, attempt: int) -> list[str]:
             "--seed", str(attempt_seed(s.seed, attempt)), "--policy", s.policy, "--algo", s.algo, "--max-episodes",
             str(s.pretrain_episodes), "--run-dir", str(attempt_dir(folder, attempt)),
             "--rig-profile", str(profile_path), "--rig-model", DRAWN_MODEL, "--qube-actions", s.qube_actions,
-            *(word for text in (*s.learner_set, *s.pretrain_set) for word in ("--set", text))]
+            *set_flags([*s.learner_set, *s.pretrain_set])]
 
 
 # -- stage 3: fine-tune -------------------------------------------------------------------------------------------
@@ -554,12 +560,12 @@ def finetune_command(s: LabSettings, folder: Path) -> list[str]:
                str(pretrained(s, folder)), "--warm-lr", str(s.warm_lr), "--warm-temperature",
                str(s.warm_temperature), "--rig-model", str(folder / "identified"),
                "--qube-actions", s.qube_actions, "--qube-clock", s.qube_clock, "--dashboard-port", "off",
-               *(word for text in s.learner_set for word in ("--set", text))]
+               *set_flags(s.learner_set)]
     return command + (["--broker", s.broker, "--no-simulate-rigs"] if s.broker else [])
 
 
 def finetune(s: LabSettings, folder: Path) -> None:
-    code = run_child("finetune", finetune_command(s, folder), {**child_env(), "PYTHONUNBUFFERED": "1"})
+    code = run_child("finetune", finetune_command(s, folder), child_env())
     summary = read_summary(folder / "finetune")
     if summary is None or summary.end_reason == "interrupted":
         raise StageFailed(f"the fine-tune did not end (exit code {code}); the same command resumes it")

@@ -278,7 +278,6 @@ def parse_overrides(texts: Iterable[str], algo: str = learners.DEFAULT) -> dict[
     return dict(parse_override(text, algo) for text in texts)
 
 
-
 def handed_keys(run_key: str, worker_id: str) -> dict[str, Any]:
     """The key settings a launcher hands worker ``worker_id`` of a run with ``run_key`` (protocol/auth.py): its own
     key and the chief key, never the run key (with it, a worker could derive every other worker's key)."""

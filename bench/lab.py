@@ -278,6 +278,28 @@ def _lab_minutes(report: dict[str, Any]) -> str:
     return f"{walls[len(walls) // 2]:.0f}" if walls else "-"
 
 
+#: What a merged results file must share with the collection it joins (``--merge``): the same pipeline and table.
+MERGE_KEYS = ("family", "env", "workers", "qube_actions", "warm_lr", "warm_temperature", "zero_shot_episodes")
+
+
+def merge(results: list[dict[str, Any]], not_run: list[int], earlier: dict[str, Any], source: str,
+          settings: dict[str, Any]) -> tuple[list[dict[str, Any]], list[int], dict[str, Any] | None]:
+    """The labs this collection did not have (``not_run``) taken from an ``earlier`` results file of the same
+    settings, wherever it has them: (results by seed, seeds still not run, what was taken: the file, its seeds, its
+    command and note; None when it gave none). A ValueError names a setting the two differ in."""
+    differ = [k for k in MERGE_KEYS if earlier.get(k) != settings[k]]
+    if differ:
+        what = "; ".join(f"{k} {earlier.get(k)!r}, here {settings[k]!r}" for k in differ)
+        raise ValueError(f"{source} was made with other settings ({what}): its labs cannot join this table")
+    theirs = {r["seed"]: r for r in earlier.get("results", [])}
+    taken = [seed for seed in not_run if seed in theirs]
+    if not taken:
+        return results, not_run, None
+    merged = sorted(results + [theirs[seed] for seed in taken], key=lambda r: r["seed"])
+    return merged, [seed for seed in not_run if seed not in theirs], {
+        "file": source, "seeds": taken, "command": earlier.get("command", ""), "note": earlier.get("note", "")}
+
+
 def render(report: dict[str, Any], source: str) -> str:
     """The markdown of one lab.json: the last rig per seed, median [IQR], and the targets (the table computed again
     from its results)."""
@@ -293,7 +315,9 @@ def render(report: dict[str, Any], source: str) -> str:
         f"{_lab_minutes(report)} wall minutes per lab, median, "
         f"by `{report['command'].split(' --note ')[0]}`)"
         + (f"; seeds {', '.join(map(str, report['not_run']))} were not run in the time this session had"
-           if report.get("not_run") else "") + "." + (f" {report['note']}" if report.get("note") else ""),
+           if report.get("not_run") else "") + "." + (f" {report['note']}" if report.get("note") else "")
+        + "".join(f" Seeds {', '.join(map(str, m['seeds']))} are from `{m['file']}`"
+                  + (f": {m['note']}" if m.get("note") else ".") for m in report.get("merged") or []),
         "",
         "| labs finished | fine-tune episodes | balance steps | rig minutes (identification + balance + reset) | "
         "zero-shot after identification | workers stopped on their rig |",
@@ -367,6 +391,9 @@ def main(argv: list[str] | None = None) -> int:
                    "to them runs)")
     p.add_argument("--collect", action="store_true", help="run nothing: measure the labs an earlier invocation left "
                    "in --runs-dir (an unfinished lab counts as unfinished, a seed without a folder as not run)")
+    p.add_argument("--merge", type=Path, default=None, metavar="RESULTS", help="with --collect: the labs of seeds "
+                   "that --runs-dir has no folder for, from this earlier results file of the same settings (a table "
+                   "whose labs ran in two invocations; each part's note is kept)")
     p.add_argument("--note", default="", help="a sentence the table shows after its header (with --collect: the "
                    "run that left the labs, its command, start and load)")
     p.add_argument("--report", action="store_true", help="only write the tables into README.md and "
@@ -374,6 +401,21 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.zero_shot_episodes < 1:
         p.error(f"--zero-shot-episodes must be at least 1, not {args.zero_shot_episodes}")
+    settings = {"family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
+                "warm_lr": args.warm_lr, "warm_temperature": args.warm_temperature,
+                "zero_shot_episodes": args.zero_shot_episodes}
+    earlier: dict[str, Any] = {}
+    if args.merge is not None:
+        if not (args.collect and args.merge.is_file()):
+            p.error(f"--merge takes an earlier results file ({args.merge} is none) and goes with --collect"
+                    if args.collect else "--merge goes with --collect")
+        try:
+            earlier = json.loads(args.merge.read_text())
+            if not isinstance(earlier, dict) or not isinstance(earlier.get("results"), list):
+                raise ValueError(f"{args.merge} is no bench.lab results file")
+            merge([], [], earlier, str(args.merge), settings)  # settings checked before any lab is measured
+        except ValueError as err:  # json's errors are ValueErrors too
+            p.error(str(err))
     if args.report:
         for source in [args.out] if args.out else [results_file(a) for a in REPORTED if results_file(a).exists()]:
             write_pages(source)
@@ -397,15 +439,15 @@ def main(argv: list[str] | None = None) -> int:
         results = list(pool.map(lambda seed: run_seed(seed, args.family, args, runs), seeds_of(args.seeds)))
     not_run = [r["seed"] for r in results if r.get("not_run")]
     results = [r for r in results if not r.get("not_run")]
+    merged = None
+    if args.merge is not None:
+        results, not_run, merged = merge(results, not_run, earlier, str(args.merge), settings)
     table = aggregate(results, args.workers)
     write_report(args.out, "bench.lab", argv, {
-        "family": args.family, "env": args.env, "workers": args.workers, "qube_actions": args.qube_actions,
-        "warm_lr": args.warm_lr, "warm_temperature": args.warm_temperature,
-        "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
-        "zero_shot_episodes": args.zero_shot_episodes,
+        **settings, "seeds": args.seeds, "jobs": args.jobs, "load_at_start": round(load, 2),
         "wall_s": round(time.monotonic() - began, 1),
         "collected": args.collect, "reused": str(args.reuse) if args.reuse else None, "note": args.note,
-        "not_run": not_run, "targets": TARGETS, "table": table,
+        "merged": [merged] if merged else [], "not_run": not_run, "targets": TARGETS, "table": table,
         "results": results})
     print(json.dumps(table, indent=1))
     shown = results_file(args.qube_actions)

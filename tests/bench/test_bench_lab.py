@@ -3,6 +3,9 @@ column, its rigs counted as not balanced zero-shot and its last rig as unfinishe
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 
 from bench import lab
@@ -57,3 +60,38 @@ def test_zero_shot_episodes_must_be_positive(capsys: pytest.CaptureFixture[str])
     with pytest.raises(SystemExit):
         lab.main(["--zero-shot-episodes", "0", "--report"])
     assert "--zero-shot-episodes must be at least 1" in capsys.readouterr().err
+
+
+def settings(**changed: object) -> dict[str, object]:
+    return {"family": "combined", "env": "qube-local", "workers": 3, "qube_actions": "paper", "warm_lr": 0.1,
+            "warm_temperature": 1.0, "zero_shot_episodes": 10, **changed}
+
+
+def test_merge_takes_the_labs_not_run_here_from_an_earlier_file_of_the_same_settings() -> None:
+    """``--collect --merge FILE``: a seed without a folder here comes from FILE where it has it (a table whose labs ran
+    in two invocations), in seed order; a seed neither has stays not run; the part merged is named with its note."""
+    here = [{**finished([MAX_RETURN] * 3), "seed": 508}]
+    earlier = {**settings(), "command": "python -m bench.lab --collect", "note": "Ran on another VM.",
+               "results": [{**finished([MAX_RETURN] * 3), "seed": s} for s in (501, 502, 508)]}
+    results, not_run, merged = lab.merge(here, [501, 502, 509], earlier, "lab.json", settings())
+    assert [r["seed"] for r in results] == [501, 502, 508] and results[2] is here[0]  # the folder here wins
+    assert not_run == [509] and merged is not None and merged["seeds"] == [501, 502]
+    text = lab.render({**settings(), "results": results, "seeds": "501-509", "cpus": 2, "load_at_start": 1.0,
+                       "command": "python -m bench.lab", "not_run": not_run, "merged": [merged]}, "lab.json")
+    assert "Seeds 501, 502 are from `lab.json`: Ran on another VM." in text and "seeds 509 were not run" in text
+    assert lab.merge(here, [509], earlier, "lab.json", settings()) == (here, [509], None)
+
+
+def test_merge_refuses_a_file_of_other_settings(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A results file made with another fine-tune (or family, action set...) cannot join the table: one line naming
+    the setting, before any lab is measured."""
+    with pytest.raises(ValueError, match=r"warm_temperature 0\.5, here 1\.0"):
+        lab.merge([], [501], {**settings(warm_temperature=0.5), "results": []}, "old.json", settings())
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({**settings(warm_lr=1.0), "results": []}))
+    for argv, said in ((["--collect", "--merge", str(old), "--runs-dir", str(tmp_path)], "warm_lr 1.0, here 0.1"),
+                       (["--merge", str(old)], "--merge goes with --collect"),
+                       (["--collect", "--merge", str(tmp_path / "none.json")], "is none")):
+        with pytest.raises(SystemExit):
+            lab.main(argv)
+        assert said in capsys.readouterr().err

@@ -11,7 +11,9 @@ starts 100+) were never used for tuning (that used rig seeds 0-7 and starts 0-7)
 
 Reported per family and model: rigs whose self-test passed, resets that reached ready (and on the first request),
 median and p90 seconds to ready (failed requests and settling included), the largest arm angle, trials past 110 deg,
-end-stop hits. Writes ``bench/results/reset.json``; ``--report`` puts its table into docs/explanation/qube.md.
+end-stop hits, and the handover (services/qube_sim/trials.py): resets that handed over a calm arm (CALM_ARM_SPEED,
+CALM_ARM_DEG), the median arm speed at ready and the median swing of the arm while the hold goes on (WATCH_S).
+Writes ``bench/results/reset.json``; ``--report`` puts its table into docs/explanation/qube.md.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ from rpi_bridge.control import ControlConfig, with_model
 from rpi_bridge.reset import STRATEGIES, ResetConfig, strategy
 from services.qube_sim import families
 from services.qube_sim.profile import RigProfile
-from services.qube_sim.trials import PERIOD_S, run_trial, summary, varied_start
+from services.qube_sim.trials import PERIOD_S, WATCH_S, run_trial, summary, varied_start
 from worker.qube_env import RESET_ATTEMPTS
 
 RESULTS = Path("bench/results")
@@ -61,12 +63,15 @@ def markdown(data: dict) -> str:
     lines = [f"Generated from `{data.get('out', 'bench/results/reset.json')}`, made by `{data['command']}` "
              f"({data['resets_per_family']} rigs per family and model from rig seed {data['rig_seeds_from']}, starts "
              f"from {data['starts_from']}, up to {data['attempts']} requests each; the seconds are the simulator's).",
-             "", "| family | model | self-test passed | ready (on the first request) | median s | p90 s |",
-             "| --- | --- | --- | --- | --- | --- |"]
+             "", "| family | model | self-test passed | ready (on the first request) | median s | p90 s | calm "
+             f"handovers | arm speed at ready, rad/s | arm swing in {WATCH_S:g} s of hold, deg |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         name = r["family"].removeprefix("lab-")
         lines.append(f"| {name} | {r['model']} | {r['self_test_passed']}/{r['trials']} | {r['ready']}/{r['trials']} "
-                     f"({r['first_attempt']}) | {r['median_s']:.2f} | {r['p90_s']:.2f} |")
+                     f"({r['first_attempt']}) | {r['median_s']:.2f} | {r['p90_s']:.2f} | "
+                     f"{_or_dash(r.get('calm_handovers'))} | {_or_dash(r.get('handover_arm_speed_median'))} | "
+                     f"{_or_dash(r.get('hold_swing_deg_median'))} |")
     lines.append("")
     totals = []
     for key, t in data["totals"].items():
@@ -79,6 +84,11 @@ def markdown(data: dict) -> str:
                  f"{sum(r['past_110_deg'] for r in rows)}; end-stop hits: {sum(r['end_stop_hits'] for r in rows)}; "
                  f"faults: {sum(r['faults'] for r in rows)}.")
     return "\n".join(lines) + "\n"
+
+
+def _or_dash(value: object) -> str:
+    """A cell of a value a results file may lack (made before it was measured): "-" then."""
+    return "-" if value is None else str(value)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -6,6 +6,9 @@ A trial: a fresh core calibrates and self-tests the rig hanging at rest, then th
 (the arm anywhere within +-60 deg, the pendulum up to 90 deg from hanging, both moving, like a rig after a fall or
 a failed swing-up), a reset is requested, and the trial records whether and when the core reported ready, the
 largest arm angle the (true) simulated arm reached, whether it touched an end stop and what the core reported.
+At ready it also records the handover, the state an episode would start from (the arm's angle and speed), and how
+far the arm swings while the hold goes on for ``WATCH_S`` more: a hold that hunts (friction against its arm loop)
+hands over an arm still swinging, a harder start for the controller than a calm one.
 """
 
 from __future__ import annotations
@@ -16,13 +19,18 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 from protocol import qube
-from rpi_bridge.control import ControlConfig, ControlCore
+from rpi_bridge.control import ControlConfig, ControlCore, Sensed
 from services.qube_sim.clock import VirtualClock
 from services.qube_sim.dynamics import QubeParams
 from services.qube_sim.spi_peer import SimulatedQube
 
 PERIOD_S = qube.PERIOD_S
 END_STOP = math.radians(115.0)  # the QUBE's arm stops, beyond rpi_bridge's 110 deg arm limit
+#: How long the hold is watched after ready (s), and what counts as a calm handover: the arm this slow (rad/s) and
+#: this near the middle (deg) at ready.
+WATCH_S = 3.0
+CALM_ARM_SPEED = 0.5
+CALM_ARM_DEG = 20.0
 
 
 @dataclass(frozen=True)
@@ -65,6 +73,15 @@ class TrialResult:
     hit_end_stop: bool
     outcome: str  # "ready", "reset_failed: <detail>", "fault: <reason>" or "timeout" (of the last attempt)
     attempts: int = 1  # reset requests made
+    handover_arm_deg: float | None = None  # |theta| (deg) at ready, as the bridge read it
+    handover_arm_speed: float | None = None  # |theta_dot| (rad/s) at ready
+    hold_swing_deg: float | None = None  # largest |theta| (deg) over WATCH_S of holding after ready
+
+    @property
+    def calm(self) -> bool:
+        """Ready with the arm slower than CALM_ARM_SPEED and nearer the middle than CALM_ARM_DEG."""
+        return (self.ready and self.handover_arm_speed is not None and self.handover_arm_deg is not None
+                and self.handover_arm_speed <= CALM_ARM_SPEED and self.handover_arm_deg <= CALM_ARM_DEG)
 
 
 def start_up(params: QubeParams, config: ControlConfig | None = None, device_options: dict[str, Any] | None = None
@@ -102,6 +119,7 @@ def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = N
         core.sense()
         clock.advance(PERIOD_S)
     max_arm, hit, outcome, elapsed, attempt = 0.0, False, "timeout", 0.0, 0
+    handover: Sensed | None = None
     while attempt < attempts:
         attempt += 1
         core.events.clear()
@@ -113,7 +131,7 @@ def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = N
             max_arm = max(max_arm, abs(theta))
             hit = hit or abs(theta) >= END_STOP - 1e-9
             if sensed.awaits_action:
-                outcome = "ready"
+                outcome, handover = "ready", sensed
                 break
             failed = [e for e in core.events if e[0] == "reset_failed"]
             if failed:
@@ -132,7 +150,23 @@ def run_trial(params: QubeParams, start: Start, config: ControlConfig | None = N
             core.act(None)
             clock.advance(PERIOD_S)
             elapsed += PERIOD_S
-    return TrialResult(outcome == "ready", round(elapsed, 3), math.degrees(max_arm), hit, outcome, attempt)
+    if handover is None:
+        return TrialResult(False, round(elapsed, 3), math.degrees(max_arm), hit, outcome, attempt)
+    return TrialResult(True, round(elapsed, 3), math.degrees(max_arm), hit, outcome, attempt,
+                       round(math.degrees(abs(handover.theta)), 2), round(abs(handover.theta_dot), 3),
+                       round(math.degrees(watch_hold(core, clock)), 2))
+
+
+def watch_hold(core: ControlCore, clock: VirtualClock) -> float:
+    """The largest |theta| (rad) while the core holds on after ready for WATCH_S, no action coming (the bridge's
+    ready phase: its reset controller keeps holding until the worker takes over)."""
+    swing = 0.0
+    for _ in range(round(WATCH_S / PERIOD_S)):
+        core.act(None)
+        clock.advance(PERIOD_S)
+        sensed = core.sense()
+        swing = max(swing, abs(sensed.theta))
+    return swing
 
 
 def run_condition(condition: Condition, trials: int = 50, config: ControlConfig | None = None) -> list[TrialResult]:
@@ -140,9 +174,11 @@ def run_condition(condition: Condition, trials: int = 50, config: ControlConfig 
     return [run_trial(condition.params(i), varied_start(i), config) for i in range(trials)]
 
 
-def summary(results: list[TrialResult]) -> dict[str, float | int]:
+def summary(results: list[TrialResult]) -> dict[str, float | int | None]:
     ready = [r for r in results if r.ready]
     times = sorted(r.seconds for r in ready)
+    speeds = sorted(r.handover_arm_speed for r in ready if r.handover_arm_speed is not None)
+    swings = sorted(r.hold_swing_deg for r in ready if r.hold_swing_deg is not None)
     return {
         "trials": len(results),
         "ready": len(ready),
@@ -154,4 +190,7 @@ def summary(results: list[TrialResult]) -> dict[str, float | int]:
         "faults": sum(r.outcome.startswith("fault") for r in results),
         "mean_s": round(sum(times) / len(times), 2) if times else 0.0,
         "p90_s": round(times[min(len(times) - 1, int(0.9 * len(times)))], 2) if times else 0.0,
+        "calm_handovers": sum(r.calm for r in results),
+        "handover_arm_speed_median": round(speeds[len(speeds) // 2], 2) if speeds else None,
+        "hold_swing_deg_median": round(swings[len(swings) // 2], 1) if swings else None,
     }

@@ -16,7 +16,16 @@ from rpi_bridge.reset import ResetConfig, ResetController
 from rpi_bridge.velocity import VelocityFilter
 from services.qube_sim.dynamics import QubeParams
 from services.qube_sim.spi_peer import SimulatedQube
-from services.qube_sim.trials import Condition, Start, run_condition, run_trial, summary
+from services.qube_sim.trials import (
+    CALM_ARM_DEG,
+    CALM_ARM_SPEED,
+    Condition,
+    Start,
+    run_condition,
+    run_trial,
+    summary,
+    varied_start,
+)
 
 TICK = qube.PERIOD_S
 
@@ -166,3 +175,21 @@ def test_reset_config_validation_keeps_catch_inside_boost() -> None:
     with pytest.raises(ValueError):
         ResetConfig(catch_angle=math.radians(30), boost_min_angle=math.radians(20))
     assert replace(ResetConfig(), swing_accel=50.0).swing_accel == 50.0
+
+
+def test_a_trial_records_the_handover_and_the_hold_after_it() -> None:
+    """At ready a trial records the arm as the episode would start from it (inside the reset's arm band) and how far
+    it swings while the hold goes on; a calm handover is one both slow and near the middle; a failed trial has no
+    handover. The summary counts the calm ones."""
+    r = run_trial(QubeParams(), varied_start(3))
+    assert r.ready and r.handover_arm_deg is not None and r.handover_arm_speed is not None
+    assert r.handover_arm_deg <= math.degrees(ResetConfig().arm_band) + 1e-6
+    assert r.hold_swing_deg is not None and r.hold_swing_deg >= r.handover_arm_deg - 1.0  # it starts from there
+    calm = replace(r, handover_arm_deg=CALM_ARM_DEG / 2, handover_arm_speed=CALM_ARM_SPEED / 2)
+    assert calm.calm and not replace(calm, handover_arm_speed=CALM_ARM_SPEED * 2).calm
+    assert not replace(calm, handover_arm_deg=CALM_ARM_DEG * 2).calm and not replace(calm, ready=False).calm
+    failed = run_trial(QubeParams(), varied_start(3), max_seconds=0.5)
+    assert not failed.ready and failed.handover_arm_speed is None and not failed.calm
+    s = summary([calm, r, failed])
+    assert s["calm_handovers"] == 1 + r.calm and s["handover_arm_speed_median"] is not None
+

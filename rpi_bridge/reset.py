@@ -65,9 +65,10 @@ from rpi_bridge.plant import PlantModel, lqr_gains
 from rpi_bridge.velocity import VelocityFilter, wrap_angle
 
 # The hold's gains before they were computed from a model: discrete LQR at T = 7 ms for x = (theta, alpha,
-# theta_dot, alpha_dot), u in counts, on the nominal plant, Q = diag(1, 10, 0, 0), R = 5e-3 per count^2, designed
-# without the actuation delay. rpi_bridge.plant.lqr_gains reproduces them from PlantModel() without the delay to
-# 4 digits (tests/rpi_bridge/test_reset_model.py); the hold now uses the design with the delay in the state.
+# theta_dot, alpha_dot), u in counts, on the nominal plant, Q = diag(1, 10, 0, 0) (rpi_bridge.plant.FIRST_LQR_Q),
+# R = 5e-3 per count^2, designed without the actuation delay. rpi_bridge.plant.lqr_gains reproduces them from
+# PlantModel() without the delay to 4 digits (tests/rpi_bridge/test_reset_model.py); the hold now uses the design with
+# the delay and the arm angle's integral in the state, and weights the arm more (rpi_bridge.plant.LQR_Q).
 LQR_GAINS = (12.7, -563.3, 13.3, -39.0)
 
 

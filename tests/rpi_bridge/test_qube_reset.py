@@ -193,3 +193,16 @@ def test_a_trial_records_the_handover_and_the_hold_after_it() -> None:
     s = summary([calm, r, failed])
     assert s["calm_handovers"] == 1 + r.calm and s["handover_arm_speed_median"] is not None
 
+
+def test_the_reset_hands_over_a_calm_arm_on_lab_rigs() -> None:
+    """The hold after a swing-up settles the arm before it hands over: a hold whose arm mode is slow and lightly
+    damped (the first design's weights, rpi_bridge/plant.py FIRST_LQR_Q) handed over none of these calm, the arm at
+    1.8 rad/s and swinging 35 deg within 3 s, and a warm start fell on such handovers. Tuning rig seeds and starts."""
+    from services.qube_sim.profile import load_profile
+
+    lab = load_profile("lab")
+    results = [run_trial(lab.rig_params(i), varied_start(i), max_seconds=40.0, device_options=lab.device_options())
+               for i in range(8)]
+    s = summary(results)
+    assert s["ready"] == 8 and s["calm_handovers"] >= 5, s
+    assert s["hold_swing_deg_median"] is not None and s["hold_swing_deg_median"] < 15.0, s

@@ -12,7 +12,7 @@ import pytest
 from protocol import qube
 from rpi_bridge.control import ControlConfig, ControlCore, with_model
 from rpi_bridge.frame import build_command, parse_reply
-from rpi_bridge.plant import PlantModel, delayed, lqr_gains, zoh
+from rpi_bridge.plant import FIRST_LQR_Q, PlantModel, delayed, lqr_gains, zoh
 from rpi_bridge.reset import LQR_GAINS, STRATEGIES, ResetConfig, ResetController, strategy
 from rpi_bridge.velocity import VelocityFilter
 from services.qube_sim import families
@@ -25,7 +25,7 @@ TICK = qube.PERIOD_S
 
 def test_lqr_design_on_the_nominal_model_gives_the_gains_of_before() -> None:
     nominal = PlantModel()
-    no_delay = lqr_gains(nominal, TICK, delay=False)
+    no_delay = lqr_gains(nominal, TICK, FIRST_LQR_Q, delay=False)
     assert no_delay[:4] == pytest.approx(LQR_GAINS, abs=0.05)  # LQR_GAINS has one decimal and no_delay[4] == 0.0
     k = lqr_gains(nominal, TICK, q_integral=1.0)  # what the hold uses: the delay and the integral in the state
     assert len(k) == 6 and k[5] > 0 and k[1] < 0
@@ -62,7 +62,7 @@ def hold_from(sim: SimulatedQube, ctl: ResetController, seconds: float) -> list[
 
 def test_the_hold_brings_a_sticky_arm_back_inside_the_arm_band() -> None:
     """Arm friction 2.5x lab's, caught upright with the arm at 0.5 rad: friction compensation and the integral bring
-    it back to the middle; without them it stays out where the LQR's arm feedback cannot move it."""
+    it back to the middle; without them it sticks on the way, where the LQR's arm feedback can no longer move it."""
     profile = families.family("arm_friction", 2.5)
 
     def run(**changes: float) -> list[float]:
@@ -71,9 +71,9 @@ def test_the_hold_brings_a_sticky_arm_back_inside_the_arm_band() -> None:
         return hold_from(sim, ResetController(ResetConfig(model=profile.plant_model(), **changes)), 4.0)
 
     arm = run()
-    assert max(abs(a) for a in arm) < math.radians(45) and abs(arm[-1]) < 0.15
+    assert max(abs(a) for a in arm) < math.radians(45) and abs(arm[-1]) < 0.05
     bare = run(friction_compensation=0.0, integral_weight=0.0)
-    assert abs(bare[-1]) > 0.3
+    assert abs(bare[-1]) > 0.15
 
 
 def swing_up_from_rest(profile: RigProfile, seed: int, seconds: float) -> tuple[str, float, ResetController]:

@@ -72,6 +72,8 @@ class Evaluation:
     rig_id: str | None = None
     videos: list[str] = field(default_factory=list)
     rig_profile: str | None = None
+    #: Each episode's first observation (the QUBE's: alpha, alpha_dot, theta, theta_dot, as the reset handed over)
+    starts: list[list[float]] = field(default_factory=list)
 
 
 @dataclass
@@ -142,9 +144,13 @@ def actions_of_model(path: Path) -> dict[str, Any]:
 # -- episodes ----------------------------------------------------------------------------------------------------
 
 
-def play(env: gym.Env, learner: Learner, seed: int, frames: list[np.ndarray] | None = None) -> tuple[float, int]:
-    """One greedy episode; returns (return, steps). ``frames`` collects ``env.render()`` images when given."""
+def play(env: gym.Env, learner: Learner, seed: int, frames: list[np.ndarray] | None = None,
+         starts: list[list[float]] | None = None) -> tuple[float, int]:
+    """One greedy episode; returns (return, steps). ``frames`` collects ``env.render()`` images, ``starts`` the first
+    observation (rounded), when given."""
     obs, _ = env.reset(seed=seed)
+    if starts is not None:
+        starts.append([round(float(v), 4) for v in np.ravel(obs)])
     if frames is not None:
         frames.append(np.asarray(env.render()))
     ret, steps = 0.0, 0
@@ -225,6 +231,7 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
     videos: list[str] = []
     returns: list[float] = []
     steps: list[int] = []
+    starts: list[list[float]] = []
     try:
         learner = load_learner(model, env_id, environment.observation_space, environment.action_space, algo)
         where = f" (rig {rig_id})" if rig_id else ""
@@ -234,7 +241,7 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
         fps = float(environment.metadata.get("render_fps") or 30)
         for i in range(episodes):
             frames: list[np.ndarray] | None = [] if video_dir is not None and i < video_episodes else None
-            ret, n = play(environment, learner, seed + i, frames)
+            ret, n = play(environment, learner, seed + i, frames, starts)
             returns.append(ret)
             steps.append(n)
             print(f"episode {i + 1:3d}: return {ret:9.2f} ({n} steps)", flush=True)
@@ -250,7 +257,7 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
                       device_noise=device_noise if spec.factory is None else None,
                       returns=returns, steps=steps, mean=mean, std=float(arr.std()), min=float(arr.min()),
                       max=float(arr.max()), tc=spec.tc, reached_tc=bool(mean >= spec.tc), rig_id=rig_id,
-                      videos=videos, rig_profile=rig_profile)
+                      videos=videos, rig_profile=rig_profile, starts=starts)
 
 
 def check_video_support(env_id: str) -> None:

@@ -4,6 +4,7 @@ real broker; the video; and the one-line errors for missing, foreign or broken m
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -73,6 +74,8 @@ def test_qube_local(tmp_path: Path) -> None:
     assert result.steps == [int(r) + 1 for r in result.returns], "+1 per step until the fall"
     assert result.device_noise is None and not result.reached_tc
     assert evaluate(model, "qube-local", episodes=2, seed=3).returns == result.returns
+    # each episode's first state, as the reset handed it over: the pendulum caught inside the balance band
+    assert len(result.starts) == 2 and all(len(s) == 4 and abs(s[0]) <= math.radians(5.0) for s in result.starts)
 
 
 def test_a_rig_over_mqtt(amqtt_broker: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

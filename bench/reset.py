@@ -22,6 +22,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 from bench.output import write_block, write_report
@@ -48,8 +49,11 @@ def all_families() -> list[tuple[str, str, RigProfile]]:
             ("course", families.course().name, families.course())]
 
 
-def run_family(profile: RigProfile, model: str, resets: int, rig_seed: int, start: int) -> list:
+def run_family(profile: RigProfile, model: str, resets: int, rig_seed: int, start: int,
+               hold_weights: tuple[float, float, float, float] | None = None) -> list:
     config = ControlConfig(period_s=PERIOD_S)
+    if hold_weights is not None:
+        config = replace(config, reset=replace(config.reset, hold_weights=hold_weights))
     if model == "true":
         config = with_model(config, profile.plant_model())
     return [run_trial(profile.rig_params(rig_seed + i), varied_start(start + i), config, max_seconds=WINDOW_S,
@@ -98,6 +102,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--start", type=int, default=100, help="reset i starts from start this + i (default 100)")
     parser.add_argument("--models", nargs="+", choices=MODELS, default=list(MODELS))
     parser.add_argument("--only", nargs="+", default=None, help="family names to run (default all)")
+    parser.add_argument("--hold-weights", default=None, metavar="Q_THETA,Q_ALPHA,Q_THETA_DOT,Q_ALPHA_DOT",
+                        help="the hold's LQR weights to try (default the bridge's, rpi_bridge/plant.py LQR_Q; to "
+                        "compare designs on tuning seeds: --rig-seed 0 --start 0)")
     parser.add_argument("--out", type=Path, default=RESULTS / "reset.json")
     parser.add_argument("--report", action="store_true",
                         help=f"only write --out's table into {PAGE} (runs nothing)")
@@ -108,13 +115,23 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.resets < 1:
         parser.error("--resets must be >= 1")
+    weights: tuple[float, float, float, float] | None = None
+    if args.hold_weights is not None:
+        try:
+            parts = [float(w) for w in args.hold_weights.split(",")]
+            if len(parts) != 4:
+                raise ValueError(f"four weights, not {len(parts)}")
+            weights = (parts[0], parts[1], parts[2], parts[3])
+            replace(ResetConfig(), hold_weights=weights)  # checked before any trial
+        except ValueError as err:
+            parser.error(f"--hold-weights: {err}")
     rows = []
     for group, name, profile in all_families():
         if args.only and name not in args.only:
             continue
         for model in args.models:
             t0 = time.process_time()
-            results = run_family(profile, model, args.resets, args.rig_seed, args.start)
+            results = run_family(profile, model, args.resets, args.rig_seed, args.start, weights)
             s = summary(results)
             row = {"group": group, "family": name, "model": model, **s,
                    "self_test_passed": sum(not r.outcome.startswith("start-up") for r in results),
@@ -136,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     print(json.dumps(totals), flush=True)
     write_report(args.out, "bench.reset", argv,
                  {"resets_per_family": args.resets, "rig_seeds_from": args.rig_seed, "starts_from": args.start,
+                  "hold_weights": list(weights or ResetConfig().hold_weights),
                   "attempts": RESET_ATTEMPTS, "totals": totals, "results": rows})
     return 0
 

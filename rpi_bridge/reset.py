@@ -61,7 +61,7 @@ import math
 from dataclasses import dataclass, field, replace
 
 from rpi_bridge.frame import MAX_COMMAND, clamp_command
-from rpi_bridge.plant import PlantModel, lqr_gains
+from rpi_bridge.plant import LQR_Q, PlantModel, lqr_gains
 from rpi_bridge.velocity import VelocityFilter, wrap_angle
 
 # The hold's gains before they were computed from a model: discrete LQR at T = 7 ms for x = (theta, alpha,
@@ -126,6 +126,7 @@ class ResetConfig:
     # hold: LQR from the model (rpi_bridge.plant.lqr_gains) with the delay and the arm angle's integral in the state
     gains: tuple[float, ...] | None = None  # (theta, alpha, theta_dot, alpha_dot[, u_prev, integral]); None: model
     period_s: float = 0.007  # the hold's design period (the bridge's tick)
+    hold_weights: tuple[float, float, float, float] = LQR_Q  # LQR Q on (theta, alpha, theta_dot, alpha_dot)
     integral_weight: float = 1.0  # LQR weight of the arm angle's integral (rad^2 s^2)
     integral_limit: float = 60.0  # counts: the integral's share of the command is bounded by this (anti-windup)
     friction_compensation: float = 0.8  # fraction of the model's arm friction and deadzone fed forward
@@ -151,6 +152,8 @@ class ResetConfig:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
         if self.gains is not None and len(self.gains) not in (4, 6):
             raise ValueError(f"gains must have 4 or 6 entries, got {len(self.gains)}")
+        if len(self.hold_weights) != 4 or not all(w >= 0 for w in self.hold_weights) or not any(self.hold_weights):
+            raise ValueError(f"hold_weights must be four weights >= 0, not all 0, got {self.hold_weights}")
         if not 0 <= self.friction_compensation <= 1.5 or self.integral_limit < 0 or self.integral_weight < 0:
             raise ValueError("need 0 <= friction_compensation <= 1.5, integral_limit >= 0 and integral_weight >= 0")
 
@@ -161,7 +164,7 @@ class ResetConfig:
     def hold_gains(self) -> tuple[float, float, float, float, float, float]:
         """(k_theta, k_alpha, k_theta_dot, k_alpha_dot, k_u_prev, k_integral): ``gains``, or designed from the
         model."""
-        k = self.gains if self.gains is not None else lqr_gains(self.model, self.period_s,
+        k = self.gains if self.gains is not None else lqr_gains(self.model, self.period_s, tuple(self.hold_weights),
                                                                q_integral=self.integral_weight)
         return (*k, 0.0, 0.0) if len(k) == 4 else tuple(k)  # type: ignore[return-value]
 

@@ -12,7 +12,7 @@ import pytest
 from protocol import qube
 from rpi_bridge.control import ControlConfig, ControlCore, with_model
 from rpi_bridge.frame import build_command, parse_reply
-from rpi_bridge.plant import FIRST_LQR_Q, PlantModel, delayed, lqr_gains, zoh
+from rpi_bridge.plant import FIRST_LQR_Q, LQR_Q, PlantModel, delayed, lqr_gains, zoh
 from rpi_bridge.reset import LQR_GAINS, STRATEGIES, ResetConfig, ResetController, strategy
 from rpi_bridge.velocity import VelocityFilter
 from services.qube_sim import families
@@ -219,3 +219,16 @@ def test_the_self_test_passes_sticky_and_heavy_arms_and_still_names_each_wiring_
                             ("dead_encoder1", "encoder 1 cable")):
         phase, detail = start_up(params, None, **{wiring: True})
         assert phase == "fault" and message in detail, (wiring, detail)
+
+
+def test_the_hold_weights_are_a_setting_of_the_reset() -> None:
+    """``ResetConfig.hold_weights`` (default rpi_bridge/plant.py LQR_Q) designs the hold's gains; four weights >= 0,
+    not all zero, else a ValueError naming them."""
+    model = PlantModel()
+    assert ResetConfig(model=model).hold_gains() == lqr_gains(model, TICK, LQR_Q, q_integral=1.0)
+    first = ResetConfig(model=model, hold_weights=FIRST_LQR_Q).hold_gains()
+    assert first == lqr_gains(model, TICK, FIRST_LQR_Q, q_integral=1.0) and abs(first[0]) < abs(
+        ResetConfig(model=model).hold_gains()[0])  # the first design's arm gain was the weaker
+    for bad in ((1.0, 10.0, 0.0), (1.0, -1.0, 0.0, 0.0), (0.0, 0.0, 0.0, 0.0)):
+        with pytest.raises(ValueError, match="hold_weights must be four weights"):
+            ResetConfig(hold_weights=bad)  # type: ignore[arg-type]

@@ -361,7 +361,8 @@ def check_out(out: Path, actions: str) -> None:
             raise ValueError(f"{out} holds the table of action set {made!r}; give --out {results_file(actions)}")
 
 
-def main(argv: list[str] | None = None) -> int:
+def arguments() -> argparse.ArgumentParser:
+    """bench.lab's command line."""
     p = argparse.ArgumentParser(prog="python -m bench.lab", description=__doc__.splitlines()[0])
     p.add_argument("--family", default="combined", help="the rigs' true family (services/qube_sim/families.py): "
                    "combined, course, lab, or <parameter>-x<factor> (default combined)")
@@ -398,6 +399,11 @@ def main(argv: list[str] | None = None) -> int:
                    "run that left the labs, its command, start and load)")
     p.add_argument("--report", action="store_true", help="only write the tables into README.md and "
                    "docs/how-to/lab.md (runs nothing): of --out, else of every action set's results file")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = arguments()
     args = p.parse_args(argv)
     if args.zero_shot_episodes < 1:
         p.error(f"--zero-shot-episodes must be at least 1, not {args.zero_shot_episodes}")

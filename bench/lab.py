@@ -268,7 +268,11 @@ def repeated_count(results: list[dict[str, Any]], workers: int) -> dict[str, int
 def _cell(s: dict[str, Any], digits: int = 0) -> str:
     if s.get("median") is None:
         return f"not reached ({s.get('unfinished', 0)} of {s['n']} unfinished)"
-    fmt = (lambda v: "unfinished" if v is None else f"{v:,.{digits}f}")  # noqa: E731
+    def fmt(v: float | None) -> str:  # a median between two labs keeps its half
+        if v is None:
+            return "unfinished"
+        return f"{v:,.{digits if digits or float(v).is_integer() else 1}f}"
+
     return f"{fmt(s['median'])} [{fmt(s['q1'])} to {fmt(s['q3'])}]"
 
 

@@ -31,8 +31,8 @@ PROFILE_FIELDS = {"Rm": "Rm", "km": "km", "kt": "kt", "mr": "mr", "Lr": "Lr", "m
 #: The weights of the gains the bridge had before they were computed from a model (rpi_bridge/reset.py LQR_GAINS).
 FIRST_LQR_Q = (1.0, 10.0, 0.0, 0.0)
 #: The hold's design weights: Q on (theta, alpha, theta_dot, alpha_dot), R per count^2. FIRST_LQR_Q's light arm
-#: weight left a slow, lightly damped arm mode: a reset handed over an arm still swinging (about 1.8 rad/s at ready
-#: and 35 deg within 3 s of holding on `lab` rigs, on no rig frictionless), and a warm start fell on such handovers
+#: weight left a slow, lightly damped arm mode: a reset handed over an arm still swinging (on `lab` rigs of the tuning
+#: seeds 1.77 rad/s at ready and 35.5 deg within 3 s of holding, median), and a warm start fell on such handovers
 #: after the swing-ups that it held when a balanced episode ended upright. Weighting the arm's angle and speed
 #: hands over a calm arm on most rigs and swings up no worse (python -m bench.reset; chosen on tuning rig seeds 0-15
 #: among 1, 20, 50 and 100 on the arm angle: docs/explanation/qube.md).

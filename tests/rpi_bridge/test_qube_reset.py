@@ -196,8 +196,9 @@ def test_a_trial_records_the_handover_and_the_hold_after_it() -> None:
 
 def test_the_reset_hands_over_a_calm_arm_on_lab_rigs() -> None:
     """The hold after a swing-up settles the arm before it hands over: a hold whose arm mode is slow and lightly
-    damped (the first design's weights, rpi_bridge/plant.py FIRST_LQR_Q) handed over none of these calm, the arm at
-    1.8 rad/s and swinging 35 deg within 3 s, and a warm start fell on such handovers. Tuning rig seeds and starts."""
+    damped (the first design's weights, rpi_bridge/plant.py FIRST_LQR_Q) handed over none of 16 such resets calm
+    (bench/results/reset-tuning-hold-1-10-0-0.json), and a warm start fell on such handovers. Tuning rig seeds and
+    starts."""
     from services.qube_sim.profile import load_profile
 
     lab = load_profile("lab")

@@ -286,15 +286,20 @@ def _lab_minutes(report: dict[str, Any]) -> str:
 MERGE_KEYS = ("family", "env", "workers", "qube_actions", "warm_lr", "warm_temperature", "zero_shot_episodes")
 
 
+def check_mergeable(earlier: dict[str, Any], source: str, settings: dict[str, Any]) -> None:
+    """A ValueError naming each setting (MERGE_KEYS) in which the results file ``earlier`` differs from ``settings``."""
+    differ = [k for k in MERGE_KEYS if earlier.get(k) != settings[k]]
+    if differ:
+        what = "; ".join(f"{k} {earlier.get(k)!r}, here {settings[k]!r}" for k in differ)
+        raise ValueError(f"{source} was made with other settings ({what}): its labs cannot join this table")
+
+
 def merge(results: list[dict[str, Any]], not_run: list[int], earlier: dict[str, Any], source: str,
           settings: dict[str, Any]) -> tuple[list[dict[str, Any]], list[int], dict[str, Any] | None]:
     """The labs this collection did not have (``not_run``) taken from an ``earlier`` results file of the same
     settings, wherever it has them: (results by seed, seeds still not run, what was taken: the file, its seeds, its
     command and note; None when it gave none). A ValueError names a setting the two differ in."""
-    differ = [k for k in MERGE_KEYS if earlier.get(k) != settings[k]]
-    if differ:
-        what = "; ".join(f"{k} {earlier.get(k)!r}, here {settings[k]!r}" for k in differ)
-        raise ValueError(f"{source} was made with other settings ({what}): its labs cannot join this table")
+    check_mergeable(earlier, source, settings)
     theirs = {r["seed"]: r for r in earlier.get("results", [])}
     taken = [seed for seed in not_run if seed in theirs]
     if not taken:
@@ -423,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
             earlier = json.loads(args.merge.read_text())
             if not isinstance(earlier, dict) or not isinstance(earlier.get("results"), list):
                 raise ValueError(f"{args.merge} is no bench.lab results file")
-            merge([], [], earlier, str(args.merge), settings)  # settings checked before any lab is measured
+            check_mergeable(earlier, str(args.merge), settings)  # before any lab is measured
         except ValueError as err:  # json's errors are ValueErrors too
             p.error(str(err))
     if args.report:

@@ -174,16 +174,22 @@ def run_condition(condition: Condition, trials: int = 50, config: ControlConfig 
     return [run_trial(condition.params(i), varied_start(i), config) for i in range(trials)]
 
 
+def _middle(values: list[float]) -> float | None:
+    """The median of ``values`` as the reset tables take it (the upper one of an even count); None for none."""
+    return sorted(values)[len(values) // 2] if values else None
+
+
 def summary(results: list[TrialResult]) -> dict[str, float | int | None]:
     ready = [r for r in results if r.ready]
     times = sorted(r.seconds for r in ready)
-    speeds = sorted(r.handover_arm_speed for r in ready if r.handover_arm_speed is not None)
-    swings = sorted(r.hold_swing_deg for r in ready if r.hold_swing_deg is not None)
+    speed = _middle([r.handover_arm_speed for r in ready if r.handover_arm_speed is not None])
+    swing = _middle([r.hold_swing_deg for r in ready if r.hold_swing_deg is not None])
+    median_s = _middle(times)
     return {
         "trials": len(results),
         "ready": len(ready),
         "first_attempt": sum(r.ready and r.attempts == 1 for r in results),
-        "median_s": round(times[len(times) // 2], 2) if times else 0.0,
+        "median_s": round(median_s, 2) if median_s is not None else 0.0,
         "max_arm_deg": round(max((r.max_arm_deg for r in results), default=0.0), 1),
         "past_110_deg": sum(r.max_arm_deg > 110.0 for r in results),
         "end_stop_hits": sum(r.hit_end_stop for r in results),
@@ -191,6 +197,6 @@ def summary(results: list[TrialResult]) -> dict[str, float | int | None]:
         "mean_s": round(sum(times) / len(times), 2) if times else 0.0,
         "p90_s": round(times[min(len(times) - 1, int(0.9 * len(times)))], 2) if times else 0.0,
         "calm_handovers": sum(r.calm for r in results),
-        "handover_arm_speed_median": round(speeds[len(speeds) // 2], 2) if speeds else None,
-        "hold_swing_deg_median": round(swings[len(swings) // 2], 1) if swings else None,
+        "handover_arm_speed_median": round(speed, 2) if speed is not None else None,
+        "hold_swing_deg_median": round(swing, 1) if swing is not None else None,
     }

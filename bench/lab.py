@@ -309,9 +309,15 @@ def merge(results: list[dict[str, Any]], not_run: list[int], earlier: dict[str, 
         "file": source, "seeds": taken, "command": earlier.get("command", ""), "note": earlier.get("note", "")}
 
 
-def render(report: dict[str, Any], source: str) -> str:
+#: The page whose table leaves the runs' notes (where, when, beside what each part ran) to the lab page's: the README
+#: stays short.
+BRIEF = Path("README.md")
+NOTES_LINK = "[the lab page](docs/how-to/lab.md#what-it-gives)"
+
+
+def render(report: dict[str, Any], source: str, notes: bool = True) -> str:
     """The markdown of one lab.json: the last rig per seed, median [IQR], and the targets (the table computed again
-    from its results)."""
+    from its results); without ``notes``, the runs' notes are a link to the lab page's table."""
     t = aggregate(report["results"], report["workers"])
     partial = bool(report.get("not_run"))  # the targets are over every lab: with labs not run, none is judged
     met = lambda ok: "not judged (labs not run)" if partial else "met" if ok else "**missed**"  # noqa: E731
@@ -324,9 +330,8 @@ def render(report: dict[str, Any], source: str) -> str:
         f"{_lab_minutes(report)} wall minutes per lab, median, "
         f"by `{report['command'].split(' --note ')[0]}`)"
         + (f"; seeds {', '.join(map(str, report['not_run']))} were not run in the time this session had"
-           if report.get("not_run") else "") + "." + (f" {report['note']}" if report.get("note") else "")
-        + "".join(f" Seeds {', '.join(map(str, m['seeds']))} are from `{m['file']}`"
-                  + (f": {m['note']}" if m.get("note") else ".") for m in report.get("merged") or []),
+           if report.get("not_run") else "") + "."
+        + (_notes(report) if notes else f" Where, when and beside what the labs ran: {NOTES_LINK}."),
         "",
         "| labs finished | fine-tune episodes | balance steps | rig minutes (identification + balance + reset) | "
         "zero-shot after identification | workers stopped on their rig |",
@@ -355,11 +360,20 @@ def render(report: dict[str, Any], source: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def _notes(report: dict[str, Any]) -> str:
+    """The runs' notes: the run's own, then each merged part's with the seeds it gave."""
+    return ((f" {report['note']}" if report.get("note") else "")
+            + "".join(f" Seeds {', '.join(map(str, m['seeds']))} are from `{m['file']}`"
+                      + (f": {m['note']}" if m.get("note") else ".") for m in report.get("merged") or []))
+
+
 def write_pages(source: Path, pages: tuple[Path, ...] | None = None) -> None:
-    """Put the table of ``source`` between the markers of its action set on each of its pages (``pages_of``)."""
+    """Put the table of ``source`` between the markers of its action set on each of its pages (``pages_of``; the
+    README's without the runs' notes)."""
     report = json.loads(source.read_text())
     actions = report["qube_actions"]
-    write_block(pages_of(actions) if pages is None else pages, *markers(actions), render(report, str(source)))
+    for page in pages_of(actions) if pages is None else pages:
+        write_block([page], *markers(actions), render(report, str(source), notes=page.name != BRIEF.name))
 
 
 def check_out(out: Path, actions: str) -> None:

@@ -79,6 +79,11 @@ def test_merge_takes_the_labs_not_run_here_from_an_earlier_file_of_the_same_sett
     text = lab.render({**settings(), "results": results, "seeds": "501-509", "cpus": 2, "load_at_start": 1.0,
                        "command": "python -m bench.lab", "not_run": not_run, "merged": [merged]}, "lab.json")
     assert "Seeds 501, 502 are from `lab.json`: Ran on another VM." in text and "seeds 509 were not run" in text
+    brief = lab.render({**settings(), "results": results, "seeds": "501-509", "cpus": 2, "load_at_start": 1.0,
+                        "command": "python -m bench.lab", "not_run": not_run, "merged": [merged], "note": "Here."},
+                       "lab.json", notes=False)  # the README's: the same table, the notes on the lab page
+    assert "another VM" not in brief and "Here." not in brief and lab.NOTES_LINK in brief
+    assert brief.split("\n")[1:] == text.split("\n")[1:] and "seeds 509 were not run" in brief
     assert lab.merge(here, [509], earlier, "lab.json", settings()) == (here, [509], None)
 
 

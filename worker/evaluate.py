@@ -1,4 +1,4 @@
-"""``python -m worker.evaluate MODEL [--env ENV]``: run a saved controller greedily and report its returns.
+"""``python -m worker.evaluate MODEL [--env ENV]``: run a saved controller greedily (or sampled) and report its returns.
 
     python -m worker.evaluate runs/<run>/models/w0.pt --episodes 10 --json eval.json   # on the model's own task
     python -m worker.evaluate runs/<run>/models/w0.pt --env CartPole-v0 --video videos/
@@ -10,7 +10,10 @@ MODEL is a ``models/<worker>.pt`` that a worker saved when it solved its task (w
 the one the model records (worker/model.py provenance; a rig model over MQTT runs on the simulated qube-local unless
 ``--rig-id`` is given); ``--env`` names it explicitly, and one that disagrees with the model is an error. Each episode
 takes the deterministic action (arg-max for discrete actions, the Gaussian mean for continuous ones), episode i is
-seeded with ``seed + i``, and nothing is learned. The report: every return, mean +- standard deviation, and whether
+seeded with ``seed + i``, and nothing is learned. ``--sampled T`` (PPO) plays the policy's sampled actions at
+temperature T instead, as a fine-tune from ``--warm-temperature T`` does (its sampling seeded with ``seed + i`` too):
+a warm start that balances greedily may still fall when it samples, and each fall costs a fine-tune up to the stop
+rule's 10 episodes. The report: every return, mean +- standard deviation, and whether
 the mean reaches the task's TC (protocol/tasks.py). ``--video DIR`` writes an animated GIF per recorded episode
 (gymnasium tasks; needs the ``video`` extra: pygame renders, Pillow writes).
 
@@ -69,6 +72,7 @@ class Evaluation:
     tc: float
     reached_tc: bool
     greedy: bool = True
+    temperature: float | None = None  # --sampled: the policy's temperature (None: greedy)
     rig_id: str | None = None
     videos: list[str] = field(default_factory=list)
     rig_profile: str | None = None
@@ -145,9 +149,13 @@ def actions_of_model(path: Path) -> dict[str, Any]:
 
 
 def play(env: gym.Env, learner: Learner, seed: int, frames: list[np.ndarray] | None = None,
-         starts: list[list[float]] | None = None) -> tuple[float, int]:
-    """One greedy episode; returns (return, steps). ``frames`` collects ``env.render()`` images, ``starts`` the first
-    observation (rounded), when given."""
+         starts: list[list[float]] | None = None, sampled: bool = False) -> tuple[float, int]:
+    """One greedy episode (``sampled``: the learner's sampled actions, its generator seeded with ``seed``); returns
+    (return, steps). ``frames`` collects ``env.render()`` images, ``starts`` the first observation (rounded), when
+    given."""
+    act = learner.act if sampled else learner.act_greedy
+    if sampled:
+        learner.generator.manual_seed(seed)
     obs, _ = env.reset(seed=seed)
     if starts is not None:
         starts.append([round(float(v), 4) for v in np.ravel(obs)])
@@ -155,7 +163,7 @@ def play(env: gym.Env, learner: Learner, seed: int, frames: list[np.ndarray] | N
         frames.append(np.asarray(env.render()))
     ret, steps = 0.0, 0
     while True:
-        obs, reward, terminated, truncated, _ = env.step(learner.act_greedy(obs))
+        obs, reward, terminated, truncated, _ = env.step(act(obs))
         ret += float(reward)
         steps += 1
         if frames is not None:
@@ -214,8 +222,9 @@ def robustness(model: Path, env_id: str, rig_profile: str | None, rigs: int, see
 def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device_noise: float = 1.0,
              video_dir: Path | None = None, video_episodes: int = 1, rig_id: str | None = None,
              conn: Any = None, rig_profile: str | None = None, algo: str | None = None,
-             rig_model: str | None = None) -> Evaluation:
-    """Run ``model`` greedily for ``episodes`` episodes of ``env_id``; see the module docstring."""
+             rig_model: str | None = None, temperature: float | None = None) -> Evaluation:
+    """Run ``model`` greedily (or sampled at ``temperature``) for ``episodes`` episodes of ``env_id``; see the module
+    docstring."""
     spec = env_spec(env_id)
     if video_dir is not None:
         check_video_support(env_id)
@@ -234,14 +243,20 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
     starts: list[list[float]] = []
     try:
         learner = load_learner(model, env_id, environment.observation_space, environment.action_space, algo)
+        if temperature is not None:
+            try:
+                learner.temper(temperature)
+            except ValueError as err:
+                raise EvalError(f"--sampled: {err}") from None
         where = f" (rig {rig_id})" if rig_id else ""
         noise = f", device noise {device_noise:g}" if spec.factory is None else ""
-        print(f"evaluating {model} on {env_id}{where}: {episodes} greedy episodes, seeds {seed}-{seed + episodes - 1}"
+        kind = "greedy" if temperature is None else f"sampled (temperature {temperature:g})"
+        print(f"evaluating {model} on {env_id}{where}: {episodes} {kind} episodes, seeds {seed}-{seed + episodes - 1}"
               f"{noise}", flush=True)
         fps = float(environment.metadata.get("render_fps") or 30)
         for i in range(episodes):
             frames: list[np.ndarray] | None = [] if video_dir is not None and i < video_episodes else None
-            ret, n = play(environment, learner, seed + i, frames, starts)
+            ret, n = play(environment, learner, seed + i, frames, starts, sampled=temperature is not None)
             returns.append(ret)
             steps.append(n)
             print(f"episode {i + 1:3d}: return {ret:9.2f} ({n} steps)", flush=True)
@@ -257,7 +272,8 @@ def evaluate(model: Path, env_id: str, episodes: int = 10, seed: int = 0, device
                       device_noise=device_noise if spec.factory is None else None,
                       returns=returns, steps=steps, mean=mean, std=float(arr.std()), min=float(arr.min()),
                       max=float(arr.max()), tc=spec.tc, reached_tc=bool(mean >= spec.tc), rig_id=rig_id,
-                      videos=videos, rig_profile=rig_profile, starts=starts)
+                      videos=videos, rig_profile=rig_profile, starts=starts, greedy=temperature is None,
+                      temperature=temperature)
 
 
 def check_video_support(env_id: str) -> None:
@@ -316,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             result = evaluate(s.model, env, s.eval_episodes, s.eval_seed, s.device_noise, s.eval_video,
                               s.eval_video_episodes, s.rig_id if conn else None, conn, s.rig_profile, s.algo,
-                              s.rig_model)
+                              s.rig_model, s.eval_temperature)
     except EvalError as err:
         print(f"evaluate: {err}", file=sys.stderr)
         return 2

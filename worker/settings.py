@@ -204,6 +204,10 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
                                        "records)")
     eval_episodes: int = setting(10, "number of episodes", aliases=["--episodes"], ge=1)
     eval_seed: int = setting(0, "episode i is seeded with seed + i", aliases=["--seed"])
+    eval_temperature: float | None = setting(
+        None, "play the policy's sampled actions at this temperature (0 < T <= 1: what a fine-tune from "
+        "--warm-temperature T plays, its sampling seeded per episode) instead of its greedy ones; PPO only",
+        aliases=["--sampled"], gt=0, le=1)
     eval_json: Path | None = setting(None, "also write the results to this JSON file", aliases=["--json"])
     eval_video: Path | None = setting(None, "write an animated GIF of the first --video-episodes episodes into this "
                                       "folder (gymnasium tasks)", aliases=["--video"])
@@ -237,6 +241,8 @@ class EvaluateSettings(MqttSettings, DeviceNoiseSettings):
             raise ValueError("--env qube drives a rig over MQTT: give --rig-id (and --broker)")
         if (self.rigs or self.rig_profile or self.rig_model) and self.env not in ("qube-local", None):
             raise ValueError("--rig-profile, --rig-model and --rigs are for the simulated rigs of --env qube-local")
+        if self.rigs and self.eval_temperature is not None:
+            raise ValueError("--rigs tests the greedy controller; --sampled plays episodes")
         from services.qube_sim.profile import load_profile  # torch-free, pydantic only
 
         for source in (self.rig_profile, self.rig_model):

@@ -13,6 +13,7 @@ import pytest
 import torch
 
 from protocol.tasks import solved
+from worker import learners
 from worker.envs import env_spec, make_env
 from worker.episode import run_episode
 from worker.evaluate import evaluate, main
@@ -65,6 +66,32 @@ def test_greedy_evaluation_is_reproducible_and_tells_models_apart(cartpole_model
     assert first.returns == again.returns
     fresh = evaluate(save_fresh("CartPole-v0", tmp_path / "fresh.pt"), "CartPole-v0", episodes=3, seed=7)
     assert not fresh.reached_tc and fresh.mean < first.mean
+
+
+def test_sampled_evaluation_is_seeded_and_plays_the_tempered_policy(cartpole_model: Path, tmp_path: Path,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """``--sampled T``: the policy's sampled actions at temperature T, reproducible per seed; a colder policy plays
+    nearer its greedy one (T -> 0 is greedy), and a learner without a temperature is a one-line error."""
+    out_json = tmp_path / "sampled.json"
+    assert main([str(cartpole_model), "--env", "CartPole-v0", "--episodes", "3", "--seed", "7", "--sampled", "1",
+                 "--json", str(out_json)]) == 0
+    assert "3 sampled (temperature 1) episodes" in capsys.readouterr().out
+    result = json.loads(out_json.read_text())
+    assert not result["greedy"] and result["temperature"] == 1.0
+    again = evaluate(cartpole_model, "CartPole-v0", episodes=3, seed=7, temperature=1.0)
+    assert again.returns == result["returns"]
+    fresh = save_fresh("CartPole-v0", tmp_path / "fresh.pt")  # an untrained policy: near uniform when sampled
+    greedy = evaluate(fresh, "CartPole-v0", episodes=5, seed=11)
+    cold = evaluate(fresh, "CartPole-v0", episodes=5, seed=11, temperature=1e-4)
+    warm = evaluate(fresh, "CartPole-v0", episodes=5, seed=11, temperature=1.0)
+    assert cold.returns == greedy.returns and warm.returns != greedy.returns
+    assert main([str(cartpole_model), "--env", "CartPole-v0", "--sampled", "0"]) == 2
+    assert "--sampled" in capsys.readouterr().err
+    kind = learners.get("dqn")  # epsilon-greedy: no policy temperature
+    env = make_env("CartPole-v0", 1)
+    kind.learner_class(env.observation_space, env.action_space, kind.config_class(), seed=1).save(tmp_path / "q.pt")
+    assert main([str(tmp_path / "q.pt"), "--env", "CartPole-v0", "--sampled", "0.5"]) == 2
+    assert "--sampled: dqn has no policy temperature to set" in capsys.readouterr().err
 
 
 def test_qube_local(tmp_path: Path) -> None:

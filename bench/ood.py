@@ -730,20 +730,25 @@ def render_readme(data: dict[str, Any], source: str) -> str:
              "files' damping; totals over each group's settings and seeds (fine-tune: median [IQR] over its runs, "
              f"unfinished counted as worse), from `{source}` (every setting: "
              "[Out of distribution](docs/how-to/ood.md)).", "",
-             "| rigs | bridge model (controller) | self-test passed | resets ready | "
-             + " | ".join([f"zero-shot `{a}`" for a in shots] + [f"fine-tune `{a}`: last rig's rig minutes"
-                                                                for a in tuned]) + " |",
-             "| --- | --- | --- | --- |" + " --- |" * (len(shots) + len(tuned))]
+             _cells(["rigs", "bridge model (controller)", "self-test passed", "resets ready"]
+                    + [f"zero-shot `{a}`" for a in shots]
+                    + [f"fine-tune `{a}`: last rig's rig minutes" for a in tuned]),
+             _cells(["---"] * (4 + len(shots) + len(tuned)))]
     for key, row in rows.items():
         group, variant = key.split("/")
         label = f"sweep ({row['settings']} settings)" if group == "sweep" else group
-        lines.append(f"| {label} | {SHORT[variant]} | {_pct(row['selftest'])} | {_pct(row['reset'])} | "
-                     + " | ".join([_pct(row.get(f"zeroshot-{a}")) for a in shots]
-                                  + [_med(row.get(f"finetune-{a}"), 1) for a in tuned]) + " |")
+        lines.append(_cells([label, SHORT[variant], _pct(row["selftest"]), _pct(row["reset"])]
+                            + [_pct(row.get(f"zeroshot-{a}")) for a in shots]
+                            + [_med(row.get(f"finetune-{a}"), 1) for a in tuned]))
     met = targets(rows)
     if met:
         lines += ["", "Targets: " + "; ".join(met) + "."]
     return "\n".join(lines) + "\n"
+
+
+def _cells(cells: list[str]) -> str:
+    """One markdown table row."""
+    return "| " + " | ".join(cells) + " |"
 
 
 def _pct(pair: tuple[int, int] | None) -> str:

@@ -156,6 +156,11 @@ def test_the_tables_sum_the_seeds_and_count_unfinished_runs_as_worse() -> None:
             "unfinished (1 of 2) |") in readme
     assert "zero-shot combined `paper` (identified) >= 90% **missed**" in readme
     assert "self-test on every rig met" in readme
+    only_resets = {k: v for k, v in entries().items() if k.startswith(("selftest/", "reset/"))}
+    partial = ood.render_readme({**data, "entries": only_resets}, "ood.json").splitlines()
+    assert partial[2:4] == ["| rigs | bridge model (controller) | self-test passed | resets ready |",
+                            "| --- | --- | --- | --- |"]  # as many cells as the columns measured
+    assert all(line.count("|") == 5 for line in partial if line.startswith("|"))
 
 
 def test_report_writes_between_the_markers_only(tmp_path: Path) -> None:

@@ -619,26 +619,25 @@ def render_docs(data: dict[str, Any], source: str) -> str:
              "no identification; `identified`: every rig identified first and the bridge's model is its identified "
              "profile (the controller is still the `lab`-randomised pretrain; rig minutes include identification); "
              "`around`: as `identified`, the controller pretrained around each lab's identified rigs.",
-             "", "| setting | " + " | ".join(f"self-test passed ({v})" for v in rig_variants) + " | "
-             + " | ".join(f"resets ready ({v})" for v in rig_variants) + " |",
-             "| --- |" + " --- |" * (2 * len(rig_variants))]
+             "", _cells(["setting", *(f"self-test passed ({v})" for v in rig_variants),
+                         *(f"resets ready ({v})" for v in rig_variants)]),
+             _cells(["---"] * (1 + 2 * len(rig_variants)))]
     for name in names:
         rows = [rig_row(entries, name, v) for v in rig_variants]
-        lines.append(f"| `{name}` | " + " | ".join(_frac(r["selftest"]) for r in rows) + " | "
-                     + " | ".join(_frac(r["reset"]) for r in rows) + " |")
+        lines.append(_cells([f"`{name}`", *(_frac(r["selftest"]) for r in rows), *(_frac(r["reset"]) for r in rows)]))
     for actions in [a for a in _present(entries, 2) if a in _action_sets()]:
         measured = [v for v in variants if any(k.split("/")[0] in ("zeroshot", "finetune")
                                                and k.split("/")[2:4] == [actions, v] for k in entries)]
         lines += ["", f"**Actions `{actions}`**: zero-shot (rigs balanced to the end), fine-tune runs finished, the "
                   "last rig's episodes and rig minutes, median [IQR] over the seeds (unfinished counted as worse).", "",
-                  "| setting | " + " | ".join(f"{m} ({v})" for m in ("zero-shot", "finished", "episodes", "rig min")
-                                              for v in measured) + " |",
-                  "| --- |" + " --- |" * (4 * len(measured))]
+                  _cells(["setting", *(f"{m} ({v})" for m in ("zero-shot", "finished", "episodes", "rig min")
+                                       for v in measured)]),
+                  _cells(["---"] * (1 + 4 * len(measured)))]
         for name in names:
             rows = [controller_row(entries, name, actions, v) for v in measured]
-            lines.append(f"| `{name}` | " + " | ".join(
-                [_frac(r["zeroshot"]) for r in rows] + [_frac(r["finished"]) for r in rows]
-                + [_med(r["episodes"]) for r in rows] + [_med(r["rig_min"], 1) for r in rows]) + " |")
+            lines.append(_cells([f"`{name}`", *(_frac(r["zeroshot"]) for r in rows),
+                                 *(_frac(r["finished"]) for r in rows), *(_med(r["episodes"]) for r in rows),
+                                 *(_med(r["rig_min"], 1) for r in rows)]))
     lines += ["", *pretrain_lines(entries), cost_line(entries)]
     return "\n".join(lines) + "\n"
 

@@ -619,9 +619,8 @@ def render_docs(data: dict[str, Any], source: str) -> str:
              "no identification; `identified`: every rig identified first and the bridge's model is its identified "
              "profile (the controller is still the `lab`-randomised pretrain; rig minutes include identification); "
              "`around`: as `identified`, the controller pretrained around each lab's identified rigs.",
-             "", _cells(["setting", *(f"self-test passed ({v})" for v in rig_variants),
-                         *(f"resets ready ({v})" for v in rig_variants)]),
-             _cells(["---"] * (1 + 2 * len(rig_variants)))]
+             "", *_head(["setting", *(f"self-test passed ({v})" for v in rig_variants),
+                         *(f"resets ready ({v})" for v in rig_variants)])]
     for name in names:
         rows = [rig_row(entries, name, v) for v in rig_variants]
         lines.append(_cells([f"`{name}`", *(_frac(r["selftest"]) for r in rows), *(_frac(r["reset"]) for r in rows)]))
@@ -630,9 +629,8 @@ def render_docs(data: dict[str, Any], source: str) -> str:
                                                and k.split("/")[2:4] == [actions, v] for k in entries)]
         lines += ["", f"**Actions `{actions}`**: zero-shot (rigs balanced to the end), fine-tune runs finished, the "
                   "last rig's episodes and rig minutes, median [IQR] over the seeds (unfinished counted as worse).", "",
-                  _cells(["setting", *(f"{m} ({v})" for m in ("zero-shot", "finished", "episodes", "rig min")
-                                       for v in measured)]),
-                  _cells(["---"] * (1 + 4 * len(measured)))]
+                  *_head(["setting", *(f"{m} ({v})" for m in ("zero-shot", "finished", "episodes", "rig min")
+                                       for v in measured)])]
         for name in names:
             rows = [controller_row(entries, name, actions, v) for v in measured]
             lines.append(_cells([f"`{name}`", *(_frac(r["zeroshot"]) for r in rows),
@@ -729,10 +727,9 @@ def render_readme(data: dict[str, Any], source: str) -> str:
              "files' damping; totals over each group's settings and seeds (fine-tune: median [IQR] over its runs, "
              f"unfinished counted as worse), from `{source}` (every setting: "
              "[Out of distribution](docs/how-to/ood.md)).", "",
-             _cells(["rigs", "bridge model (controller)", "self-test passed", "resets ready"]
+             *_head(["rigs", "bridge model (controller)", "self-test passed", "resets ready"]
                     + [f"zero-shot `{a}`" for a in shots]
-                    + [f"fine-tune `{a}`: last rig's rig minutes" for a in tuned]),
-             _cells(["---"] * (4 + len(shots) + len(tuned)))]
+                    + [f"fine-tune `{a}`: last rig's rig minutes" for a in tuned])]
     for key, row in rows.items():
         group, variant = key.split("/")
         label = f"sweep ({row['settings']} settings)" if group == "sweep" else group
@@ -748,6 +745,11 @@ def render_readme(data: dict[str, Any], source: str) -> str:
 def _cells(cells: list[str]) -> str:
     """One markdown table row."""
     return "| " + " | ".join(cells) + " |"
+
+
+def _head(names: list[str]) -> list[str]:
+    """A markdown table's header row and its separator, one column per name."""
+    return [_cells(names), _cells(["---"] * len(names))]
 
 
 def _pct(pair: tuple[int, int] | None) -> str:
